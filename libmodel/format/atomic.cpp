@@ -1,0 +1,121 @@
+#include "libmodel/format/atomic.h"
+
+#include "libmodel/format/types.h"
+
+#include <unistd.h>
+
+#include <atomic>
+#include <filesystem>
+#include <fstream>
+#include <system_error>
+
+namespace fs = std::filesystem;
+
+namespace orthosim {
+namespace {
+
+std::string temp_name(const std::string& target) {
+  static std::atomic<int> counter{0};
+  fs::path t(target);
+  std::string name = "." + t.filename().string() + ".tmp-" + std::to_string(::getpid()) + "-" +
+                     std::to_string(counter++);
+  return (t.parent_path() / name).string();
+}
+
+}  // namespace
+
+void check_output_file(const std::string& path) {
+  if (path.empty()) throw Error(path, "empty output path");
+  fs::path p(path);
+  std::error_code ec;
+  if (fs::is_directory(p, ec)) throw Error(path, "output path is a directory");
+  fs::path parent = p.parent_path();
+  if (!parent.empty() && !fs::is_directory(parent, ec))
+    throw Error(path, "output directory " + parent.string() + " does not exist");
+}
+
+void check_output_dir(const std::string& path) {
+  if (path.empty()) throw Error(path, "empty output directory");
+  std::error_code ec;
+  if (fs::exists(path, ec) && !fs::is_directory(path, ec))
+    throw Error(path, "output path exists and is not a directory");
+  fs::path parent = fs::path(path).parent_path();
+  if (!parent.empty() && !fs::exists(parent, ec)) {
+    fs::create_directories(parent, ec);
+    if (ec) throw Error(path, "cannot create parent directory: " + ec.message());
+  }
+}
+
+AtomicFile::AtomicFile(std::string target) : target_(std::move(target)) {
+  check_output_file(target_);
+  temp_ = temp_name(target_);
+}
+
+AtomicFile::~AtomicFile() {
+  if (!committed_) {
+    std::error_code ec;
+    fs::remove(temp_, ec);
+  }
+}
+
+void AtomicFile::commit() {
+  std::error_code ec;
+  fs::rename(temp_, target_, ec);
+  if (ec) throw Error(target_, "cannot move output into place: " + ec.message());
+  committed_ = true;
+}
+
+AtomicDir::AtomicDir(std::string target) : target_(std::move(target)) {
+  check_output_dir(target_);
+  std::string t = target_;
+  while (t.size() > 1 && t.back() == '/') t.pop_back();
+  target_ = t;
+  temp_ = temp_name(target_);
+  std::error_code ec;
+  fs::create_directories(temp_, ec);
+  if (ec) throw Error(target_, "cannot create temporary directory: " + ec.message());
+}
+
+AtomicDir::~AtomicDir() {
+  if (!committed_) {
+    std::error_code ec;
+    fs::remove_all(temp_, ec);
+  }
+}
+
+void AtomicDir::commit() {
+  std::error_code ec;
+  if (!fs::exists(target_, ec)) {
+    fs::rename(temp_, target_, ec);
+    if (ec) throw Error(target_, "cannot move output directory into place: " + ec.message());
+    committed_ = true;
+    return;
+  }
+  // merge: move each entry, replacing what is there
+  for (auto it = fs::recursive_directory_iterator(temp_); it != fs::recursive_directory_iterator(); ++it) {
+    fs::path rel = fs::relative(it->path(), temp_);
+    fs::path dst = fs::path(target_) / rel;
+    if (it->is_directory()) {
+      fs::create_directories(dst, ec);
+      if (ec) throw Error(dst.string(), "cannot create directory: " + ec.message());
+    } else {
+      fs::rename(it->path(), dst, ec);
+      if (ec) throw Error(dst.string(), "cannot move output into place: " + ec.message());
+    }
+  }
+  committed_ = true;
+  fs::remove_all(temp_, ec);
+}
+
+void write_text_file(const std::string& path, const std::string& text) {
+  AtomicFile out(path);
+  {
+    std::ofstream f(out.temp(), std::ios::binary);
+    f << text;
+    f.flush();
+    if (!f) throw Error(path, "cannot write file");
+  }
+  out.commit();
+}
+
+}  // namespace orthosim

@@ -1,0 +1,234 @@
+#include "libmodel/tissues.h"
+
+#include "libmodel/format/types.h"
+
+#include <nlohmann/json.hpp>
+
+#include <cctype>
+#include <cmath>
+#include <fstream>
+#include <set>
+#include <sstream>
+
+namespace orthosim {
+
+using nlohmann::json;
+
+const Tissue* TissueTable::find(const std::string& name) const {
+  for (const auto& t : tissues)
+    if (t.name == name) return &t;
+  return nullptr;
+}
+
+const Tissue* TissueTable::by_label(int label) const {
+  for (const auto& t : tissues)
+    if (t.label == label) return &t;
+  return nullptr;
+}
+
+std::vector<std::string> TissueTable::label_names() const {
+  int top = 0;
+  for (const auto& t : tissues) top = std::max(top, static_cast<int>(t.label));
+  std::vector<std::string> names(static_cast<std::size_t>(top) + 1);
+  names[0] = background_name;
+  for (const auto& t : tissues) names[t.label] = t.name;
+  return names;
+}
+
+int TissueTable::depth(const Tissue& t) const {
+  int d = 0;
+  const Tissue* cur = &t;
+  while (cur && !cur->inside.empty() && d <= static_cast<int>(tissues.size())) {
+    cur = find(cur->inside);
+    ++d;
+  }
+  return d;
+}
+
+namespace {
+
+void check_keys(const json& j, const std::set<std::string>& allowed, const std::string& path,
+                const std::string& where) {
+  for (auto it = j.begin(); it != j.end(); ++it)
+    if (!allowed.count(it.key())) throw Error(path, where + ": unknown key '" + it.key() + "'");
+}
+
+double number(const json& j, const char* key, const std::string& path, const std::string& where) {
+  if (!j.contains(key)) throw Error(path, where + ": missing '" + key + "'");
+  if (!j[key].is_number()) throw Error(path, where + ": '" + key + "' must be a number");
+  double v = j[key].get<double>();
+  if (!std::isfinite(v)) throw Error(path, where + ": '" + key + "' must be finite");
+  return v;
+}
+
+std::vector<std::array<std::uint8_t, 3>> colours(const json& j, const std::string& path, const std::string& where) {
+  if (!j.is_array() || j.empty()) throw Error(path, where + ": 'rgb' must be a non-empty list of [r,g,b]");
+  // accept a single [r,g,b] too
+  json list = j[0].is_number() ? json::array({j}) : j;
+  std::vector<std::array<std::uint8_t, 3>> out;
+  for (const auto& c : list) {
+    if (!c.is_array() || c.size() != 3) throw Error(path, where + ": each rgb prototype needs 3 values");
+    std::array<std::uint8_t, 3> rgb{};
+    for (int k = 0; k < 3; ++k) {
+      if (!c[k].is_number_integer() || c[k].get<int>() < 0 || c[k].get<int>() > 255)
+        throw Error(path, where + ": rgb values must be integers in 0..255");
+      rgb[k] = static_cast<std::uint8_t>(c[k].get<int>());
+    }
+    out.push_back(rgb);
+  }
+  return out;
+}
+
+Mechanics parse_mechanics(const json& m, const std::string& path, const std::string& where) {
+  Mechanics out;
+  if (!m.is_object()) throw Error(path, where + ": 'mechanics' must be an object");
+  if (!m.contains("model") || !m["model"].is_string()) throw Error(path, where + ": mechanics needs a 'model'");
+  const std::string model = m["model"];
+  const std::string w = where + " mechanics";
+  if (model == "biphasic") {
+    check_keys(m, {"model", "k1_kpa", "turning_strain", "k2_kpa", "weights", "note"}, path, w);
+    out.model = Mechanics::Model::biphasic;
+    out.k1_pa = number(m, "k1_kpa", path, w) * 1e3;
+    out.turning_strain = number(m, "turning_strain", path, w);
+    out.k2_pa = number(m, "k2_kpa", path, w) * 1e3;
+    if (!(out.k1_pa > 0)) throw Error(path, w + ": k1_kpa must be > 0");
+    if (!(out.k2_pa > 0)) throw Error(path, w + ": k2_kpa must be > 0");
+    if (out.k2_pa < out.k1_pa) throw Error(path, w + ": k2_kpa must not be smaller than k1_kpa");
+    if (!(out.turning_strain > 0 && out.turning_strain < 1))
+      throw Error(path, w + ": turning_strain must lie in (0, 1)");
+    out.weights = {1, 1, 1};
+  } else if (model == "linear") {
+    check_keys(m, {"model", "k_kpa", "weights", "note"}, path, w);
+    out.model = Mechanics::Model::linear;
+    out.k_pa = number(m, "k_kpa", path, w) * 1e3;
+    if (!(out.k_pa > 0)) throw Error(path, w + ": k_kpa must be > 0");
+    out.weights = {1};
+  } else {
+    throw Error(path, w + ": model must be 'biphasic' or 'linear', not '" + model + "'");
+  }
+  if (m.contains("weights")) {
+    if (!m["weights"].is_array() || m["weights"].size() != out.weights.size())
+      throw Error(path, w + ": 'weights' needs " + std::to_string(out.weights.size()) + " numbers");
+    double sum = 0;
+    for (std::size_t i = 0; i < out.weights.size(); ++i) {
+      if (!m["weights"][i].is_number()) throw Error(path, w + ": weights must be numbers");
+      out.weights[i] = m["weights"][i].get<double>();
+      if (!(out.weights[i] >= 0) || !std::isfinite(out.weights[i])) throw Error(path, w + ": weights must be >= 0");
+      sum += out.weights[i];
+    }
+    if (!(sum > 0)) throw Error(path, w + ": at least one weight must be positive");
+  }
+  return out;
+}
+
+}  // namespace
+
+TissueTable parse_tissue_table(const std::string& text, const std::string& path) {
+  json j;
+  try {
+    j = json::parse(text);
+  } catch (const json::parse_error& e) {
+    throw Error(path, std::string("not valid JSON: ") + e.what());
+  }
+  if (!j.is_object()) throw Error(path, "tissue table must be a JSON object");
+  check_keys(j, {"format", "note", "units", "background", "tissues"}, path, "top level");
+  if (!j.contains("format") || j["format"] != "orthosim-tissues/1")
+    throw Error(path, "missing or unsupported 'format' (expected \"orthosim-tissues/1\")");
+  TissueTable t;
+  t.path = path;
+  if (j.contains("background")) {
+    const auto& b = j["background"];
+    check_keys(b, {"name", "rgb", "note"}, path, "background");
+    if (b.contains("name")) t.background_name = b["name"].get<std::string>();
+    if (b.contains("rgb")) t.background_rgb = colours(b["rgb"], path, "background");
+  }
+  if (!j.contains("tissues") || !j["tissues"].is_array() || j["tissues"].empty())
+    throw Error(path, "'tissues' must be a non-empty list");
+  std::set<std::string> names;
+  std::set<int> labels;
+  static const std::set<std::string> layers = {"tetra", "lattice", "rigid", "vessel", "none"};
+  for (const auto& e : j["tissues"]) {
+    if (!e.is_object()) throw Error(path, "each tissue must be an object");
+    if (!e.contains("name") || !e["name"].is_string() || e["name"].get<std::string>().empty())
+      throw Error(path, "a tissue has no name");
+    Tissue ts;
+    ts.name = e["name"];
+    const std::string where = "tissue '" + ts.name + "'";
+    check_keys(e, {"name", "label", "rgb", "density_kg_m3", "layer", "inside", "mechanics", "source", "note"},
+               path, where);
+    for (char c : ts.name)
+      if (!(std::isalnum(static_cast<unsigned char>(c)) || c == '_' || c == '-'))
+        throw Error(path, where + ": names may use letters, digits, '_' and '-' only");
+    if (!names.insert(ts.name).second) throw Error(path, "duplicate tissue name '" + ts.name + "'");
+    if (!e.contains("label") || !e["label"].is_number_integer()) throw Error(path, where + ": missing integer 'label'");
+    int label = e["label"];
+    if (label < 1 || label > 255) throw Error(path, where + ": label must be in 1..255 (0 is background)");
+    if (!labels.insert(label).second) throw Error(path, "duplicate label " + std::to_string(label));
+    ts.label = static_cast<std::uint8_t>(label);
+    if (!e.contains("rgb")) throw Error(path, where + ": missing 'rgb'");
+    ts.rgb = colours(e["rgb"], path, where);
+    ts.density_kg_m3 = number(e, "density_kg_m3", path, where);
+    if (!(ts.density_kg_m3 > 0)) throw Error(path, where + ": density_kg_m3 must be > 0");
+    if (!e.contains("layer") || !e["layer"].is_string() || !layers.count(e["layer"].get<std::string>()))
+      throw Error(path, where + ": 'layer' must be one of tetra, lattice, rigid, vessel, none");
+    ts.layer = e["layer"];
+    if (e.contains("inside") && !e["inside"].is_null()) {
+      if (!e["inside"].is_string()) throw Error(path, where + ": 'inside' must be a tissue name");
+      ts.inside = e["inside"];
+    }
+    if (e.contains("mechanics")) ts.mechanics = parse_mechanics(e["mechanics"], path, where);
+    if ((ts.layer == "tetra" || ts.layer == "lattice") && ts.mechanics.model == Mechanics::Model::none)
+      throw Error(path, where + ": a " + ts.layer + " layer needs 'mechanics'");
+    if (e.contains("source") && e["source"].is_string()) ts.source = e["source"];
+    t.tissues.push_back(ts);
+  }
+  for (const auto& ts : t.tissues) {
+    if (!ts.inside.empty() && !t.find(ts.inside))
+      throw Error(path, "tissue '" + ts.name + "': 'inside' names unknown tissue '" + ts.inside + "'");
+    if (t.depth(ts) > static_cast<int>(t.tissues.size()))
+      throw Error(path, "tissue '" + ts.name + "': 'inside' forms a cycle");
+  }
+  return t;
+}
+
+TissueTable load_tissue_table(const std::string& path) {
+  std::ifstream in(path, std::ios::binary);
+  if (!in) throw Error(path, "cannot open tissue table (missing or unreadable)");
+  std::stringstream s;
+  s << in.rdbuf();
+  return parse_tissue_table(s.str(), path);
+}
+
+std::string to_json(const TissueTable& table) {
+  json j;
+  j["format"] = "orthosim-tissues/1";
+  j["units"] = {{"density", "kg/m^3"}, {"moduli", "kPa"}, {"rgb", "sRGB 0..255"}};
+  json bg;
+  bg["name"] = table.background_name;
+  if (!table.background_rgb.empty()) bg["rgb"] = table.background_rgb;
+  j["background"] = bg;
+  j["tissues"] = json::array();
+  for (const auto& t : table.tissues) {
+    json e;
+    e["name"] = t.name;
+    e["label"] = t.label;
+    e["rgb"] = t.rgb;
+    e["density_kg_m3"] = t.density_kg_m3;
+    e["layer"] = t.layer;
+    e["inside"] = t.inside.empty() ? json(nullptr) : json(t.inside);
+    if (t.mechanics.model == Mechanics::Model::biphasic) {
+      e["mechanics"] = {{"model", "biphasic"},
+                        {"k1_kpa", t.mechanics.k1_pa / 1e3},
+                        {"turning_strain", t.mechanics.turning_strain},
+                        {"k2_kpa", t.mechanics.k2_pa / 1e3},
+                        {"weights", t.mechanics.weights}};
+    } else if (t.mechanics.model == Mechanics::Model::linear) {
+      e["mechanics"] = {{"model", "linear"}, {"k_kpa", t.mechanics.k_pa / 1e3}, {"weights", t.mechanics.weights}};
+    }
+    if (!t.source.empty()) e["source"] = t.source;
+    j["tissues"].push_back(e);
+  }
+  return j.dump(2) + "\n";
+}
+
+}  // namespace orthosim

@@ -1,0 +1,271 @@
+#include "libmodel/format/model.h"
+#include "tests/test_util.h"
+
+#include <gtest/gtest.h>
+
+#include <filesystem>
+#include <map>
+#include <random>
+
+using namespace orthosim;
+
+namespace {
+
+// Serialises every declared field of a group struct: equality driven by the
+// same declaration that drives the file format.
+struct Collect {
+  std::map<std::string, std::string> bytes;
+  template <class M>
+  void operator()(const M& m, const char* name, const char*, const char*, const char*) {
+    std::string b(reinterpret_cast<const char*>(m.data()), sizeof(typename M::Scalar) * m.size());
+    bytes[name] = std::to_string(m.rows()) + ":" + b;
+  }
+};
+template <class S> std::map<std::string, std::string> collect(S s) {
+  Collect c;
+  s.fields(c);
+  return c.bytes;
+}
+
+// Fills every field of a group struct with `rows_for(count)` random rows.
+struct Fill {
+  std::mt19937 rng{42};
+  std::map<std::string, int> counts;
+  template <class M>
+  void operator()(M& m, const char*, const char* count, const char*, const char*) {
+    if (!counts.count(count)) counts[count] = 3 + static_cast<int>(counts.size());
+    m.resize(counts[count], M::ColsAtCompileTime);
+    for (Eigen::Index i = 0; i < m.size(); ++i)
+      m.data()[i] = static_cast<typename M::Scalar>(rng() % 3);  // small: valid as ids too
+  }
+};
+template <class S> S filled() {
+  S s;
+  Fill f;
+  s.fields(f);
+  return s;
+}
+
+Volume small_volume() {
+  Volume v;
+  v.nx = 4;
+  v.ny = 3;
+  v.nz = 2;
+  v.spacing_m = {0.3e-3, 0.3e-3, 1e-3};
+  v.origin_m = {-1e-3, 2e-3, 0};
+  v.labels.resize(24);
+  for (int i = 0; i < 24; ++i) v.labels[i] = static_cast<std::uint8_t>(i % 4);
+  v.label_names = {"background", "skin", "fat", "muscle"};
+  return v;
+}
+
+}  // namespace
+
+TEST(ModelFile, EveryGroupRoundTrips) {
+  test::TempDir dir("model");
+  const std::string p = dir / "m.h5";
+  Volume vol = small_volume();
+  auto surf = filled<Surface>();
+  auto quads = filled<QuadSurface>();
+  quads.nu = 1;
+  quads.nv = static_cast<int>(quads.vertices.rows());
+  auto layer = filled<Layer>();
+  layer.tissue = "fat";
+  layer.kind = "lattice";
+  layer.order = 1;
+  layer.node_offset = 12;
+  auto tree = filled<VesselTree>();
+  auto tuning = filled<Tuning>();
+  tuning.method = "sa";
+  tuning.seed = 9;
+  tuning.psi = 1e-5;
+  tuning.evaluations = 321;
+  tuning.seconds = 1.5;
+  VecXi set(3);
+  set << 0, 5, 7;
+  Provenance prov;
+  prov.tool_version = "0.1.0";
+  prov.command_line = "orthosim build";
+  prov.inputs_json = R"({"a":"xxh3:0"})";
+  prov.seed = 4;
+  prov.wall_s = 0.25;
+  {
+    ModelWriter w(p, ModelWriter::Start::fresh);
+    w.write(vol);
+    w.write("skin", surf);
+    w.write("skin", quads);
+    w.write_layer("fat", layer);
+    w.write_node_set("fixed", set);
+    w.write("artery", tree);
+    w.write("skin", tuning);
+    w.write("build", prov);
+    w.commit();
+  }
+  ModelReader r(p);
+  EXPECT_EQ(r.version(), format_version());
+  Volume v2 = r.volume();
+  EXPECT_EQ(v2.labels, vol.labels);
+  EXPECT_EQ(v2.nx, 4);
+  EXPECT_EQ(v2.nz, 2);
+  EXPECT_EQ(v2.spacing_m, vol.spacing_m);
+  EXPECT_EQ(v2.origin_m, vol.origin_m);
+  EXPECT_EQ(v2.label_names, vol.label_names);
+  EXPECT_EQ(v2.at(3, 2, 1), vol.labels[(1 * 3 + 2) * 4 + 3]);
+  EXPECT_EQ(collect(r.surface("skin")), collect(surf));
+  auto q2 = r.quads("skin");
+  EXPECT_EQ(collect(q2), collect(quads));
+  EXPECT_EQ(q2.nv, quads.nv);
+  auto l2 = r.layer("fat");
+  EXPECT_EQ(collect(l2), collect(layer));
+  EXPECT_EQ(l2.tissue, "fat");
+  EXPECT_EQ(l2.kind, "lattice");
+  EXPECT_EQ(l2.order, 1);
+  EXPECT_EQ(l2.node_offset, 12);
+  EXPECT_EQ(r.node_set("fixed"), set);
+  EXPECT_EQ(collect(r.vessels("artery")), collect(tree));
+  auto t2 = r.tuning("skin");
+  EXPECT_EQ(collect(t2), collect(tuning));
+  EXPECT_EQ(t2.method, "sa");
+  EXPECT_EQ(t2.evaluations, 321);
+  auto pr = r.provenance();
+  ASSERT_EQ(pr.count("build"), 1u);
+  EXPECT_EQ(pr["build"].command_line, "orthosim build");
+  EXPECT_EQ(pr["build"].seed, 4);
+  // every dataset carries a unit
+  for (const auto& name : r.h5().children("/layers/fat"))
+    EXPECT_TRUE(r.h5().has_attr("/layers/fat/" + name, "unit")) << name;
+}
+
+TEST(ModelFile, LazyReadTouchesOnlyWhatIsAsked) {
+  test::TempDir dir("model");
+  const std::string p = dir / "m.h5";
+  {
+    ModelWriter w(p, ModelWriter::Start::fresh);
+    w.write(small_volume());
+    w.write_layer("skin", filled<Layer>());
+    w.write("artery", filled<VesselTree>());
+    w.commit();
+  }
+  ModelReader r(p);
+  auto l = r.layer_fields("skin", {"nodes", "masses"});
+  EXPECT_GT(l.nodes.rows(), 0);
+  EXPECT_EQ(l.springs.rows(), 0);
+  EXPECT_EQ(r.h5().stats().datasets_read, 2);
+  for (const auto& path : r.h5().stats().paths_read) EXPECT_EQ(path.rfind("/layers/skin/", 0), 0u) << path;
+}
+
+TEST(ModelFile, UpdateAddsGroupsAndKeepsOthers) {
+  test::TempDir dir("model");
+  const std::string p = dir / "m.h5";
+  {
+    ModelWriter w(p, ModelWriter::Start::fresh);
+    w.write(small_volume());
+    w.commit();
+  }
+  {
+    ModelWriter w(p, ModelWriter::Start::update);
+    w.write("skin", filled<Surface>());
+    w.commit();
+  }
+  ModelReader r(p);
+  EXPECT_TRUE(r.has("/volume/labels"));
+  EXPECT_TRUE(r.has("/surfaces/skin/faces"));
+}
+
+TEST(ModelFile, FailedWriteLeavesExistingFileUntouched) {
+  test::TempDir dir("model");
+  const std::string p = dir / "m.h5";
+  {
+    ModelWriter w(p, ModelWriter::Start::fresh);
+    w.write(small_volume());
+    w.commit();
+  }
+  const std::string before = test::read_file(p);
+  try {
+    ModelWriter w(p, ModelWriter::Start::update);
+    w.write("skin", filled<Surface>());
+    Surface bad = filled<Surface>();
+    bad.faces(0, 0) = 999;  // out of range: the stage fails mid-way
+    w.write("fat", bad);
+    w.commit();
+    FAIL() << "expected an error";
+  } catch (const Error&) {
+  }
+  EXPECT_EQ(test::read_file(p), before);
+  // and no temporary file is left behind
+  int files = 0;
+  for (auto& e : std::filesystem::directory_iterator(dir.path)) files += e.is_regular_file();
+  EXPECT_EQ(files, 1);
+}
+
+TEST(ModelFile, CountMismatchIsRejectedOnWrite) {
+  test::TempDir dir("model");
+  Layer l = filled<Layer>();
+  l.masses.resize(l.nodes.rows() + 1);
+  ModelWriter w(dir / "m.h5", ModelWriter::Start::fresh);
+  try {
+    w.write_layer("skin", l);
+    FAIL();
+  } catch (const Error& e) {
+    EXPECT_NE(std::string(e.what()).find("n_nodes"), std::string::npos) << e.what();
+  }
+}
+
+TEST(ModelFile, BadFilesFailWithClearMessages) {
+  test::TempDir dir("model");
+  const std::string good = dir / "good.h5";
+  {
+    ModelWriter w(good, ModelWriter::Start::fresh);
+    w.write(small_volume());
+    w.write_layer("skin", filled<Layer>());
+    w.commit();
+  }
+  auto expect_error = [](const std::function<void()>& f, const std::string& needle) {
+    try {
+      f();
+      ADD_FAILURE() << "expected an error containing '" << needle << "'";
+    } catch (const Error& e) {
+      EXPECT_NE(std::string(e.what()).find(needle), std::string::npos) << e.what();
+    }
+  };
+  expect_error([&] { ModelReader r(dir / "nope.h5"); }, "missing or unreadable");
+  test::write_file(dir / "text.h5", "not hdf5");
+  expect_error([&] { ModelReader r(dir / "text.h5"); }, "not an HDF5 file");
+  // truncated: the first half of a valid file
+  std::string bytes = test::read_file(good);
+  test::write_file(dir / "trunc.h5", bytes.substr(0, bytes.size() / 2));
+  expect_error(
+      [&] {
+        ModelReader r(dir / "trunc.h5");
+        r.layer("skin");
+        r.volume();
+      },
+      "");
+  // plain HDF5, not ours
+  { h5::File f(dir / "plain.h5", h5::File::Mode::create); }
+  expect_error([&] { ModelReader r(dir / "plain.h5"); }, "not an orthosim model file");
+  // newer major version
+  std::filesystem::copy_file(good, dir / "new.h5");
+  {
+    h5::File f(dir / "new.h5", h5::File::Mode::read_write);
+    f.set_attr("/", "orthosim_format", "2.0");
+  }
+  expect_error([&] { ModelReader r(dir / "new.h5"); }, "newer");
+  // missing dataset, wrong shape, wrong dtype
+  std::filesystem::copy_file(good, dir / "broken.h5");
+  {
+    h5::File f(dir / "broken.h5", h5::File::Mode::read_write);
+    f.remove("/layers/skin/k1");
+    std::vector<double> x(8);
+    f.write<double>("/layers/skin/nodes", x.data(), {4, 2}, "m");
+    std::vector<float> y(3);
+    f.write<float>("/layers/skin/masses", y.data(), {3}, "kg");
+  }
+  ModelReader broken(dir / "broken.h5");
+  expect_error([&] { broken.layer_fields("skin", {"k1"}); }, "missing dataset /layers/skin/k1");
+  expect_error([&] { broken.layer_fields("skin", {"nodes"}); }, "expected (n x 3)");
+  expect_error([&] { broken.layer_fields("skin", {"masses"}); }, "float32");
+  expect_error([&] { broken.layer("fat"); }, "missing group /layers/fat");
+  ModelReader ok(good);
+  expect_error([&] { ok.vessels("artery"); }, "missing group");
+}

@@ -1,0 +1,93 @@
+#include "libmodel/tissues.h"
+#include "libmodel/format/types.h"
+#include "tests/test_util.h"
+
+#include <gtest/gtest.h>
+
+using namespace orthosim;
+
+namespace {
+const char* kGood = R"({
+  "format": "orthosim-tissues/1",
+  "background": {"rgb": [[90, 110, 140]]},
+  "tissues": [
+    {"name": "skin", "label": 1, "rgb": [[205, 160, 140]], "density_kg_m3": 1090, "layer": "tetra",
+     "mechanics": {"model": "biphasic", "k1_kpa": 0.1, "turning_strain": 0.4, "k2_kpa": 18.8, "weights": [1, 2, 1]},
+     "source": "paper Table 1"},
+    {"name": "fat", "label": 2, "rgb": [230, 200, 120], "density_kg_m3": 950, "layer": "lattice", "inside": "skin",
+     "mechanics": {"model": "linear", "k_kpa": 2.3}},
+    {"name": "bone", "label": 4, "rgb": [[230, 225, 210]], "density_kg_m3": 1920, "layer": "rigid", "inside": "fat"}
+  ]})";
+
+std::string replace(std::string s, const std::string& a, const std::string& b) {
+  auto k = s.find(a);
+  EXPECT_NE(k, std::string::npos) << a;
+  return s.replace(k, a.size(), b);
+}
+
+void expect_error(const std::string& text, const std::string& needle) {
+  try {
+    parse_tissue_table(text, "t.json");
+    ADD_FAILURE() << "expected error with '" << needle << "'";
+  } catch (const Error& e) {
+    EXPECT_NE(std::string(e.what()).find(needle), std::string::npos) << e.what();
+    EXPECT_EQ(std::string(e.what()).rfind("t.json: ", 0), 0u) << e.what();
+  }
+}
+}  // namespace
+
+TEST(Tissues, ParsesInSiUnits) {
+  auto t = parse_tissue_table(kGood, "t.json");
+  ASSERT_EQ(t.tissues.size(), 3u);
+  const Tissue* skin = t.find("skin");
+  ASSERT_NE(skin, nullptr);
+  EXPECT_EQ(skin->mechanics.model, Mechanics::Model::biphasic);
+  EXPECT_DOUBLE_EQ(skin->mechanics.k1_pa, 100.0);
+  EXPECT_DOUBLE_EQ(skin->mechanics.k2_pa, 18800.0);
+  EXPECT_DOUBLE_EQ(skin->mechanics.turning_strain, 0.4);
+  EXPECT_EQ(skin->mechanics.weights, (std::vector<double>{1, 2, 1}));
+  EXPECT_DOUBLE_EQ(t.find("fat")->mechanics.k_pa, 2300.0);
+  EXPECT_EQ(t.find("fat")->rgb.size(), 1u);  // a single [r,g,b] is accepted
+  EXPECT_EQ(t.depth(*t.find("bone")), 2);
+  auto names = t.label_names();
+  ASSERT_EQ(names.size(), 5u);
+  EXPECT_EQ(names[4], "bone");
+  EXPECT_EQ(names[3], "");
+  EXPECT_EQ(t.by_label(2)->name, "fat");
+}
+
+TEST(Tissues, JsonRoundTrip) {
+  auto t = parse_tissue_table(kGood, "t.json");
+  auto t2 = parse_tissue_table(to_json(t), "t2.json");
+  EXPECT_EQ(to_json(t), to_json(t2));
+  EXPECT_DOUBLE_EQ(t2.find("skin")->mechanics.k2_pa, 18800.0);
+}
+
+TEST(Tissues, RejectsBadTables) {
+  expect_error("{", "not valid JSON");
+  expect_error(replace(kGood, "\"density_kg_m3\": 950", "\"density_kg_m3\": -950"), "density_kg_m3 must be > 0");
+  expect_error(replace(kGood, "\"k2_kpa\": 18.8", "\"k2_kpa\": 0.05"), "k2_kpa must not be smaller");
+  expect_error(replace(kGood, "\"turning_strain\": 0.4", "\"turning_strain\": 0"), "turning_strain");
+  expect_error(replace(kGood, "\"label\": 2", "\"label\": 1"), "duplicate label 1");
+  expect_error(replace(kGood, "\"name\": \"fat\"", "\"name\": \"skin\""), "duplicate tissue name");
+  expect_error(replace(kGood, "\"layer\": \"tetra\"", "\"layer\": \"tetra\", \"colour\": 1"), "unknown key 'colour'");
+  expect_error(replace(kGood, "\"inside\": \"skin\"", "\"inside\": \"liver\""), "unknown tissue 'liver'");
+  expect_error(replace(kGood, "\"weights\": [1, 2, 1]", "\"weights\": [0, 0, 0]"), "at least one weight");
+  expect_error(replace(kGood, "\"k_kpa\": 2.3", "\"k_kpa\": -1"), "k_kpa must be > 0");
+  expect_error(replace(kGood, "\"label\": 4", "\"label\": 0"), "label must be in 1..255");
+  expect_error(replace(kGood, "orthosim-tissues/1", "other/2"), "format");
+  expect_error(replace(kGood, "[[230, 225, 210]]", "[[230, 225, 300]]"), "0..255");
+  // an inside cycle
+  expect_error(replace(replace(kGood, "\"layer\": \"tetra\",", "\"layer\": \"tetra\", \"inside\": \"bone\","),
+                       "\"inside\": \"fat\"", "\"inside\": \"skin\""),
+               "cycle");
+}
+
+TEST(Tissues, MissingFileIsAClearError) {
+  try {
+    load_tissue_table("/nonexistent/tissues.json");
+    FAIL();
+  } catch (const Error& e) {
+    EXPECT_EQ(e.file(), "/nonexistent/tissues.json");
+  }
+}

@@ -1,0 +1,149 @@
+#include "tools/common.h"
+
+#include "libmodel/format/atomic.h"
+#include "libmodel/provenance.h"
+
+#include <unistd.h>
+
+#include <cmath>
+#include <filesystem>
+#include <iostream>
+#include <sstream>
+
+namespace orthosim::cli {
+
+std::string& command_line() {
+  static std::string line;
+  return line;
+}
+
+int& exit_code() {
+  static int code = 0;
+  return code;
+}
+
+void add_common_options(CLI::App* sub, CommonOptions& o) {
+  sub->add_option("--report", o.report, "write a JSON summary (inputs, parameters, timings, metrics)");
+  sub->add_flag("--quiet,-q", o.quiet, "no progress or summary on stderr/stdout");
+}
+
+Report::Report(std::string command) : start_(std::chrono::steady_clock::now()) {
+  j_["command"] = std::move(command);
+  j_["version"] = version_string();
+  j_["command_line"] = command_line();
+  j_["time_utc"] = now_utc();
+  j_["inputs"] = nlohmann::json::object();
+  j_["outputs"] = nlohmann::json::array();
+  j_["parameters"] = nlohmann::json::object();
+  j_["phases_s"] = nlohmann::json::object();
+  j_["metrics"] = nlohmann::json::object();
+}
+
+void Report::input(const std::string& path) { j_["inputs"][path] = hash_path(path); }
+void Report::output(const std::string& path) { j_["outputs"].push_back(path); }
+
+void Report::phase(const std::string& name, double seconds) {
+  auto& p = j_["phases_s"];
+  p[name] = p.contains(name) ? p[name].get<double>() + seconds : seconds;
+}
+
+void Report::write(const std::string& path) {
+  j_["wall_s"] = std::chrono::duration<double>(std::chrono::steady_clock::now() - start_).count();
+  if (!path.empty()) write_text_file(path, j_.dump(2) + "\n");
+}
+
+Phase::Phase(Report& r, std::string name)
+    : r_(r), name_(std::move(name)), t0_(std::chrono::steady_clock::now()) {}
+Phase::~Phase() { r_.phase(name_, seconds()); }
+double Phase::seconds() const {
+  return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0_).count();
+}
+
+Progress::Progress(std::string label, long total, bool quiet)
+    : label_(std::move(label)), total_(total), enabled_(!quiet && ::isatty(2)),
+      t0_(std::chrono::steady_clock::now()) {}
+
+Progress::~Progress() {
+  if (shown_) std::cerr << "\r\033[K" << std::flush;
+}
+
+void Progress::update(long done) {
+  if (!enabled_ || total_ <= 0) return;
+  double t = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0_).count();
+  if (t < 1.0) return;
+  shown_ = true;
+  int width = 30;
+  int fill = static_cast<int>(width * std::min(1.0, static_cast<double>(done) / total_));
+  std::cerr << "\r" << label_ << " [" << std::string(fill, '#') << std::string(width - fill, ' ') << "] "
+            << done << "/" << total_ << std::flush;
+}
+
+int guarded(const std::string& command, const std::function<void()>& body) {
+  try {
+    body();
+    return 0;
+  } catch (const UsageError& e) {
+    std::cerr << "orthosim " << command << ": error: " << e.what() << "\n";
+    return 2;
+  } catch (const Error& e) {
+    std::cerr << "orthosim " << command << ": error: " << e.what() << "\n";
+    return 2;
+  } catch (const std::bad_alloc&) {
+    std::cerr << "orthosim " << command << ": error: out of memory\n";
+    return 1;
+  } catch (const std::exception& e) {
+    std::cerr << "orthosim " << command << ": internal error: " << e.what() << "\n";
+    return 1;
+  }
+}
+
+void on_run(CLI::App* sub, const std::string& command, std::function<void()> body) {
+  sub->callback([command, body = std::move(body)] { exit_code() = guarded(command, body); });
+}
+
+std::vector<int> parse_size(const std::string& text, int n, const std::string& flag) {
+  std::vector<int> out;
+  std::stringstream s(text);
+  std::string part;
+  while (std::getline(s, part, 'x')) {
+    try {
+      std::size_t used = 0;
+      long v = std::stol(part, &used);
+      if (used != part.size()) throw std::invalid_argument("junk");
+      if (v <= 0 || v > 100000) throw UsageError(flag + ": each size must be in 1..100000, got '" + text + "'");
+      out.push_back(static_cast<int>(v));
+    } catch (const UsageError&) {
+      throw;
+    } catch (...) {
+      throw UsageError(flag + ": expected sizes like 256x256x128, got '" + text + "'");
+    }
+  }
+  if (static_cast<int>(out.size()) != n)
+    throw UsageError(flag + ": expected " + std::to_string(n) + " sizes separated by 'x', got '" + text + "'");
+  return out;
+}
+
+std::vector<double> parse_list(const std::string& text, int n, const std::string& flag, bool positive) {
+  std::vector<double> out;
+  std::stringstream s(text);
+  std::string part;
+  while (std::getline(s, part, ',')) {
+    try {
+      std::size_t used = 0;
+      double v = std::stod(part, &used);
+      if (used != part.size()) throw std::invalid_argument("junk");
+      if (!std::isfinite(v)) throw std::invalid_argument("inf");
+      if (positive && !(v > 0)) throw UsageError(flag + ": values must be positive, got '" + text + "'");
+      out.push_back(v);
+    } catch (const UsageError&) {
+      throw;
+    } catch (...) {
+      throw UsageError(flag + ": expected " + std::to_string(n) + " numbers like 0.3,0.3,1.0, got '" + text + "'");
+    }
+  }
+  if (static_cast<int>(out.size()) != n)
+    throw UsageError(flag + ": expected " + std::to_string(n) + " comma-separated numbers, got '" + text + "'");
+  return out;
+}
+
+}  // namespace orthosim::cli

@@ -1,0 +1,100 @@
+// Shared plumbing for the orthosim subcommands: the JSON report, phase
+// timers, a progress bar and the error-to-exit-code policy.
+//
+// Every subcommand file defines `void add_<name>_command(CLI::App& app)`
+// which registers the subcommand and its callback; the callback parses flags
+// into the stage's options struct, calls the library and fills a Report.
+// Exit codes: 0 success, 2 bad usage or bad input (orthosim::Error,
+// UsageError), 1 internal error. Errors print one line:
+//   orthosim <cmd>: error: <file>: <what is wrong>
+#pragma once
+
+#include "libmodel/format/types.h"
+
+#include <CLI/CLI.hpp>
+#include <nlohmann/json.hpp>
+
+#include <chrono>
+#include <functional>
+#include <string>
+
+namespace orthosim::cli {
+
+// Bad flag values: printed like Error, exit 2.
+class UsageError : public std::runtime_error {
+ public:
+  using std::runtime_error::runtime_error;
+};
+
+// Options every subcommand has.
+struct CommonOptions {
+  std::string report;  // --report FILE.json
+  bool quiet = false;  // --quiet
+};
+void add_common_options(CLI::App* sub, CommonOptions& o);
+
+// The machine-readable summary written by --report: command, version,
+// inputs with their hashes, parameters, per-phase wall times, metrics.
+class Report {
+ public:
+  explicit Report(std::string command);
+  void input(const std::string& path);  // records the path and its xxh3 hash (files or directories)
+  void output(const std::string& path);
+  nlohmann::json& parameters() { return j_["parameters"]; }
+  nlohmann::json& metrics() { return j_["metrics"]; }
+  void phase(const std::string& name, double seconds);
+  nlohmann::json& json() { return j_; }
+  // Atomically writes the report if `path` is non-empty. Adds total wall time.
+  void write(const std::string& path);
+
+ private:
+  nlohmann::json j_;
+  std::chrono::steady_clock::time_point start_;
+};
+
+// Times a phase into a report: `{ Phase p(report, "segment"); ... }`.
+class Phase {
+ public:
+  Phase(Report& r, std::string name);
+  ~Phase();
+  double seconds() const;
+
+ private:
+  Report& r_;
+  std::string name_;
+  std::chrono::steady_clock::time_point t0_;
+};
+
+// A progress bar on stderr, shown only when stderr is a terminal, not quiet,
+// and the work has run for more than ~1 s.
+class Progress {
+ public:
+  Progress(std::string label, long total, bool quiet);
+  ~Progress();
+  void update(long done);
+
+ private:
+  std::string label_;
+  long total_;
+  bool enabled_;
+  bool shown_ = false;
+  std::chrono::steady_clock::time_point t0_;
+};
+
+// Runs a subcommand body with the exit-code policy above. Returns the code.
+int guarded(const std::string& command, const std::function<void()>& body);
+// The process exit code main() returns (set by on_run).
+int& exit_code();
+// Registers `body` as the subcommand's callback, run through guarded():
+//   on_run(sub, "phantom", [&] { ... });
+void on_run(CLI::App* sub, const std::string& command, std::function<void()> body);
+
+// Parses "AxBxC" (e.g. "256x256x128") into n positive integers.
+std::vector<int> parse_size(const std::string& text, int n, const std::string& flag);
+// Parses "a,b,c" into n finite numbers; `positive` requires each > 0.
+std::vector<double> parse_list(const std::string& text, int n, const std::string& flag, bool positive);
+
+// The command line as typed, for provenance.
+std::string& command_line();
+
+}  // namespace orthosim::cli
