@@ -206,6 +206,59 @@ void File::write_raw(const std::string& object, DType type, const void* data,
   if (!doc.empty()) set_attr(object, "doc", doc);
 }
 
+void File::create_raw(const std::string& object, DType type, const std::vector<std::uint64_t>& dims,
+                      const std::string& unit, const std::string& doc) {
+  make_groups(parent_of(object));
+  remove(object);
+  std::vector<hsize_t> hd(dims.begin(), dims.end());
+  std::uint64_t n = 1;
+  for (auto d : dims) n *= d;
+  if (hd.empty() || n == 0) throw Error(path_, "cannot create an empty streamed dataset " + object);
+  Handle space(H5Screate_simple(static_cast<int>(hd.size()), hd.data(), nullptr), H5Sclose);
+  if (space.id < 0) throw Error(path_, "cannot create dataspace for " + object);
+  Handle dcpl(H5Pcreate(H5P_DATASET_CREATE), H5Pclose);
+  std::vector<hsize_t> chunk = hd;
+  chunk[0] = 1;
+  H5Pset_chunk(dcpl, static_cast<int>(chunk.size()), chunk.data());
+  H5Pset_shuffle(dcpl);
+  H5Pset_deflate(dcpl, 1);
+  Handle ds(H5Dcreate2(id_, object.c_str(), native(type), space, H5P_DEFAULT, dcpl, H5P_DEFAULT),
+            H5Dclose);
+  if (ds.id < 0) throw Error(path_, "cannot create dataset " + object);
+  set_attr(object, "unit", unit);
+  if (!doc.empty()) set_attr(object, "doc", doc);
+}
+
+void File::rows_raw(const std::string& object, DType type, std::uint64_t first, std::uint64_t n, void* data,
+                    bool write) {
+  if (!write && dtype(object) != type)
+    throw Error(path_, object + " has element type " + dtype_name(dtype(object)) + ", expected " +
+                           dtype_name(type));
+  std::vector<hsize_t> hd;
+  for (auto d : dims(object)) hd.push_back(d);
+  if (hd.empty() || first + n > hd[0]) throw Error(path_, "rows out of range in " + object);
+  if (n == 0) return;
+  Handle ds(H5Dopen2(id_, object.c_str(), H5P_DEFAULT), H5Dclose);
+  Handle fspace(H5Dget_space(ds), H5Sclose);
+  std::vector<hsize_t> start(hd.size(), 0), count = hd;
+  start[0] = first;
+  count[0] = n;
+  H5Sselect_hyperslab(fspace, H5S_SELECT_SET, start.data(), nullptr, count.data(), nullptr);
+  Handle mspace(H5Screate_simple(static_cast<int>(count.size()), count.data(), nullptr), H5Sclose);
+  herr_t rc = write ? H5Dwrite(ds, native(type), mspace, fspace, H5P_DEFAULT, data)
+                    : H5Dread(ds, native(type), mspace, fspace, H5P_DEFAULT, data);
+  if (rc < 0)
+    throw Error(path_, std::string(write ? "cannot write rows of " : "cannot read rows of (corrupt or truncated) ") +
+                           object);
+  if (!write) {
+    std::uint64_t elems = 1;
+    for (auto c : count) elems *= c;
+    stats_.datasets_read += 1;
+    stats_.bytes_read += static_cast<std::int64_t>(elems * H5Tget_size(native(type)));
+    stats_.paths_read.push_back(object);
+  }
+}
+
 std::vector<std::uint64_t> File::dims(const std::string& object) const {
   if (!exists(object)) throw Error(path_, "missing dataset " + object);
   Handle ds(H5Dopen2(id_, object.c_str(), H5P_DEFAULT), H5Dclose);

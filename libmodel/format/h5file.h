@@ -64,6 +64,24 @@ class File {
   std::vector<std::uint64_t> dims(const std::string& object) const;
   DType dtype(const std::string& object) const;
 
+  // Streamed datasets, for arrays too large to hold at once (segment's label
+  // volume): create() makes a dataset of `dims` chunked by one row of the
+  // first axis, compressed like write(); write_rows() and read_rows() move
+  // rows [first, first + n) of the first axis.
+  template <class T>
+  void create(const std::string& object, const std::vector<std::uint64_t>& dims, const std::string& unit,
+              const std::string& doc = "") {
+    create_raw(object, dtype_of<T>(), dims, unit, doc);
+  }
+  template <class T>
+  void write_rows(const std::string& object, std::uint64_t first, std::uint64_t n, const T* data) {
+    rows_raw(object, dtype_of<T>(), first, n, const_cast<T*>(data), true);
+  }
+  template <class T>
+  void read_rows(const std::string& object, std::uint64_t first, std::uint64_t n, T* out) const {
+    const_cast<File*>(this)->rows_raw(object, dtype_of<T>(), first, n, out, false);
+  }
+
   // Attributes on any object ("/" for the root).
   bool has_attr(const std::string& object, const std::string& name) const;
   void set_attr(const std::string& object, const std::string& name, const std::string& value);
@@ -89,6 +107,10 @@ class File {
   void write_raw(const std::string& object, DType type, const void* data,
                  const std::vector<std::uint64_t>& dims, const std::string& unit,
                  const std::string& doc);
+  void create_raw(const std::string& object, DType type, const std::vector<std::uint64_t>& dims,
+                  const std::string& unit, const std::string& doc);
+  void rows_raw(const std::string& object, DType type, std::uint64_t first, std::uint64_t n, void* data,
+                bool write);
   std::string path_;
   std::int64_t id_ = -1;
   mutable ReadStats stats_;

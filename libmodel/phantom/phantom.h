@@ -81,6 +81,8 @@ std::array<double, 3> phantom_origin(const PhantomOptions& o);
 // The exact label at a physical point (m). Label precedence:
 // vessel > marrow > bone > muscle > fat > skin > background.
 int phantom_label_at(const PhantomOptions& o, const Eigen::Vector3d& p_m);
+// The same for many points (n x 3, m) at once: cheaper than repeated calls.
+std::vector<std::uint8_t> phantom_labels_at(const PhantomOptions& o, const MatX3d& points_m);
 
 // Unsigned distance (m) from p to the analytic surface of `tissue`, defined as
 // the outer boundary of the tissue including everything inside it, with flat
@@ -91,6 +93,8 @@ int phantom_label_at(const PhantomOptions& o, const Eigen::Vector3d& p_m);
 // Error("", ...) for another name.
 double phantom_interface_distance(const PhantomOptions& o, const std::string& tissue,
                                   const Eigen::Vector3d& p_m);
+// The same for many points (n x 3, m); returns n distances (m).
+VecXd phantom_interface_distances(const PhantomOptions& o, const std::string& tissue, const MatX3d& points_m);
 
 // The exact label volume: labels at voxel centres, spacing, origin and
 // label_names of phantom_tissue_table(). Deterministic; parallel over slices.

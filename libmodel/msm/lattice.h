@@ -1,0 +1,70 @@
+// Lattice layers: hexahedral cells between corresponding quad grids, springs
+// on the cell edges and face diagonals (and optionally body diagonals), and
+// the rule that sets each spring's stiffness from the tissue's modulus.
+//
+// Stiffness rule (docs/msm.md derives and verifies it). Each cell adds to each
+// of its springs
+//     k = beta * E * V / l^2                                   (N/m)
+// where V is the cell's volume, l the spring's rest length and beta a
+// dimensionless weight per spring group of the cell: edges along u, v, w and
+// face diagonals in the uv, vw and uw faces (body diagonals when enabled).
+// The betas make the Cauchy-Born stiffness of the cell's equivalent box
+// (a x b x c = mean edge lengths along u, v, w),
+//     C_ijkl = (1/V) sum_springs k l^2 n_i n_j n_k n_l = E sum beta n_i n_j n_k n_l,
+// equal to the isotropic tensor of modulus E and Poisson's ratio 1/4 (the
+// only isotropic tensor a central-spring lattice can have: Cauchy relation
+// C12 = C44). Closed form, exact whenever every edge weight is >= 0:
+//     beta_uv = (a^2 + b^2)^2 / (10 a^2 b^2)                     (and cyclically)
+//     beta_u  = (3 - a^2/b^2 - a^2/c^2) / 10                     (and cyclically)
+// For a cube: beta_edge = 1/10, beta_face = 2/5, i.e. k_e = E a / 10 and
+// k_f = E a / 5 per cell, the reference's per-element assembly
+// (../shared/reference/lattice-elasticity.md), E = 5 k / (2 a) in the bulk.
+// Elongated cells (a^2/b^2 + a^2/c^2 > 3 for some axis) cannot be isotropic:
+// the betas are then the non-negative least-squares fit of the six
+// orthotropic constants, each relative to its target, and RuleStats reports
+// the residual and the moduli the cell will actually have.
+#pragma once
+
+#include "libmodel/msm/cells.h"
+
+#include <Eigen/Core>
+
+#include <array>
+
+namespace orthosim::msm {
+
+// Weights of one cell. k = beta * E * V / l^2 for each spring of the group.
+struct CellRule {
+  std::array<double, 3> edge{0, 0, 0};  // edges along u, v, w
+  std::array<double, 3> face{0, 0, 0};  // face diagonals in the uv, vw, uw faces
+  double body = 0;                      // body diagonals (only with body_diagonals)
+  double residual = 0;                  // relative RMS misfit of the six constants (0 = exact)
+  bool exact = true;
+};
+
+// Weights for a box cell a x b x c (m, each > 0).
+CellRule cell_rule(double a, double b, double c, bool body_diagonals);
+
+// The Cauchy-Born stiffness per unit E (Voigt 6x6, order 11 22 33 23 13 12)
+// of an infinite lattice of a x b x c boxes with these weights.
+Eigen::Matrix<double, 6, 6> box_stiffness(double a, double b, double c, const CellRule& r);
+
+// Young's moduli along the three axes of a Voigt stiffness (1 / S_ii).
+std::array<double, 3> axis_moduli(const Eigen::Matrix<double, 6, 6>& C);
+
+struct LatticeOptions {
+  int through_cells = 1;        // cells through the layer's thickness, [1, 64]; interior grids interpolate linearly
+  bool body_diagonals = false;  // add the 4 body diagonals of each cell (docs/msm.md: they do not help)
+  double inverted_ratio = 1e-9; // a sub-tetrahedron below this fraction of the mean volume counts as inverted
+};
+
+// The cells of a lattice layer between `top` and `bottom` grids (same rows,
+// same `quads`, outward counter-clockwise). Interior grids (through_cells-1 of
+// them) are created at blocks.created + (k-1)*n_grid. Each hexahedron is cut
+// into 6 tetrahedra (two prisms over the triangles q0q1q2, q0q2q3, side
+// faces cut from the smaller id) for its volume and the inversion check;
+// lumped volume V/8 per corner.
+LayerCells lattice_cells(const MatX3d& top, const MatX3d& bottom, const MatX4i& quads, const NodeBlocks& blocks,
+                         const LatticeOptions& options);
+
+}  // namespace orthosim::msm

@@ -1,0 +1,341 @@
+#include "libmodel/msm/specimen.h"
+
+#include <Eigen/Sparse>
+#include <Eigen/SparseCholesky>
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <limits>
+
+namespace orthosim::msm {
+
+namespace {
+
+using Vec3 = Eigen::Vector3d;
+
+double total_energy(const SpringNetwork& n, const MatX3d& x) {
+  double e = 0;
+  for (Eigen::Index s = 0; s < n.springs.rows(); ++s) {
+    const double L = (x.row(n.springs(s, 1)) - x.row(n.springs(s, 0))).norm();
+    e += biphasic_energy(L, n.rest_length(s), n.k1(s), n.k2(s), n.turning_length(s));
+  }
+  return e;
+}
+
+// gradient of the energy (3n) and the largest spring force
+VecXd gradient(const SpringNetwork& n, const MatX3d& x, double* fmax) {
+  VecXd g = VecXd::Zero(3 * x.rows());
+  double m = 0;
+  for (Eigen::Index s = 0; s < n.springs.rows(); ++s) {
+    const int a = n.springs(s, 0), b = n.springs(s, 1);
+    const Vec3 d = (x.row(b) - x.row(a)).transpose();
+    const double L = d.norm();
+    if (!(L > 0)) continue;
+    const double f = biphasic_force(L, n.rest_length(s), n.k1(s), n.k2(s), n.turning_length(s));
+    m = std::max(m, std::abs(f));
+    const Vec3 fv = f * d / L;
+    g.segment<3>(3 * b) += fv;
+    g.segment<3>(3 * a) -= fv;
+  }
+  if (fmax) *fmax = m;
+  return g;
+}
+
+}  // namespace
+
+StaticResult solve_static(const SpringNetwork& net, const std::vector<std::int64_t>& prescribed,
+                          const std::vector<double>& displacement, const MatX3d* start, const StaticOptions& o) {
+  const Eigen::Index nn = net.nodes.rows(), nd = 3 * nn;
+  if (prescribed.size() != displacement.size()) throw Error("", "solve_static: one displacement per prescribed dof");
+  if (!(o.force_tolerance > 0 && o.force_tolerance <= 1e-3)) throw Error("", "solve_static: force_tolerance in (0, 1e-3]");
+  // free dof numbering
+  std::vector<std::int64_t> free_of(static_cast<std::size_t>(nd), 0);
+  for (auto d : prescribed) {
+    if (d < 0 || d >= nd) throw Error("", "solve_static: prescribed dof out of range");
+    free_of[static_cast<std::size_t>(d)] = -1;
+  }
+  std::int64_t nfree = 0;
+  for (auto& f : free_of)
+    if (f == 0) f = nfree++;
+    else f = -1;
+  StaticResult r;
+  r.x = start ? *start : net.nodes;
+  if (r.x.rows() != nn) throw Error("", "solve_static: start has the wrong number of nodes");
+  for (std::size_t i = 0; i < prescribed.size(); ++i) {
+    const auto d = prescribed[i];
+    r.x(d / 3, d % 3) = net.nodes(d / 3, d % 3) + displacement[i];
+  }
+  Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>> ldlt;
+  Eigen::Index analysed_nnz = -1;  // the pattern analysed (springs of zero length drop out of it)
+  std::vector<Eigen::Triplet<double>> trip;
+  auto assemble = [&](const MatX3d& x, bool clamp_geometric) {
+    trip.clear();
+    trip.reserve(static_cast<std::size_t>(net.springs.rows()) * 36);
+    for (Eigen::Index s = 0; s < net.springs.rows(); ++s) {
+      const int a = net.springs(s, 0), b = net.springs(s, 1);
+      const Vec3 d = (x.row(b) - x.row(a)).transpose();
+      const double L = d.norm();
+      // a spring of zero length keeps its (zero) entries: the pattern never changes
+      Eigen::Matrix3d H = Eigen::Matrix3d::Zero();
+      if (L > 0) {
+        const Vec3 n = d / L;
+        const double f = biphasic_force(L, net.rest_length(s), net.k1(s), net.k2(s), net.turning_length(s));
+        const double kt = biphasic_slope(L, net.k1(s), net.k2(s), net.turning_length(s));
+        double geo = f / L;
+        if (clamp_geometric) geo = std::max(geo, 0.0);
+        H = kt * n * n.transpose() + geo * (Eigen::Matrix3d::Identity() - n * n.transpose());
+      }
+      const int nodes[2] = {a, b};
+      for (int i = 0; i < 2; ++i)
+        for (int j = 0; j < 2; ++j) {
+          const double sign = i == j ? 1.0 : -1.0;
+          for (int p = 0; p < 3; ++p) {
+            const auto fi = free_of[static_cast<std::size_t>(3 * nodes[i] + p)];
+            if (fi < 0) continue;
+            for (int q = 0; q < 3; ++q) {
+              const auto fj = free_of[static_cast<std::size_t>(3 * nodes[j] + q)];
+              if (fj < 0) continue;
+              trip.emplace_back(static_cast<int>(fi), static_cast<int>(fj), sign * H(p, q));
+            }
+          }
+        }
+    }
+    Eigen::SparseMatrix<double> K(nfree, nfree);
+    K.setFromTriplets(trip.begin(), trip.end());
+    return K;
+  };
+  // factorises; false when not positive definite
+  auto factor = [&](const Eigen::SparseMatrix<double>& K) {
+    if (K.nonZeros() != analysed_nnz) {
+      ldlt.analyzePattern(K);
+      analysed_nnz = K.nonZeros();
+    }
+    ldlt.factorize(K);
+    if (ldlt.info() != Eigen::Success) return false;
+    const auto& D = ldlt.vectorD();
+    if (D.size() == 0) return true;
+    const double dmax = D.cwiseAbs().maxCoeff();
+    return D.minCoeff() > 1e-13 * dmax;
+  };
+
+  // round-off floor of the residual: forces are k (L - L0), each good to a
+  // few ulps of k L
+  double kl = 0;
+  for (Eigen::Index s = 0; s < net.springs.rows(); ++s)
+    kl = std::max(kl, std::max(net.k1(s), net.k2(s)) * std::max(net.rest_length(s), net.turning_length(s)));
+  const double floor = 256 * std::numeric_limits<double>::epsilon() * kl;
+  double fmax = 0;
+  for (r.iterations = 0; r.iterations <= o.max_iterations; ++r.iterations) {
+    VecXd g = gradient(net, r.x, &fmax);
+    VecXd gf(nfree);
+    for (Eigen::Index d = 0; d < nd; ++d)
+      if (free_of[static_cast<std::size_t>(d)] >= 0) gf(free_of[static_cast<std::size_t>(d)]) = g(d);
+    r.residual = nfree ? gf.cwiseAbs().maxCoeff() : 0.0;
+    r.force_scale = fmax;
+    if (r.residual <= std::max({o.force_tolerance * fmax, floor, 1e-300})) {
+      // an equilibrium found without a factorisation (e.g. the start) must
+      // still be checked for a singular stiffness: a mechanism has no unique one
+      if (r.iterations == 0 && nfree > 0 && !factor(assemble(r.x, false)) && !factor(assemble(r.x, true)))
+        throw Error("", "the spring network is a mechanism: its stiffness matrix is singular on the free dofs");
+      r.converged = true;
+      break;
+    }
+    if (r.iterations == o.max_iterations) break;
+    Eigen::VectorXd step;
+    bool ok = factor(assemble(r.x, false));
+    if (ok) {
+      step = -ldlt.solve(gf);
+      if (!(step.dot(gf) < 0)) ok = false;
+    }
+    if (!ok) {
+      if (!factor(assemble(r.x, true)))
+        throw Error("", "the spring network is a mechanism: its stiffness matrix is singular on the free dofs");
+      step = -ldlt.solve(gf);
+    }
+    // backtracking: accept a step that lowers the energy enough (Armijo) or,
+    // where the energy no longer resolves the change (L - L0 loses digits at
+    // small strains), one that lowers the largest free residual force
+    const double e0 = total_energy(net, r.x), slope = step.dot(gf);
+    auto free_residual = [&](const MatX3d& x) {
+      const VecXd gt = gradient(net, x, nullptr);
+      double m = 0;
+      for (Eigen::Index d = 0; d < nd; ++d)
+        if (free_of[static_cast<std::size_t>(d)] >= 0) m = std::max(m, std::abs(gt(d)));
+      return m;
+    };
+    double alpha = 1;
+    MatX3d trial = r.x;
+    for (int k = 0; k < 40; ++k) {
+      trial = r.x;
+      for (Eigen::Index d = 0; d < nd; ++d) {
+        const auto f = free_of[static_cast<std::size_t>(d)];
+        if (f >= 0) trial(d / 3, d % 3) += alpha * step(f);
+      }
+      const double e1 = total_energy(net, trial);
+      if (e1 <= e0 + 1e-4 * alpha * slope) break;
+      if (free_residual(trial) < (1 - 1e-4 * alpha) * r.residual) break;
+      alpha *= 0.5;
+    }
+    r.x = trial;
+  }
+  VecXd g = gradient(net, r.x, &fmax);
+  r.reaction = VecXd::Zero(nd);
+  for (auto d : prescribed) r.reaction(d) = g(d);
+  return r;
+}
+
+Specimen make_specimen(const SpecimenOptions& o) {
+  if (o.kind != "lattice" && o.kind != "tetra") throw Error("", "specimen kind must be lattice or tetra, not '" + o.kind + "'");
+  for (int k = 0; k < 3; ++k) {
+    if (o.cells[static_cast<std::size_t>(k)] < 1 || o.cells[static_cast<std::size_t>(k)] > 200)
+      throw Error("", "specimen cells must be in 1..200");
+    if (!(o.cell_m[static_cast<std::size_t>(k)] > 0)) throw Error("", "specimen cell size must be > 0");
+  }
+  const int cx = o.cells[0], cy = o.cells[1], cz = o.cells[2];
+  const int nu = cx + 1, nv = cy + 1, ng = nu * nv;
+  const double H = cz * o.cell_m[2];
+  MatX3d top(ng, 3), bottom(ng, 3);
+  for (int j = 0; j < nv; ++j)
+    for (int i = 0; i < nu; ++i) {
+      top.row(j * nu + i) << i * o.cell_m[0], j * o.cell_m[1], H;
+      bottom.row(j * nu + i) << i * o.cell_m[0], j * o.cell_m[1], 0.0;
+    }
+  MatX4i quads(cx * cy, 4);
+  for (int j = 0; j < cy; ++j)
+    for (int i = 0; i < cx; ++i) quads.row(j * cx + i) << j * nu + i, j * nu + i + 1, (j + 1) * nu + i + 1, (j + 1) * nu + i;
+
+  LayerCells cells;
+  NodeBlocks blocks;
+  blocks.top = 0;
+  blocks.created = ng;
+  if (o.kind == "lattice") {
+    LatticeOptions lo;
+    lo.through_cells = cz;
+    lo.body_diagonals = o.body_diagonals;
+    blocks.bottom = ng + ng * (cz - 1);
+    cells = lattice_cells(top, bottom, quads, blocks, lo);
+  } else {
+    TetraOptions to;
+    to.projection = o.projection;
+    blocks.bottom = ng + 2 * static_cast<std::int32_t>(quads.rows());
+    cells = tetra_cells(top, bottom, quads, blocks, to);
+  }
+  if (cells.inverted) throw Error("", "specimen has inverted cells");
+  Specimen s;
+  s.options = o;
+  const Eigen::Index n_created = cells.created.rows();
+  MatX3d X(2 * ng + n_created, 3);
+  X.topRows(ng) = top;
+  X.middleRows(ng, n_created) = cells.created;
+  X.bottomRows(ng) = bottom;
+  // every cell spring stays, even where the rule gives it no stiffness (the
+  // tuner may give it some); build_layers drops those from the model
+  MergedSprings m = merge_terms(std::move(cells.terms), X);
+  s.network.nodes = X;
+  s.network.springs = m.pairs;
+  s.network.rest_length = m.rest_length;
+  s.k_per_pa = m.k_per_pa;
+  s.spring_class = m.spring_class;
+  s.cells = m.cells;
+  s.size_m = {cx * o.cell_m[0], cy * o.cell_m[1], H};
+  s.volume_m3 = cells.volume_m3;
+  s.tets = static_cast<std::int64_t>(cells.tets.size());
+  apply_law(s, {1.0, 1.0, 0.0});
+  return s;
+}
+
+void apply_law(Specimen& s, const SpringLaw& law) {
+  if (!(law.k1_pa > 0) || !(law.k2_pa >= law.k1_pa) || !(law.turning_strain >= 0))
+    throw Error("", "spring law needs K1 > 0, K2 >= K1 and a turning strain >= 0");
+  s.network.k1 = law.k1_pa * s.k_per_pa;
+  s.network.k2 = law.k2_pa * s.k_per_pa;
+  s.network.turning_length = s.network.rest_length * (1 + law.turning_strain);
+}
+
+UniaxialCurve uniaxial_test(const Specimen& s, const std::vector<double>& strains, const UniaxialOptions& o) {
+  const auto t0 = std::chrono::steady_clock::now();
+  if (o.axis < 0 || o.axis > 2) throw Error("", "uniaxial_test: axis must be 0, 1 or 2");
+  const int ax = o.axis, l1 = (ax + 1) % 3, l2 = (ax + 2) % 3;
+  const MatX3d& X = s.network.nodes;
+  const double L = s.size_m[static_cast<std::size_t>(ax)];
+  const double tol = 1e-9 * std::max({s.size_m[0], s.size_m[1], s.size_m[2]});
+  std::vector<int> lo, hi, side[2][2];
+  for (Eigen::Index i = 0; i < X.rows(); ++i) {
+    const int n = static_cast<int>(i);
+    if (std::abs(X(i, ax)) < tol) lo.push_back(n);
+    if (std::abs(X(i, ax) - L) < tol) hi.push_back(n);
+    for (int k = 0; k < 2; ++k) {
+      const int lat = k == 0 ? l1 : l2;
+      if (std::abs(X(i, lat)) < tol) side[k][0].push_back(n);
+      if (std::abs(X(i, lat) - s.size_m[static_cast<std::size_t>(lat)]) < tol) side[k][1].push_back(n);
+    }
+  }
+  if (lo.empty() || hi.empty()) throw Error("", "uniaxial_test: the specimen has no loaded faces");
+  // rigid-body modes of the sliding clamp: the lo-face corner at the lateral
+  // minimum holds both lateral dofs, the corner at (max l1, min l2) holds l2
+  auto corner = [&](double w1, double w2) {
+    int best = lo.front();
+    double bd = std::numeric_limits<double>::infinity();
+    for (int n : lo) {
+      const double d = std::abs(X(n, l1) - w1) + std::abs(X(n, l2) - w2);
+      if (d < bd) bd = d, best = n;
+    }
+    return best;
+  };
+  const int c0 = corner(0, 0), c1 = corner(s.size_m[static_cast<std::size_t>(l1)], 0);
+
+  UniaxialCurve out;
+  MatX3d x = X;
+  double prev = 0;
+  for (double eps : strains) {
+    std::vector<std::int64_t> dofs;
+    std::vector<double> disp;
+    auto fix = [&](int n, int a, double u) {
+      dofs.push_back(3 * static_cast<std::int64_t>(n) + a);
+      disp.push_back(u);
+    };
+    for (int n : lo) {
+      fix(n, ax, 0);
+      if (o.clamp == Clamp::full) fix(n, l1, 0), fix(n, l2, 0);
+    }
+    for (int n : hi) {
+      fix(n, ax, eps * L);
+      if (o.clamp == Clamp::full) fix(n, l1, 0), fix(n, l2, 0);
+    }
+    if (o.clamp == Clamp::sliding) {
+      fix(c0, l1, 0);
+      fix(c0, l2, 0);
+      fix(c1, l2, 0);
+    }
+    // start from the previous state stretched affinely by the strain increment
+    MatX3d guess = x;
+    guess.col(ax) += (eps - prev) * X.col(ax);
+    StaticResult r = solve_static(s.network, dofs, disp, &guess, o.solver);
+    if (!r.converged)
+      throw Error("", "uniaxial_test: no equilibrium at strain " + std::to_string(eps) + " after " +
+                          std::to_string(r.iterations) + " Newton iterations");
+    x = r.x;
+    prev = eps;
+    double F = 0;
+    for (int n : hi) F += r.reaction(3 * n + ax);
+    const double A = s.size_m[static_cast<std::size_t>(l1)] * s.size_m[static_cast<std::size_t>(l2)];
+    out.strain.push_back(eps);
+    out.stress_pa.push_back(F / A);
+    for (int k = 0; k < 2; ++k) {
+      const int lat = k == 0 ? l1 : l2;
+      double m0 = 0, m1 = 0;
+      for (int n : side[k][0]) m0 += x(n, lat) - X(n, lat);
+      for (int n : side[k][1]) m1 += x(n, lat) - X(n, lat);
+      m0 /= std::max<std::size_t>(1, side[k][0].size());
+      m1 /= std::max<std::size_t>(1, side[k][1].size());
+      out.lateral_strain.push_back((m1 - m0) / s.size_m[static_cast<std::size_t>(lat)]);
+    }
+    out.iterations.push_back(r.iterations);
+    out.max_residual = std::max(out.max_residual, r.residual);
+  }
+  out.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  return out;
+}
+
+}  // namespace orthosim::msm

@@ -1,0 +1,118 @@
+// The virtual experiment shared by build's tests and by tune (issue 7): a
+// block of a layer made by the same cell builders and spring classes as the
+// real model, its static equilibrium under prescribed displacements, and a
+// uniaxial stretch test that records nominal stress against strain.
+//
+//   auto s = msm::make_specimen(msm::SpecimenOptions{});     // 4x4x4 cubic lattice cells of 1 mm
+//   msm::apply_law(s, {k1_pa, k2_pa, turning_strain});       // the tissue's moduli through the rule
+//   auto curve = msm::uniaxial_test(s, {0.01, 0.02, ...}, {});
+//
+// Static solve: Newton's method on the total spring energy with the exact
+// tangent (a modified tangent with compressive geometric terms dropped where
+// the exact one is not positive definite), sparse LDL^T (Eigen
+// SimplicialLDLT) on the free degrees of freedom, Armijo backtracking on the
+// energy. Converged when every free component of the residual force is below
+// force_tolerance x the largest spring force, or below the round-off floor
+// 256 eps max(k L) of the force evaluation; not a dynamic relaxation that may
+// stop early.
+#pragma once
+
+#include "libmodel/format/model.h"
+#include "libmodel/msm/biphasic.h"
+#include "libmodel/msm/lattice.h"
+#include "libmodel/msm/tetra.h"
+
+#include <array>
+#include <cstdint>
+#include <string>
+#include <vector>
+
+namespace orthosim::msm {
+
+// A network of biphasic springs (k2 == k1 and turning_length == rest_length
+// for linear ones), positions at rest.
+struct SpringNetwork {
+  MatX3d nodes;           // (n_nodes x 3) m
+  MatX2i springs;         // (n_springs x 2) node ids
+  VecXd rest_length;      // (n_springs) m
+  VecXd k1;               // (n_springs) N/m
+  VecXd k2;               // (n_springs) N/m, total slope past the turning length
+  VecXd turning_length;   // (n_springs) m
+};
+
+struct StaticOptions {
+  double force_tolerance = 1e-10;  // relative to the largest spring force, (0, 1e-3]
+  int max_iterations = 60;
+};
+
+struct StaticResult {
+  MatX3d x;               // (n_nodes x 3) m, equilibrium positions
+  VecXd reaction;         // (3 n_nodes) N: force the constraints exert, non-zero at prescribed dofs only
+  int iterations = 0;
+  double residual = 0;    // largest free residual force (N)
+  double force_scale = 0; // largest spring force (N)
+  bool converged = false;
+};
+
+// Equilibrium with the dofs `prescribed` (3*node + axis) displaced by
+// `displacement` (m) from the rest positions and every other dof free of
+// external force. `start`: an initial guess (positions), or null for the rest
+// state. Throws Error("", ...) if the free part of the network is a mechanism
+// (singular stiffness) or the arguments are inconsistent. Deterministic.
+StaticResult solve_static(const SpringNetwork& net, const std::vector<std::int64_t>& prescribed,
+                          const std::vector<double>& displacement, const MatX3d* start,
+                          const StaticOptions& options);
+
+struct SpecimenOptions {
+  std::string kind = "lattice";          // "lattice" | "tetra"
+  std::array<int, 3> cells{4, 4, 4};     // along x, y, z in 1..200; tetra: one prism layer, cells[2] sets its height
+  std::array<double, 3> cell_m{1e-3, 1e-3, 1e-3};  // cell size along x, y, z (m), > 0
+  bool body_diagonals = false;           // lattice only
+  ProjectionOptions projection;          // tetra only
+};
+
+// A block [0, X] x [0, Y] x [0, Z]: the top grid at z = Z, the bottom at z = 0,
+// as a layer between two flat corresponding grids (u along x, v along y).
+struct Specimen {
+  SpecimenOptions options;
+  SpringNetwork network;                // stiffness for E = 1 Pa until apply_law
+  VecXd k_per_pa;                       // (n_springs) m: the rule's stiffness per unit modulus
+  VecXu8 spring_class;                  // (n_springs) SpringClass
+  VecXi cells;                          // (n_springs) cells sharing each spring (per-cell assembly: k = cells x k_cell)
+  std::array<double, 3> size_m{0, 0, 0};
+  double volume_m3 = 0;                 // sum of the cell volumes
+  std::int64_t tets = 0;                // tetra: tetrahedra (7 per prism)
+};
+
+Specimen make_specimen(const SpecimenOptions& options);
+
+// Sets k1, k2 and turning lengths from a tissue law through the rule:
+// k1 = K1 k_per_pa, k2 = K2 k_per_pa, Lt = L0 (1 + turning strain). A linear
+// law: k2_pa == k1_pa, turning_strain = 0.
+void apply_law(Specimen& s, const SpringLaw& law);
+
+enum class Clamp {
+  sliding,  // the two loaded faces keep their normal displacement only; lateral motion free (uniaxial stress)
+  full,     // the two loaded faces are held in every direction (the ends cannot contract)
+};
+
+struct UniaxialOptions {
+  int axis = 0;                  // load axis: 0 x, 1 y, 2 z
+  Clamp clamp = Clamp::sliding;
+  StaticOptions solver;
+};
+
+struct UniaxialCurve {
+  std::vector<double> strain;          // nominal strain of each step
+  std::vector<double> stress_pa;       // nominal stress: reaction on the moving face / initial area
+  std::vector<double> lateral_strain;  // 2 per step: mean strain along the two other axes (from the side faces)
+  std::vector<int> iterations;         // Newton iterations per step
+  double max_residual = 0;             // largest final residual over the steps (N)
+  double seconds = 0;
+};
+
+// Stretches the specimen along `axis` through the strain steps in order (each
+// solve starts from the previous one). Throws Error if a step does not converge.
+UniaxialCurve uniaxial_test(const Specimen& s, const std::vector<double>& strains, const UniaxialOptions& options);
+
+}  // namespace orthosim::msm

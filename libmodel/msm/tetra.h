@@ -1,0 +1,51 @@
+// Tetrahedral layers by centroid projection (paper §3).
+//
+// Each quad (q0 q1 q2 q3) of the top grid is split along q0-q2 into the
+// triangles (q0 q1 q2) and (q0 q2 q3). The centroid of each triangle is shot
+// along the triangle's inward normal onto the bottom grid, split the same way
+// (project.h). Springs join the triangle's vertices to its projected centroid
+// c: the tetrahedron (v0 v1 v2 c) of the paper.
+//
+// The next surface. The projected centroids lie on the bottom surface, inside
+// the bottom triangle under their top triangle; that triangle is cut 1-to-3 at
+// c, so the next surface is the triangulation of the projected centroids
+// together with the bottom grid's own vertices. The bottom grid is the
+// remesh grid of the next tissue, vertex (i, j) under vertex (i, j) of the top,
+// so a lattice layer below uses it unchanged and the (u, v) correspondence
+// holds through every layer; a tetra layer below projects the centroids of
+// that grid's triangles in turn. (The paper's triangulation of the centroids
+// alone would double the node count per tetra layer and leave a lattice below
+// without corresponding grid vertices.) The centroid nodes belong to the
+// tetra layer that made them.
+//
+// Cells fill the layer exactly: the prism between top triangle (v0 v1 v2) and
+// bottom triangle (w0 w1 w2) is the tetrahedron (v0 v1 v2 c) plus, over each
+// side quad (va vb wb wa), the pyramid with apex c, cut into two tetrahedra
+// by the side diagonal from the smaller vertex id (shared consistently with
+// the neighbouring prism): 7 tetrahedra per prism, so the springs are the top
+// and bottom triangle edges, v-c, w-c, the vertical v-w edges and one
+// diagonal per side quad. Stiffness (a trace rule, docs/msm.md): every
+// tetrahedron t adds k = E V_t / l^2 to each of its six edges, so that
+// sum k l^2 = 6 E V, the trace of the isotropic nu = 1/4 tensor.
+#pragma once
+
+#include "libmodel/msm/cells.h"
+#include "libmodel/msm/project.h"
+
+namespace orthosim::msm {
+
+struct TetraOptions {
+  ProjectionOptions projection;
+  double inverted_ratio = 1e-9;  // a tetrahedron below this fraction of the mean volume counts as inverted
+};
+
+// The triangles of a quad grid, split along q0-q2: face 2q = (q0 q1 q2), 2q+1 = (q0 q2 q3).
+Surface triangulate(const MatX3d& vertices, const MatX4i& quads);
+
+// The cells of a tetra layer between `top` and `bottom` grids (same rows and
+// quads). The projected centroids are created at blocks.created + face index.
+// `bottom_caster`: a RayCaster on triangulate(bottom, quads), or null to build one.
+LayerCells tetra_cells(const MatX3d& top, const MatX3d& bottom, const MatX4i& quads, const NodeBlocks& blocks,
+                       const TetraOptions& options, const RayCaster* bottom_caster = nullptr);
+
+}  // namespace orthosim::msm

@@ -1,0 +1,80 @@
+// Internal to libmodel/remesh: mesh topology and plane slicing.
+// Not part of the library interface (remesh.h is).
+#pragma once
+
+#include "libmodel/remesh/remesh.h"
+
+#include <Eigen/Core>
+
+#include <array>
+#include <string>
+#include <vector>
+
+namespace orthosim::remesh_detail {
+
+// Edges and components of a checked closed surface.
+struct Topology {
+  int n_edges = 0;
+  std::vector<std::array<int, 3>> face_edge;  // edge id of face edge k = (v[k], v[k+1])
+  std::vector<std::array<int, 2>> edge_face;  // the two faces of each edge
+  std::vector<int> face_component;            // component of each face
+  std::vector<double> component_volume;       // signed volume of each component
+  std::vector<double> component_area;
+  std::vector<int> component_euler;
+  SurfaceCheck check;
+};
+
+// Builds the topology and runs every check of check_closed_surface.
+Topology build_topology(const Surface& s, const std::string& name, bool single_component);
+
+// A closed polyline where a plane cuts the surface, counter-clockwise around
+// the plane normal for an outward component (clockwise around a hole).
+struct Loop {
+  std::vector<Eigen::Vector3d> p;  // points
+  std::vector<Eigen::Vector2d> q;  // in the plane frame: ((p-c).e1, (p-c).e2)
+  double area = 0;                 // signed area in the plane frame
+  Eigen::Vector2d centroid{0, 0};  // area centroid in the plane frame
+  int component = 0;
+};
+
+// Cuts a surface with planes. Faces are sorted along an axis so that a plane
+// nearly normal to it touches only the faces of a slab.
+class Slicer {
+ public:
+  Slicer(const Surface& s, const Topology& t, const Eigen::Vector3d& axis_point, const Eigen::Vector3d& axis_dir);
+  // Loops of the plane through p.centre with normal p.normal; q uses p.e1, p.e2.
+  std::vector<Loop> slice(const SweepPlane& p) const;
+
+ private:
+  const Surface& s_;
+  const Topology& t_;
+  Eigen::Vector3d a0_, ad_;
+  std::vector<int> order_;          // faces sorted by tmin
+  std::vector<double> tmin_sorted_, tmax_;  // tmin in sorted order; tmax by face
+  double max_extent_ = 0, rho_max_ = 0;
+  std::vector<int> flip_;           // 1 where a component is inward (negative volume)
+  mutable std::vector<double> dist_;
+  mutable std::vector<unsigned> stamp_;
+  mutable unsigned cur_ = 0;
+  mutable std::vector<unsigned> fstamp_;
+  mutable std::vector<int> fexit_;  // per face: exit edge (- to + in face order)
+};
+
+// Winding number of the loop around point x (plane frame).
+int winding(const Loop& l, const Eigen::Vector2d& x);
+
+// Largest t >= 0 with o + t w on the loop (plane frame), or -1 when the ray misses.
+double ray_hit(const Loop& l, const Eigen::Vector2d& o, const Eigen::Vector2d& w);
+
+// The loop of a ring plane that the sweep follows: the only loop, winding
+// around the centre. Throws Error(name, "not tube-like: ...") otherwise.
+const Loop& tube_loop(const std::vector<Loop>& loops, const std::string& name, double s, double length);
+
+// Points of a ring at fractions u (sorted, in [0, 1)): equal arc length from
+// the phase point (the outermost crossing of the ray from the centre along
+// e1), or rays at angles 2 pi u from e1. inward (optional): unit in-plane
+// normals pointing inside. Throws Error(name, ...) when a ray misses.
+void sample_loop(const Loop& l, const SweepPlane& pl, RingSampling mode, const std::vector<double>& u,
+                 std::vector<Eigen::Vector3d>& out, std::vector<Eigen::Vector3d>* inward, const std::string& name);
+
+}  // namespace orthosim::remesh_detail

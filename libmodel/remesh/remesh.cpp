@@ -1,0 +1,1076 @@
+// Tube sweep (axis, caps, rotation-minimising frames) and the layered quad grids.
+#include "libmodel/remesh/remesh.h"
+
+#include "libmodel/remesh/detail.h"
+
+#include <Eigen/Eigenvalues>
+#include <Eigen/Geometry>
+#include <Eigen/Sparse>
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <deque>
+#include <numeric>
+#include <sstream>
+
+namespace orthosim {
+
+using remesh_detail::Loop;
+using remesh_detail::Slicer;
+using remesh_detail::Topology;
+using Vec3 = Eigen::Vector3d;
+using Vec2 = Eigen::Vector2d;
+
+namespace {
+
+constexpr double kPi = 3.14159265358979323846;
+constexpr int kTable = 2049;         // entries of the sweep table
+constexpr double kCapInset = 1e-5;   // end rings sit this fraction of the length inside a flat cap
+
+double seconds_since(std::chrono::steady_clock::time_point t0) {
+  return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+}
+
+std::string mm(double m) {
+  std::ostringstream o;
+  o.precision(4);
+  o << m * 1e3 << " mm";
+  return o.str();
+}
+
+// a unit vector orthogonal to n, close to world x (or y when n is near x)
+Vec3 reference_perpendicular(const Vec3& n) {
+  Vec3 ref = std::abs(n.x()) > 0.9 ? Vec3(0, 1, 0) : Vec3(1, 0, 0);
+  return (ref - ref.dot(n) * n).normalized();
+}
+
+SweepPlane make_plane(const Vec3& c, const Vec3& n, const Vec3& e1_hint) {
+  SweepPlane p;
+  p.centre = c;
+  p.normal = n.normalized();
+  Vec3 e1 = e1_hint - e1_hint.dot(p.normal) * p.normal;
+  if (e1.norm() < 1e-9) e1 = reference_perpendicular(p.normal);
+  p.e1 = e1.normalized();
+  p.e2 = p.normal.cross(p.e1);
+  return p;
+}
+
+// ---- principal axis ----------------------------------------------------------
+struct Axis {
+  Vec3 m = Vec3::Zero(), d = Vec3::UnitZ();
+};
+
+Axis principal_axis(const Surface& s) {
+  Axis ax;
+  double A = 0;
+  const int nf = static_cast<int>(s.faces.rows());
+  std::vector<Vec3> c(nf);
+  std::vector<double> a(nf);
+  for (int f = 0; f < nf; ++f) {
+    const Vec3 p0 = s.vertices.row(s.faces(f, 0)), p1 = s.vertices.row(s.faces(f, 1)),
+               p2 = s.vertices.row(s.faces(f, 2));
+    c[f] = (p0 + p1 + p2) / 3;
+    a[f] = 0.5 * (p1 - p0).cross(p2 - p0).norm();
+    A += a[f];
+    ax.m += a[f] * c[f];
+  }
+  if (!(A > 0)) return ax;
+  ax.m /= A;
+  Eigen::Matrix3d C = Eigen::Matrix3d::Zero();
+  for (int f = 0; f < nf; ++f) C += a[f] * (c[f] - ax.m) * (c[f] - ax.m).transpose();
+  Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> es(C);
+  Vec3 d = es.eigenvectors().col(2).normalized();
+  int big = 0;
+  for (int k = 1; k < 3; ++k)
+    if (std::abs(d(k)) > std::abs(d(big)) + 1e-12) big = k;
+  if (d(big) < 0) d = -d;
+  ax.d = d;
+  return ax;
+}
+
+// ---- flat caps --------------------------------------------------------------
+struct Cap {
+  bool flat = false;
+  Vec3 q = Vec3::Zero();  // area centroid of the cap faces
+  Vec3 n = Vec3::Zero();  // unit normal pointing into the tube (towards increasing s)
+  double area = 0;
+  std::vector<int> faces;
+};
+
+// The largest planar patch facing the end `dir` (unit, pointing out of the
+// tube), grown from the face furthest along dir.
+Cap detect_cap(const Surface& s, const Topology& t, const Vec3& dir, double angle_deg, double length) {
+  Cap cap;
+  const int nf = static_cast<int>(s.faces.rows());
+  std::vector<Vec3> nrm(nf), cen(nf);
+  std::vector<double> area(nf);
+  int seed = -1;
+  double best = -1e300;
+  for (int f = 0; f < nf; ++f) {
+    const Vec3 p0 = s.vertices.row(s.faces(f, 0)), p1 = s.vertices.row(s.faces(f, 1)),
+               p2 = s.vertices.row(s.faces(f, 2));
+    Vec3 n = (p1 - p0).cross(p2 - p0);
+    area[f] = 0.5 * n.norm();
+    nrm[f] = area[f] > 0 ? Vec3(n.normalized()) : Vec3::Zero();
+    if (t.component_volume[t.face_component[f]] < 0) nrm[f] = -nrm[f];
+    cen[f] = (p0 + p1 + p2) / 3;
+    if (area[f] > 0 && nrm[f].dot(dir) > std::cos(50 * kPi / 180) && cen[f].dot(dir) > best) {
+      best = cen[f].dot(dir);
+      seed = f;
+    }
+  }
+  if (seed < 0) return cap;
+  const double cos_tol = std::cos(angle_deg * kPi / 180), dist_tol = 1e-4 * length;
+  std::vector<char> in(nf, 0);
+  std::deque<int> queue{seed};
+  in[seed] = 1;
+  Vec3 nsum = Vec3::Zero(), qsum = Vec3::Zero();
+  while (!queue.empty()) {
+    const int f = queue.front();
+    queue.pop_front();
+    cap.faces.push_back(f);
+    cap.area += area[f];
+    nsum += area[f] * nrm[f];
+    qsum += area[f] * cen[f];
+    for (int k = 0; k < 3; ++k) {
+      const auto& ef = t.edge_face[t.face_edge[f][k]];
+      const int g = ef[0] == f ? ef[1] : ef[0];
+      if (in[g] || !(area[g] > 0)) continue;
+      if (nrm[g].dot(nrm[seed]) < cos_tol || std::abs((cen[g] - cen[seed]).dot(nrm[seed])) > dist_tol) continue;
+      in[g] = 1;
+      queue.push_back(g);
+    }
+  }
+  cap.q = qsum / cap.area;
+  cap.n = -nsum.normalized();
+  return cap;
+}
+
+// ---- centreline: smoothed points, natural cubic spline, arc-length table ----
+class Curve {
+ public:
+  // Whittaker smoothing of the interior points (second-difference penalty
+  // lambda, in units of their spacing), then a natural cubic spline through
+  // front (if any), the smoothed points and back (if any), chord-length
+  // parameter. The end points are exact: cap centres or extensions. End
+  // conditions: clamped to the direction d0 / d1 where given (cap normals),
+  // else parabolic runout (the end piece keeps the curvature next to it).
+  Curve(const std::vector<Vec3>& interior, double lambda, const Vec3* front, const Vec3* back,
+        const Vec3* d0 = nullptr, const Vec3* d1 = nullptr) {
+    const int n0 = static_cast<int>(interior.size());
+    std::vector<Vec3> z(interior);
+    if (n0 >= 4 && lambda > 0) {
+      // pad both ends by quadratic extrapolation so that the smoother leaves
+      // locally quadratic data (constant curvature) unchanged up to the ends
+      constexpr int pad = 4;
+      std::vector<Vec3> y;
+      auto quad = [](const Vec3& a, const Vec3& b, const Vec3& c, double j) {  // through a(0), b(1), c(2), at -j
+        const double x = -j;
+        return Vec3(a * (x - 1) * (x - 2) / 2 - b * x * (x - 2) + c * x * (x - 1) / 2);
+      };
+      for (int j = pad; j >= 1; --j) y.push_back(quad(interior[0], interior[1], interior[2], j));
+      y.insert(y.end(), interior.begin(), interior.end());
+      for (int j = 1; j <= pad; ++j) y.push_back(quad(interior[n0 - 1], interior[n0 - 2], interior[n0 - 3], j));
+      const int n = static_cast<int>(y.size());
+      Eigen::SparseMatrix<double> M(n, n);
+      std::vector<Eigen::Triplet<double>> tr;
+      for (int i = 0; i < n; ++i) tr.emplace_back(i, i, 1.0);
+      for (int i = 0; i + 2 < n; ++i) {
+        const int id[3] = {i, i + 1, i + 2};
+        const double c[3] = {1, -2, 1};
+        for (int a = 0; a < 3; ++a)
+          for (int b = 0; b < 3; ++b) tr.emplace_back(id[a], id[b], lambda * c[a] * c[b]);
+      }
+      M.setFromTriplets(tr.begin(), tr.end());
+      Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>> solver(M);
+      for (int k = 0; k < 3; ++k) {
+        Eigen::VectorXd rhs(n);
+        for (int i = 0; i < n; ++i) rhs(i) = y[i](k);
+        Eigen::VectorXd sol = solver.solve(rhs);
+        for (int i = 0; i < n0; ++i) z[i](k) = sol(i + pad);
+      }
+    }
+    if (front) z.insert(z.begin(), *front);
+    if (back) z.push_back(*back);
+    // drop coincident points
+    p_.push_back(z[0]);
+    for (int i = 1; i < static_cast<int>(z.size()); ++i)
+      if ((z[i] - p_.back()).norm() > 1e-12) p_.push_back(z[i]);
+    const int m = static_cast<int>(p_.size());
+    tau_.assign(m, 0);
+    for (int i = 1; i < m; ++i) tau_[i] = tau_[i - 1] + (p_[i] - p_[i - 1]).norm();
+    m2_.assign(m, Vec3::Zero());
+    if (m >= 3) {  // tridiagonal solve for the second derivatives
+      std::vector<double> a(m, 0), b(m, 1), c(m, 0);
+      std::vector<Vec3> r(m, Vec3::Zero());
+      for (int i = 1; i + 1 < m; ++i) {
+        const double h0 = tau_[i] - tau_[i - 1], h1 = tau_[i + 1] - tau_[i];
+        a[i] = h0;
+        b[i] = 2 * (h0 + h1);
+        c[i] = h1;
+        r[i] = 6 * ((p_[i + 1] - p_[i]) / h1 - (p_[i] - p_[i - 1]) / h0);
+      }
+      const double hf = tau_[1] - tau_[0], hb = tau_[m - 1] - tau_[m - 2];
+      if (d0) {
+        Vec3 d = d0->normalized();
+        if (d.dot(p_[1] - p_[0]) < 0) d = -d;
+        b[0] = 2 * hf, c[0] = hf, r[0] = 6 * ((p_[1] - p_[0]) / hf - d);
+      } else {
+        b[0] = 1, c[0] = -1;
+      }
+      if (d1) {
+        Vec3 d = d1->normalized();
+        if (d.dot(p_[m - 1] - p_[m - 2]) < 0) d = -d;
+        a[m - 1] = hb, b[m - 1] = 2 * hb, r[m - 1] = 6 * (d - (p_[m - 1] - p_[m - 2]) / hb);
+      } else {
+        a[m - 1] = -1, b[m - 1] = 1;
+      }
+      for (int i = 1; i < m; ++i) {
+        const double k = a[i] / b[i - 1];
+        b[i] -= k * c[i - 1];
+        r[i] -= k * r[i - 1];
+      }
+      m2_[m - 1] = r[m - 1] / b[m - 1];
+      for (int i = m - 2; i >= 0; --i) m2_[i] = (r[i] - c[i] * m2_[i + 1]) / b[i];
+    }
+    // arc-length table
+    const int fine = std::max(4096, 64 * m);
+    std::vector<double> tt(fine + 1), ss(fine + 1, 0);
+    Vec3 prev = eval_tau(0);
+    for (int i = 0; i <= fine; ++i) {
+      tt[i] = tau_.back() * i / fine;
+      const Vec3 x = eval_tau(tt[i]);
+      if (i) ss[i] = ss[i - 1] + (x - prev).norm();
+      prev = x;
+    }
+    length_ = ss.back();
+    s_tab_ = std::move(ss);
+    tau_tab_ = std::move(tt);
+  }
+
+  double length() const { return length_; }
+  Vec3 point(double s) const { return eval_tau(tau_of(s)); }
+  Vec3 tangent(double s) const {
+    Vec3 d = deriv_tau(tau_of(s));
+    return d.norm() > 0 ? Vec3(d.normalized()) : Vec3((p_.back() - p_.front()).normalized());
+  }
+
+ private:
+  double tau_of(double s) const {
+    s = std::clamp(s, 0.0, length_);
+    auto it = std::upper_bound(s_tab_.begin(), s_tab_.end(), s);
+    std::size_t i = std::min<std::size_t>(std::max<std::ptrdiff_t>(it - s_tab_.begin(), 1), s_tab_.size() - 1);
+    const double ds = s_tab_[i] - s_tab_[i - 1];
+    const double f = ds > 0 ? (s - s_tab_[i - 1]) / ds : 0;
+    return tau_tab_[i - 1] + f * (tau_tab_[i] - tau_tab_[i - 1]);
+  }
+  std::size_t seg(double t) const {
+    auto it = std::upper_bound(tau_.begin(), tau_.end(), t);
+    return std::min<std::size_t>(std::max<std::ptrdiff_t>(it - tau_.begin(), 1), tau_.size() - 1) - 1;
+  }
+  Vec3 eval_tau(double t) const {
+    if (p_.size() == 1) return p_[0];
+    const std::size_t i = seg(t);
+    const double h = tau_[i + 1] - tau_[i], A = (tau_[i + 1] - t) / h, B = (t - tau_[i]) / h;
+    return A * p_[i] + B * p_[i + 1] + ((A * A * A - A) * m2_[i] + (B * B * B - B) * m2_[i + 1]) * (h * h) / 6;
+  }
+  Vec3 deriv_tau(double t) const {
+    if (p_.size() == 1) return Vec3::UnitZ();
+    const std::size_t i = seg(t);
+    const double h = tau_[i + 1] - tau_[i], A = (tau_[i + 1] - t) / h, B = (t - tau_[i]) / h;
+    return (p_[i + 1] - p_[i]) / h - (3 * A * A - 1) * h / 6 * m2_[i] + (3 * B * B - 1) * h / 6 * m2_[i + 1];
+  }
+
+  std::vector<Vec3> p_, m2_;
+  std::vector<double> tau_, s_tab_, tau_tab_;
+  double length_ = 0;
+};
+
+double smoothstep01(double x) {
+  x = std::clamp(x, 0.0, 1.0);
+  return x * x * (3 - 2 * x);
+}
+
+// Plane normals along a curve, blended into the cap normals near flat caps.
+struct NormalField {
+  const Curve* c = nullptr;
+  bool flat[2] = {false, false};
+  Vec3 n[2], t[2];
+  double blend[2] = {1, 1};
+  double w0(double s) const { return flat[0] ? smoothstep01(1 - s / blend[0]) : 0; }
+  double w1(double s) const { return flat[1] ? smoothstep01(1 - (c->length() - s) / blend[1]) : 0; }
+  Vec3 operator()(double s) const {
+    Vec3 v = c->tangent(s) + w0(s) * (n[0] - t[0]) + w1(s) * (n[1] - t[1]);
+    return v.normalized();
+  }
+};
+
+NormalField normal_field(const Curve& c, const Cap caps[2], const double radius[2]) {
+  NormalField f;
+  f.c = &c;
+  for (int e = 0; e < 2; ++e) {
+    f.flat[e] = caps[e].flat;
+    f.t[e] = c.tangent(e == 0 ? 0 : c.length());
+    f.n[e] = caps[e].flat ? caps[e].n : f.t[e];
+    if (f.n[e].dot(f.t[e]) < 0) f.n[e] = -f.n[e];
+    f.blend[e] = std::max(1e-12, std::min(2 * radius[e], c.length() / 3));
+  }
+  return f;
+}
+
+// area of faces of `s` whose centroid lies beyond the plane (on the side opposite to its normal)
+double area_behind(const Surface& s, const SweepPlane& p) {
+  double A = 0;
+  for (int f = 0; f < s.faces.rows(); ++f) {
+    const Vec3 p0 = s.vertices.row(s.faces(f, 0)), p1 = s.vertices.row(s.faces(f, 1)),
+               p2 = s.vertices.row(s.faces(f, 2));
+    if (((p0 + p1 + p2) / 3 - p.centre).dot(p.normal) < 0) A += 0.5 * (p1 - p0).cross(p2 - p0).norm();
+  }
+  return A;
+}
+
+}  // namespace
+
+namespace remesh_detail {
+
+// The loop of a ring plane that the sweep follows: the only loop, winding
+// around the centre. Throws Error(name, "not tube-like: ...") otherwise.
+const Loop& tube_loop(const std::vector<Loop>& loops, const std::string& name, double s, double length) {
+  const std::string where = "the ring plane at " + mm(s) + " of " + mm(length) + " along the axis";
+  if (loops.empty()) throw Error(name, "not tube-like: " + where + " misses the surface");
+  if (loops.size() > 1)
+    throw Error(name, "not tube-like: " + where + " cuts the surface in " + std::to_string(loops.size()) +
+                          " loops (branching, folded or ring-shaped surface); remesh needs a single tube");
+  if (remesh_detail::winding(loops[0], Vec2(0, 0)) == 0)
+    throw Error(name, "not tube-like: the axis leaves the surface at " + where);
+  return loops[0];
+}
+
+// Points of a ring at fractions u (sorted, in [0, 1)): equal arc length from
+// the phase point (the outermost crossing of the ray along e1), or rays at
+// angles 2 pi u. inward (optional): unit in-plane normals pointing inside.
+void sample_loop(const Loop& l, const SweepPlane& pl, RingSampling mode, const std::vector<double>& u,
+                 std::vector<Vec3>& out, std::vector<Vec3>* inward, const std::string& name) {
+  const std::size_t m = l.q.size(), n = u.size();
+  out.resize(n);
+  if (inward) inward->resize(n);
+  auto to3 = [&](const Vec2& q) { return Vec3(pl.centre + q.x() * pl.e1 + q.y() * pl.e2); };
+  auto seg_inward = [&](std::size_t i) {
+    const Vec2 d = l.q[(i + 1) % m] - l.q[i];
+    const Vec3 t = d.x() * pl.e1 + d.y() * pl.e2;
+    const Vec3 w = pl.normal.cross(t);
+    return w.norm() > 0 ? Vec3(w.normalized()) : Vec3::Zero();
+  };
+  if (mode == RingSampling::angle) {
+    for (std::size_t k = 0; k < n; ++k) {
+      const Vec2 w(std::cos(2 * kPi * u[k]), std::sin(2 * kPi * u[k]));
+      double best = -1;
+      std::size_t bi = 0;
+      for (std::size_t i = 0; i < m; ++i) {
+        const Vec2 a = l.q[i];
+        const Vec2 d = l.q[(i + 1) % m] - l.q[i];
+        const double den = w.x() * d.y() - w.y() * d.x();
+        if (den == 0) continue;
+        const double t = (a.x() * d.y() - a.y() * d.x()) / den;
+        const double lam = (a.x() * w.y() - a.y() * w.x()) / den;
+        if (lam >= -1e-9 && lam <= 1 + 1e-9 && t > best) best = t, bi = i;
+      }
+      if (best < 0) throw Error(name, "a ring is not star-shaped around its centre: use arc-length sampling");
+      out[k] = to3(best * w);
+      if (inward) (*inward)[k] = seg_inward(bi);
+    }
+    return;
+  }
+  // phase: outermost crossing of the ray from the centre along e1
+  double best = -1, blam = 0;
+  std::size_t bi = 0;
+  for (std::size_t i = 0; i < m; ++i) {
+    const Vec2 a = l.q[i], b = l.q[(i + 1) % m];
+    if ((a.y() < 0) == (b.y() < 0)) continue;
+    const double lam = a.y() / (a.y() - b.y());
+    const double x = a.x() + lam * (b.x() - a.x());
+    if (x >= 0 && x > best) best = x, bi = i, blam = lam;
+  }
+  if (best < 0) throw Error(name, "a ring does not surround its centre");
+  std::vector<double> len(m);
+  double P = 0;
+  for (std::size_t i = 0; i < m; ++i) P += len[i] = (l.q[(i + 1) % m] - l.q[i]).norm();
+  // walk from the phase point
+  std::size_t i = bi;
+  double start = blam * len[bi];  // distance already covered inside segment i
+  double walked = -start;         // arc length at the start of segment i, from the phase point
+  for (std::size_t k = 0; k < n; ++k) {
+    const double target = u[k] * P;
+    while (walked + len[i] < target) {
+      walked += len[i];
+      i = (i + 1) % m;
+    }
+    const double f = len[i] > 0 ? (target - walked) / len[i] : 0;
+    const Vec2 q = l.q[i] + std::clamp(f, 0.0, 1.0) * (l.q[(i + 1) % m] - l.q[i]);
+    out[k] = to3(q);
+    if (inward) (*inward)[k] = seg_inward(i);
+  }
+}
+
+}  // namespace remesh_detail
+
+namespace {
+
+using remesh_detail::sample_loop;
+using remesh_detail::tube_loop;
+
+TubeSweep sweep_impl(const Surface& s, const Topology& topo, const Slicer& sl, const Axis& ax,
+                     const RemeshOptions& o, const std::string& name) {
+  // extent along the principal axis
+  double t0 = 1e300, t1 = -1e300;
+  for (int v = 0; v < s.vertices.rows(); ++v) {
+    const double t = (s.vertices.row(v).transpose() - ax.m).dot(ax.d);
+    t0 = std::min(t0, t), t1 = std::max(t1, t);
+  }
+  const double extent = t1 - t0;
+  if (!(extent > 0)) throw Error(name, "not tube-like: the surface is flat");
+  Cap caps[2] = {detect_cap(s, topo, -ax.d, o.cap_angle_deg, extent),
+                 detect_cap(s, topo, ax.d, o.cap_angle_deg, extent)};
+
+  // a cap is flat when its planar patch is at least half as large as the
+  // middle section
+  {
+    const SweepPlane mid = make_plane(ax.m + 0.5 * (t0 + t1) * ax.d, ax.d, reference_perpendicular(ax.d));
+    const auto loops = sl.slice(mid);
+    const double amid = loops.empty() ? 0 : std::abs(loops[0].area);
+    for (auto& c : caps) c.flat = amid > 0 && c.area >= 0.5 * amid;
+  }
+  // first pass: sections normal to the principal axis, largest loop, between
+  // the flat caps (a plane through a tilted cap would mix cap and wall)
+  double ta = t0, tb = t1;
+  for (int e = 0; e < 2; ++e) {
+    if (!caps[e].flat) continue;
+    for (int f : caps[e].faces)
+      for (int k = 0; k < 3; ++k) {
+        const double t = (s.vertices.row(s.faces(f, k)).transpose() - ax.m).dot(ax.d);
+        if (e == 0) ta = std::max(ta, t);
+        if (e == 1) tb = std::min(tb, t);
+      }
+  }
+  if (!(tb > ta)) ta = t0, tb = t1;
+  const int K = o.axis_sections;
+  std::vector<Vec3> pts;
+  std::vector<double> areas;
+  for (int k = 0; k < K; ++k) {
+    const double t = ta + (k + 0.5) / K * (tb - ta);
+    const SweepPlane pl = make_plane(ax.m + t * ax.d, ax.d, reference_perpendicular(ax.d));
+    const auto loops = sl.slice(pl);
+    if (loops.empty()) continue;
+    const Loop& l = loops[0];
+    pts.push_back(pl.centre + l.centroid.x() * pl.e1 + l.centroid.y() * pl.e2);
+    areas.push_back(std::abs(l.area));
+  }
+  if (pts.size() < 2) throw Error(name, "not tube-like: too few sections cut the surface");
+  double radius[2] = {std::sqrt(areas.front() / kPi), std::sqrt(areas.back() / kPi)};
+  if (getenv("RDBG")) { fprintf(stderr, "caps %d %d area %g %g sec %g %g ta %g tb %g\n", caps[0].flat, caps[1].flat, caps[0].area, caps[1].area, areas.front(), areas.back(), ta, tb); }
+
+  auto build_curve = [&](const std::vector<Vec3>& p) {
+    const Vec3* front = caps[0].flat ? &caps[0].q : nullptr;
+    const Vec3* back = caps[1].flat ? &caps[1].q : nullptr;
+    const Vec3* d0 = caps[0].flat ? &caps[0].n : nullptr;
+    const Vec3* d1 = caps[1].flat ? &caps[1].n : nullptr;
+    Curve c(p, 2.0, front, back, d0, d1);
+    // open (rounded) ends: extend straight until the end plane passes every vertex
+    Vec3 ext[2];
+    bool extended = false;
+    for (int e = 0; e < 2; ++e) {
+      if (caps[e].flat) continue;
+      const double se = e == 0 ? 0 : c.length();
+      const Vec3 x = c.point(se), tt = c.tangent(se) * (e == 0 ? -1.0 : 1.0);
+      double beyond = 0;
+      for (int v = 0; v < s.vertices.rows(); ++v)
+        beyond = std::max(beyond, (s.vertices.row(v).transpose() - x).dot(tt));
+      ext[e] = x + (beyond * (1 + 1e-6) + 1e-9 * extent) * tt;
+      if (e == 0) front = &ext[0];
+      if (e == 1) back = &ext[1];
+      extended = true;
+    }
+    return extended ? Curve(p, 2.0, front, back, d0, d1) : c;
+  };
+  Curve curve = build_curve(pts);
+
+  // refinement: centroids of sections normal to the current axis
+  std::vector<double> sec_s, sec_a;
+  for (int it = 0; it <= o.axis_iterations; ++it) {
+    const NormalField nf = normal_field(curve, caps, radius);
+    std::vector<Vec3> next;
+    sec_s.clear(), sec_a.clear();
+    for (int k = 0; k < K; ++k) {
+      const double sk = (k + 0.5) / K * curve.length();
+      const SweepPlane pl = make_plane(curve.point(sk), nf(sk), reference_perpendicular(nf(sk)));
+      const auto loops = sl.slice(pl);
+      const Loop* l = nullptr;
+      for (const auto& c : loops)
+        if (remesh_detail::winding(c, Vec2(0, 0)) != 0) {
+          l = &c;
+          break;
+        }
+      if (!l) continue;
+      next.push_back(pl.centre + l->centroid.x() * pl.e1 + l->centroid.y() * pl.e2);
+      sec_s.push_back(sk);
+      sec_a.push_back(std::abs(l->area));
+    }
+    if (next.size() < 2) throw Error(name, "not tube-like: the sections do not surround an axis");
+    if (getenv("RDBG")) fprintf(stderr, "it %d len %g n %zu\n", it, curve.length(), next.size());
+    if (it == o.axis_iterations) break;  // last pass only measures the section areas
+    curve = build_curve(next);
+    radius[0] = std::sqrt(sec_a.front() / kPi), radius[1] = std::sqrt(sec_a.back() / kPi);
+  }
+
+  // sweep range: flat caps at the ends of the curve, open ends trimmed where
+  // the section area falls below end_area_fraction of the largest
+  const double L = curve.length();
+  const double amax = *std::max_element(sec_a.begin(), sec_a.end());
+  const double athr = o.end_area_fraction * amax;
+  double sa = 0, sb = L;
+  if (!caps[0].flat) {
+    double ps = 0, pa = 0;
+    for (std::size_t k = 0; k < sec_s.size(); ++k) {
+      if (sec_a[k] >= athr) {
+        sa = ps + (athr - pa) / (sec_a[k] - pa) * (sec_s[k] - ps);
+        break;
+      }
+      ps = sec_s[k], pa = sec_a[k];
+    }
+  }
+  if (!caps[1].flat) {
+    double ps = L, pa = 0;
+    for (std::size_t k = sec_s.size(); k-- > 0;) {
+      if (sec_a[k] >= athr) {
+        sb = ps - (athr - pa) / (sec_a[k] - pa) * (ps - sec_s[k]);
+        break;
+      }
+      ps = sec_s[k], pa = sec_a[k];
+    }
+  }
+  if (!(sb > sa)) throw Error(name, "not tube-like: no part of the axis has a full section");
+
+  // the table: centres (moved so that flat-cap end planes sit kCapInset*L
+  // inside the caps), blended normals, rotation-minimising frames
+  const NormalField nfield = normal_field(curve, caps, radius);
+  const double inset = kCapInset * L;
+  double delta[2] = {0, 0};
+  if (caps[0].flat) delta[0] = (curve.point(0) - caps[0].q).dot(nfield.n[0]) - inset;
+  if (caps[1].flat) delta[1] = (curve.point(L) - caps[1].q).dot(nfield.n[1]) + inset;
+  TubeSweep sw;
+  sw.length_m = sb - sa;
+  sw.axis_direction = ax.d;
+  sw.flat_cap = {caps[0].flat, caps[1].flat};
+  sw.s.resize(kTable);
+  sw.centre.resize(kTable, 3);
+  sw.normal.resize(kTable, 3);
+  sw.e1.resize(kTable, 3);
+  for (int i = 0; i < kTable; ++i) {
+    const double sc = sa + (sb - sa) * i / (kTable - 1);
+    sw.s(i) = sc - sa;
+    Vec3 c = curve.point(sc) - delta[0] * nfield.w0(sc) * nfield.n[0] - delta[1] * nfield.w1(sc) * nfield.n[1];
+    sw.centre.row(i) = c;
+    sw.normal.row(i) = nfield(sc);
+  }
+  sw.s(kTable - 1) = sw.length_m;
+  // double reflection (Wang, Juettler, Zheng, Liu 2008), tangents = plane normals
+  Vec3 r = reference_perpendicular(sw.normal.row(0).transpose());
+  sw.e1.row(0) = r;
+  for (int i = 0; i + 1 < kTable; ++i) {
+    const Vec3 x0 = sw.centre.row(i), x1 = sw.centre.row(i + 1);
+    const Vec3 t0v = sw.normal.row(i), t1v = sw.normal.row(i + 1);
+    const Vec3 v1 = x1 - x0;
+    const double c1 = v1.dot(v1);
+    Vec3 rL = r, tL = t0v;
+    if (c1 > 0) {
+      rL = r - (2 / c1) * v1.dot(r) * v1;
+      tL = t0v - (2 / c1) * v1.dot(t0v) * v1;
+    }
+    const Vec3 v2 = t1v - tL;
+    const double c2 = v2.dot(v2);
+    r = c2 > 0 ? Vec3(rL - (2 / c2) * v2.dot(rL) * v2) : rL;
+    r = (r - r.dot(t1v) * t1v).normalized();
+    sw.e1.row(i + 1) = r;
+  }
+  return sw;
+}
+
+}  // namespace
+
+void validate(const RemeshOptions& o) {
+  auto bad = [](const std::string& what) { throw Error("", what); };
+  if (o.nu < 3 || o.nu > 10000) bad("grid: nu (points around) must be in 3..10000, got " + std::to_string(o.nu));
+  if (o.nv < 2 || o.nv > 10000) bad("grid: nv (rings along) must be in 2..10000, got " + std::to_string(o.nv));
+  if (!(o.max_spacing_ratio >= 1) || !std::isfinite(o.max_spacing_ratio)) bad("max_spacing_ratio must be >= 1");
+  if (o.axis_sections < 8 || o.axis_sections > 4096) bad("axis_sections must be in 8..4096");
+  if (o.axis_iterations < 0 || o.axis_iterations > 20) bad("axis_iterations must be in 0..20");
+  if (!(o.end_area_fraction > 0 && o.end_area_fraction < 1)) bad("end_area_fraction must be in (0, 1)");
+  if (!(o.cap_angle_deg > 0 && o.cap_angle_deg < 45)) bad("cap_angle_deg must be in (0, 45)");
+  if (!(o.fill_max_depth_fraction > 0 && o.fill_max_depth_fraction < 1))
+    bad("fill_max_depth_fraction must be in (0, 1)");
+}
+
+SweepPlane sweep_plane(const TubeSweep& sw, double s) {
+  const int n = static_cast<int>(sw.s.size());
+  const double x = sw.length_m > 0 ? std::clamp(s / sw.length_m, 0.0, 1.0) * (n - 1) : 0;
+  const int i = std::min(static_cast<int>(x), n - 2);
+  const double f = x - i;
+  const Vec3 c = (1 - f) * sw.centre.row(i) + f * sw.centre.row(i + 1);
+  const Vec3 nn = (1 - f) * sw.normal.row(i) + f * sw.normal.row(i + 1);
+  const Vec3 e = (1 - f) * sw.e1.row(i) + f * sw.e1.row(i + 1);
+  return make_plane(c, nn, e);
+}
+
+TubeSweep find_tube_sweep(const Surface& outer, const RemeshOptions& o, const std::string& name) {
+  validate(o);
+  const Topology topo = remesh_detail::build_topology(outer, name, true);
+  const Axis ax = principal_axis(outer);
+  const Slicer sl(outer, topo, ax.m, ax.d);
+  TubeSweep sw = sweep_impl(outer, topo, sl, ax, o, name);
+  sw.uncovered_m2 = {sw.flat_cap[0] ? 0.0 : area_behind(outer, sweep_plane(sw, 0)),
+                     sw.flat_cap[1] ? 0.0 : [&] {
+                       SweepPlane p = sweep_plane(sw, sw.length_m);
+                       p.normal = -p.normal;
+                       return area_behind(outer, p);
+                     }()};
+  return sw;
+}
+
+// ---- the layered grids -------------------------------------------------------
+
+namespace {
+
+QuadSurface make_grid(int nu, int nv, const std::vector<Vec3>& x, const VecXd& stations, double length) {
+  QuadSurface q;
+  q.nu = nu;
+  q.nv = nv;
+  q.vertices.resize(static_cast<Eigen::Index>(nu) * nv, 3);
+  q.uv.resize(static_cast<Eigen::Index>(nu) * nv, 2);
+  for (int j = 0; j < nv; ++j)
+    for (int i = 0; i < nu; ++i) {
+      const Eigen::Index r = static_cast<Eigen::Index>(j) * nu + i;
+      q.vertices.row(r) = x[r];
+      q.uv(r, 0) = static_cast<double>(i) / nu;
+      q.uv(r, 1) = length > 0 ? stations(j) / length : 0;
+    }
+  q.quads.resize(static_cast<Eigen::Index>(nu) * (nv - 1), 4);
+  for (int j = 0; j + 1 < nv; ++j)
+    for (int i = 0; i < nu; ++i) {
+      const int i1 = (i + 1) % nu;
+      q.quads.row(static_cast<Eigen::Index>(j) * nu + i) << j * nu + i, j * nu + i1, (j + 1) * nu + i1,
+          (j + 1) * nu + i;
+    }
+  return q;
+}
+
+// Stations s_0 = 0 < ... < s_{nv-1} = L. Adaptive: equidistribute
+// m(s) = sqrt(g(s) + mean g), g = RMS of |d2p/ds2| over a ring, with the
+// ratio of largest to smallest spacing bounded by o.max_spacing_ratio.
+VecXd place_stations(const TubeSweep& sw, const Slicer& sl, const RemeshOptions& o, const std::string& name) {
+  const int nv = o.nv;
+  const double L = sw.length_m;
+  VecXd st(nv);
+  for (int j = 0; j < nv; ++j) st(j) = L * j / (nv - 1);
+  if (!o.adaptive || nv <= 2) return st;
+  const int K = std::max(32, o.axis_sections), M = 32;
+  std::vector<double> u(M);
+  for (int i = 0; i < M; ++i) u[i] = static_cast<double>(i) / M;
+  std::vector<std::vector<Vec3>> ring(K);
+  const double ds = L / (K - 1);
+  for (int k = 0; k < K; ++k) {
+    const SweepPlane pl = sweep_plane(sw, k * ds);
+    const auto loops = sl.slice(pl);
+    sample_loop(tube_loop(loops, name, k * ds, L), pl, o.around, u, ring[k], nullptr, name);
+  }
+  std::vector<double> g(K, 0);
+  for (int k = 1; k + 1 < K; ++k) {
+    double acc = 0;
+    for (int i = 0; i < M; ++i) acc += (ring[k + 1][i] - 2 * ring[k][i] + ring[k - 1][i]).squaredNorm();
+    g[k] = std::sqrt(acc / M) / (ds * ds);
+  }
+  g[0] = g[1], g[K - 1] = g[K - 2];
+  for (int pass = 0; pass < 2; ++pass) {  // [1 2 1] smoothing
+    std::vector<double> h(g);
+    for (int k = 1; k + 1 < K; ++k) h[k] = 0.25 * g[k - 1] + 0.5 * g[k] + 0.25 * g[k + 1];
+    g = h;
+  }
+  // floor: the mean, plus a fraction of the curvature around (1 / mean radius),
+  // so that bending far below the around curvature leaves the rings evenly spaced
+  double rsum = 0;
+  for (int k = 0; k < K; ++k) {
+    const SweepPlane pl = sweep_plane(sw, k * ds);
+    for (int i = 0; i < M; ++i) rsum += (ring[k][i] - pl.centre).norm();
+  }
+  const double rmean = rsum / (K * M);
+  const double gm = std::accumulate(g.begin(), g.end(), 0.0) / K + (rmean > 0 ? 0.05 / rmean : 0);
+  if (!(gm > 0)) return st;
+  std::vector<double> m(K);
+  for (int k = 0; k < K; ++k) m[k] = std::sqrt(g[k] + gm);
+  if (getenv("RDBG")) { fprintf(stderr, "gm %g rmean %g\n", gm, rmean); for (int k = 0; k < K; ++k) fprintf(stderr, "%.3g ", g[k]); fprintf(stderr, "\n"); }
+  const double mmin = *std::min_element(m.begin(), m.end());
+  for (auto& x : m) x = std::min(x, mmin * o.max_spacing_ratio);
+  std::vector<double> cum(K, 0);
+  for (int k = 1; k < K; ++k) cum[k] = cum[k - 1] + 0.5 * (m[k] + m[k - 1]) * ds;
+  for (int j = 1; j + 1 < nv; ++j) {
+    const double target = cum.back() * j / (nv - 1);
+    const int k = static_cast<int>(std::upper_bound(cum.begin(), cum.end(), target) - cum.begin());
+    const int k1 = std::clamp(k, 1, K - 1);
+    const double f = (target - cum[k1 - 1]) / (cum[k1] - cum[k1 - 1]);
+    st(j) = (k1 - 1 + f) * ds;
+  }
+  st(0) = 0, st(nv - 1) = L;
+  return st;
+}
+
+}  // namespace
+
+RemeshResult remesh_layers(const std::vector<NamedSurface>& layers, const RemeshOptions& o) {
+  validate(o);
+  if (layers.empty()) throw Error("", "no surface to remesh");
+  auto t0 = std::chrono::steady_clock::now();
+  RemeshResult res;
+  const int nl = static_cast<int>(layers.size());
+  std::vector<Topology> topo;
+  topo.reserve(nl);
+  for (int k = 0; k < nl; ++k) topo.push_back(remesh_detail::build_topology(layers[k].surface, layers[k].name, k == 0));
+  if (topo[0].check.euler != 2)
+    throw Error(layers[0].name, "not tube-like: the surface has " + std::to_string((2 - topo[0].check.euler) / 2) +
+                                    " handle(s) (Euler characteristic " + std::to_string(topo[0].check.euler) +
+                                    "); remesh needs a tube closed at both ends");
+  for (int k = 1; k < nl; ++k) {
+    const std::int64_t bad = first_point_outside(layers[k - 1].surface, layers[k].surface.vertices);
+    if (bad >= 0) {
+      const Vec3 p = layers[k].surface.vertices.row(bad);
+      std::ostringstream m;
+      m.precision(4);
+      m << "not inside " << layers[k - 1].name << ": vertex " << bad << " at (" << p.x() * 1e3 << ", " << p.y() * 1e3
+        << ", " << p.z() * 1e3 << ") mm lies outside it";
+      throw Error(layers[k].name, m.str());
+    }
+  }
+  res.check_s = seconds_since(t0);
+  t0 = std::chrono::steady_clock::now();
+
+  const Axis ax = principal_axis(layers[0].surface);
+  std::vector<Slicer> slicers;
+  slicers.reserve(nl);
+  for (int k = 0; k < nl; ++k) slicers.emplace_back(layers[k].surface, topo[k], ax.m, ax.d);
+  res.sweep = sweep_impl(layers[0].surface, topo[0], slicers[0], ax, o, layers[0].name);
+  const TubeSweep& sw = res.sweep;
+  {
+    SweepPlane a = sweep_plane(sw, 0), b = sweep_plane(sw, sw.length_m);
+    b.normal = -b.normal;
+    res.sweep.uncovered_m2 = {sw.flat_cap[0] ? 0.0 : area_behind(layers[0].surface, a),
+                              sw.flat_cap[1] ? 0.0 : area_behind(layers[0].surface, b)};
+  }
+  res.stations_m = place_stations(sw, slicers[0], o, layers[0].name);
+  res.axis_s = seconds_since(t0);
+  t0 = std::chrono::steady_clock::now();
+
+  const int nu = o.nu, nv = o.nv;
+  const double L = sw.length_m;
+  std::vector<double> u(nu);
+  for (int i = 0; i < nu; ++i) u[i] = static_cast<double>(i) / nu;
+  std::vector<SweepPlane> planes(nv);
+  res.ring_centre.resize(nv, 3);
+  res.ring_normal.resize(nv, 3);
+  std::vector<std::vector<Vec3>> pts(nl, std::vector<Vec3>(static_cast<std::size_t>(nu) * nv));
+  res.ray_origin.assign(nl, MatX3d(nv, 3));
+  res.stats.resize(nl);
+  for (int k = 0; k < nl; ++k) {
+    res.stats[k].name = layers[k].name;
+    res.stats[k].components = topo[k].check.components;
+  }
+
+  // outer rings
+  std::vector<Vec3> ring;
+  for (int j = 0; j < nv; ++j) {
+    planes[j] = sweep_plane(sw, res.stations_m(j));
+    res.ring_centre.row(j) = planes[j].centre;
+    res.ring_normal.row(j) = planes[j].normal;
+    res.ray_origin[0].row(j) = planes[j].centre;
+    const auto loops = slicers[0].slice(planes[j]);
+    sample_loop(tube_loop(loops, layers[0].name, res.stations_m(j), L), planes[j], o.around, u, ring, nullptr,
+                layers[0].name);
+    std::copy(ring.begin(), ring.end(), pts[0].begin() + static_cast<std::ptrdiff_t>(j) * nu);
+  }
+  res.stats[0].hit = static_cast<std::int64_t>(nu) * nv;
+
+  // inner layers: rays from the centre of the layer's section through the
+  // vertices of the layer before, outermost crossing
+  for (int k = 1; k < nl; ++k) {
+    const std::string& name = layers[k].name;
+    std::vector<char> has(nv, 0);
+    std::vector<Vec2> origin(nv, Vec2::Zero());                 // plane frame
+    std::vector<double> frac(static_cast<std::size_t>(nu) * nv, -1);  // depth fraction along the ray
+    for (int j = 0; j < nv; ++j) {
+      const SweepPlane& pl = planes[j];
+      const auto loops = slicers[k].slice(pl);
+      double A = 0;
+      Vec2 c = Vec2::Zero();
+      for (const auto& l : loops) A += l.area, c += l.area * l.centroid;
+      if (loops.empty() || !(std::abs(A) > 0)) continue;
+      c /= A;
+      has[j] = 1;
+      origin[j] = c;
+      // the enclosing ring in the plane frame, and its angular order around c
+      std::vector<Vec2> R(nu);
+      for (int i = 0; i < nu; ++i) {
+        const Vec3 r = pts[k - 1][static_cast<std::size_t>(j) * nu + i] - pl.centre;
+        R[i] = Vec2(r.dot(pl.e1), r.dot(pl.e2)) - c;
+      }
+      double turn = 0;
+      bool monotone = true;
+      for (int i = 0; i < nu; ++i) {
+        const Vec2& a = R[i];
+        const Vec2& b = R[(i + 1) % nu];
+        const double d = std::atan2(a.x() * b.y() - a.y() * b.x(), a.dot(b));
+        monotone = monotone && d > 0;
+        turn += d;
+      }
+      if (std::abs(turn - 2 * kPi) > 1e-6)
+        throw Error(name, "the centre of its section at " + mm(res.stations_m(j)) + " along the axis lies outside " +
+                              layers[k - 1].name);
+      if (!monotone)
+        throw Error(name, "cannot be sampled radially: ring " + std::to_string(j) + " of " + layers[k - 1].name +
+                              " is not star-shaped around the centre of " + name + " at " + mm(res.stations_m(j)) +
+                              " along the axis");
+      std::vector<double> fr(nu, -1), ang(nu, 0);
+      for (int i = 0; i < nu; ++i) {
+        const double Ri = R[i].norm();
+        const Vec2 w = R[i] / Ri;
+        double t = -1;
+        for (const auto& l : loops) t = std::max(t, remesh_detail::ray_hit(l, c, w));
+        if (t >= Ri * (1 - 1e-12))
+          throw Error(name, "not inside " + layers[k - 1].name + ": it reaches the outer layer at ring " +
+                                std::to_string(j) + " (" + mm(res.stations_m(j)) + " along the axis)");
+        if (t >= 0) fr[i] = t / Ri;
+        if (i) ang[i] = ang[i - 1] + std::atan2(R[i - 1].x() * R[i].y() - R[i - 1].y() * R[i].x(), R[i - 1].dot(R[i]));
+      }
+      // bridge angular gaps: depth fraction linear in angle between the hits around the gap
+      int first_hit = -1;
+      for (int i = 0; i < nu && first_hit < 0; ++i)
+        if (fr[i] >= 0) first_hit = i;
+      if (first_hit < 0) {
+        has[j] = 0;
+        continue;
+      }
+      std::vector<char> hit(nu);
+      for (int i = 0; i < nu; ++i) hit[i] = fr[i] >= 0;
+      for (int step = 0; step < nu;) {
+        const int i = (first_hit + step) % nu;
+        if (hit[i]) {
+          ++step;
+          continue;
+        }
+        int len = 0;
+        while (!hit[(i + len) % nu]) ++len;
+        const int a = (i - 1 + nu) % nu, b = (i + len) % nu;
+        auto angle_at = [&](int idx, int around) { return ang[idx] + around * 2 * kPi; };
+        const double aa = angle_at(a, 0);
+        for (int q = 0; q < len; ++q) {
+          const int idx = (i + q) % nu;
+          const double ai = angle_at(idx, idx < a ? 1 : 0);
+          const double ab = angle_at(b, b <= a ? 1 : 0);
+          const double f = ab > aa ? (ai - aa) / (ab - aa) : 0.5;
+          fr[idx] = std::min(o.fill_max_depth_fraction, (1 - f) * fr[a] + f * fr[b]);
+          ++res.stats[k].bridged;
+        }
+        step += len;
+      }
+      res.stats[k].hit += std::count(hit.begin(), hit.end(), 1);
+      std::copy(fr.begin(), fr.end(), frac.begin() + static_cast<std::ptrdiff_t>(j) * nu);
+    }
+    // rings that miss the surface: interpolate along the axis, hold at the ends
+    std::vector<int> with;
+    for (int j = 0; j < nv; ++j)
+      if (has[j]) with.push_back(j);
+    if (with.empty()) throw Error(name, "no ring plane of " + layers[0].name + " meets this surface");
+    for (int j = 0; j < nv; ++j) {
+      if (has[j]) continue;
+      auto it = std::lower_bound(with.begin(), with.end(), j);
+      int a = it == with.begin() ? *it : *(it - 1);
+      int b = it == with.end() ? with.back() : *it;
+      const double f = a == b ? 0 : (res.stations_m(j) - res.stations_m(a)) / (res.stations_m(b) - res.stations_m(a));
+      origin[j] = (1 - f) * origin[a] + f * origin[b];
+      for (int i = 0; i < nu; ++i)
+        frac[static_cast<std::size_t>(j) * nu + i] =
+            std::min(o.fill_max_depth_fraction, (1 - f) * frac[static_cast<std::size_t>(a) * nu + i] +
+                                                    f * frac[static_cast<std::size_t>(b) * nu + i]);
+      res.stats[k].filled += nu;
+    }
+    for (int j = 0; j < nv; ++j) {
+      const SweepPlane& pl = planes[j];
+      const Vec3 o3 = pl.centre + origin[j].x() * pl.e1 + origin[j].y() * pl.e2;
+      res.ray_origin[k].row(j) = o3;
+      for (int i = 0; i < nu; ++i) {
+        const std::size_t r = static_cast<std::size_t>(j) * nu + i;
+        pts[k][r] = o3 + frac[r] * (pts[k - 1][r] - o3);
+      }
+    }
+  }
+  for (int k = 0; k < nl; ++k) res.layers.push_back(make_grid(nu, nv, pts[k], res.stations_m, L));
+  res.rings_s = seconds_since(t0);
+  return res;
+}
+
+// ---- quality and alignment ----------------------------------------------------
+
+QuadQuality quad_quality(const QuadSurface& q, const MatX3d& ring_centre) {
+  QuadQuality m;
+  m.min_angle_deg = 360, m.min_edge_m = 1e300, m.max_angle_deg = 0;
+  const Eigen::Index nq = q.quads.rows();
+  if (nq == 0) return m;
+  double sum_edge = 0, sum_aspect = 0;
+  std::vector<double> edges;
+  for (Eigen::Index f = 0; f < nq; ++f) {
+    Vec3 p[4];
+    for (int k = 0; k < 4; ++k) p[k] = q.vertices.row(q.quads(f, k));
+    double e[4], emin = 1e300, emax = 0;
+    for (int k = 0; k < 4; ++k) {
+      e[k] = (p[(k + 1) % 4] - p[k]).norm();
+      emin = std::min(emin, e[k]), emax = std::max(emax, e[k]);
+      sum_edge += e[k];
+    }
+    m.min_edge_m = std::min(m.min_edge_m, emin);
+    m.max_edge_m = std::max(m.max_edge_m, emax);
+    const Vec3 n = (p[2] - p[0]).cross(p[3] - p[1]);
+    const double area = 0.5 * n.norm();
+    const bool degenerate = !(emin > 1e-9 * emax) || !(area > 1e-9 * emax * emax);
+    if (degenerate) {
+      ++m.degenerate;
+      continue;
+    }
+    for (int k = 0; k < 4; ++k) {
+      const Vec3 a = p[(k + 1) % 4] - p[k], b = p[(k + 3) % 4] - p[k];
+      const double ang = std::atan2(a.cross(b).norm(), a.dot(b)) * 180 / kPi;
+      m.min_angle_deg = std::min(m.min_angle_deg, ang);
+      m.max_angle_deg = std::max(m.max_angle_deg, ang);
+    }
+    const double asp = emax / emin;
+    m.max_aspect = std::max(m.max_aspect, asp);
+    sum_aspect += asp;
+    const Vec3 n1 = (p[1] - p[0]).cross(p[2] - p[0]), n2 = (p[2] - p[0]).cross(p[3] - p[0]);
+    if (n1.norm() > 0 && n2.norm() > 0)
+      m.max_warp_deg = std::max(m.max_warp_deg, std::atan2(n1.cross(n2).norm(), n1.dot(n2)) * 180 / kPi);
+    // outward: away from the ring centres of the quad's two rings
+    if (q.nu > 0 && ring_centre.rows() == q.nv) {
+      const int j = static_cast<int>(q.quads(f, 0) / q.nu);
+      const Vec3 c = 0.5 * (ring_centre.row(j) + ring_centre.row(std::min(j + 1, q.nv - 1))).transpose();
+      const Vec3 mid = 0.25 * (p[0] + p[1] + p[2] + p[3]);
+      if (n.dot(mid - c) <= 0) ++m.flipped;
+    }
+  }
+  m.mean_edge_m = sum_edge / (4.0 * nq);
+  m.mean_aspect = sum_aspect / std::max<Eigen::Index>(1, nq - m.degenerate);
+  return m;
+}
+
+namespace {
+
+// closest point on triangle abc to p (Ericson, Real-Time Collision Detection 5.1.5)
+Vec3 closest_on_triangle(const Vec3& p, const Vec3& a, const Vec3& b, const Vec3& c) {
+  const Vec3 ab = b - a, ac = c - a, ap = p - a;
+  const double d1 = ab.dot(ap), d2 = ac.dot(ap);
+  if (d1 <= 0 && d2 <= 0) return a;
+  const Vec3 bp = p - b;
+  const double d3 = ab.dot(bp), d4 = ac.dot(bp);
+  if (d3 >= 0 && d4 <= d3) return b;
+  const double vc = d1 * d4 - d3 * d2;
+  if (vc <= 0 && d1 >= 0 && d3 <= 0) return a + d1 / (d1 - d3) * ab;
+  const Vec3 cp = p - c;
+  const double d5 = ab.dot(cp), d6 = ac.dot(cp);
+  if (d6 >= 0 && d5 <= d6) return c;
+  const double vb = d5 * d2 - d1 * d6;
+  if (vb <= 0 && d2 >= 0 && d6 <= 0) return a + d2 / (d2 - d6) * ac;
+  const double va = d3 * d6 - d5 * d4;
+  if (va <= 0 && (d4 - d3) >= 0 && (d5 - d6) >= 0) return b + (d4 - d3) / ((d4 - d3) + (d5 - d6)) * (c - b);
+  const double den = 1 / (va + vb + vc);
+  return a + ab * (vb * den) + ac * (vc * den);
+}
+
+// ray o + t d (t > 0) against triangle abc (Moeller-Trumbore); t or -1
+double ray_triangle(const Vec3& o, const Vec3& d, const Vec3& a, const Vec3& b, const Vec3& c) {
+  const Vec3 e1 = b - a, e2 = c - a, pv = d.cross(e2);
+  const double det = e1.dot(pv);
+  if (std::abs(det) < 1e-300) return -1;
+  const double inv = 1 / det;
+  const Vec3 tv = o - a;
+  const double u = tv.dot(pv) * inv;
+  if (u < -1e-12 || u > 1 + 1e-12) return -1;
+  const Vec3 qv = tv.cross(e1);
+  const double v = d.dot(qv) * inv;
+  if (v < -1e-12 || u + v > 1 + 1e-12) return -1;
+  const double t = e2.dot(qv) * inv;
+  return t > 0 ? t : -1;
+}
+
+}  // namespace
+
+LayerAlignment layer_alignment(const QuadSurface& a, const QuadSurface& b, const std::string& an,
+                               const std::string& bn) {
+  LayerAlignment r;
+  r.outer = an, r.inner = bn;
+  if (a.nu != b.nu || a.nv != b.nv) throw Error(bn, "grid differs from " + an);
+  const int nu = a.nu, nv = a.nv;
+  auto A = [&](int i, int j) { return Vec3(a.vertices.row(static_cast<Eigen::Index>(j) * nu + ((i + nu) % nu))); };
+  auto B = [&](int i, int j) { return Vec3(b.vertices.row(static_cast<Eigen::Index>(j) * nu + ((i + nu) % nu))); };
+  // lateral offset of corresponding vertices across the outer normal
+  for (int j = 0; j < nv; ++j)
+    for (int i = 0; i < nu; ++i) {
+      const int jm = std::max(j - 1, 0), jp = std::min(j + 1, nv - 1);
+      const Vec3 du = A(i + 1, j) - A(i - 1, j), dv = A(i, jp) - A(i, jm);
+      const Vec3 n = du.cross(dv).normalized();
+      const Vec3 d = B(i, j) - A(i, j);
+      const double lat = (d - d.dot(n) * n).norm();
+      const double h = std::max({(A(i + 1, j) - A(i, j)).norm(), (A(i - 1, j) - A(i, j)).norm(),
+                                 (A(i, jp) - A(i, j)).norm(), (A(i, jm) - A(i, j)).norm()});
+      r.max_lateral_m = std::max(r.max_lateral_m, lat);
+      if (h > 0) r.max_lateral_rel = std::max(r.max_lateral_rel, lat / h);
+    }
+  // the builder's test: the inward normal ray from each outer quad centroid
+  std::int64_t in = 0, total = 0;
+  for (int j = 0; j + 1 < nv; ++j)
+    for (int i = 0; i < nu; ++i) {
+      const Vec3 p0 = A(i, j), p1 = A(i + 1, j), p2 = A(i + 1, j + 1), p3 = A(i, j + 1);
+      const Vec3 c = 0.25 * (p0 + p1 + p2 + p3);
+      const Vec3 d = -((p2 - p0).cross(p3 - p1)).normalized();
+      ++total;
+      auto hit_quad = [&](int ii, int jj) {
+        const Vec3 q0 = B(ii, jj), q1 = B(ii + 1, jj), q2 = B(ii + 1, jj + 1), q3 = B(ii, jj + 1);
+        double t = ray_triangle(c, d, q0, q1, q2);
+        const double t2 = ray_triangle(c, d, q0, q2, q3);
+        if (t2 > 0 && (t < 0 || t2 < t)) t = t2;
+        return t;
+      };
+      if (hit_quad(i, j) > 0) {
+        ++in;
+        continue;
+      }
+      // where does it land instead? nearest hit among the neighbours
+      double best = -1;
+      for (int dj = -3; dj <= 3; ++dj)
+        for (int di = -3; di <= 3; ++di) {
+          const int jj = j + dj;
+          if (jj < 0 || jj + 1 >= nv) continue;
+          const double t = hit_quad(i + di, jj);
+          if (t > 0 && (best < 0 || t < best)) best = t;
+        }
+      const Vec3 q0 = B(i, j), q1 = B(i + 1, j), q2 = B(i + 1, j + 1), q3 = B(i, j + 1);
+      const Vec3 qc = 0.25 * (q0 + q1 + q2 + q3);
+      double miss;
+      if (best > 0) {
+        const Vec3 x = c + best * d;
+        miss = std::min((x - closest_on_triangle(x, q0, q1, q2)).norm(), (x - closest_on_triangle(x, q0, q2, q3)).norm());
+      } else {
+        const Vec3 w = qc - c;
+        miss = (w - w.dot(d) * d).norm();  // distance from the ray's line to the quad centre
+      }
+      r.max_ray_miss_m = std::max(r.max_ray_miss_m, miss);
+    }
+  r.ray_in_quad = total ? static_cast<double>(in) / total : 1.0;
+  return r;
+}
+
+}  // namespace orthosim

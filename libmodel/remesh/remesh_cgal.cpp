@@ -1,0 +1,174 @@
+// The only CGAL translation unit of remesh: point-to-mesh distances (AABB
+// tree) and containment (Side_of_triangle_mesh).
+#include "libmodel/remesh/remesh.h"
+
+#include <Eigen/Geometry>
+
+#include <CGAL/AABB_traits.h>
+#include <CGAL/AABB_tree.h>
+#include <CGAL/AABB_triangle_primitive.h>
+#include <CGAL/Exact_predicates_inexact_constructions_kernel.h>
+#include <CGAL/Side_of_triangle_mesh.h>
+#include <CGAL/Surface_mesh.h>
+
+#include <tbb/blocked_range.h>
+#include <tbb/parallel_for.h>
+
+#include <algorithm>
+#include <cmath>
+#include <vector>
+
+namespace orthosim {
+
+namespace {
+
+using K = CGAL::Exact_predicates_inexact_constructions_kernel;
+using Point = K::Point_3;
+using Triangle = K::Triangle_3;
+using TriIter = std::vector<Triangle>::const_iterator;
+using Primitive = CGAL::AABB_triangle_primitive<K, TriIter>;
+using Tree = CGAL::AABB_tree<CGAL::AABB_traits<K, Primitive>>;
+using Mesh = CGAL::Surface_mesh<Point>;
+using Vec3 = Eigen::Vector3d;
+
+Point P(const Vec3& v) { return {v.x(), v.y(), v.z()}; }
+
+// distances from points to a triangle set, in parallel (order-independent)
+std::vector<double> distances(const std::vector<Triangle>& tris, const std::vector<Vec3>& pts) {
+  std::vector<double> d(pts.size(), 0);
+  if (tris.empty()) return d;
+  Tree tree(tris.begin(), tris.end());
+  tree.accelerate_distance_queries();
+  tree.squared_distance(P(pts.empty() ? Vec3::Zero() : pts[0]));  // builds the tree before the parallel loop
+  tbb::parallel_for(tbb::blocked_range<std::size_t>(0, pts.size(), 1024), [&](const auto& r) {
+    for (std::size_t i = r.begin(); i != r.end(); ++i) d[i] = std::sqrt(tree.squared_distance(P(pts[i])));
+  });
+  return d;
+}
+
+}  // namespace
+
+std::int64_t first_point_outside(const Surface& closed, const MatX3d& points) {
+  if (points.rows() == 0) return -1;
+  Mesh m;
+  std::vector<Mesh::Vertex_index> vi(closed.vertices.rows());
+  for (Eigen::Index v = 0; v < closed.vertices.rows(); ++v) vi[v] = m.add_vertex(P(closed.vertices.row(v)));
+  for (Eigen::Index f = 0; f < closed.faces.rows(); ++f)
+    m.add_face(vi[closed.faces(f, 0)], vi[closed.faces(f, 1)], vi[closed.faces(f, 2)]);
+  CGAL::Side_of_triangle_mesh<Mesh, K> side(m);
+  std::vector<char> out(points.rows(), 0);
+  out[0] = side(P(points.row(0))) == CGAL::ON_UNBOUNDED_SIDE;
+  tbb::parallel_for(tbb::blocked_range<Eigen::Index>(1, points.rows(), 512), [&](const auto& r) {
+    for (Eigen::Index i = r.begin(); i != r.end(); ++i) out[i] = side(P(points.row(i))) == CGAL::ON_UNBOUNDED_SIDE;
+  });
+  auto it = std::find(out.begin(), out.end(), 1);
+  return it == out.end() ? -1 : static_cast<std::int64_t>(it - out.begin());
+}
+
+SurfaceDistance quad_surface_distance(const QuadSurface& q, const Surface& input, const SweepPlane& first,
+                                      const SweepPlane& last, int k) {
+  SurfaceDistance r;
+  k = std::max(1, k);
+  // bilinear patches: samples for quad -> input, a 2 x 2 tessellation for input -> quad
+  std::vector<Vec3> qs;
+  std::vector<double> qw;
+  std::vector<Triangle> qt;
+  for (Eigen::Index f = 0; f < q.quads.rows(); ++f) {
+    const Vec3 p0 = q.vertices.row(q.quads(f, 0)), p1 = q.vertices.row(q.quads(f, 1)),
+               p2 = q.vertices.row(q.quads(f, 2)), p3 = q.vertices.row(q.quads(f, 3));
+    auto at = [&](double a, double b) { return Vec3((1 - a) * (1 - b) * p0 + a * (1 - b) * p1 + a * b * p2 + (1 - a) * b * p3); };
+    const double area = 0.5 * (p2 - p0).cross(p3 - p1).norm();
+    for (int i = 0; i <= k; ++i)
+      for (int j = 0; j <= k; ++j) {
+        qs.push_back(at(static_cast<double>(i) / k, static_cast<double>(j) / k));
+        // trapezoid weights over the patch
+        const double wi = (i == 0 || i == k) ? 0.5 : 1.0, wj = (j == 0 || j == k) ? 0.5 : 1.0;
+        qw.push_back(area * wi * wj / (k * k));
+      }
+    const Vec3 g[3][3] = {{at(0, 0), at(0, .5), at(0, 1)}, {at(.5, 0), at(.5, .5), at(.5, 1)}, {at(1, 0), at(1, .5), at(1, 1)}};
+    for (int a = 0; a < 2; ++a)
+      for (int b = 0; b < 2; ++b) {
+        qt.emplace_back(P(g[a][b]), P(g[a + 1][b]), P(g[a + 1][b + 1]));
+        qt.emplace_back(P(g[a][b]), P(g[a + 1][b + 1]), P(g[a][b + 1]));
+      }
+  }
+  std::vector<Triangle> it;
+  it.reserve(input.faces.rows());
+  for (Eigen::Index f = 0; f < input.faces.rows(); ++f)
+    it.emplace_back(P(input.vertices.row(input.faces(f, 0))), P(input.vertices.row(input.faces(f, 1))),
+                    P(input.vertices.row(input.faces(f, 2))));
+  const std::vector<double> dq = distances(it, qs);
+  double sw = 0, sd = 0;
+  for (std::size_t i = 0; i < dq.size(); ++i) {
+    r.quad_to_input_max_m = std::max(r.quad_to_input_max_m, dq[i]);
+    sd += qw[i] * dq[i], sw += qw[i];
+  }
+  r.quad_to_input_mean_m = sw > 0 ? sd / sw : 0;
+
+  // the input between the end planes: vertices and face centroids
+  auto between = [&](const Vec3& x) {
+    return (x - first.centre).dot(first.normal) >= 0 && (x - last.centre).dot(last.normal) <= 0;
+  };
+  std::vector<Vec3> is;
+  std::vector<double> iw;
+  std::vector<char> used(input.vertices.rows(), 0);
+  for (Eigen::Index f = 0; f < input.faces.rows(); ++f) {
+    const Vec3 p0 = input.vertices.row(input.faces(f, 0)), p1 = input.vertices.row(input.faces(f, 1)),
+               p2 = input.vertices.row(input.faces(f, 2));
+    const Vec3 c = (p0 + p1 + p2) / 3;
+    if (!between(c)) continue;
+    const double a = 0.5 * (p1 - p0).cross(p2 - p0).norm();
+    r.compared_input_area_m2 += a;
+    is.push_back(c);
+    iw.push_back(a);
+    for (int k3 = 0; k3 < 3; ++k3) {
+      const int v = input.faces(f, k3);
+      const Vec3 x = input.vertices.row(v);
+      if (!used[v] && between(x)) {
+        used[v] = 1;
+        is.push_back(x);
+        iw.push_back(0);  // vertices count for the maximum only
+      }
+    }
+  }
+  const std::vector<double> di = distances(qt, is);
+  sw = 0, sd = 0;
+  for (std::size_t i = 0; i < di.size(); ++i) {
+    r.input_to_quad_max_m = std::max(r.input_to_quad_max_m, di[i]);
+    sd += iw[i] * di[i], sw += iw[i];
+  }
+  r.input_to_quad_mean_m = sw > 0 ? sd / sw : 0;
+  r.hausdorff_m = std::max(r.quad_to_input_max_m, r.input_to_quad_max_m);
+  r.mean_m = 0.5 * (r.quad_to_input_mean_m + r.input_to_quad_mean_m);
+  r.samples = static_cast<std::int64_t>(qs.size() + is.size());
+  return r;
+}
+
+RemeshEvaluation evaluate_remesh(const RemeshResult& res, const std::vector<NamedSurface>& inputs, int k) {
+  RemeshEvaluation e;
+  const SweepPlane first = sweep_plane(res.sweep, 0), last = sweep_plane(res.sweep, res.sweep.length_m);
+  for (std::size_t l = 0; l < res.layers.size(); ++l) {
+    e.quality.push_back(quad_quality(res.layers[l], res.ray_origin[l]));
+    e.distance.push_back(quad_surface_distance(res.layers[l], inputs.at(l).surface, first, last, k));
+  }
+  for (std::size_t l = 1; l < res.layers.size(); ++l) {
+    LayerAlignment a = layer_alignment(res.layers[l - 1], res.layers[l], inputs[l - 1].name, inputs[l].name);
+    const QuadSurface &A = res.layers[l - 1], &B = res.layers[l];
+    for (int j = 0; j < A.nv; ++j) {
+      const Vec3 o = res.ray_origin[l].row(j);
+      for (int i = 0; i < A.nu; ++i) {
+        const Eigen::Index r = static_cast<Eigen::Index>(j) * A.nu + i;
+        const Vec3 u = A.vertices.row(r).transpose() - o, v = B.vertices.row(r).transpose() - o;
+        if (u.norm() > 0 && v.norm() > 0)
+          a.max_ray_angle_deg = std::max(a.max_ray_angle_deg, std::atan2(u.cross(v).norm(), u.dot(v)) * 180 / M_PI);
+      }
+    }
+    e.worst_lateral_m = std::max(e.worst_lateral_m, a.max_lateral_m);
+    e.worst_lateral_rel = std::max(e.worst_lateral_rel, a.max_lateral_rel);
+    e.worst_ray_miss_m = std::max(e.worst_ray_miss_m, a.max_ray_miss_m);
+    e.alignment.push_back(a);
+  }
+  return e;
+}
+
+}  // namespace orthosim

@@ -1,0 +1,160 @@
+// Texture baking from the colour stack (OpenCV for image I/O only).
+#include "libmodel/remesh/texture.h"
+
+#include "libmodel/format/atomic.h"
+#include "libmodel/remesh/detail.h"
+
+#include <opencv2/core.hpp>
+#include <opencv2/imgcodecs.hpp>
+#include <opencv2/imgproc.hpp>
+
+#include <algorithm>
+#include <cmath>
+#include <filesystem>
+#include <list>
+#include <map>
+
+namespace orthosim {
+
+namespace fs = std::filesystem;
+using Vec3 = Eigen::Vector3d;
+
+ColourStack open_colour_stack(const std::string& dir, const std::array<double, 3>& spacing_m,
+                              const std::array<double, 3>& origin_m) {
+  for (double s : spacing_m)
+    if (!(s > 0) || !std::isfinite(s)) throw Error(dir, "voxel spacing must be positive");
+  ColourStack st;
+  st.spacing_m = spacing_m;
+  st.origin_m = origin_m;
+  fs::path root(dir);
+  std::error_code ec;
+  if (!fs::is_directory(root, ec)) throw Error(dir, "not a directory of colour slices");
+  if (fs::is_directory(root / "slices", ec)) root /= "slices";
+  for (const auto& e : fs::directory_iterator(root, ec)) {
+    if (!e.is_regular_file()) continue;
+    std::string ext = e.path().extension().string();
+    std::transform(ext.begin(), ext.end(), ext.begin(), [](unsigned char c) { return std::tolower(c); });
+    if (ext == ".png" || ext == ".jpg" || ext == ".jpeg" || ext == ".tif" || ext == ".tiff" || ext == ".bmp")
+      st.files.push_back(e.path().string());
+  }
+  std::sort(st.files.begin(), st.files.end());
+  if (st.files.empty()) throw Error(dir, "no colour slices (png, jpg, tif, bmp)");
+  cv::Mat first = cv::imread(st.files[0], cv::IMREAD_COLOR);
+  if (first.empty()) throw Error(st.files[0], "cannot read the image");
+  st.nx = first.cols, st.ny = first.rows;
+  return st;
+}
+
+namespace {
+
+// least-recently-used cache of BGR slices
+class SliceCache {
+ public:
+  SliceCache(const ColourStack& s, int capacity) : s_(s), cap_(std::max(2, capacity)) {}
+  const cv::Mat& get(int k) {
+    auto it = map_.find(k);
+    if (it != map_.end()) {
+      lru_.splice(lru_.begin(), lru_, it->second.second);
+      return it->second.first;
+    }
+    cv::Mat m = cv::imread(s_.files[k], cv::IMREAD_COLOR);
+    if (m.empty()) throw Error(s_.files[k], "cannot read the image");
+    if (m.cols != s_.nx || m.rows != s_.ny)
+      throw Error(s_.files[k], "slice size differs from the first slice's");
+    if (static_cast<int>(map_.size()) >= cap_) {
+      map_.erase(lru_.back());
+      lru_.pop_back();
+    }
+    lru_.push_front(k);
+    return map_.emplace(k, std::make_pair(std::move(m), lru_.begin())).first->second.first;
+  }
+
+ private:
+  const ColourStack& s_;
+  int cap_;
+  std::list<int> lru_;
+  std::map<int, std::pair<cv::Mat, std::list<int>::iterator>> map_;
+};
+
+}  // namespace
+
+TextureImage bake_texture(const Surface& outer, const TubeSweep& sweep, RingSampling around, const ColourStack& stack,
+                          const TextureOptions& o, const std::string& name) {
+  if (o.max_size < 16 || o.max_size > 16384) throw Error("", "texture max_size must be in 16..16384");
+  const remesh_detail::Topology topo = remesh_detail::build_topology(outer, name, true);
+  const remesh_detail::Slicer sl(outer, topo, sweep.centre.row(0).transpose(), sweep.axis_direction);
+  const double texel = o.texel_m > 0 ? o.texel_m : std::min(stack.spacing_m[0], stack.spacing_m[1]);
+  const double depth = o.depth_m >= 0 ? o.depth_m : std::min(stack.spacing_m[0], stack.spacing_m[1]);
+  // perimeter of the middle ring sets the width
+  const SweepPlane mid = sweep_plane(sweep, 0.5 * sweep.length_m);
+  const auto mloops = sl.slice(mid);
+  const auto& ml = remesh_detail::tube_loop(mloops, name, 0.5 * sweep.length_m, sweep.length_m);
+  double perim = 0;
+  for (std::size_t i = 0; i < ml.q.size(); ++i) perim += (ml.q[(i + 1) % ml.q.size()] - ml.q[i]).norm();
+  TextureImage t;
+  t.width = std::clamp(static_cast<int>(std::lround(perim / texel)), 16, o.max_size);
+  t.height = std::clamp(static_cast<int>(std::lround(sweep.length_m / texel)), 16, o.max_size);
+  t.rgb.assign(static_cast<std::size_t>(t.width) * t.height * 3, 0);
+  std::vector<double> u(t.width);
+  for (int a = 0; a < t.width; ++a) u[a] = (a + 0.5) / t.width;
+  SliceCache cache(stack, o.cache_slices);
+  std::vector<Vec3> pts, inward;
+  const int nz = static_cast<int>(stack.files.size());
+  for (int b = 0; b < t.height; ++b) {
+    const double s = (b + 0.5) / t.height * sweep.length_m;
+    const SweepPlane pl = sweep_plane(sweep, s);
+    const auto loops = sl.slice(pl);
+    remesh_detail::sample_loop(remesh_detail::tube_loop(loops, name, s, sweep.length_m), pl, around, u, pts, &inward,
+                               name);
+    for (int a = 0; a < t.width; ++a) {
+      const Vec3 p = pts[a] + depth * inward[a];
+      double f[3];
+      bool out = false;
+      const int n[3] = {stack.nx, stack.ny, nz};
+      int i0[3];
+      double w[3];
+      for (int d = 0; d < 3; ++d) {
+        f[d] = (p(d) - stack.origin_m[d]) / stack.spacing_m[d];
+        if (f[d] < -0.5 || f[d] > n[d] - 0.5) out = true;
+        f[d] = std::clamp(f[d], 0.0, static_cast<double>(n[d] - 1));
+        i0[d] = std::min(static_cast<int>(std::floor(f[d])), std::max(0, n[d] - 2));
+        w[d] = f[d] - i0[d];
+        if (n[d] == 1) i0[d] = 0, w[d] = 0;
+      }
+      t.outside += out;
+      double acc[3] = {0, 0, 0};
+      for (int dz = 0; dz < 2; ++dz) {
+        const double wz = dz ? w[2] : 1 - w[2];
+        if (wz == 0) continue;
+        const cv::Mat& img = cache.get(std::min(i0[2] + dz, nz - 1));
+        for (int dy = 0; dy < 2; ++dy) {
+          const double wy = dy ? w[1] : 1 - w[1];
+          if (wy == 0) continue;
+          const cv::Vec3b* row = img.ptr<cv::Vec3b>(std::min(i0[1] + dy, stack.ny - 1));
+          for (int dx = 0; dx < 2; ++dx) {
+            const double wx = dx ? w[0] : 1 - w[0];
+            if (wx == 0) continue;
+            const cv::Vec3b& c = row[std::min(i0[0] + dx, stack.nx - 1)];
+            for (int ch = 0; ch < 3; ++ch) acc[ch] += wz * wy * wx * c[2 - ch];  // BGR -> RGB
+          }
+        }
+      }
+      std::uint8_t* px = &t.rgb[(static_cast<std::size_t>(b) * t.width + a) * 3];
+      for (int ch = 0; ch < 3; ++ch) px[ch] = static_cast<std::uint8_t>(std::clamp(std::lround(acc[ch]), 0L, 255L));
+    }
+  }
+  return t;
+}
+
+void write_texture_png(const std::string& path, const TextureImage& t) {
+  cv::Mat rgb(t.height, t.width, CV_8UC3, const_cast<std::uint8_t*>(t.rgb.data())), bgr;
+  cv::cvtColor(rgb, bgr, cv::COLOR_RGB2BGR);
+  AtomicFile out(path);
+  if (!cv::imwrite(out.temp() + ".png", bgr)) throw Error(path, "cannot write the PNG texture");
+  std::error_code ec;
+  fs::rename(out.temp() + ".png", out.temp(), ec);
+  if (ec) throw Error(path, "cannot write the PNG texture");
+  out.commit();
+}
+
+}  // namespace orthosim

@@ -1,0 +1,67 @@
+// Texture of a remeshed surface from the colour cryosection stack, and the
+// viewer exports: OBJ (quads) + MTL + PNG, and glTF 2.0 (assimp).
+#pragma once
+
+#include "libmodel/remesh/remesh.h"
+
+#include <array>
+#include <cstdint>
+#include <string>
+#include <vector>
+
+namespace orthosim {
+
+// The colour stack: slice k is the image at z = origin_m[2] + k * spacing_m[2];
+// pixel (column x, row y) is at origin_m + (x, y, k) * spacing_m (the frame of
+// libmodel/format/model.h).
+struct ColourStack {
+  std::vector<std::string> files;  // one per slice, in name order
+  int nx = 0, ny = 0;              // image width and height (pixels)
+  std::array<double, 3> spacing_m{1e-3, 1e-3, 1e-3};
+  std::array<double, 3> origin_m{0, 0, 0};
+};
+
+// Lists DIR/slices/* (or DIR/* when DIR has no slices/ folder) with the
+// extensions png, jpg, jpeg, tif, tiff, bmp, sorted by name, and reads the
+// first slice for the image size. Throws Error(dir, ...) when there is no
+// slice, or spacing is not positive.
+ColourStack open_colour_stack(const std::string& dir, const std::array<double, 3>& spacing_m,
+                              const std::array<double, 3>& origin_m);
+
+struct TextureOptions {
+  double texel_m = 0;     // texel size (m); 0: the smallest in-plane voxel size
+  int max_size = 4096;    // largest width or height in texels, in [16, 16384]
+  double depth_m = -1;    // sample this far inside the surface (m); < 0: one in-plane voxel
+  int cache_slices = 32;  // slices kept in memory, >= 2
+};
+
+struct TextureImage {
+  int width = 0, height = 0;
+  std::vector<std::uint8_t> rgb;  // height * width * 3, row-major, RGB; row 0 is the start of the axis (v = 0)
+  std::int64_t outside = 0;       // texels whose sample point fell outside the stack (clamped)
+};
+
+// Texel (a, b) holds the stack colour (trilinear) at the surface point at arc
+// fraction u = (a + 0.5) / width around the ring at s = (b + 0.5) / height *
+// length, moved depth_m inside: the same (u, v = s / length) as the uv of the
+// grid vertices, so the texture is exact whatever the grid size. Throws
+// Error(slice file, ...) when a slice cannot be read or has another size.
+TextureImage bake_texture(const Surface& outer, const TubeSweep& sweep, RingSampling around, const ColourStack& stack,
+                          const TextureOptions& o, const std::string& name);
+
+// Writes a PNG (atomically).
+void write_texture_png(const std::string& path, const TextureImage& t);
+
+// Wavefront OBJ with the grid's quads: v (nu*nv), vt ((nu+1)*nv: the seam
+// column repeats with u = 1), f v/vt. OBJ's vt origin is the bottom left, so
+// vt = (u, 1 - v). With `mtl_file`, adds mtllib/usemtl `material`.
+void write_quad_obj(const std::string& path, const QuadSurface& q, const std::string& mtl_file = "",
+                    const std::string& material = "");
+void write_mtl(const std::string& path, const std::string& material, const std::string& texture_file);
+
+// glTF 2.0 (JSON + .bin beside it) through assimp: quads split into two
+// triangles, the seam column duplicated, texture_file (may be empty) as the
+// base colour. Throws Error(path, ...) when the exporter fails.
+void write_gltf(const std::string& path, const QuadSurface& q, const std::string& texture_file, const std::string& name);
+
+}  // namespace orthosim

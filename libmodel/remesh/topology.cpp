@@ -1,0 +1,325 @@
+// Topology checks and plane slicing of closed triangle surfaces.
+#include "libmodel/remesh/detail.h"
+
+#include <Eigen/Geometry>
+
+#include <algorithm>
+#include <cmath>
+#include <numeric>
+#include <sstream>
+
+namespace orthosim {
+namespace remesh_detail {
+
+namespace {
+
+std::string edge_text(int a, int b) {
+  return "(" + std::to_string(std::min(a, b)) + ", " + std::to_string(std::max(a, b)) + ")";
+}
+
+int find_root(std::vector<int>& p, int x) {
+  while (p[x] != x) x = p[x] = p[p[x]];
+  return x;
+}
+
+}  // namespace
+
+Topology build_topology(const Surface& s, const std::string& name, bool single_component) {
+  const int nv = static_cast<int>(s.vertices.rows());
+  const int nf = static_cast<int>(s.faces.rows());
+  if (nv == 0 || nf == 0) throw Error(name, "empty surface (no faces)");
+  for (int v = 0; v < nv; ++v)
+    if (!s.vertices.row(v).allFinite()) throw Error(name, "vertex " + std::to_string(v) + " has a non-finite coordinate");
+  for (int f = 0; f < nf; ++f) {
+    const auto F = s.faces.row(f);
+    for (int k = 0; k < 3; ++k)
+      if (F(k) < 0 || F(k) >= nv) throw Error(name, "face " + std::to_string(f) + " has a vertex id out of range");
+    if (F(0) == F(1) || F(1) == F(2) || F(2) == F(0))
+      throw Error(name, "face " + std::to_string(f) + " repeats a vertex (degenerate)");
+  }
+
+  // vertex -> faces (CSR)
+  std::vector<int> off(nv + 1, 0), vf(3 * static_cast<std::size_t>(nf));
+  for (int f = 0; f < nf; ++f)
+    for (int k = 0; k < 3; ++k) ++off[s.faces(f, k) + 1];
+  for (int v = 0; v < nv; ++v) off[v + 1] += off[v];
+  {
+    std::vector<int> fill(off.begin(), off.end() - 1);
+    for (int f = 0; f < nf; ++f)
+      for (int k = 0; k < 3; ++k) vf[fill[s.faces(f, k)]++] = f;
+  }
+  auto slot_of = [&](int f, int a, int b) {  // slot k with face edge (a, b), or -1
+    for (int k = 0; k < 3; ++k)
+      if (s.faces(f, k) == a && s.faces(f, (k + 1) % 3) == b) return k;
+    return -1;
+  };
+
+  Topology t;
+  t.face_edge.assign(nf, {-1, -1, -1});
+  for (int f = 0; f < nf; ++f) {
+    for (int k = 0; k < 3; ++k) {
+      const int a = s.faces(f, k), b = s.faces(f, (k + 1) % 3);
+      int other = -1, n_other = 0;
+      bool same_direction = false;
+      for (int q = off[a]; q < off[a + 1]; ++q) {
+        const int g = vf[q];
+        if (g == f) continue;
+        const bool ab = slot_of(g, a, b) >= 0, ba = slot_of(g, b, a) >= 0;
+        if (!ab && !ba) continue;
+        ++n_other;
+        other = g;
+        same_direction = ab;
+      }
+      if (n_other == 0) throw Error(name, "open surface: edge " + edge_text(a, b) + " belongs to only one face");
+      if (n_other > 1)
+        throw Error(name, "non-manifold: edge " + edge_text(a, b) + " belongs to " + std::to_string(n_other + 1) + " faces");
+      if (same_direction)
+        throw Error(name, "inconsistently oriented faces " + std::to_string(std::min(f, other)) + " and " +
+                              std::to_string(std::max(f, other)) + " at edge " + edge_text(a, b));
+      if (other > f) {
+        t.face_edge[f][k] = t.n_edges++;
+        t.edge_face.push_back({f, other});
+      } else {
+        t.face_edge[f][k] = t.face_edge[other][slot_of(other, b, a)];
+      }
+    }
+  }
+
+  // every referenced vertex is a single fan of faces
+  int n_used = 0;
+  for (int v = 0; v < nv; ++v) {
+    const int valence = off[v + 1] - off[v];
+    if (valence == 0) continue;
+    ++n_used;
+    const int f0 = vf[off[v]];
+    int f = f0, count = 0;
+    do {
+      int k = 0;
+      while (s.faces(f, k) != v) ++k;
+      const int e = t.face_edge[f][k];  // edge (v, next)
+      f = t.edge_face[e][0] == f ? t.edge_face[e][1] : t.edge_face[e][0];
+      if (++count > valence) break;
+    } while (f != f0);
+    if (count != valence)
+      throw Error(name, "non-manifold vertex " + std::to_string(v) + " (its faces form more than one fan)");
+  }
+
+  // components, volumes, areas, Euler characteristics
+  std::vector<int> parent(nf);
+  std::iota(parent.begin(), parent.end(), 0);
+  for (const auto& ef : t.edge_face) {
+    int a = find_root(parent, ef[0]), b = find_root(parent, ef[1]);
+    if (a != b) parent[std::max(a, b)] = std::min(a, b);
+  }
+  std::vector<int> comp_of_root(nf, -1);
+  t.face_component.resize(nf);
+  int nc = 0;
+  for (int f = 0; f < nf; ++f) {
+    const int r = find_root(parent, f);
+    if (comp_of_root[r] < 0) comp_of_root[r] = nc++;
+    t.face_component[f] = comp_of_root[r];
+  }
+  t.component_volume.assign(nc, 0);
+  t.component_area.assign(nc, 0);
+  std::vector<long> cf(nc, 0), ce(nc, 0), cv(nc, 0);
+  for (int f = 0; f < nf; ++f) {
+    const Eigen::Vector3d a = s.vertices.row(s.faces(f, 0)), b = s.vertices.row(s.faces(f, 1)),
+                          c = s.vertices.row(s.faces(f, 2));
+    const int cc = t.face_component[f];
+    t.component_volume[cc] += a.dot(b.cross(c)) / 6.0;
+    t.component_area[cc] += 0.5 * (b - a).cross(c - a).norm();
+    ++cf[cc];
+  }
+  for (const auto& ef : t.edge_face) ++ce[t.face_component[ef[0]]];
+  for (int v = 0; v < nv; ++v)
+    if (off[v + 1] > off[v]) ++cv[t.face_component[vf[off[v]]]];
+  t.component_euler.resize(nc);
+  for (int c = 0; c < nc; ++c) t.component_euler[c] = static_cast<int>(cv[c] - ce[c] + cf[c]);
+
+  t.check.components = nc;
+  t.check.euler = n_used - t.n_edges + nf;
+  t.check.area_m2 = std::accumulate(t.component_area.begin(), t.component_area.end(), 0.0);
+  t.check.volume_m3 = std::accumulate(t.component_volume.begin(), t.component_volume.end(), 0.0);
+  if (single_component && nc != 1)
+    throw Error(name, std::to_string(nc) +
+                          " components: remesh expects one connected surface (split it and remesh each part)");
+  return t;
+}
+
+// ---- slicing ---------------------------------------------------------------
+
+Slicer::Slicer(const Surface& s, const Topology& t, const Eigen::Vector3d& axis_point,
+               const Eigen::Vector3d& axis_dir)
+    : s_(s), t_(t), a0_(axis_point), ad_(axis_dir.normalized()) {
+  const int nf = static_cast<int>(s.faces.rows()), nv = static_cast<int>(s.vertices.rows());
+  std::vector<double> tv(nv);
+  for (int v = 0; v < nv; ++v) {
+    const Eigen::Vector3d r = s.vertices.row(v).transpose() - a0_;
+    tv[v] = r.dot(ad_);
+    rho_max_ = std::max(rho_max_, (r - tv[v] * ad_).norm());
+  }
+  std::vector<double> tmin(nf);
+  tmax_.resize(nf);
+  for (int f = 0; f < nf; ++f) {
+    const double a = tv[s.faces(f, 0)], b = tv[s.faces(f, 1)], c = tv[s.faces(f, 2)];
+    tmin[f] = std::min({a, b, c});
+    tmax_[f] = std::max({a, b, c});
+    max_extent_ = std::max(max_extent_, tmax_[f] - tmin[f]);
+  }
+  order_.resize(nf);
+  std::iota(order_.begin(), order_.end(), 0);
+  std::stable_sort(order_.begin(), order_.end(), [&](int a, int b) { return tmin[a] < tmin[b]; });
+  tmin_sorted_.resize(nf);
+  for (int k = 0; k < nf; ++k) tmin_sorted_[k] = tmin[order_[k]];
+  flip_.resize(t.component_volume.size());
+  for (std::size_t c = 0; c < flip_.size(); ++c) flip_[c] = t.component_volume[c] < 0;
+  dist_.assign(nv, 0);
+  stamp_.assign(nv, 0);
+  fstamp_.assign(nf, 0);
+  fexit_.assign(nf, -1);
+}
+
+std::vector<Loop> Slicer::slice(const SweepPlane& pl) const {
+  ++cur_;
+  if (cur_ == 0) {  // wrapped: reset the stamps
+    std::fill(stamp_.begin(), stamp_.end(), 0);
+    std::fill(fstamp_.begin(), fstamp_.end(), 0);
+    cur_ = 1;
+  }
+  const unsigned cur = cur_;
+  const Eigen::Vector3d n = pl.normal;
+  auto dist = [&](int v) {
+    if (stamp_[v] != cur) {
+      stamp_[v] = cur;
+      dist_[v] = (s_.vertices.row(v).transpose() - pl.centre).dot(n);
+    }
+    return dist_[v];
+  };
+  // exit slot of face f: the face edge going from the negative to the
+  // non-negative side, or -1 when the plane does not cross the face
+  auto prepare = [&](int f) {
+    if (fstamp_[f] == cur) return fexit_[f];
+    fstamp_[f] = cur;
+    int ex = -1;
+    for (int k = 0; k < 3; ++k) {
+      const bool a = dist(s_.faces(f, k)) >= 0, b = dist(s_.faces(f, (k + 1) % 3)) >= 0;
+      if (!a && b) ex = k;
+    }
+    fexit_[f] = ex;
+    return ex;
+  };
+
+  // candidate faces: those of the slab the plane can reach inside the bounding cylinder
+  const int nf = static_cast<int>(order_.size());
+  int k0 = 0, k1 = nf;
+  double tlo = -1e300;
+  const double cs = std::abs(n.dot(ad_));
+  if (cs > 0.2) {
+    const Eigen::Vector3d r = pl.centre - a0_;
+    const double tc = r.dot(ad_), cperp = (r - tc * ad_).norm();
+    const double w = (rho_max_ + cperp) * std::sqrt(std::max(0.0, 1 - cs * cs)) / cs;
+    const double pad = 1e-9 * (rho_max_ + max_extent_ + std::abs(tc));
+    tlo = tc - w - pad;
+    k0 = static_cast<int>(std::lower_bound(tmin_sorted_.begin(), tmin_sorted_.end(), tlo - max_extent_) -
+                          tmin_sorted_.begin());
+    k1 = static_cast<int>(std::upper_bound(tmin_sorted_.begin(), tmin_sorted_.end(), tc + w + pad) -
+                          tmin_sorted_.begin());
+  }
+  std::vector<int> crossing;
+  for (int k = k0; k < k1; ++k) {
+    const int f = order_[k];
+    if (tmax_[f] < tlo) continue;
+    if (prepare(f) >= 0) crossing.push_back(f);
+  }
+
+  // walk each cycle of crossing faces; a walked face has fexit_ = -2 - slot
+  std::vector<Loop> loops;
+  for (std::size_t c = 0; c < crossing.size(); ++c) {
+    const int f0 = crossing[c];
+    if (fexit_[f0] < -1) continue;  // already walked (marked as -2 - slot)
+    Loop loop;
+    int f = f0;
+    int guard = 0;
+    while (true) {
+      int ex = fexit_[f];
+      if (ex < 0) break;  // back at a walked face (or, impossibly, one not crossed)
+      const int a = s_.faces(f, ex), b = s_.faces(f, (ex + 1) % 3);
+      const double da = dist(a), db = dist(b);
+      const double lam = da / (da - db);
+      const Eigen::Vector3d xa = s_.vertices.row(a), xb = s_.vertices.row(b);
+      const Eigen::Vector3d p = xa + lam * (xb - xa);
+      if (loop.p.empty() || (p - loop.p.back()).squaredNorm() > 0) loop.p.push_back(p);
+      fexit_[f] = -2 - ex;  // walked
+      if (loop.p.size() == 1) loop.component = t_.face_component[f];
+      const int e = t_.face_edge[f][ex];
+      f = t_.edge_face[e][0] == f ? t_.edge_face[e][1] : t_.edge_face[e][0];
+      if (fstamp_[f] != cur) prepare(f);
+      if (++guard > 4 * nf) break;
+    }
+    if (loop.p.size() > 1 && (loop.p.front() - loop.p.back()).squaredNorm() == 0) loop.p.pop_back();
+    if (loop.p.size() < 3) continue;
+    if (flip_[loop.component]) std::reverse(loop.p.begin(), loop.p.end());
+    // plane frame, signed area and centroid
+    const std::size_t m = loop.p.size();
+    loop.q.resize(m);
+    for (std::size_t i = 0; i < m; ++i) {
+      const Eigen::Vector3d r = loop.p[i] - pl.centre;
+      loop.q[i] = {r.dot(pl.e1), r.dot(pl.e2)};
+    }
+    double A = 0, cx = 0, cy = 0;
+    for (std::size_t i = 0; i < m; ++i) {
+      const Eigen::Vector2d& u = loop.q[i];
+      const Eigen::Vector2d& v = loop.q[(i + 1) % m];
+      const double cr = u.x() * v.y() - v.x() * u.y();
+      A += cr;
+      cx += (u.x() + v.x()) * cr;
+      cy += (u.y() + v.y()) * cr;
+    }
+    loop.area = 0.5 * A;
+    if (A != 0) loop.centroid = {cx / (3 * A), cy / (3 * A)};
+    loops.push_back(std::move(loop));
+  }
+  // deterministic order: by decreasing |area|
+  std::stable_sort(loops.begin(), loops.end(),
+                   [](const Loop& a, const Loop& b) { return std::abs(a.area) > std::abs(b.area); });
+  return loops;
+}
+
+int winding(const Loop& l, const Eigen::Vector2d& x) {
+  int w = 0;
+  const std::size_t m = l.q.size();
+  for (std::size_t i = 0; i < m; ++i) {
+    const Eigen::Vector2d& a = l.q[i];
+    const Eigen::Vector2d& b = l.q[(i + 1) % m];
+    const double side = (b.x() - a.x()) * (x.y() - a.y()) - (x.x() - a.x()) * (b.y() - a.y());
+    if (a.y() <= x.y()) {
+      if (b.y() > x.y() && side > 0) ++w;
+    } else {
+      if (b.y() <= x.y() && side < 0) --w;
+    }
+  }
+  return w;
+}
+
+double ray_hit(const Loop& l, const Eigen::Vector2d& o, const Eigen::Vector2d& w) {
+  double best = -1;
+  const std::size_t m = l.q.size();
+  for (std::size_t i = 0; i < m; ++i) {
+    const Eigen::Vector2d a = l.q[i] - o;
+    const Eigen::Vector2d d = l.q[(i + 1) % m] - l.q[i];
+    const double den = w.x() * d.y() - w.y() * d.x();
+    if (den == 0) continue;
+    const double t = (a.x() * d.y() - a.y() * d.x()) / den;
+    const double lam = (a.x() * w.y() - a.y() * w.x()) / den;
+    if (lam >= -1e-9 && lam <= 1 + 1e-9 && t >= 0) best = std::max(best, t);
+  }
+  return best;
+}
+
+}  // namespace remesh_detail
+
+SurfaceCheck check_closed_surface(const Surface& s, const std::string& name, bool single_component) {
+  return remesh_detail::build_topology(s, name, single_component).check;
+}
+
+}  // namespace orthosim

@@ -1,0 +1,473 @@
+// Clean-up kernels: anatomical order, the 3-D rank filter, run-length runs
+// with 2-D components, and the streamed 3-D component tracker.
+#include "libmodel/segment/detail.h"
+
+#include <algorithm>
+#include <cstring>
+#include <map>
+#include <numeric>
+
+namespace orthosim::segment_detail {
+
+namespace {
+
+// Union-find over small index ranges (runs of one slice).
+struct SmallUf {
+  std::vector<std::uint32_t> p;
+  void reset(std::size_t n) {
+    p.resize(n);
+    std::iota(p.begin(), p.end(), 0u);
+  }
+  std::uint32_t find(std::uint32_t a) {
+    while (p[a] != a) a = p[a] = p[p[a]];
+    return a;
+  }
+  void unite(std::uint32_t a, std::uint32_t b) {
+    a = find(a), b = find(b);
+    if (a == b) return;
+    if (a > b) std::swap(a, b);
+    p[b] = a;  // the smaller index is the root: scan order decides
+  }
+};
+
+struct Span {
+  std::int32_t x0, x1;
+};
+
+}  // namespace
+
+// ---- anatomical order ----------------------------------------------------------
+
+std::int64_t enforce_order(const LabelInfo& info, const ColourModel& m, const std::uint8_t* lab8, int nx, int ny,
+                           std::uint8_t* labels) {
+  std::int64_t changed = 0;
+  std::vector<Span> spans;
+  std::vector<std::uint32_t> row_start(static_cast<std::size_t>(ny) + 1);
+  SmallUf uf;
+  std::vector<std::uint8_t> outside;
+  for (const auto& e : info.enclosers) {
+    // spans of the complement of the region, row by row
+    spans.clear();
+    for (int y = 0; y < ny; ++y) {
+      row_start[static_cast<std::size_t>(y)] = static_cast<std::uint32_t>(spans.size());
+      const std::uint8_t* row = labels + static_cast<std::size_t>(y) * nx;
+      int x = 0;
+      while (x < nx) {
+        while (x < nx && e.in_region[row[x]]) ++x;
+        if (x == nx) break;
+        const int x0 = x;
+        while (x < nx && !e.in_region[row[x]]) ++x;
+        spans.push_back({x0, x});
+      }
+    }
+    row_start[static_cast<std::size_t>(ny)] = static_cast<std::uint32_t>(spans.size());
+    if (spans.empty()) continue;
+    // 4-connected components of the complement; those touching the border are outside
+    uf.reset(spans.size());
+    for (int y = 1; y < ny; ++y) {
+      std::uint32_t i = row_start[static_cast<std::size_t>(y) - 1], ie = row_start[static_cast<std::size_t>(y)];
+      std::uint32_t j = row_start[static_cast<std::size_t>(y)], je = row_start[static_cast<std::size_t>(y) + 1];
+      while (i < ie && j < je) {
+        if (spans[i].x0 < spans[j].x1 && spans[j].x0 < spans[i].x1) uf.unite(i, j);
+        if (spans[i].x1 < spans[j].x1) ++i; else ++j;
+      }
+    }
+    outside.assign(spans.size(), 0);
+    for (int y = 0; y < ny; ++y)
+      for (std::uint32_t k = row_start[static_cast<std::size_t>(y)]; k < row_start[static_cast<std::size_t>(y) + 1]; ++k)
+        if (y == 0 || y == ny - 1 || spans[k].x0 == 0 || spans[k].x1 == nx) outside[uf.find(k)] = 1;
+    // what the region encloses is reclassified among the region's tissues
+    for (int y = 0; y < ny; ++y)
+      for (std::uint32_t k = row_start[static_cast<std::size_t>(y)]; k < row_start[static_cast<std::size_t>(y) + 1]; ++k) {
+        if (outside[uf.find(k)]) continue;
+        std::uint8_t* row = labels + static_cast<std::size_t>(y) * nx;
+        for (int x = spans[k].x0; x < spans[k].x1; ++x) {
+          const std::uint8_t l = row[x];
+          if (info.is_vessel[l]) continue;      // vessels cross layers
+          if (l == 0 && !info.fill_holes) continue;  // holes are kept when not filled
+          const std::size_t i = static_cast<std::size_t>(y) * nx + x;
+          const int c = m.nearest_allowed(lab8_to_lab(lab8 + 3 * i), e.allowed);
+          if (c < 0) continue;
+          const std::uint8_t nl = static_cast<std::uint8_t>(m.centres[static_cast<std::size_t>(c)].label);
+          if (nl != l) row[x] = nl, ++changed;
+        }
+      }
+  }
+  return changed;
+}
+
+// ---- 3-D rank filter --------------------------------------------------------------
+
+std::int64_t rank_filter(const LabelInfo& info, int support, const std::uint8_t* prev, const std::uint8_t* cur,
+                         const std::uint8_t* next, int nx, int ny, std::uint8_t* out) {
+  const std::size_t n = static_cast<std::size_t>(nx) * ny;
+  if (support <= 0) {
+    std::memcpy(out, cur, n);
+    return 0;
+  }
+  std::int64_t changed = 0;
+  const std::uint8_t* planes[3] = {prev, cur, next};
+  for (int y = 0; y < ny; ++y) {
+    const std::size_t r = static_cast<std::size_t>(y) * nx;
+    for (int x = 0; x < nx; ++x) {
+      const std::size_t i = r + x;
+      const std::uint8_t l = cur[i];
+      const int need = info.is_vessel[l] ? std::min(1, support) : support;
+      // fast path: both row neighbours agree
+      int cnt = (x > 0 && cur[i - 1] == l) + (x + 1 < nx && cur[i + 1] == l);
+      if (cnt >= need) {
+        out[i] = l;
+        continue;
+      }
+      // the full 26-neighbourhood
+      cnt = 0;
+      std::uint8_t lab[26];
+      int nl = 0;
+      for (int p = 0; p < 3; ++p) {
+        const std::uint8_t* pl = planes[p];
+        if (!pl) continue;
+        for (int dy = -1; dy <= 1; ++dy) {
+          const int yy = y + dy;
+          if (yy < 0 || yy >= ny) continue;
+          for (int dx = -1; dx <= 1; ++dx) {
+            const int xx = x + dx;
+            if (xx < 0 || xx >= nx || (p == 1 && dx == 0 && dy == 0)) continue;
+            const std::uint8_t v = pl[static_cast<std::size_t>(yy) * nx + xx];
+            lab[nl++] = v;
+            cnt += v == l;
+          }
+        }
+      }
+      if (cnt >= need || nl == 0) {
+        out[i] = l;
+        continue;
+      }
+      // majority of the neighbours, ties to the smaller label
+      std::sort(lab, lab + nl);
+      std::uint8_t best = lab[0];
+      int bestn = 0;
+      for (int a = 0; a < nl;) {
+        int b = a;
+        while (b < nl && lab[b] == lab[a]) ++b;
+        if (b - a > bestn) bestn = b - a, best = lab[a];
+        a = b;
+      }
+      out[i] = best;
+      changed += best != l;
+    }
+  }
+  return changed;
+}
+
+// ---- runs -------------------------------------------------------------------------
+
+void make_runs(const std::uint8_t* labels, int nx, int ny, SliceRuns& out) {
+  out.nx = nx;
+  out.ny = ny;
+  out.runs.clear();
+  out.row_start.assign(static_cast<std::size_t>(ny) + 1, 0);
+  for (int y = 0; y < ny; ++y) {
+    out.row_start[static_cast<std::size_t>(y)] = static_cast<std::uint32_t>(out.runs.size());
+    const std::uint8_t* row = labels + static_cast<std::size_t>(y) * nx;
+    int x = 0;
+    while (x < nx) {
+      const std::uint8_t l = row[x];
+      const int x0 = x;
+      while (x < nx && row[x] == l) ++x;
+      out.runs.push_back({x0, x, 0, l});
+    }
+  }
+  out.row_start[static_cast<std::size_t>(ny)] = static_cast<std::uint32_t>(out.runs.size());
+  // components: same label, overlapping runs in consecutive rows
+  SmallUf uf;
+  uf.reset(out.runs.size());
+  std::vector<std::array<std::int64_t, 3>> contacts;
+  for (int y = 1; y < ny; ++y) {
+    std::uint32_t i = out.row_start[static_cast<std::size_t>(y) - 1], ie = out.row_start[static_cast<std::size_t>(y)];
+    std::uint32_t j = out.row_start[static_cast<std::size_t>(y)], je = out.row_start[static_cast<std::size_t>(y) + 1];
+    while (i < ie && j < je) {
+      const Run &a = out.runs[i], &b = out.runs[j];
+      if (a.x0 < b.x1 && b.x0 < a.x1 && a.label == b.label) uf.unite(i, j);
+      if (a.x1 < b.x1) ++i; else ++j;
+    }
+  }
+  // number components in scan order of their first run
+  std::vector<std::uint32_t> id(out.runs.size(), ~0u);
+  out.n_comps = 0;
+  out.comp_voxels.clear();
+  out.comp_label.clear();
+  out.comp_lateral.clear();
+  for (int y = 0; y < ny; ++y)
+    for (std::uint32_t k = out.row_start[static_cast<std::size_t>(y)]; k < out.row_start[static_cast<std::size_t>(y) + 1]; ++k) {
+      const std::uint32_t root = uf.find(k);
+      if (id[root] == ~0u) {
+        id[root] = out.n_comps++;
+        out.comp_voxels.push_back(0);
+        out.comp_label.push_back(out.runs[k].label);
+        out.comp_lateral.push_back(0);
+      }
+      Run& r = out.runs[k];
+      r.comp = id[root];
+      out.comp_voxels[r.comp] += r.x1 - r.x0;
+      if (y == 0 || y == ny - 1 || r.x0 == 0 || r.x1 == nx) out.comp_lateral[r.comp] = 1;
+    }
+  // contacts between different components: faces shared in the slice
+  for (int y = 0; y < ny; ++y) {
+    const std::uint32_t b = out.row_start[static_cast<std::size_t>(y)], e = out.row_start[static_cast<std::size_t>(y) + 1];
+    for (std::uint32_t k = b + 1; k < e; ++k) {
+      const std::uint32_t p = out.runs[k - 1].comp, q = out.runs[k].comp;
+      if (p != q) contacts.push_back({std::min(p, q), std::max(p, q), 1});
+    }
+    if (y == 0) continue;
+    std::uint32_t i = out.row_start[static_cast<std::size_t>(y) - 1], ie = b, j = b;
+    while (i < ie && j < e) {
+      const Run &ra = out.runs[i], &rb = out.runs[j];
+      const int ov = std::min(ra.x1, rb.x1) - std::max(ra.x0, rb.x0);
+      if (ov > 0 && ra.comp != rb.comp)
+        contacts.push_back({std::min(ra.comp, rb.comp), std::max(ra.comp, rb.comp), ov});
+      if (ra.x1 < rb.x1) ++i; else ++j;
+    }
+  }
+  std::sort(contacts.begin(), contacts.end());
+  out.contacts.clear();
+  for (const auto& c : contacts) {
+    if (!out.contacts.empty() && out.contacts.back()[0] == c[0] && out.contacts.back()[1] == c[1])
+      out.contacts.back()[2] += c[2];
+    else
+      out.contacts.push_back(c);
+  }
+}
+
+void encode_runs(const SliceRuns& r, std::vector<std::uint8_t>& blob) {
+  blob.clear();
+  blob.reserve(4 * static_cast<std::size_t>(r.ny) + 9 * r.runs.size());
+  auto put = [&](const void* p, std::size_t n) {
+    const auto* b = static_cast<const std::uint8_t*>(p);
+    blob.insert(blob.end(), b, b + n);
+  };
+  for (int y = 0; y < r.ny; ++y) {
+    const std::uint32_t b = r.row_start[static_cast<std::size_t>(y)], e = r.row_start[static_cast<std::size_t>(y) + 1];
+    const std::uint32_t count = e - b;
+    put(&count, 4);
+    for (std::uint32_t k = b; k < e; ++k) {
+      const std::uint32_t x1 = static_cast<std::uint32_t>(r.runs[k].x1);
+      put(&x1, 4);
+      put(&r.runs[k].comp, 4);
+      put(&r.runs[k].label, 1);
+    }
+  }
+}
+
+void decode_runs(const std::uint8_t* blob, std::size_t size, int nx, int ny, const std::uint8_t* final_label,
+                 std::uint8_t* labels) {
+  std::size_t at = 0;
+  auto get32 = [&]() {
+    std::uint32_t v;
+    if (at + 4 > size) throw Error("", "segment: corrupt scratch data");
+    std::memcpy(&v, blob + at, 4);
+    at += 4;
+    return v;
+  };
+  for (int y = 0; y < ny; ++y) {
+    const std::uint32_t count = get32();
+    std::uint8_t* row = labels + static_cast<std::size_t>(y) * nx;
+    std::uint32_t x0 = 0;
+    for (std::uint32_t k = 0; k < count; ++k) {
+      const std::uint32_t x1 = get32();
+      const std::uint32_t comp = get32();
+      at += 1;  // the label before clean-up: final_label decides
+      if (x1 > static_cast<std::uint32_t>(nx) || x1 < x0) throw Error("", "segment: corrupt scratch data");
+      std::memset(row + x0, final_label[comp], x1 - x0);
+      x0 = x1;
+    }
+  }
+}
+
+// ---- 3-D components ---------------------------------------------------------------
+
+std::uint32_t ComponentTracker::find(std::uint32_t a) {
+  while (parent_[a] != a) a = parent_[a] = parent_[parent_[a]];
+  return a;
+}
+
+void ComponentTracker::unite(std::uint32_t a, std::uint32_t b) {
+  a = find(a), b = find(b);
+  if (a == b) return;
+  if (a > b) std::swap(a, b);
+  parent_[b] = a;
+  size_[a] += size_[b];
+  lateral_[a] |= lateral_[b];
+}
+
+void ComponentTracker::contact(std::uint32_t a, std::uint32_t b, std::int64_t w) {
+  a = find(a), b = find(b);
+  if (a == b) return;
+  if (a > b) std::swap(a, b);
+  contacts_[static_cast<std::uint64_t>(a) << 32 | b] += w;
+}
+
+void ComponentTracker::compact() {
+  std::unordered_map<std::uint64_t, std::int64_t> next;
+  next.reserve(contacts_.size());
+  for (const auto& [k, w] : contacts_) {
+    std::uint32_t a = find(static_cast<std::uint32_t>(k >> 32)), b = find(static_cast<std::uint32_t>(k & 0xffffffffu));
+    if (a == b) continue;
+    if (a > b) std::swap(a, b);
+    next[static_cast<std::uint64_t>(a) << 32 | b] += w;
+  }
+  contacts_.swap(next);
+}
+
+void ComponentTracker::add_slice(const SliceRuns& cur, const SliceRuns* prev) {
+  const std::uint64_t off = parent_.size();
+  if (off + cur.n_comps >= 0xffffffffull) throw Error("", "segment: too many components (noisy stack?)");
+  offsets_.push_back(off);
+  for (std::uint32_t c = 0; c < cur.n_comps; ++c) {
+    parent_.push_back(static_cast<std::uint32_t>(off + c));
+    size_.push_back(cur.comp_voxels[c]);
+    label_.push_back(cur.comp_label[c]);
+    lateral_.push_back(cur.comp_lateral[c]);
+  }
+  const auto o32 = static_cast<std::uint32_t>(off);
+  for (const auto& c : cur.contacts)
+    contact(o32 + static_cast<std::uint32_t>(c[0]), o32 + static_cast<std::uint32_t>(c[1]), c[2]);
+  if (prev) {
+    const auto p32 = static_cast<std::uint32_t>(offsets_[offsets_.size() - 2]);
+    for (int y = 0; y < cur.ny; ++y) {
+      std::uint32_t i = prev->row_start[static_cast<std::size_t>(y)], ie = prev->row_start[static_cast<std::size_t>(y) + 1];
+      std::uint32_t j = cur.row_start[static_cast<std::size_t>(y)], je = cur.row_start[static_cast<std::size_t>(y) + 1];
+      while (i < ie && j < je) {
+        const Run &a = prev->runs[i], &b = cur.runs[j];
+        const int ov = std::min(a.x1, b.x1) - std::max(a.x0, b.x0);
+        if (ov > 0) {
+          if (a.label == b.label)
+            unite(p32 + a.comp, o32 + b.comp);
+          else
+            contact(p32 + a.comp, o32 + b.comp, ov);
+        }
+        if (a.x1 < b.x1) ++i; else ++j;
+      }
+    }
+  }
+  if (contacts_.size() > compact_at_) {
+    compact();
+    compact_at_ = std::max<std::size_t>(2 * contacts_.size(), 1 << 16);
+  }
+}
+
+std::vector<std::uint8_t> ComponentTracker::resolve(const LabelInfo& info, const SegmentOptions& o, Decision* d) {
+  compact();
+  const std::size_t n = parent_.size();
+  Decision dec;
+  std::vector<std::uint32_t> roots;
+  for (std::uint32_t i = 0; i < n; ++i)
+    if (parent_[i] == i) roots.push_back(i);
+  dec.components = static_cast<std::int64_t>(roots.size());
+  std::vector<std::uint8_t> final_label(n);
+
+  if (o.cleanup) {
+    // adjacency between roots, ordered for deterministic tie-breaks
+    std::unordered_map<std::uint32_t, std::map<std::uint32_t, std::int64_t>> adj;
+    for (const auto& [k, w] : contacts_) {
+      const auto a = static_cast<std::uint32_t>(k >> 32), b = static_cast<std::uint32_t>(k & 0xffffffffu);
+      adj[a][b] += w;
+      adj[b][a] += w;
+    }
+    // a component of a nested tissue that touches nothing of its parent's
+    // region is out of place (bone in the skin, fat in the gel)
+    auto misplaced = [&](std::uint32_t r) {
+      const auto& need = info.touch[label_[r]];
+      if (!o.enforce_order || need.empty()) return false;
+      auto it = adj.find(r);
+      if (it == adj.end()) return false;
+      for (const auto& [nb, w] : it->second)
+        if (need[label_[nb]]) return false;
+      return true;
+    };
+    auto small = [&](std::uint32_t r) {
+      const std::uint8_t l = label_[r];
+      if (l == 0) return o.fill_holes && !lateral_[r];
+      if (info.is_vessel[l]) return size_[r] < o.min_vessel_voxels;
+      return size_[r] < o.min_island_voxels || misplaced(r);
+    };
+    std::vector<std::uint32_t> cand;
+    for (auto r : roots)
+      if (small(r)) cand.push_back(r);
+    std::sort(cand.begin(), cand.end(), [&](std::uint32_t a, std::uint32_t b) {
+      return size_[a] != size_[b] ? size_[a] < size_[b] : a < b;
+    });
+    for (auto c : cand) {
+      if (parent_[c] != c || !small(c)) continue;
+      auto it = adj.find(c);
+      if (it == adj.end() || it->second.empty()) continue;
+      // the neighbour sharing the most faces (then the larger, then the first)
+      std::uint32_t t = 0;
+      std::int64_t tw = -1;
+      for (const auto& [nb, w] : it->second)
+        if (w > tw || (w == tw && size_[nb] > size_[t])) t = nb, tw = w;
+      (label_[c] == 0 ? dec.holes_filled : size_[c] < o.min_island_voxels ? dec.islands_absorbed
+                                                                           : dec.misplaced_absorbed) += size_[c];
+      // merge c into t
+      auto nbs = std::move(it->second);
+      adj.erase(it);
+      for (const auto& [nb, w] : nbs) {
+        auto& m = adj[nb];
+        m.erase(c);
+        if (nb == t) continue;
+        m[t] += w;
+        adj[t][nb] += w;
+      }
+      parent_[c] = t;
+      size_[t] += size_[c];
+      lateral_[t] |= lateral_[c];
+    }
+    // the body: groups of non-background roots in contact
+    std::map<std::uint32_t, std::uint32_t> group;  // root -> group root
+    std::function<std::uint32_t(std::uint32_t)> gfind = [&](std::uint32_t a) {
+      auto it = group.find(a);
+      if (it == group.end() || it->second == a) return a;
+      const std::uint32_t r = gfind(it->second);
+      it->second = r;
+      return r;
+    };
+    for (const auto& [a, m] : adj) {
+      if (label_[a] == 0 || parent_[a] != a) continue;
+      for (const auto& [b, w] : m) {
+        if (label_[b] == 0 || parent_[b] != b) continue;
+        std::uint32_t ra = gfind(a), rb = gfind(b);
+        if (ra == rb) continue;
+        if (ra > rb) std::swap(ra, rb);
+        group[rb] = ra;
+        group.emplace(ra, ra);
+      }
+    }
+    std::map<std::uint32_t, std::int64_t> gsize;
+    for (auto r : roots)
+      if (parent_[r] == r && label_[r] != 0) gsize[gfind(r)] += size_[r];
+    std::int64_t largest = 0;
+    for (const auto& [g, s] : gsize) largest = std::max(largest, s);
+    std::map<std::uint32_t, bool> keep;
+    for (const auto& [g, s] : gsize) {
+      keep[g] = s > 0 && static_cast<double>(s) >= o.min_body_fraction * static_cast<double>(largest);
+      dec.body_components += keep[g];
+    }
+    std::vector<std::uint8_t> root_label(n, 0);
+    for (auto r : roots) {
+      if (parent_[r] != r) continue;
+      std::uint8_t l = label_[r];
+      if (l != 0 && !keep[gfind(r)]) {
+        dec.detached_removed += size_[r];
+        l = 0;
+      }
+      root_label[r] = l;
+    }
+    for (std::uint32_t i = 0; i < n; ++i) final_label[i] = root_label[find(i)];
+  } else {
+    for (std::uint32_t i = 0; i < n; ++i) final_label[i] = label_[find(i)];
+    for (auto r : roots) dec.body_components += label_[r] != 0;
+  }
+  if (d) *d = dec;
+  return final_label;
+}
+
+}  // namespace orthosim::segment_detail

@@ -1,0 +1,433 @@
+// The colour model: CIELAB prototypes, calibration by k-means, per-slice
+// background normalisation and the nearest-prototype lookup table.
+#include "libmodel/segment/detail.h"
+
+#include <Eigen/Dense>
+#include <opencv2/core.hpp>
+#include <opencv2/imgproc.hpp>
+#include <tbb/blocked_range.h>
+#include <tbb/parallel_for.h>
+
+#include <algorithm>
+#include <cmath>
+
+namespace orthosim::segment_detail {
+
+// ---- colour spaces ---------------------------------------------------------
+
+std::array<double, 3> srgb_to_lab(double r, double g, double b) {
+  // sRGB (IEC 61966-2-1) to linear, to XYZ (D65), to CIELAB; the constants
+  // match OpenCV's cvtColor so that both paths agree.
+  auto lin = [](double v) {
+    v = std::clamp(v / 255.0, 0.0, 1.0);
+    return v <= 0.04045 ? v / 12.92 : std::pow((v + 0.055) / 1.055, 2.4);
+  };
+  const double R = lin(r), G = lin(g), B = lin(b);
+  const double X = (0.412453 * R + 0.357580 * G + 0.180423 * B) / 0.950456;
+  const double Y = 0.212671 * R + 0.715160 * G + 0.072169 * B;
+  const double Z = (0.019334 * R + 0.119193 * G + 0.950227 * B) / 1.088754;
+  auto f = [](double t) { return t > 0.008856 ? std::cbrt(t) : 7.787 * t + 16.0 / 116.0; };
+  const double fx = f(X), fy = f(Y), fz = f(Z);
+  const double L = Y > 0.008856 ? 116.0 * fy - 16.0 : 903.3 * Y;
+  return {L, 500.0 * (fx - fy), 200.0 * (fy - fz)};
+}
+
+void rgb_to_lab8(const std::uint8_t* rgb, std::uint8_t* lab8, std::size_t n) {
+  // in blocks so that each call stays in cache; OpenCV's integer path
+  constexpr std::size_t kBlock = 1 << 14;
+  for (std::size_t at = 0; at < n; at += kBlock) {
+    const int m = static_cast<int>(std::min(kBlock, n - at));
+    cv::Mat src(1, m, CV_8UC3, const_cast<std::uint8_t*>(rgb + 3 * at));
+    cv::Mat dst(1, m, CV_8UC3, lab8 + 3 * at);
+    cv::cvtColor(src, dst, cv::COLOR_RGB2Lab);
+  }
+}
+
+// ---- the tissue tree ---------------------------------------------------------
+
+LabelInfo make_label_info(const TissueTable& t, bool fill_holes) {
+  LabelInfo info;
+  int top = 0;
+  for (const auto& x : t.tissues) top = std::max(top, static_cast<int>(x.label));
+  info.n_labels = top + 1;
+  info.fill_holes = fill_holes;
+  info.is_tissue.assign(256, 0);
+  info.is_vessel.assign(256, 0);
+  for (const auto& x : t.tissues) {
+    info.is_tissue[x.label] = 1;
+    info.is_vessel[x.label] = x.layer == "vessel";
+  }
+  // descendants: every tissue whose chain of "inside" reaches U
+  auto in_subtree = [&](const Tissue& x, const Tissue& u) {
+    const Tissue* cur = &x;
+    for (std::size_t guard = 0; cur && guard <= t.tissues.size(); ++guard) {
+      if (cur->name == u.name) return true;
+      cur = cur->inside.empty() ? nullptr : t.find(cur->inside);
+    }
+    return false;
+  };
+  info.touch.assign(256, {});
+  for (const auto& x : t.tissues) {
+    if (x.inside.empty() || info.is_vessel[x.label]) continue;
+    const Tissue* parent = t.find(x.inside);
+    if (!parent) continue;
+    auto& m = info.touch[x.label];
+    m.assign(256, 0);
+    for (const auto& y : t.tissues)
+      if (in_subtree(y, *parent) && !in_subtree(y, x)) m[y.label] = 1;
+  }
+  if (fill_holes) {
+    LabelInfo::Encloser body;
+    body.label = 0;
+    body.in_region.assign(256, 0);
+    body.allowed.assign(256, 0);
+    for (const auto& x : t.tissues) {
+      body.in_region[x.label] = 1;
+      body.allowed[x.label] = !info.is_vessel[x.label];
+    }
+    info.enclosers.push_back(std::move(body));
+  }
+  std::vector<const Tissue*> order;
+  for (const auto& u : t.tissues) order.push_back(&u);
+  std::stable_sort(order.begin(), order.end(), [&](const Tissue* a, const Tissue* b) {
+    const int da = t.depth(*a), db = t.depth(*b);
+    return da != db ? da < db : a->label < b->label;
+  });
+  for (const Tissue* u : order) {
+    if (info.is_vessel[u->label]) continue;
+    LabelInfo::Encloser e;
+    e.label = u->label;
+    e.in_region.assign(256, 0);
+    e.allowed.assign(256, 0);
+    int members = 0;
+    for (const auto& x : t.tissues)
+      if (in_subtree(x, *u)) {
+        e.in_region[x.label] = 1;
+        e.allowed[x.label] = !info.is_vessel[x.label];
+        ++members;
+      }
+    if (members > 1) info.enclosers.push_back(std::move(e));
+  }
+  return info;
+}
+
+// ---- the model -------------------------------------------------------------
+
+int ColourModel::nearest(const std::array<double, 3>& lab) const {
+  int best = 0;
+  double bd = 1e300;
+  for (std::size_t i = 0; i < centres.size(); ++i) {
+    const double d = dist2(lab, centres[i].lab);
+    if (d < bd) bd = d, best = static_cast<int>(i);
+  }
+  return best;
+}
+
+int ColourModel::nearest_allowed(const std::array<double, 3>& lab, const std::vector<std::uint8_t>& allowed) const {
+  int best = -1;
+  double bd = 1e300;
+  for (std::size_t i = 0; i < centres.size(); ++i) {
+    if (!allowed[centres[i].label]) continue;
+    const double d = dist2(lab, centres[i].lab);
+    if (d < bd) bd = d, best = static_cast<int>(i);
+  }
+  return best;
+}
+
+void ColourModel::build_lut() {
+  centre_label.resize(centres.size());
+  for (std::size_t i = 0; i < centres.size(); ++i) centre_label[i] = static_cast<std::uint8_t>(centres[i].label);
+  lut.assign(std::size_t(1) << 21, 0);
+  tbb::parallel_for(tbb::blocked_range<int>(0, 128), [&](const tbb::blocked_range<int>& r) {
+    for (int li = r.begin(); li < r.end(); ++li) {
+      // the centre of the cell of 8-bit codes (2li, 2li+1) is 2li + 0.5
+      const double L = (2 * li + 0.5) * (100.0 / 255.0);
+      for (int ai = 0; ai < 128; ++ai) {
+        const double a = 2 * ai + 0.5 - 128;
+        for (int bi = 0; bi < 128; ++bi) {
+          const double b = 2 * bi + 0.5 - 128;
+          lut[(static_cast<std::size_t>(li) << 14) | (static_cast<std::size_t>(ai) << 7) | bi] =
+              static_cast<std::uint8_t>(nearest({L, a, b}));
+        }
+      }
+    }
+  });
+}
+
+ColourModel initial_model(const TissueTable& t, const SegmentOptions& o) {
+  ColourModel m;
+  m.wl2 = o.lightness_weight * o.lightness_weight;
+  auto add = [&](int label, const std::array<std::uint8_t, 3>& rgb) {
+    Centre c;
+    c.label = label;
+    c.table_rgb = {double(rgb[0]), double(rgb[1]), double(rgb[2])};
+    c.table_lab = srgb_to_lab(rgb[0], rgb[1], rgb[2]);
+    c.lab = c.table_lab;
+    m.centres.push_back(c);
+  };
+  for (const auto& rgb : t.background_rgb) add(0, rgb);
+  for (const auto& x : t.tissues)
+    for (const auto& rgb : x.rgb) add(x.label, rgb);
+  if (m.centres.size() > 255)
+    throw Error(t.path, "too many colour prototypes (" + std::to_string(m.centres.size()) + ", at most 255)");
+  return m;
+}
+
+// ---- normalisation -----------------------------------------------------------
+
+namespace {
+
+struct Samples {
+  std::vector<std::uint8_t> rgb;  // raw, interleaved
+  std::vector<double> u, v;       // position relative to the centre, in image sizes
+};
+
+Samples grid_samples(const std::uint8_t* rgb, int nx, int ny, int stride) {
+  Samples s;
+  const int off = stride / 2;
+  for (int y = std::min(off, ny - 1); y < ny; y += stride)
+    for (int x = std::min(off, nx - 1); x < nx; x += stride) {
+      const std::uint8_t* p = rgb + (static_cast<std::size_t>(y) * nx + x) * 3;
+      s.rgb.insert(s.rgb.end(), p, p + 3);
+      s.u.push_back((x - 0.5 * (nx - 1)) / nx);
+      s.v.push_back((y - 0.5 * (ny - 1)) / ny);
+    }
+  return s;
+}
+
+double gain_at(const GainField& g, int c, double u, double v) { return g.coef[c][0] + g.coef[c][1] * u + g.coef[c][2] * v; }
+
+void correct_samples(const GainField& g, const Samples& s, std::vector<std::uint8_t>& out) {
+  const std::size_t n = s.u.size();
+  out.resize(3 * n);
+  for (std::size_t i = 0; i < n; ++i)
+    for (int c = 0; c < 3; ++c) {
+      const double v = s.rgb[3 * i + c] / gain_at(g, c, s.u[i], s.v[i]);
+      out[3 * i + c] = static_cast<std::uint8_t>(std::clamp(std::lround(v), 0L, 255L));
+    }
+}
+
+double median(std::vector<double> v) {
+  if (v.empty()) return 0;
+  auto mid = v.begin() + static_cast<std::ptrdiff_t>(v.size() / 2);
+  std::nth_element(v.begin(), mid, v.end());
+  return *mid;
+}
+
+// Least-squares gain field over background samples: I_c = T_c * s_c(u, v).
+// `plane` fits (a, b, c), otherwise a alone. Samples with |residual| beyond
+// three robust standard deviations are dropped and the fit repeated once.
+GainField fit_samples(const std::vector<std::array<double, 3>>& I, const std::vector<std::array<double, 3>>& T,
+                      const std::vector<double>& u, const std::vector<double>& v, bool plane) {
+  GainField g;
+  const std::size_t n = I.size();
+  std::vector<std::uint8_t> use(n, 1);
+  for (int round = 0; round < 2; ++round) {
+    for (int c = 0; c < 3; ++c) {
+      Eigen::Matrix3d A = Eigen::Matrix3d::Zero();
+      Eigen::Vector3d rhs = Eigen::Vector3d::Zero();
+      for (std::size_t i = 0; i < n; ++i) {
+        if (!use[i]) continue;
+        const Eigen::Vector3d row(T[i][c], T[i][c] * u[i], T[i][c] * v[i]);
+        A += row * row.transpose();
+        rhs += row * I[i][c];
+      }
+      if (plane) {
+        const Eigen::Vector3d x = A.ldlt().solve(rhs);
+        if (x.allFinite()) g.coef[c] = {x[0], x[1], x[2]};
+      } else if (A(0, 0) > 0) {
+        g.coef[c] = {rhs[0] / A(0, 0), 0, 0};
+      }
+    }
+    if (round == 1) break;
+    // robust trimming
+    for (int c = 0; c < 3; ++c) {
+      std::vector<double> r;
+      r.reserve(n);
+      for (std::size_t i = 0; i < n; ++i) r.push_back(std::abs(I[i][c] - T[i][c] * gain_at(g, c, u[i], v[i])));
+      const double mad = median(r);
+      const double cut = std::max(3 * 1.4826 * mad, 3.0);
+      for (std::size_t i = 0; i < n; ++i)
+        if (r[i] > cut) use[i] = 0;
+    }
+  }
+  return g;
+}
+
+}  // namespace
+
+GainField fit_gain(const ColourModel& m, const std::uint8_t* rgb, int nx, int ny, SegmentOptions::Normalise mode) {
+  GainField g;
+  if (mode == SegmentOptions::Normalise::none || m.bg_reference.empty()) return g;
+  // about 96 x 96 samples whatever the slice size: plenty for 3 parameters
+  const int stride = std::max(1, std::min(nx, ny) / 96);
+  const Samples s = grid_samples(rgb, nx, ny, stride);
+  std::vector<std::uint8_t> corr, lab8;
+  std::vector<std::array<double, 3>> I, T;
+  std::vector<double> u, v;
+  for (int iter = 0; iter < 2; ++iter) {
+    correct_samples(g, s, corr);
+    lab8.resize(corr.size());
+    rgb_to_lab8(corr.data(), lab8.data(), s.u.size());
+    I.clear(), T.clear(), u.clear(), v.clear();
+    double umin = 1, umax = -1, vmin = 1, vmax = -1;
+    for (std::size_t i = 0; i < s.u.size(); ++i) {
+      const int c = m.lut_centre(&lab8[3 * i]);
+      if (m.centres[static_cast<std::size_t>(c)].label != 0) continue;
+      I.push_back({double(s.rgb[3 * i]), double(s.rgb[3 * i + 1]), double(s.rgb[3 * i + 2])});
+      T.push_back(m.bg_reference[static_cast<std::size_t>(c)]);
+      u.push_back(s.u[i]);
+      v.push_back(s.v[i]);
+      umin = std::min(umin, s.u[i]), umax = std::max(umax, s.u[i]);
+      vmin = std::min(vmin, s.v[i]), vmax = std::max(vmax, s.v[i]);
+    }
+    // the plane needs background on several sides; a constant gain a few pixels
+    bool plane = mode == SegmentOptions::Normalise::plane && I.size() >= 64 && umax - umin > 0.5 && vmax - vmin > 0.5;
+    GainField next;
+    if (I.size() >= 16) {
+      next = fit_samples(I, T, u, v, plane);
+      next.fallback = mode == SegmentOptions::Normalise::plane && !plane;
+    } else {
+      next.fallback = true;
+    }
+    // sanity: the gain stays within [1/3, 3] over the whole slice
+    for (int c = 0; c < 3; ++c)
+      for (double cu : {-0.5, 0.5})
+        for (double cv : {-0.5, 0.5}) {
+          const double s_ = gain_at(next, c, cu, cv);
+          if (!(s_ > 1.0 / 3 && s_ < 3)) next = GainField{}, next.fallback = true;
+        }
+    g = next;
+    if (g.fallback && I.size() < 16) break;
+  }
+  return g;
+}
+
+void apply_gain(const GainField& g, const std::uint8_t* rgb, int nx, int ny, std::uint8_t* out) {
+  for (int y = 0; y < ny; ++y) {
+    const double v = (y - 0.5 * (ny - 1)) / ny;
+    float inv0[3], dinv[3];
+    for (int c = 0; c < 3; ++c) {
+      // 1/s is linear in x to within (ds)^2: interpolate it along the row
+      const double s0 = gain_at(g, c, (0 - 0.5 * (nx - 1)) / nx, v);
+      const double s1 = gain_at(g, c, (nx - 1 - 0.5 * (nx - 1)) / nx, v);
+      inv0[c] = static_cast<float>(1 / s0);
+      dinv[c] = nx > 1 ? static_cast<float>((1 / s1 - 1 / s0) / (nx - 1)) : 0.f;
+    }
+    const std::uint8_t* src = rgb + static_cast<std::size_t>(y) * nx * 3;
+    std::uint8_t* dst = out + static_cast<std::size_t>(y) * nx * 3;
+    for (int x = 0; x < nx; ++x)
+      for (int c = 0; c < 3; ++c) {
+        const float w = src[3 * x + c] * (inv0[c] + dinv[c] * static_cast<float>(x)) + 0.5f;
+        dst[3 * x + c] = static_cast<std::uint8_t>(std::min(w, 255.f));
+      }
+  }
+}
+
+// ---- calibration -------------------------------------------------------------
+
+void calibrate(ColourModel& m, const std::vector<std::vector<std::uint8_t>>& slices, int nx, int ny,
+               const SegmentOptions& o) {
+  const int nb = m.n_background();
+  const int stride = std::max(1, o.sample_stride);
+  std::vector<Samples> samples;
+  for (const auto& s : slices) samples.push_back(grid_samples(s.data(), nx, ny, stride));
+
+  // 1. reference background colours: medians of the raw background pixels
+  m.bg_reference.clear();
+  if (nb > 0 && o.normalise != SegmentOptions::Normalise::none) {
+    std::vector<std::array<std::vector<double>, 3>> vals(static_cast<std::size_t>(nb));
+    std::vector<std::uint8_t> lab8;
+    for (const auto& s : samples) {
+      lab8.resize(s.rgb.size());
+      rgb_to_lab8(s.rgb.data(), lab8.data(), s.u.size());
+      for (std::size_t i = 0; i < s.u.size(); ++i) {
+        const int c = m.lut_centre(&lab8[3 * i]);
+        if (m.centres[static_cast<std::size_t>(c)].label != 0) continue;
+        for (int k = 0; k < 3; ++k) vals[static_cast<std::size_t>(c)][k].push_back(s.rgb[3 * i + k]);
+      }
+    }
+    bool any = false;
+    for (int c = 0; c < nb; ++c) {
+      std::array<double, 3> ref = m.centres[static_cast<std::size_t>(c)].table_rgb;
+      if (vals[static_cast<std::size_t>(c)][0].size() >= 32) {
+        for (int k = 0; k < 3; ++k) ref[k] = std::max(1.0, median(vals[static_cast<std::size_t>(c)][k]));
+        any = true;
+      }
+      m.bg_reference.push_back(ref);
+    }
+    if (!any) m.bg_reference.clear();
+  }
+
+  // 2. normalised Lab samples of every calibration slice
+  std::vector<std::array<double, 3>> lab;
+  {
+    std::vector<std::uint8_t> corr, lab8;
+    for (std::size_t k = 0; k < slices.size(); ++k) {
+      const GainField g = fit_gain(m, slices[k].data(), nx, ny, o.normalise);
+      correct_samples(g, samples[k], corr);
+      lab8.resize(corr.size());
+      rgb_to_lab8(corr.data(), lab8.data(), samples[k].u.size());
+      for (std::size_t i = 0; i < samples[k].u.size(); ++i) lab.push_back(lab8_to_lab(&lab8[3 * i]));
+    }
+  }
+
+  // 3. k-means seeded by the prototypes, shrunk towards them (a conjugate
+  // prior of weight n0 samples per prototype), moves clamped
+  const std::size_t C = m.centres.size(), N = lab.size();
+  const double n0 = o.refine_prior * static_cast<double>(N) / static_cast<double>(C);
+  constexpr std::size_t kChunk = 8192;
+  const std::size_t chunks = (N + kChunk - 1) / kChunk;
+  std::vector<std::vector<std::array<double, 4>>> part(chunks, std::vector<std::array<double, 4>>(C));
+  for (int it = 0; it < o.refine_iterations; ++it) {
+    tbb::parallel_for(std::size_t(0), chunks, [&](std::size_t k) {
+      auto& acc = part[k];
+      for (auto& a : acc) a = {0, 0, 0, 0};
+      for (std::size_t i = k * kChunk; i < std::min(N, (k + 1) * kChunk); ++i) {
+        const int c = m.nearest(lab[i]);
+        auto& a = acc[static_cast<std::size_t>(c)];
+        a[0] += lab[i][0], a[1] += lab[i][1], a[2] += lab[i][2], a[3] += 1;
+      }
+    });
+    double moved = 0;
+    for (std::size_t c = 0; c < C; ++c) {
+      std::array<double, 4> sum{0, 0, 0, 0};
+      for (std::size_t k = 0; k < chunks; ++k)  // fixed order: deterministic
+        for (int j = 0; j < 4; ++j) sum[j] += part[k][c][j];
+      Centre& ce = m.centres[c];
+      std::array<double, 3> next;
+      for (int j = 0; j < 3; ++j) next[j] = (sum[j] + n0 * ce.table_lab[j]) / (sum[3] + n0 + 1e-300);
+      const double d = std::sqrt((next[0] - ce.table_lab[0]) * (next[0] - ce.table_lab[0]) +
+                                 (next[1] - ce.table_lab[1]) * (next[1] - ce.table_lab[1]) +
+                                 (next[2] - ce.table_lab[2]) * (next[2] - ce.table_lab[2]));
+      if (d > o.refine_max_shift && d > 0)
+        for (int j = 0; j < 3; ++j) next[j] = ce.table_lab[j] + (next[j] - ce.table_lab[j]) * o.refine_max_shift / d;
+      for (int j = 0; j < 3; ++j) moved = std::max(moved, std::abs(next[j] - ce.lab[j]));
+      ce.lab = next;
+      ce.samples = static_cast<std::int64_t>(sum[3]);
+    }
+    if (moved < 0.01) break;
+  }
+  m.build_lut();
+}
+
+GainField classify_slice(const ColourModel& m, const SegmentOptions& o, const std::uint8_t* rgb, int nx, int ny,
+                         SliceWork& work, std::uint8_t* labels) {
+  const std::size_t n = static_cast<std::size_t>(nx) * ny;
+  const GainField g = fit_gain(m, rgb, nx, ny, o.normalise);
+  const std::uint8_t* src = rgb;
+  const bool identity = g.coef[0] == std::array<double, 3>{1, 0, 0} && g.coef[1] == std::array<double, 3>{1, 0, 0} &&
+                        g.coef[2] == std::array<double, 3>{1, 0, 0};
+  if (!identity) {
+    work.corrected.resize(3 * n);
+    apply_gain(g, rgb, nx, ny, work.corrected.data());
+    src = work.corrected.data();
+  }
+  work.lab8.resize(3 * n);
+  rgb_to_lab8(src, work.lab8.data(), n);
+  const std::uint8_t* lab8 = work.lab8.data();
+  for (std::size_t i = 0; i < n; ++i) labels[i] = m.centre_label[static_cast<std::size_t>(m.lut_centre(lab8 + 3 * i))];
+  return g;
+}
+
+}  // namespace orthosim::segment_detail

@@ -1,0 +1,187 @@
+// Internal to libmodel/segment: the colour model and the clean-up kernels.
+// Not part of the library interface (segment.h is). No OpenCV types here.
+#pragma once
+
+#include "libmodel/segment/segment.h"
+
+#include <array>
+#include <cstdint>
+#include <unordered_map>
+#include <vector>
+
+namespace orthosim::segment_detail {
+
+// ---- colour --------------------------------------------------------------
+
+// CIELAB (D65, CIE 1976) of an sRGB colour with channels in [0, 255].
+std::array<double, 3> srgb_to_lab(double r, double g, double b);
+
+// 8-bit RGB (n pixels, interleaved) to OpenCV's 8-bit Lab encoding:
+// L*255/100, a+128, b+128 (n pixels, interleaved).
+void rgb_to_lab8(const std::uint8_t* rgb, std::uint8_t* lab8, std::size_t n);
+
+inline std::array<double, 3> lab8_to_lab(const std::uint8_t* p) {
+  return {p[0] * (100.0 / 255.0), p[1] - 128.0, p[2] - 128.0};
+}
+
+// Static facts about the table that the kernels need, indexed by label value.
+struct LabelInfo {
+  int n_labels = 1;                    // max label + 1
+  bool fill_holes = true;              // enclosed background becomes tissue
+  std::vector<std::uint8_t> is_tissue;  // label names a tissue of the table
+  std::vector<std::uint8_t> is_vessel;  // layer == "vessel"
+  // Tissues that enclose others, in order of increasing depth, each with the
+  // labels of itself and everything nested in it (`in_region`), and the
+  // labels a pixel it encloses may be reclassified to (non-vessel).
+  struct Encloser {
+    int label = 0;  // 0: the whole body (every tissue), used for hole filling
+    std::vector<std::uint8_t> in_region;  // [label] 1 if in the region
+    std::vector<std::uint8_t> allowed;    // [label] 1 if a reclassification target
+  };
+  std::vector<Encloser> enclosers;
+  // touch[T][L] = 1 if a 3-D component of tissue T is in place when it
+  // touches label L: L is T's parent or nested in the parent but not in T.
+  // Empty for tissues without a parent and for vessels.
+  std::vector<std::vector<std::uint8_t>> touch;
+};
+LabelInfo make_label_info(const TissueTable& t, bool fill_holes);
+
+struct Centre {
+  int label = 0;
+  std::array<double, 3> table_lab{};
+  std::array<double, 3> lab{};
+  std::array<double, 3> table_rgb{};
+  std::int64_t samples = 0;
+};
+
+// The calibrated colour model of one stack.
+struct ColourModel {
+  std::vector<Centre> centres;  // background ones (label 0) first
+  double wl2 = 1;               // lightness weight squared
+  // Reference background colour (RGB) of each background centre, from the
+  // calibration slices; normalisation maps a slice's background onto it.
+  std::vector<std::array<double, 3>> bg_reference;
+  std::vector<std::uint8_t> lut;  // 128^3 over 8-bit Lab / 2: nearest centre index
+  std::vector<std::uint8_t> centre_label;
+
+  int n_background() const {
+    int n = 0;
+    for (const auto& c : centres) n += c.label == 0;
+    return n;
+  }
+  double dist2(const std::array<double, 3>& lab, const std::array<double, 3>& c) const {
+    const double dl = lab[0] - c[0], da = lab[1] - c[1], db = lab[2] - c[2];
+    return wl2 * dl * dl + da * da + db * db;
+  }
+  int nearest(const std::array<double, 3>& lab) const;
+  // Nearest centre whose label is allowed[label] != 0; -1 if none.
+  int nearest_allowed(const std::array<double, 3>& lab, const std::vector<std::uint8_t>& allowed) const;
+  int lut_centre(const std::uint8_t* lab8) const {
+    return lut[(static_cast<std::size_t>(lab8[0] >> 1) << 14) | (static_cast<std::size_t>(lab8[1] >> 1) << 7) |
+               (lab8[2] >> 1)];
+  }
+  void build_lut();
+};
+
+// Centres from the table (refined later by calibrate()).
+ColourModel initial_model(const TissueTable& t, const SegmentOptions& o);
+
+// A gain field per channel: s_c(u, v) = a + b u + c v with u, v the pixel's
+// position relative to the image centre in image widths/heights. Corrected
+// colour = observed / s.
+struct GainField {
+  std::array<std::array<double, 3>, 3> coef{{{1, 0, 0}, {1, 0, 0}, {1, 0, 0}}};
+  bool fallback = false;  // fewer background pixels than the mode needed
+  double mean_gain() const { return (coef[0][0] + coef[1][0] + coef[2][0]) / 3; }
+};
+
+// Fits the gain field of one slice against the model's background
+// references. `mode`: the requested normalisation.
+GainField fit_gain(const ColourModel& m, const std::uint8_t* rgb, int nx, int ny, SegmentOptions::Normalise mode);
+
+// Applies the gain field: out = rgb / s, rounded and clamped.
+void apply_gain(const GainField& g, const std::uint8_t* rgb, int nx, int ny, std::uint8_t* out);
+
+// Calibration: reference background from the slices, then k-means.
+void calibrate(ColourModel& m, const std::vector<std::vector<std::uint8_t>>& slices, int nx, int ny,
+               const SegmentOptions& o);
+
+// Per-slice scratch reused by one thread.
+struct SliceWork {
+  std::vector<std::uint8_t> corrected;  // ny*nx*3
+  std::vector<std::uint8_t> lab8;       // ny*nx*3
+};
+
+// Classifies one slice: normalisation, Lab, nearest centre. Fills labels
+// (ny*nx) and work.lab8; returns the gain field used.
+GainField classify_slice(const ColourModel& m, const SegmentOptions& o, const std::uint8_t* rgb, int nx, int ny,
+                         SliceWork& work, std::uint8_t* labels);
+
+// ---- clean-up kernels ----------------------------------------------------
+
+// Anatomical order in one slice (see segment.h). Returns voxels changed.
+std::int64_t enforce_order(const LabelInfo& info, const ColourModel& m, const std::uint8_t* lab8, int nx, int ny,
+                           std::uint8_t* labels);
+
+// 3-D rank filter of slice z: prev/next may be null at the stack ends.
+// Returns voxels changed.
+std::int64_t rank_filter(const LabelInfo& info, int support, const std::uint8_t* prev, const std::uint8_t* cur,
+                         const std::uint8_t* next, int nx, int ny, std::uint8_t* out);
+
+// Run-length runs of one slice with 2-D (4-connected, same label)
+// components numbered in scan order of their first run.
+struct Run {
+  std::int32_t x0 = 0, x1 = 0;  // [x0, x1)
+  std::uint32_t comp = 0;       // component within the slice
+  std::uint8_t label = 0;
+};
+struct SliceRuns {
+  int nx = 0, ny = 0;
+  std::vector<Run> runs;
+  std::vector<std::uint32_t> row_start;  // ny+1 offsets into runs
+  std::uint32_t n_comps = 0;
+  // per component
+  std::vector<std::int64_t> comp_voxels;
+  std::vector<std::uint8_t> comp_label;
+  std::vector<std::uint8_t> comp_lateral;  // touches the lateral border of the image
+  // contacts between different components in the slice: (a, b, faces), a < b, sorted
+  std::vector<std::array<std::int64_t, 3>> contacts;
+};
+void make_runs(const std::uint8_t* labels, int nx, int ny, SliceRuns& out);
+
+// Serialised runs (the scratch between the passes) and back to labels.
+void encode_runs(const SliceRuns& r, std::vector<std::uint8_t>& blob);
+// Expands a blob into labels using final_label[offset + comp].
+void decode_runs(const std::uint8_t* blob, std::size_t size, int nx, int ny, const std::uint8_t* final_label,
+                 std::uint8_t* labels);
+
+// 3-D components over the whole stack, one slice at a time.
+class ComponentTracker {
+ public:
+  // Adds slice z (after slice z-1 was added, whose runs are `prev`, or null
+  // for the first slice).
+  void add_slice(const SliceRuns& cur, const SliceRuns* prev);
+  struct Decision {
+    std::int64_t components = 0, holes_filled = 0, islands_absorbed = 0, misplaced_absorbed = 0,
+                 detached_removed = 0, body_components = 0;
+  };
+  // Applies the clean-up rules (segment.h) and returns final_label for every
+  // 2-D component id (slice offset + local id).
+  std::vector<std::uint8_t> resolve(const LabelInfo& info, const SegmentOptions& o, Decision* d);
+  std::uint64_t slice_offset(int z) const { return offsets_[static_cast<std::size_t>(z)]; }
+  std::uint64_t total() const { return parent_.size(); }
+
+ private:
+  std::uint32_t find(std::uint32_t a);
+  void unite(std::uint32_t a, std::uint32_t b);
+  void contact(std::uint32_t a, std::uint32_t b, std::int64_t w);
+  void compact();
+  std::vector<std::uint32_t> parent_;
+  std::vector<std::int64_t> size_;
+  std::vector<std::uint8_t> label_, lateral_;
+  std::vector<std::uint64_t> offsets_;
+  std::unordered_map<std::uint64_t, std::int64_t> contacts_;
+  std::size_t compact_at_ = 1 << 16;
+};
+
+}  // namespace orthosim::segment_detail

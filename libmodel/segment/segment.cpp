@@ -1,0 +1,516 @@
+// The segmentation driver: calibration, the streamed classification and
+// clean-up pass, component resolution, the output pass; file outputs.
+#include "libmodel/segment/segment.h"
+
+#include "libmodel/format/atomic.h"
+#include "libmodel/provenance.h"
+#include "libmodel/segment/detail.h"
+
+#include <nlohmann/json.hpp>
+#include <opencv2/core.hpp>
+#include <tbb/enumerable_thread_specific.h>
+#include <tbb/parallel_for.h>
+
+#include <unistd.h>
+
+#include <atomic>
+#include <chrono>
+#include <cmath>
+#include <cstdio>
+#include <cstring>
+#include <filesystem>
+#include <fstream>
+#include <map>
+#include <mutex>
+#include <optional>
+#include <sstream>
+
+namespace orthosim {
+
+using namespace segment_detail;
+
+// ---- options -------------------------------------------------------------------
+
+const char* to_string(SegmentOptions::Normalise n) {
+  switch (n) {
+    case SegmentOptions::Normalise::none: return "none";
+    case SegmentOptions::Normalise::gain: return "gain";
+    case SegmentOptions::Normalise::plane: return "plane";
+  }
+  return "?";
+}
+
+void validate(const SegmentOptions& o) {
+  auto bad = [](const std::string& m) { throw Error("", m); };
+  for (int i = 0; i < 3; ++i) {
+    if (!(o.spacing_m[i] > 0) || !std::isfinite(o.spacing_m[i])) bad("spacing: each voxel size must be > 0");
+    if (!std::isfinite(o.origin_m[i])) bad("origin: must be finite");
+  }
+  if (o.calibration_slices < 1 || o.calibration_slices > 64) bad("calibration slices must be in 1..64");
+  if (o.sample_stride < 1 || o.sample_stride > 64) bad("sample stride must be in 1..64");
+  if (o.refine_iterations < 0 || o.refine_iterations > 100) bad("refine iterations must be in 0..100");
+  if (!(o.refine_prior >= 0) || !std::isfinite(o.refine_prior)) bad("refine prior must be >= 0");
+  if (!(o.refine_max_shift >= 0) || !std::isfinite(o.refine_max_shift)) bad("refine max shift must be >= 0");
+  if (!(o.lightness_weight > 0) || !std::isfinite(o.lightness_weight)) bad("lightness weight must be > 0");
+  if (o.speck_support < 0 || o.speck_support > 26) bad("speck support must be in 0..26");
+  if (o.min_island_voxels < 0) bad("min island voxels must be >= 0");
+  if (o.min_vessel_voxels < 0) bad("min vessel voxels must be >= 0");
+  if (!(o.min_body_fraction > 0 && o.min_body_fraction <= 1)) bad("min body fraction must be in (0, 1]");
+  if (o.slab < 1 || o.slab > 256) bad("slab must be in 1..256");
+  if (o.scratch_memory_bytes < 0) bad("scratch memory must be >= 0");
+}
+
+std::string segment_parameters_json(const SegmentOptions& o) {
+  nlohmann::json j;
+  j["spacing_m"] = o.spacing_m;
+  j["origin_m"] = o.origin_m;
+  j["calibration_slices"] = o.calibration_slices;
+  j["sample_stride"] = o.sample_stride;
+  j["normalise"] = to_string(o.normalise);
+  j["refine_iterations"] = o.refine_iterations;
+  j["refine_prior"] = o.refine_prior;
+  j["refine_max_shift"] = o.refine_max_shift;
+  j["lightness_weight"] = o.lightness_weight;
+  j["cleanup"] = o.cleanup;
+  j["enforce_order"] = o.enforce_order;
+  j["fill_holes"] = o.fill_holes;
+  j["speck_support"] = o.speck_support;
+  j["min_island_voxels"] = o.min_island_voxels;
+  j["min_vessel_voxels"] = o.min_vessel_voxels;
+  j["min_body_fraction"] = o.min_body_fraction;
+  j["slab"] = o.slab;
+  return j.dump();
+}
+
+std::vector<std::string> label_inside(const TissueTable& table) {
+  std::vector<std::string> names = table.label_names();
+  std::vector<std::string> inside(names.size());
+  for (const auto& t : table.tissues) inside[t.label] = t.inside;
+  return inside;
+}
+
+namespace {
+
+double seconds_since(std::chrono::steady_clock::time_point t0) {
+  return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+}
+
+// OpenCV's own threads off while we parallelise over slices.
+struct CvThreads {
+  int saved;
+  CvThreads() : saved(cv::getNumThreads()) { cv::setNumThreads(1); }
+  ~CvThreads() { cv::setNumThreads(saved); }
+};
+
+// The run-length scratch between the passes: in memory up to a limit, then
+// in an unlinked file.
+class Scratch {
+ public:
+  Scratch(std::int64_t limit, std::string dir) : limit_(limit), dir_(std::move(dir)) {}
+  ~Scratch() {
+    if (fd_ >= 0) ::close(fd_);
+  }
+  void append(const std::vector<std::uint8_t>& blob) {
+    index_.push_back({total_, blob.size()});
+    if (fd_ < 0 && static_cast<std::int64_t>(mem_.size() + blob.size()) > limit_) spill();
+    if (fd_ >= 0) {
+      write_all(blob.data(), blob.size(), total_);
+    } else {
+      mem_.insert(mem_.end(), blob.begin(), blob.end());
+    }
+    total_ += blob.size();
+  }
+  void read(int z, std::vector<std::uint8_t>& out) const {
+    const auto [at, size] = index_[static_cast<std::size_t>(z)];
+    out.resize(size);
+    if (fd_ < 0) {
+      std::memcpy(out.data(), mem_.data() + at, size);
+      return;
+    }
+    std::size_t done = 0;
+    while (done < size) {
+      const ssize_t r = ::pread(fd_, out.data() + done, size - done, static_cast<off_t>(at + done));
+      if (r <= 0) throw Error(path_, "cannot read the segmentation scratch file");
+      done += static_cast<std::size_t>(r);
+    }
+  }
+  std::uint64_t bytes() const { return total_; }
+  bool spilled() const { return fd_ >= 0; }
+
+ private:
+  void spill() {
+    const std::string dir = dir_.empty() ? std::filesystem::temp_directory_path().string() : dir_;
+    std::string tmpl = dir + "/orthosim-segment-XXXXXX";
+    std::vector<char> buf(tmpl.begin(), tmpl.end());
+    buf.push_back('\0');
+    fd_ = ::mkstemp(buf.data());
+    if (fd_ < 0) throw Error(dir, "cannot create a scratch file for segmentation");
+    path_ = buf.data();
+    ::unlink(buf.data());  // gone when closed, whatever happens
+    write_all(mem_.data(), mem_.size(), 0);
+    mem_.clear();
+    mem_.shrink_to_fit();
+  }
+  void write_all(const std::uint8_t* p, std::size_t n, std::uint64_t at) {
+    std::size_t done = 0;
+    while (done < n) {
+      const ssize_t w = ::pwrite(fd_, p + done, n - done, static_cast<off_t>(at + done));
+      if (w <= 0) throw Error(path_, "cannot write the segmentation scratch file (disk full?)");
+      done += static_cast<std::size_t>(w);
+    }
+  }
+  std::int64_t limit_;
+  std::string dir_, path_;
+  int fd_ = -1;
+  std::vector<std::uint8_t> mem_;
+  std::vector<std::pair<std::uint64_t, std::size_t>> index_;
+  std::uint64_t total_ = 0;
+};
+
+std::vector<int> calibration_indices(int nz, int k) {
+  k = std::min(k, nz);
+  std::vector<int> z;
+  for (int i = 0; i < k; ++i) {
+    const int v = k == 1 ? nz / 2 : static_cast<int>(std::lround(static_cast<double>(i) * (nz - 1) / (k - 1)));
+    if (z.empty() || z.back() != v) z.push_back(v);
+  }
+  return z;
+}
+
+void check_table(const TissueTable& table) {
+  if (table.tissues.empty()) throw Error(table.path, "the tissue table has no tissues");
+  for (const auto& t : table.tissues)
+    if (t.rgb.empty()) throw Error(table.path, "tissue '" + t.name + "' has no colour prototype");
+}
+
+}  // namespace
+
+// ---- the driver --------------------------------------------------------------------
+
+SegmentMetrics segment(const SliceSource& src, const TissueTable& table, const SegmentOptions& opt,
+                       const LabelSink& sink, const std::function<void(long, long)>& progress) {
+  validate(opt);
+  check_table(table);
+  if (src.nx <= 0 || src.ny <= 0 || src.nz <= 0) throw Error(src.name, "empty stack");
+  const int nx = src.nx, ny = src.ny, nz = src.nz;
+  const std::size_t plane = static_cast<std::size_t>(nx) * ny;
+  CvThreads cv_threads;
+  SegmentMetrics met;
+  met.nx = nx, met.ny = ny, met.nz = nz;
+  auto report = [&](long done) {
+    if (progress) progress(done, 2L * nz);
+  };
+
+  const LabelInfo info = make_label_info(table, opt.fill_holes);
+  ColourModel model = initial_model(table, opt);
+  model.build_lut();
+
+  // ---- calibration
+  auto t0 = std::chrono::steady_clock::now();
+  {
+    const std::vector<int> zs = calibration_indices(nz, opt.calibration_slices);
+    std::vector<std::vector<std::uint8_t>> slices(zs.size());
+    tbb::parallel_for(std::size_t(0), zs.size(), [&](std::size_t k) { src.read(zs[k], slices[k]); });
+    calibrate(model, slices, nx, ny, opt);
+  }
+  met.calibrate_s = seconds_since(t0);
+  for (const auto& c : model.centres) {
+    Prototype p;
+    p.label = c.label;
+    p.table_lab = c.table_lab;
+    p.lab = c.lab;
+    p.samples = c.samples;
+    met.prototypes.push_back(p);
+  }
+
+  // ---- pass 1: classify, order, rank filter, runs, 3-D components
+  Scratch scratch(opt.scratch_memory_bytes, opt.scratch_dir);
+  ComponentTracker tracker;
+  std::map<int, std::vector<std::uint8_t>> l1;  // classified slices waiting for the rank filter
+  SliceRuns prev_runs;
+  bool have_prev = false;
+  int next_filter = 0;
+  std::atomic<std::int64_t> order_changed{0}, speck_changed{0};
+  std::vector<double> gains(static_cast<std::size_t>(nz), 1.0);
+  std::vector<std::uint8_t> fallbacks(static_cast<std::size_t>(nz), 0);
+  std::vector<double> read_cpu(static_cast<std::size_t>(nz), 0.0);
+  tbb::enumerable_thread_specific<SliceWork> works;
+  std::vector<std::uint8_t> blob;
+  const bool cleanup = opt.cleanup;
+  for (int a = 0; a < nz; a += opt.slab) {
+    const int b = std::min(nz, a + opt.slab);
+    t0 = std::chrono::steady_clock::now();
+    std::vector<std::vector<std::uint8_t>> fresh(static_cast<std::size_t>(b - a));
+    tbb::parallel_for(a, b, [&](int z) {
+      SliceWork& w = works.local();
+      std::vector<std::uint8_t> rgb;
+      const auto tr = std::chrono::steady_clock::now();
+      src.read(z, rgb);
+      if (rgb.size() != 3 * plane) throw Error(src.name, "slice " + std::to_string(z) + " has the wrong size");
+      read_cpu[static_cast<std::size_t>(z)] = seconds_since(tr);
+      auto& lab = fresh[static_cast<std::size_t>(z - a)];
+      lab.resize(plane);
+      const GainField g = classify_slice(model, opt, rgb.data(), nx, ny, w, lab.data());
+      gains[static_cast<std::size_t>(z)] = g.mean_gain();
+      fallbacks[static_cast<std::size_t>(z)] = g.fallback;
+      if (cleanup && opt.enforce_order) order_changed += enforce_order(info, model, w.lab8.data(), nx, ny, lab.data());
+    });
+    for (int z = a; z < b; ++z) l1[z] = std::move(fresh[static_cast<std::size_t>(z - a)]);
+    met.classify_s += seconds_since(t0);
+
+    t0 = std::chrono::steady_clock::now();
+    const int q = b == nz ? nz : b - 1;  // slice z needs z+1 classified
+    const int p = next_filter;
+    std::vector<std::vector<std::uint8_t>> l2(static_cast<std::size_t>(q - p));
+    std::vector<SliceRuns> runs(static_cast<std::size_t>(q - p));
+    tbb::parallel_for(p, q, [&](int z) {
+      auto& out = l2[static_cast<std::size_t>(z - p)];
+      out.resize(plane);
+      const std::uint8_t* prev = z > 0 ? l1.at(z - 1).data() : nullptr;
+      const std::uint8_t* next = z + 1 < nz ? l1.at(z + 1).data() : nullptr;
+      speck_changed += rank_filter(info, cleanup ? opt.speck_support : 0, prev, l1.at(z).data(), next, nx, ny,
+                                   out.data());
+      make_runs(out.data(), nx, ny, runs[static_cast<std::size_t>(z - p)]);
+    });
+    for (int z = p; z < q; ++z) {
+      SliceRuns& r = runs[static_cast<std::size_t>(z - p)];
+      tracker.add_slice(r, have_prev ? &prev_runs : nullptr);
+      encode_runs(r, blob);
+      scratch.append(blob);
+      prev_runs = std::move(r);
+      have_prev = true;
+    }
+    next_filter = q;
+    while (!l1.empty() && l1.begin()->first < q - 1) l1.erase(l1.begin());
+    met.cleanup_s += seconds_since(t0);
+    report(q);
+  }
+  for (double r : read_cpu) met.read_s += r;
+  met.order_changed = order_changed;
+  met.speck_changed = speck_changed;
+  met.gain_min = *std::min_element(gains.begin(), gains.end());
+  met.gain_max = *std::max_element(gains.begin(), gains.end());
+  for (auto f : fallbacks) met.normalise_fallbacks += f;
+  met.scratch_bytes = static_cast<std::int64_t>(scratch.bytes());
+  met.scratch_spilled = scratch.spilled();
+
+  // ---- components
+  t0 = std::chrono::steady_clock::now();
+  ComponentTracker::Decision dec;
+  const std::vector<std::uint8_t> final_label = tracker.resolve(info, opt, &dec);
+  met.components = dec.components;
+  met.holes_filled = dec.holes_filled;
+  met.islands_absorbed = dec.islands_absorbed;
+  met.misplaced_absorbed = dec.misplaced_absorbed;
+  met.detached_removed = dec.detached_removed;
+  met.body_components = dec.body_components;
+  met.components_s = seconds_since(t0);
+  if (dec.body_components == 0)
+    throw Error(src.name, "nothing segmented: every voxel was classified as background (are the tissue table's "
+                          "colours those of this stack?)");
+
+  // ---- pass 2: final labels, in z order, to the sink
+  t0 = std::chrono::steady_clock::now();
+  std::vector<std::int64_t> count(256, 0);
+  std::mutex count_mutex;
+  const int slab2 = std::max(opt.slab, 1);
+  std::vector<std::uint8_t> out(static_cast<std::size_t>(slab2) * plane);
+  for (int a = 0; a < nz; a += slab2) {
+    const int b = std::min(nz, a + slab2);
+    tbb::parallel_for(a, b, [&](int z) {
+      std::vector<std::uint8_t> bl;
+      scratch.read(z, bl);
+      std::uint8_t* dst = out.data() + static_cast<std::size_t>(z - a) * plane;
+      decode_runs(bl.data(), bl.size(), nx, ny, final_label.data() + tracker.slice_offset(z), dst);
+      std::array<std::int64_t, 256> c{};
+      for (std::size_t i = 0; i < plane; ++i) ++c[dst[i]];
+      std::lock_guard<std::mutex> lock(count_mutex);
+      for (int l = 0; l < 256; ++l) count[static_cast<std::size_t>(l)] += c[static_cast<std::size_t>(l)];
+    });
+    sink(a, b - a, out.data());
+    report(nz + b);
+  }
+  met.write_s = seconds_since(t0);
+  const std::vector<std::string> names = table.label_names();
+  for (std::size_t l = 0; l < names.size(); ++l)
+    if (!names[l].empty()) met.voxels[names[l]] = count[l];
+  return met;
+}
+
+Volume segment_volume(const SliceSource& src, const TissueTable& table, const SegmentOptions& opt,
+                      SegmentMetrics* metrics) {
+  Volume v;
+  v.nx = src.nx, v.ny = src.ny, v.nz = src.nz;
+  v.spacing_m = opt.spacing_m;
+  v.origin_m = opt.origin_m;
+  v.label_names = table.label_names();
+  v.labels.resize(static_cast<std::size_t>(v.nx) * v.ny * v.nz);
+  const std::size_t plane = static_cast<std::size_t>(v.nx) * v.ny;
+  SegmentMetrics m = segment(src, table, opt, [&](int z0, int n, const std::uint8_t* labels) {
+    std::memcpy(v.labels.data() + static_cast<std::size_t>(z0) * plane, labels, static_cast<std::size_t>(n) * plane);
+  });
+  if (metrics) *metrics = m;
+  return v;
+}
+
+// ---- files ---------------------------------------------------------------------------
+
+namespace {
+
+std::string nrrd_header(int nx, int ny, int nz, const SegmentOptions& o, const std::vector<std::string>& names) {
+  std::ostringstream h;
+  h.precision(17);
+  h << "NRRD0004\n";
+  h << "# orthosim segment: tissue labels; image frame (x columns, y rows, z slices) as LPS, mm\n";
+  for (std::size_t l = 0; l < names.size(); ++l)
+    if (!names[l].empty()) h << "# label " << l << " = " << names[l] << "\n";
+  h << "type: uint8\n";
+  h << "dimension: 3\n";
+  h << "space: left-posterior-superior\n";
+  h << "sizes: " << nx << " " << ny << " " << nz << "\n";
+  const double s[3] = {o.spacing_m[0] * 1e3, o.spacing_m[1] * 1e3, o.spacing_m[2] * 1e3};
+  h << "space directions: (" << s[0] << ",0,0) (0," << s[1] << ",0) (0,0," << s[2] << ")\n";
+  h << "kinds: domain domain domain\n";
+  h << "endian: little\n";
+  h << "encoding: raw\n";
+  h << "space origin: (" << o.origin_m[0] * 1e3 << "," << o.origin_m[1] * 1e3 << "," << o.origin_m[2] * 1e3
+    << ")\n";
+  for (std::size_t l = 0; l < names.size(); ++l)
+    if (!names[l].empty()) h << "orthosim_label_" << l << ":=" << names[l] << "\n";
+  h << "\n";
+  return h.str();
+}
+
+}  // namespace
+
+SegmentMetrics segment_stack(const SegmentFiles& files, const TissueTable& table, const SegmentOptions& opt,
+                             const std::function<void(long, long)>& progress) {
+  const auto t_start = std::chrono::steady_clock::now();
+  validate(opt);
+  check_table(table);
+  check_output_file(files.out_h5);
+  if (!files.nrrd_path.empty()) check_output_file(files.nrrd_path);
+  SliceSource src = stack_source(files.stack_dir);
+
+  ModelWriter w(files.out_h5, ModelWriter::Start::fresh);
+  const std::string g = "/volume";
+  w.h5().make_groups(g);
+  w.h5().create<std::uint8_t>(g + "/labels",
+                              {static_cast<std::uint64_t>(src.nz), static_cast<std::uint64_t>(src.ny),
+                               static_cast<std::uint64_t>(src.nx)},
+                              "label", "tissue labels [nz][ny][nx]; values index label_names");
+  std::optional<AtomicFile> nrrd;
+  std::ofstream nrrd_out;
+  const std::vector<std::string> names = table.label_names();
+  if (!files.nrrd_path.empty()) {
+    nrrd.emplace(files.nrrd_path);
+    nrrd_out.open(nrrd->temp(), std::ios::binary);
+    if (!nrrd_out) throw Error(files.nrrd_path, "cannot write NRRD file");
+    nrrd_out << nrrd_header(src.nx, src.ny, src.nz, opt, names);
+  }
+  const std::size_t plane = static_cast<std::size_t>(src.nx) * src.ny;
+  SegmentMetrics m = segment(src, table, opt, [&](int z0, int n, const std::uint8_t* labels) {
+    w.h5().write_rows<std::uint8_t>(g + "/labels", static_cast<std::uint64_t>(z0), static_cast<std::uint64_t>(n),
+                                    labels);
+    if (nrrd) {
+      nrrd_out.write(reinterpret_cast<const char*>(labels), static_cast<std::streamsize>(n * plane));
+      if (!nrrd_out) throw Error(files.nrrd_path, "cannot write NRRD file (disk full?)");
+    }
+  }, progress);
+  w.h5().set_attr(g, "spacing_m", std::vector<double>(opt.spacing_m.begin(), opt.spacing_m.end()));
+  w.h5().set_attr(g, "origin_m", std::vector<double>(opt.origin_m.begin(), opt.origin_m.end()));
+  w.h5().set_attr(g, "label_names", names);
+  w.h5().set_attr(g, "label_inside", label_inside(table));
+
+  std::string inputs = files.inputs_json;
+  if (inputs.empty()) {
+    nlohmann::json j;
+    j[files.stack_dir] = hash_path(files.stack_dir);
+    if (!files.tissues_path.empty()) j[files.tissues_path] = hash_path(files.tissues_path);
+    inputs = j.dump();
+  }
+  w.write("segment", make_provenance(files.command_line, inputs, segment_parameters_json(opt), 0,
+                                     seconds_since(t_start)));
+  if (nrrd) {
+    nrrd_out.close();
+    if (!nrrd_out) throw Error(files.nrrd_path, "cannot write NRRD file");
+  }
+  w.commit();
+  if (nrrd) nrrd->commit();
+  return m;
+}
+
+// ---- evaluation ------------------------------------------------------------------------
+
+namespace {
+
+struct DiceAcc {
+  // by tissue name: |A|, |B|, |A n B|
+  std::map<std::string, std::array<std::int64_t, 3>> acc;
+  std::vector<int> a_to_b;  // label of A -> label of B with the same name, or -1
+  std::vector<std::string> a_names, b_names;
+  void init(const std::vector<std::string>& a, const std::vector<std::string>& b) {
+    a_names = a, b_names = b;
+    a_to_b.assign(256, -1);
+    for (std::size_t i = 1; i < a.size(); ++i)
+      for (std::size_t j = 1; j < b.size(); ++j)
+        if (!a[i].empty() && a[i] == b[j]) a_to_b[i] = static_cast<int>(j);
+  }
+  void add(const std::uint8_t* a, const std::uint8_t* b, std::size_t n) {
+    std::array<std::int64_t, 256> ca{}, cb{}, both{};
+    for (std::size_t i = 0; i < n; ++i) {
+      ++ca[a[i]], ++cb[b[i]];
+      if (a_to_b[a[i]] >= 0 && a_to_b[a[i]] == b[i]) ++both[a[i]];
+    }
+    for (std::size_t l = 1; l < a_names.size(); ++l)
+      if (a_to_b[l] >= 0) {
+        auto& e = acc[a_names[l]];
+        e[0] += ca[l], e[1] += cb[static_cast<std::size_t>(a_to_b[l])], e[2] += both[l];
+      }
+  }
+  std::map<std::string, double> result(std::map<std::string, std::int64_t>* truth_voxels) const {
+    std::map<std::string, double> d;
+    for (const auto& [name, e] : acc) {
+      if (truth_voxels) (*truth_voxels)[name] = e[1];
+      if (e[0] + e[1] == 0) continue;
+      d[name] = 2.0 * static_cast<double>(e[2]) / static_cast<double>(e[0] + e[1]);
+    }
+    return d;
+  }
+};
+
+}  // namespace
+
+std::map<std::string, double> dice_per_tissue(const Volume& labels, const Volume& truth,
+                                              std::map<std::string, std::int64_t>* truth_voxels) {
+  if (labels.nx != truth.nx || labels.ny != truth.ny || labels.nz != truth.nz)
+    throw Error("", "dice: the volumes differ in size");
+  DiceAcc acc;
+  acc.init(labels.label_names, truth.label_names);
+  acc.add(labels.labels.data(), truth.labels.data(), labels.labels.size());
+  return acc.result(truth_voxels);
+}
+
+std::map<std::string, double> dice_per_tissue(const std::string& labels_h5, const std::string& truth_h5,
+                                              std::map<std::string, std::int64_t>* truth_voxels) {
+  ModelReader a(labels_h5), b(truth_h5);
+  const std::string ds = "/volume/labels";
+  if (!a.has(ds)) throw Error(labels_h5, "missing dataset /volume/labels");
+  if (!b.has(ds)) throw Error(truth_h5, "missing dataset /volume/labels");
+  const auto da = a.h5().dims(ds), db = b.h5().dims(ds);
+  if (da != db || da.size() != 3) throw Error(truth_h5, "truth volume size differs from " + labels_h5);
+  DiceAcc acc;
+  acc.init(a.h5().attr_strings("/volume", "label_names"), b.h5().attr_strings("/volume", "label_names"));
+  const std::uint64_t plane = da[1] * da[2], slab = std::max<std::uint64_t>(1, (64u << 20) / std::max<std::uint64_t>(plane, 1));
+  std::vector<std::uint8_t> x, y;
+  for (std::uint64_t z = 0; z < da[0]; z += slab) {
+    const std::uint64_t n = std::min(slab, da[0] - z);
+    x.resize(n * plane), y.resize(n * plane);
+    a.h5().read_rows<std::uint8_t>(ds, z, n, x.data());
+    b.h5().read_rows<std::uint8_t>(ds, z, n, y.data());
+    acc.add(x.data(), y.data(), x.size());
+  }
+  return acc.result(truth_voxels);
+}
+
+}  // namespace orthosim

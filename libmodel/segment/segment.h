@@ -1,0 +1,253 @@
+// Colour stack -> tissue labels: the first pipeline stage.
+//
+// A folder of 2-D colour slices (PNG, JPEG, TIFF, BMP) is classified voxel by
+// voxel into the tissues of a tissue table and cleaned up in 3-D. The method,
+// in order (docs/segment-surface.md has the details and figures):
+//
+//  1. Calibration. A few slices spread over the stack (calibration_slices) are
+//     read first. Their background (the embedding medium, the table's
+//     background prototypes) gives the stack's reference background colour,
+//     and a k-means in CIELAB over their pixels, seeded by the table's colour
+//     prototypes, moves each prototype to where its tissue really is in this
+//     stack (a Bayesian shrinkage towards the prototype, at most
+//     refine_max_shift CIE76 units away). The table's colours only need to be
+//     roughly right.
+//  2. Per slice: normalisation against the background. A per-channel gain
+//     field (constant or a plane across the slice) maps the slice's background
+//     onto the reference: illumination drift along and across slices goes.
+//     Then nearest refined prototype in CIELAB (a 128^3 lookup table over
+//     8-bit Lab, built once).
+//  3. Per slice: anatomical order. For every tissue U that encloses others
+//     (the table's "inside"), the 2-D region of U and everything nested in it is
+//     filled; what that fill encloses but is neither U nor nested in U (skin
+//     inside the fat, fat inside the muscle, gel inside the limb) is
+//     reclassified by colour among U and its descendants. Vessel tissues are
+//     never reclassified by this rule (they cross layers).
+//  4. 3-D rank filter (the multi-label analogue of an opening and a closing
+//     with a 3x3x3 element): a voxel with fewer than speck_support of its 26
+//     neighbours sharing its label takes the neighbourhood's majority label.
+//     Unlike a binary opening it keeps sheets and strands one voxel thin;
+//     vessel voxels need only one like neighbour.
+//  5. 3-D connected components (6-connected, same label), streamed slice by
+//     slice with a union-find over run-length runs: background pockets that do
+//     not reach the lateral border are holes and are filled by their majority
+//     neighbour; islands of a bulk tissue smaller than min_island_voxels and
+//     of a vessel tissue smaller than min_vessel_voxels are absorbed by their
+//     majority neighbour; then only the body (the largest 6-connected
+//     non-background component, and any other of at least min_body_fraction
+//     of its size) is kept.
+//
+// Memory does not grow with the number of slices: slices stream through in
+// slabs; between the two passes the cleaned labels wait as run-length runs
+// in memory up to scratch_memory_bytes, beyond that in an unlinked scratch
+// file; the output is written slab by slab.
+//
+// Frame (libmodel/format/model.h): x along image columns, y along rows, z
+// along slices in natural name order; voxel (i,j,k) at origin_m + (i,j,k) *
+// spacing_m. Deterministic: same input and options give the same labels
+// whatever the thread count.
+#pragma once
+
+#include "libmodel/format/model.h"
+#include "libmodel/tissues.h"
+
+#include <array>
+#include <cstdint>
+#include <functional>
+#include <map>
+#include <string>
+#include <vector>
+
+namespace orthosim {
+
+// ---- slice stacks --------------------------------------------------------
+
+// Natural order of file names: digit runs compare as numbers ("s2" < "s10"),
+// the rest character by character, case-insensitively; ties by plain order.
+bool natural_less(const std::string& a, const std::string& b);
+
+// The image files of a stack folder (extensions png, jpg, jpeg, jpe, tif,
+// tiff, bmp, any case; hidden files ignored), as full paths in natural order.
+// Throws Error(dir, ...) if the folder is missing or holds no image.
+std::vector<std::string> list_stack(const std::string& dir);
+
+// One decoded 8-bit RGB image, row-major, x fastest: rgb[(y*nx + x)*3 + c].
+struct RgbImage {
+  int nx = 0, ny = 0;
+  std::vector<std::uint8_t> rgb;
+};
+
+// What a slice file holds before conversion to RGB.
+struct SliceFormat {
+  int nx = 0, ny = 0;
+  int channels = 0;  // 1 grey, 2 grey+alpha, 3 colour, 4 colour+alpha
+  int bits = 8;      // 8 or 16
+};
+
+// Reads one colour slice. 16-bit images are scaled to 8 bits, an alpha channel
+// is dropped. Throws Error(path, ...) for a missing, empty, corrupt or
+// undecodable file and for grey-scale images (one or two channels, or three
+// equal channels). `format` receives what the file held.
+RgbImage read_slice(const std::string& path, SliceFormat* format = nullptr);
+
+// Writes an RGB image as PNG atomically (overlays, tests). Throws Error(path).
+void write_png(const std::string& path, const RgbImage& image);
+
+// A stack of slices: sizes and a reader that may be called from several
+// threads at once. read(z, rgb) fills ny*nx*3 bytes (RgbImage layout) or
+// throws Error naming the slice.
+struct SliceSource {
+  int nx = 0, ny = 0, nz = 0;
+  std::string name;  // what the stack is (folder), for messages
+  std::function<void(int z, std::vector<std::uint8_t>& rgb)> read;
+};
+
+// A source over the folder `dir`: lists it, reads the first slice for the
+// size, and checks every later slice against it when read (same size, same
+// channel count and bit depth, colour). Throws Error(file, ...) on the first
+// slice that is wrong.
+SliceSource stack_source(const std::string& dir);
+
+// A source over images held in memory (tests, benchmarks). All the same size.
+SliceSource memory_source(std::vector<RgbImage> slices, std::string name = "memory");
+
+// ---- segmentation --------------------------------------------------------
+
+struct SegmentOptions {
+  // Frame of the output volume (m): voxel size along x, y, z (each > 0) and
+  // the position of voxel (0,0,0).
+  std::array<double, 3> spacing_m{1e-3, 1e-3, 1e-3};
+  std::array<double, 3> origin_m{0, 0, 0};
+
+  // -- colour model --
+  // Slices read before the main pass to calibrate colours (spread evenly,
+  // first and last included); at most nz. 1..64.
+  int calibration_slices = 9;
+  // Pixels sampled for calibration and per-slice normalisation: every n-th
+  // row and column (1..64).
+  int sample_stride = 4;
+  // Background normalisation: none, gain (one gain per channel and slice),
+  // plane (per channel, a gain varying linearly across the slice). Needs the
+  // table's background prototypes; without them it is off.
+  enum class Normalise { none, gain, plane };
+  Normalise normalise = Normalise::plane;
+  // k-means iterations over the calibration pixels (0 = the table's colours
+  // as they are), 0..100.
+  int refine_iterations = 8;
+  // Prior weight of each prototype, as a fraction of the calibration samples
+  // per prototype: a prototype with few pixels moves little. >= 0.
+  double refine_prior = 0.05;
+  // Largest move of a prototype by the refinement (CIE76 units), >= 0.
+  double refine_max_shift = 30;
+  // Weight of lightness against chroma in the colour distance, > 0.
+  // Values below 1 make the classification more robust to brightness.
+  double lightness_weight = 1.0;
+
+  // -- clean-up (each can be switched off) --
+  bool cleanup = true;        // master switch for steps 3-5 of the header
+  bool enforce_order = true;  // anatomical order from the table's "inside"
+  bool fill_holes = true;     // background enclosed by the body becomes tissue
+  // A voxel keeps its label if at least this many of its 26 neighbours share
+  // it (0..26; 0 = no rank filter). Vessel voxels need min(1, this).
+  int speck_support = 2;
+  // 3-D islands of a bulk tissue below this many voxels join their majority
+  // neighbour (0 = keep all).
+  std::int64_t min_island_voxels = 64;
+  // The same for vessel tissues (table layer "vessel"): only specks go.
+  std::int64_t min_vessel_voxels = 4;
+  // Body components kept besides the largest: those with at least this
+  // fraction of its voxels, in (0, 1]. 1 keeps the largest only.
+  double min_body_fraction = 0.1;
+
+  // -- streaming --
+  int slab = 8;  // slices classified together (1..256)
+  // Run-length scratch kept in memory up to this many bytes, beyond it in an
+  // unlinked file in scratch_dir ("" = the system temporary folder).
+  std::int64_t scratch_memory_bytes = std::int64_t(256) << 20;
+  std::string scratch_dir;
+};
+
+// Throws Error("", ...) naming the bad option.
+void validate(const SegmentOptions& o);
+// The options as a JSON object (reports, provenance).
+std::string segment_parameters_json(const SegmentOptions& o);
+const char* to_string(SegmentOptions::Normalise n);
+
+// A prototype after calibration.
+struct Prototype {
+  int label = 0;                      // tissue label, 0 = background
+  std::array<double, 3> table_lab{};  // from the table's rgb (CIELAB, D65)
+  std::array<double, 3> lab{};        // refined on the stack
+  std::int64_t samples = 0;           // calibration samples assigned
+};
+
+struct SegmentMetrics {
+  int nx = 0, ny = 0, nz = 0;
+  std::map<std::string, std::int64_t> voxels;  // per tissue name, "background" included
+  std::vector<Prototype> prototypes;
+  // Per-slice normalisation: smallest and largest mean gain over the slices
+  // (1 = no correction), and slices where it fell back to a constant or none.
+  double gain_min = 1, gain_max = 1;
+  int normalise_fallbacks = 0;
+  // Voxels changed by each clean-up step.
+  std::int64_t order_changed = 0;
+  std::int64_t speck_changed = 0;
+  std::int64_t holes_filled = 0;
+  std::int64_t islands_absorbed = 0;
+  std::int64_t misplaced_absorbed = 0;  // components not touching their parent's region
+  std::int64_t detached_removed = 0;
+  std::int64_t components = 0;        // 3-D same-label components before clean-up
+  std::int64_t body_components = 0;   // kept non-background components
+  std::int64_t scratch_bytes = 0;     // run-length scratch at its largest
+  bool scratch_spilled = false;       // went to the scratch file
+  // Wall times (s).
+  double calibrate_s = 0, read_s = 0, classify_s = 0, cleanup_s = 0, components_s = 0, write_s = 0;
+};
+
+// Receives the finished labels in z order, one slab at a time:
+// labels[(k*ny + y)*nx + x] for slices z0 .. z0+n-1.
+using LabelSink = std::function<void(int z0, int n, const std::uint8_t* labels)>;
+
+// Segments `src` with `table` and calls `sink` with the labels.
+// progress(done, total) is called from the calling thread, slices done of
+// 2*nz (two passes). Throws Error for bad options, a bad table (no tissue,
+// labels without prototypes) or a bad slice, and Error(src.name, ...) when no
+// voxel is classified as tissue.
+SegmentMetrics segment(const SliceSource& src, const TissueTable& table, const SegmentOptions& opt,
+                       const LabelSink& sink, const std::function<void(long, long)>& progress = {});
+
+// The same into a Volume (spacing, origin and label names filled).
+Volume segment_volume(const SliceSource& src, const TissueTable& table, const SegmentOptions& opt,
+                      SegmentMetrics* metrics = nullptr);
+
+// The whole stage: segments the folder `stack_dir` and writes `out_h5`
+// (/volume: labels, spacing_m, origin_m, label_names, label_inside; and
+// /provenance/segment) and, if `nrrd_path` is not empty, a NRRD copy for 3D
+// Slicer. All outputs are atomic: on any error nothing is written.
+// Throws Error(path, ...).
+struct SegmentFiles {
+  std::string stack_dir, tissues_path, out_h5, nrrd_path;
+  std::string command_line;  // for provenance
+  std::string inputs_json;   // {"path": "xxh3:..."}; "" = hash the stack and table here
+};
+SegmentMetrics segment_stack(const SegmentFiles& files, const TissueTable& table, const SegmentOptions& opt,
+                             const std::function<void(long, long)>& progress = {});
+
+// The "inside" of each label value, as written to /volume@label_inside:
+// names[v] is the tissue that encloses label v's tissue ("" for none).
+std::vector<std::string> label_inside(const TissueTable& table);
+
+// ---- evaluation ----------------------------------------------------------
+
+// Dice 2|A n B| / (|A| + |B|) per tissue name between two label volumes of
+// the same size whose label_names agree for the tissues compared (by name:
+// a tissue is compared when both volumes name it). Tissues absent from both
+// get no entry. Voxel counts of the truth in `truth_voxels` if given.
+std::map<std::string, double> dice_per_tissue(const Volume& labels, const Volume& truth,
+                                              std::map<std::string, std::int64_t>* truth_voxels = nullptr);
+
+// The same between two model files, streamed slab by slab.
+std::map<std::string, double> dice_per_tissue(const std::string& labels_h5, const std::string& truth_h5,
+                                              std::map<std::string, std::int64_t>* truth_voxels = nullptr);
+
+}  // namespace orthosim

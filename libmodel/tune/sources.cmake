@@ -1,0 +1,7 @@
+# orthosim_tune: spring-parameter optimisation (issue 7; docs/tune.md). NLopt only in tune.cpp.
+add_library(orthosim_tune STATIC
+  ${CMAKE_CURRENT_LIST_DIR}/anneal.cpp
+  ${CMAKE_CURRENT_LIST_DIR}/experiment.cpp
+  ${CMAKE_CURRENT_LIST_DIR}/fit.cpp
+  ${CMAKE_CURRENT_LIST_DIR}/tune.cpp)
+target_link_libraries(orthosim_tune PUBLIC orthosim_core orthosim_msm PRIVATE NLopt::nlopt)

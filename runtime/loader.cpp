@@ -1,0 +1,197 @@
+#include "runtime/loader.h"
+
+#include <algorithm>
+#include <array>
+#include <cmath>
+#include <limits>
+#include <set>
+
+namespace orthosim::runtime {
+
+namespace {
+
+std::string join(const std::vector<std::string>& v) {
+  std::string s;
+  for (const auto& x : v) s += (s.empty() ? "" : ", ") + x;
+  return s.empty() ? "none" : s;
+}
+
+struct Extent {
+  std::string name;
+  std::int64_t offset = 0, count = 0;
+};
+
+}  // namespace
+
+ModelIndex index_model(const ModelReader& r) {
+  ModelIndex idx;
+  if (r.has("/layers"))
+    for (const auto& n : r.names("/layers"))
+      if (n != "sets" && r.h5().is_group("/layers/" + n)) idx.layers.push_back(n);
+  if (r.has("/layers/sets")) idx.node_sets = r.names("/layers/sets");
+  return idx;
+}
+
+Model load_model(const ModelReader& r, const LoadRequest& req) {
+  const std::string& path = r.path();
+  const h5::File& f = r.h5();
+  const ModelIndex idx = index_model(r);
+
+  // every layer's global node range, from attributes and shapes only
+  std::vector<Extent> extents;
+  std::int64_t n_global = 0;
+  for (const auto& name : idx.layers) {
+    const std::string g = "/layers/" + name;
+    if (!f.has_attr(g, "node_offset")) throw Error(path, g + " has no node_offset attribute");
+    if (!f.exists(g + "/nodes")) throw Error(path, "missing dataset " + g + "/nodes");
+    const auto d = f.dims(g + "/nodes");
+    if (d.size() != 2 || d[1] != 3) throw Error(path, g + "/nodes must have shape (n x 3)");
+    Extent e{name, f.attr_int(g, "node_offset"), static_cast<std::int64_t>(d[0])};
+    if (e.offset < 0) throw Error(path, g + " has a negative node_offset");
+    n_global = std::max(n_global, e.offset + e.count);
+    extents.push_back(e);
+  }
+  {
+    auto sorted = extents;
+    std::sort(sorted.begin(), sorted.end(), [](const Extent& a, const Extent& b) { return a.offset < b.offset; });
+    for (std::size_t i = 1; i < sorted.size(); ++i)
+      if (sorted[i].offset < sorted[i - 1].offset + sorted[i - 1].count)
+        throw Error(path, "layers '" + sorted[i - 1].name + "' and '" + sorted[i].name + "' own overlapping node ids");
+  }
+  if (n_global > std::numeric_limits<std::int32_t>::max()) throw Error(path, "too many nodes for 32-bit ids");
+  auto owner = [&](std::int64_t gid) -> const Extent* {
+    for (const auto& e : extents)
+      if (gid >= e.offset && gid < e.offset + e.count) return &e;
+    return nullptr;
+  };
+
+  // the requested layers
+  std::vector<std::string> wanted = req.layers.empty() ? idx.layers : req.layers;
+  if (wanted.empty()) throw Error(path, "the model has no layers");
+  std::set<std::string> wanted_set;
+  for (const auto& name : wanted) {
+    if (std::find(idx.layers.begin(), idx.layers.end(), name) == idx.layers.end())
+      throw Error(path, "no layer '" + name + "' in the model (layers: " + join(idx.layers) + ")");
+    if (!wanted_set.insert(name).second) throw Error(path, "layer '" + name + "' is named twice");
+  }
+  auto loaded = [&](std::int64_t gid) {
+    const Extent* e = owner(gid);
+    return e && wanted_set.count(e->name) > 0;
+  };
+
+  ModelSource src;
+  src.file = path;
+  std::vector<std::string> fields{"nodes", "masses", "lin_springs", "lin_rest_length", "lin_k", "lin_damping", "lin_slack"};
+  if (req.surface) fields.push_back("quads");
+  std::set<std::int64_t> far_ends;
+  for (const auto& name : wanted) {
+    const std::string g = "/layers/" + name;
+    Layer l = r.layer_fields(name, fields);
+    check_index_range(l.lin_springs, n_global, path, g + "/lin_springs");
+    if (req.surface) check_index_range(l.quads, n_global, path, g + "/quads");
+    for (Eigen::Index s = 0; s < l.lin_springs.rows(); ++s)
+      for (int k = 0; k < 2; ++k)
+        if (!loaded(l.lin_springs(s, k))) far_ends.insert(l.lin_springs(s, k));
+    src.layers.emplace_back(name, std::move(l));
+  }
+
+  // springs of other layers that reach the loaded nodes
+  if (req.couple_unloaded) {
+    Layer& extra = src.extra_springs;
+    std::vector<std::array<std::int32_t, 2>> ends;
+    std::vector<Real> rest, k, c;
+    std::vector<std::uint8_t> slack;
+    for (const auto& e : extents) {
+      if (wanted_set.count(e.name)) continue;
+      const std::string g = "/layers/" + e.name;
+      if (!f.exists(g + "/lin_springs")) continue;
+      Layer idx_only = r.layer_fields(e.name, {"lin_springs"});
+      check_index_range(idx_only.lin_springs, n_global, path, g + "/lin_springs");
+      std::vector<Eigen::Index> touching;
+      for (Eigen::Index s = 0; s < idx_only.lin_springs.rows(); ++s)
+        if (loaded(idx_only.lin_springs(s, 0)) || loaded(idx_only.lin_springs(s, 1))) touching.push_back(s);
+      if (touching.empty()) continue;
+      Layer params = r.layer_fields(e.name, {"lin_rest_length", "lin_k", "lin_damping", "lin_slack"});
+      if (params.lin_k.size() != idx_only.lin_springs.rows())
+        throw Error(path, g + ": lin_k and lin_springs have different lengths");
+      for (auto s : touching) {
+        const std::int32_t a = idx_only.lin_springs(s, 0), b = idx_only.lin_springs(s, 1);
+        ends.push_back({a, b});
+        rest.push_back(params.lin_rest_length[s]);
+        k.push_back(params.lin_k[s]);
+        c.push_back(params.lin_damping[s]);
+        slack.push_back(params.lin_slack[s]);
+        if (!loaded(a)) far_ends.insert(a);
+        if (!loaded(b)) far_ends.insert(b);
+      }
+    }
+    const auto n = static_cast<Eigen::Index>(ends.size());
+    extra.lin_springs.resize(n, 2);
+    extra.lin_rest_length.resize(n);
+    extra.lin_k.resize(n);
+    extra.lin_damping.resize(n);
+    extra.lin_slack.resize(n);
+    for (Eigen::Index s = 0; s < n; ++s) {
+      extra.lin_springs(s, 0) = ends[s][0];
+      extra.lin_springs(s, 1) = ends[s][1];
+      extra.lin_rest_length[s] = rest[s];
+      extra.lin_k[s] = k[s];
+      extra.lin_damping[s] = c[s];
+      extra.lin_slack[s] = slack[s];
+    }
+  }
+
+  // anchor positions: the nodes of the layers owning the far ends
+  std::set<std::string> anchor_layers;
+  for (auto gid : far_ends) {
+    const Extent* e = owner(gid);
+    if (!e) throw Error(path, "a spring reaches node " + std::to_string(gid) + ", which no layer owns");
+    anchor_layers.insert(e->name);
+  }
+  for (const auto& name : anchor_layers) {
+    const Layer l = r.layer_fields(name, {"nodes"});
+    const std::int64_t off = l.node_offset;
+    for (auto gid : far_ends) {
+      if (gid < off || gid >= off + l.nodes.rows()) continue;
+      const auto i = static_cast<Eigen::Index>(gid - off);
+      src.anchor_positions[static_cast<std::int32_t>(gid)] = {l.nodes(i, 0), l.nodes(i, 1), l.nodes(i, 2)};
+    }
+  }
+
+  // node sets
+  for (const auto& name : req.node_sets) {
+    if (std::find(idx.node_sets.begin(), idx.node_sets.end(), name) == idx.node_sets.end())
+      throw Error(path, "no node set '" + name + "' in the model (sets: " + join(idx.node_sets) + ")");
+    VecXi ids = r.node_set(name);
+    check_index_range(ids, n_global, path, "/layers/sets/" + name);
+    src.node_sets[name] = std::move(ids);
+  }
+
+  Model m = assemble_model(src);
+
+  // vessels (static until issue 9 couples them)
+  for (const auto& name : req.vessels) {
+    const std::string g = "/vessels/" + name;
+    if (!f.is_group(g)) throw Error(path, "no vessel tree '" + name + "' in the model");
+    for (const char* d : {"nodes", "radii", "edges"})
+      if (!f.exists(g + "/" + d)) throw Error(path, "missing dataset " + g + "/" + d);
+    std::vector<std::uint64_t> dn, dr, de;
+    Model::Vessel v;
+    v.name = name;
+    v.nodes = f.read<double>(g + "/nodes", &dn);
+    v.radii = f.read<double>(g + "/radii", &dr);
+    v.edges = f.read<std::int32_t>(g + "/edges", &de);
+    if (dn.size() != 2 || dn[1] != 3 || dr.size() != 1 || dr[0] != dn[0] || de.size() != 2 || de[1] != 2)
+      throw Error(path, g + ": nodes (n x 3), radii (n) and edges (n_edges x 2) do not match");
+    for (auto e : v.edges)
+      if (e < 0 || static_cast<std::uint64_t>(e) >= dn[0]) throw Error(path, g + "/edges has a node id out of range");
+    for (auto x : v.nodes)
+      if (!std::isfinite(x)) throw Error(path, g + "/nodes has a non-finite value");
+    for (auto x : v.radii)
+      if (!(std::isfinite(x) && x >= 0)) throw Error(path, g + "/radii has a negative or non-finite value");
+    m.vessels.push_back(std::move(v));
+  }
+  return m;
+}
+
+}  // namespace orthosim::runtime

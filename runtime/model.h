@@ -1,0 +1,140 @@
+// The runtime's immutable model: what the solver reads and never writes.
+//
+// A Model is the part of a model file a scene asked for, flattened into
+// structure-of-arrays form for the hot loops (counts first, then one array
+// per quantity, each documented with its shape and unit). It is built once,
+// by the loader (runtime/loader.h) or from in-memory layers
+// (assemble_model), and shared read-only by every State that steps it; what
+// a step changes lives in State (runtime/state.h).
+//
+// Node ids here are *local*: 0 .. n_nodes-1, the loaded layers' nodes first
+// (in ascending file id), then anchors. `file_id` maps back to the model
+// file's global ids. Anchors are nodes of layers the scene did not load that
+// springs of loaded layers reach: they are fixed at their rest positions.
+//
+// Springs are the linear decomposition of the file's springs (lin_* fields):
+// a biphasic spring is two linear springs in parallel, the second
+// tension-only. They are sorted by (a, b) with a < b so that the springs of
+// which node i is the first end form the contiguous range
+// [a_first[i], a_first[i+1]); the springs of which it is the second end are
+// listed in b_spring[b_first[i] .. b_first[i+1]). The solver gathers forces
+// per node through these two lists: no scatter, no atomics, and results that
+// do not depend on the thread count.
+//
+// Topology edits (issue 9's incision) build a new Model: edit the spring
+// arrays of a copy and call finalize() again; a State keeps its node arrays.
+#pragma once
+
+#include "libmodel/format/model.h"
+#include "runtime/types.h"
+
+#include <array>
+#include <cstdint>
+#include <map>
+#include <string>
+#include <utility>
+#include <vector>
+
+namespace orthosim::runtime {
+
+struct Model {
+  // ---- counts
+  std::int32_t n_nodes = 0;    // simulated nodes, anchors included
+  std::int32_t n_anchors = 0;  // nodes [n_nodes - n_anchors, n_nodes) are anchors
+  std::int32_t n_springs = 0;  // linear springs
+  std::int32_t n_quads = 0;    // surface quads (only when the scene writes surfaces)
+
+  // ---- nodes
+  std::vector<Real> rest_x;             // (n_nodes x 3) m, rest positions, physical frame
+  std::vector<Real> mass;               // (n_nodes) kg; 0 for anchors
+  std::vector<Real> inv_mass;           // (n_nodes) 1/kg; 0 for anchors
+  std::vector<std::int32_t> file_id;    // (n_nodes) global node id in the model file
+  std::vector<std::int32_t> node_layer; // (n_nodes) index into `layers`, -1 for anchors
+
+  // ---- springs, sorted by (a, b), a < b
+  std::vector<std::int32_t> spring_a;       // (n_springs) first end, local id
+  std::vector<std::int32_t> spring_b;       // (n_springs) second end, local id
+  std::vector<Real> spring_rest;            // (n_springs) m, rest length (>= 0)
+  std::vector<Real> spring_k;               // (n_springs) N/m, stiffness (>= 0)
+  std::vector<Real> spring_c;               // (n_springs) N s/m, axial damping (>= 0)
+  std::vector<std::uint8_t> spring_tension; // (n_springs) 1: tension-only (a biphasic second phase)
+
+  // ---- adjacency (built by finalize)
+  std::vector<std::int32_t> a_first;   // (n_nodes + 1) springs with a == i: [a_first[i], a_first[i+1])
+  std::vector<std::int32_t> b_first;   // (n_nodes + 1) offsets into b_spring
+  std::vector<std::int32_t> b_spring;  // (n_springs) springs with b == i, ascending
+
+  // ---- node-neighbour rows (built by finalize), for the implicit matrix
+  // Row i lists node i's distinct neighbours ascending; the springs between
+  // i and a neighbour (a biphasic pair) share one 3x3 block.
+  std::vector<std::int32_t> nbr_first;  // (n_nodes + 1) offsets into nbr
+  std::vector<std::int32_t> nbr;        // (n_entries) neighbour ids
+  std::vector<std::int32_t> slot_a;     // (n_springs) entry of spring s in row a: neighbour b
+  std::vector<std::int32_t> slot_b;     // (n_springs) entry of spring s in row b: neighbour a
+
+  // ---- deterministic work partition (built by finalize)
+  // Parallel loops run over chunks of `chunk` consecutive nodes; reductions
+  // add per-chunk partial sums in chunk order. Both depend only on n_nodes,
+  // so results are bitwise identical for any thread count.
+  std::int32_t chunk = 1;
+  std::int32_t n_chunks = 0;
+
+  // ---- stability data (built by finalize)
+  // Gershgorin bounds per node on the spectrum of M^-1/2 K M^-1/2 and of the
+  // damping: omega2[i] = sum_s k_s (1/m_i + 1/sqrt(m_i m_j)) (1/s^2), with k_s
+  // the largest stiffness a spring can have (a tension-only spring counted as
+  // active); gamma[i] likewise with c_s (1/s). Anchors get 0.
+  std::vector<Real> omega2;  // (n_nodes) 1/s^2
+  std::vector<Real> gamma;   // (n_nodes) 1/s
+  Real total_mass = 0;       // kg, free nodes
+  Real extent = 0;           // m, diagonal of the rest bounding box
+
+  // ---- names (cold data)
+  struct LayerInfo {
+    std::string name, tissue, kind;
+    int order = 0;
+    std::int32_t first = 0, count = 0;  // local node range
+  };
+  std::vector<LayerInfo> layers;
+  std::map<std::string, std::vector<std::int32_t>> node_sets;  // local ids, ascending
+  std::vector<std::int32_t> quads;  // (n_quads x 4) local ids, the loaded layers' top surfaces
+
+  // ---- vessels the scene named (static centrelines until issue 9 couples them)
+  struct Vessel {
+    std::string name;
+    std::vector<Real> nodes;  // (n x 3) m
+    std::vector<Real> radii;  // (n) m
+    std::vector<std::int32_t> edges;  // (n_edges x 2)
+  };
+  std::vector<Vessel> vessels;
+
+  // Builds the adjacency, chunks and stability data from the arrays above
+  // (after sorting the springs). Throws Error("", ...) on inconsistent sizes,
+  // ids out of range, self-springs or invalid numbers.
+  void finalize();
+
+  // Local ids of a named set; throws Error("", ...) naming it when absent.
+  const std::vector<std::int32_t>& set(const std::string& name) const;
+};
+
+// In-memory source for assemble_model: the fields of the loaded layers (the
+// loader reads exactly these), anchor positions and springs of other layers
+// that reach loaded nodes.
+struct ModelSource {
+  std::string file;  // for error messages
+  std::vector<std::pair<std::string, Layer>> layers;  // needs nodes, masses, lin_*; quads optional
+  std::map<std::int32_t, std::array<Real, 3>> anchor_positions;  // global id -> rest position
+  Layer extra_springs;  // lin_* of unloaded layers' springs that reach loaded nodes
+  std::map<std::string, VecXi> node_sets;  // global ids
+};
+
+// Flattens a source into a finalized Model. Springs whose both ends are
+// neither loaded nor anchors are dropped; node-set ids outside the model are
+// dropped. Throws Error(source.file, ...) on invalid data.
+Model assemble_model(const ModelSource& source);
+
+// Convenience: all of `layers` loaded, no anchors.
+Model model_from_layers(const std::vector<std::pair<std::string, Layer>>& layers,
+                        const std::map<std::string, VecXi>& node_sets);
+
+}  // namespace orthosim::runtime

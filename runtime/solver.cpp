@@ -1,0 +1,689 @@
+#include "runtime/solver.h"
+
+#include "runtime/kernels.h"
+
+#include <tbb/blocked_range.h>
+#include <tbb/parallel_for.h>
+
+#include <algorithm>
+#include <cmath>
+#include <cstring>
+
+namespace orthosim::runtime {
+
+const char* to_string(Integrator i) { return i == Integrator::implicit_euler ? "implicit" : "symplectic"; }
+const char* to_string(Preconditioner p) { return p == Preconditioner::jacobi ? "jacobi" : "block_jacobi"; }
+
+void validate(const SolverOptions& o) {
+  for (Real g : o.gravity)
+    if (!std::isfinite(g)) throw Error("", "gravity must be finite");
+  if (!(std::isfinite(o.mass_damping) && o.mass_damping >= 0)) throw Error("", "mass damping must be finite and >= 0");
+  if (o.substeps < 0) throw Error("", "substeps must be >= 0 (0 = automatic)");
+  if (!(o.safety > 0 && o.safety <= 1)) throw Error("", "safety must be in (0, 1]");
+  if (o.max_substeps < 1) throw Error("", "max_substeps must be >= 1");
+  if (o.max_retries < 0 || o.max_retries > 30) throw Error("", "max_retries must be in [0, 30]");
+  if (!(std::isfinite(o.energy_growth) && o.energy_growth > 1)) throw Error("", "energy_growth must be > 1");
+  if (!(std::isfinite(o.cg_tolerance) && o.cg_tolerance > 0 && o.cg_tolerance < 1))
+    throw Error("", "cg_tolerance must be in (0, 1)");
+  if (o.cg_max_iterations < 1) throw Error("", "cg_max_iterations must be >= 1");
+}
+
+namespace {
+
+constexpr int kPad = 8;  // partial sums per chunk, one cache line apart
+
+template <class F>
+void for_chunks(const Model& m, F&& body) {
+  const int nc = m.n_chunks;
+  if (nc <= 1) {
+    if (nc == 1) body(0);
+    return;
+  }
+  tbb::parallel_for(tbb::blocked_range<int>(0, nc, 1), [&](const tbb::blocked_range<int>& r) {
+    for (int c = r.begin(); c != r.end(); ++c) body(c);
+  });
+}
+
+inline std::int32_t chunk_begin(const Model& m, int c) { return c * m.chunk; }
+inline std::int32_t chunk_end(const Model& m, int c) { return std::min(m.n_nodes, (c + 1) * m.chunk); }
+
+Real partial_sum(const Model& m, const Scratch& sc, int k) {
+  Real s = 0;
+  for (int c = 0; c < m.n_chunks; ++c) s += sc.partial[static_cast<std::size_t>(c * kPad + k)];
+  return s;
+}
+Real partial_max(const Model& m, const Scratch& sc, int k) {
+  Real s = 0;
+  for (int c = 0; c < m.n_chunks; ++c) s = std::max(s, sc.partial[static_cast<std::size_t>(c * kPad + k)]);
+  return s;
+}
+
+void ensure_scratch(const Model& m, State& s, bool implicit) {
+  Scratch& sc = s.scratch;
+  const auto n3 = 3 * static_cast<std::size_t>(m.n_nodes);
+  const auto ns = static_cast<std::size_t>(m.n_springs);
+  if (sc.fs.size() != 3 * ns) sc.fs.assign(3 * ns, 0);
+  if (sc.partial.size() != static_cast<std::size_t>(m.n_chunks * kPad)) sc.partial.assign(static_cast<std::size_t>(m.n_chunks * kPad), 0);
+  if (sc.x0.size() != n3) sc.x0.assign(n3, 0);
+  if (sc.v0.size() != n3) sc.v0.assign(n3, 0);
+  if (sc.attach_k.size() != n3 / 3) sc.attach_k.assign(n3 / 3, 0);
+  if (s.f.size() != n3) s.f.assign(n3, 0);
+  if (s.warm.size() != n3) s.warm.assign(n3, 0);
+  if (implicit) {
+    const auto ne = m.nbr.size();
+    if (sc.offdiag.size() != 6 * ne) sc.offdiag.assign(6 * ne, 0);
+    if (sc.diag.size() != 2 * n3) sc.diag.assign(2 * n3, 0);
+    if (sc.precond.size() != 2 * n3) sc.precond.assign(2 * n3, 0);
+    if (sc.attach_f.size() != n3) sc.attach_f.assign(n3, 0);
+    for (auto* v : {&sc.rhs, &sc.r, &sc.z, &sc.p, &sc.p_next, &sc.q, &sc.vnew})
+      if (v->size() != n3) v->assign(n3, 0);
+  }
+}
+
+// What the stability check compares against during one step.
+struct Budget {
+  Real ke0 = 0;      // J, kinetic energy at the step's start
+  Real u0 = -1;      // J, elastic energy at the step's start (-1: not yet known)
+  Real scale = 0;    // J, bound of the work of gravity, external forces and tools
+  Real w_tool = 0;   // J, work done by kinematic attachments so far in this attempt
+};
+
+struct Check {
+  Real ke = 0, u = 0, vmax2 = 0;
+};
+
+enum class Verdict { ok, nonfinite, blowup };
+
+Verdict judge(const Model& m, const Check& c, const Budget& b, Real h, const SolverOptions& o) {
+  if (!std::isfinite(c.ke) || !std::isfinite(c.u) || !std::isfinite(c.vmax2)) return Verdict::nonfinite;
+  if (c.ke > o.energy_growth * (b.ke0 + std::max<Real>(b.u0, 0) + b.scale + std::max<Real>(b.w_tool, 0)))
+    return Verdict::blowup;
+  if (m.extent > 0 && c.vmax2 * h * h > m.extent * m.extent) return Verdict::blowup;
+  return Verdict::ok;
+}
+
+// ---- shared passes ---------------------------------------------------------
+
+// Spring attachments: adds k (target(t) - x) to f of each attached node.
+void attachment_forces(State& s, Real t) {
+  for (const auto& a : s.attachments) {
+    if (a.stiffness == 0 || a.nodes.empty()) continue;
+    const Vec3 p = a.path.at(t);
+    for (std::size_t j = 0; j < a.nodes.size(); ++j) {
+      const auto i = a.nodes[j];
+      if (s.inv_mass[i] == 0) continue;
+      const Vec3 target = p + load3(a.offset.data(), static_cast<std::int64_t>(j));
+      store3(s.f.data(), i, load3(s.f.data(), i) + a.stiffness * (target - load3(s.x.data(), i)));
+    }
+  }
+}
+
+// Kinematic attachments: moves their nodes to target(t1) with the matching
+// velocity; returns the work done on the tissue (J) against the forces in s.f.
+Real move_kinematic(State& s, Real t1, Real h) {
+  Real work = 0;
+  for (const auto& a : s.attachments) {
+    if (a.stiffness != 0 || a.nodes.empty()) continue;
+    const Vec3 p = a.path.at(t1);
+    for (std::size_t j = 0; j < a.nodes.size(); ++j) {
+      const auto i = a.nodes[j];
+      if (s.pin[i] != Pin::kinematic) continue;
+      const Vec3 target = p + load3(a.offset.data(), static_cast<std::int64_t>(j));
+      const Vec3 dx = target - load3(s.x.data(), i);
+      work -= dot(load3(s.f.data(), i), dx);
+      store3(s.v.data(), i, (1 / h) * dx);
+      store3(s.x.data(), i, target);
+    }
+  }
+  return work;
+}
+
+// ---- symplectic Euler ------------------------------------------------------
+
+// pass 1 of symplectic Euler: forces of the springs each node is the first
+// end of, stored per spring for the gather; elastic energy when kEnergy
+template <bool kEnergy>
+void symplectic_spring_pass(const Model& m, State& s) {
+  Scratch& sc = s.scratch;
+  const Real* x = s.x.data();
+  const Real* v = s.v.data();
+  Real* f = s.f.data();
+  Real* fs = sc.fs.data();
+  const std::int32_t* a_first = m.a_first.data();
+  const std::int32_t* sb = m.spring_b.data();
+  const Real* rest = m.spring_rest.data();
+  const Real* k = m.spring_k.data();
+  const Real* c = m.spring_c.data();
+  const std::uint8_t* ten = m.spring_tension.data();
+  Real* partial = sc.partial.data();
+  for_chunks(m, [&](int ch) {
+    Real u = 0;
+    for (std::int32_t i = chunk_begin(m, ch), e = chunk_end(m, ch); i < e; ++i) {
+      const Vec3 xi = load3(x, i), vi = load3(v, i);
+      Vec3 fi{};
+      std::int32_t prev_b = -1;
+      SpringGeometry geo{};
+      for (std::int32_t q = a_first[i], qe = a_first[i + 1]; q < qe; ++q) {
+        const std::int32_t b = sb[q];
+        if (b != prev_b) {  // springs are sorted by (a, b): a biphasic pair shares its geometry
+          geo = spring_geometry(load3(x, b) - xi, load3(v, b) - vi);
+          prev_b = b;
+        }
+        const Vec3 fq = spring_force(geo, rest[q], k[q], c[q], ten[q] != 0);
+        store3(fs, q, fq);
+        fi += fq;
+        if constexpr (kEnergy) {
+          const Real stretch = geo.len - rest[q];
+          u += static_cast<Real>(!ten[q] | (stretch >= 0)) * Real(0.5) * k[q] * stretch * stretch;
+        }
+      }
+      store3(f, i, fi);
+    }
+    partial[ch * kPad] = u;
+  });
+}
+
+Check symplectic_substep(const Model& m, State& s, Real t, Real h, const SolverOptions& o, Real* tool_work,
+                         bool energy) {
+  Scratch& sc = s.scratch;
+  const Real* fs = sc.fs.data();
+  Real* f = s.f.data();
+  Real* partial = sc.partial.data();
+  if (energy) symplectic_spring_pass<true>(m, s);
+  else symplectic_spring_pass<false>(m, s);
+  attachment_forces(s, t);
+
+  // pass 2: gather second ends, external forces, integrate free nodes
+  Real* xw = s.x.data();
+  Real* vw = s.v.data();
+  const Real* fext = s.f_ext.data();
+  const Real* w = s.inv_mass.data();
+  const Real* mass = m.mass.data();
+  const std::int32_t* b_first = m.b_first.data();
+  const std::int32_t* b_spring = m.b_spring.data();
+  const Vec3 g{o.gravity[0], o.gravity[1], o.gravity[2]};
+  const Real alpha = o.mass_damping;
+  for_chunks(m, [&](int ch) {
+    Real ke = 0, vmax2 = 0;
+    for (std::int32_t i = chunk_begin(m, ch), e = chunk_end(m, ch); i < e; ++i) {
+      Vec3 fi = load3(f, i) + load3(fext, i);
+      for (std::int32_t q = b_first[i], qe = b_first[i + 1]; q < qe; ++q) fi -= load3(fs, b_spring[q]);
+      store3(f, i, fi);
+      const Real wi = w[i];
+      if (wi > 0) {
+        Vec3 vi = load3(vw, i);
+        vi += h * (wi * fi + g - alpha * vi);
+        store3(vw, i, vi);
+        store3(xw, i, load3(xw, i) + h * vi);
+        const Real v2 = dot(vi, vi);
+        ke += mass[i] * v2;
+        vmax2 = std::max(vmax2, v2);
+      }
+    }
+    partial[ch * kPad + 1] = Real(0.5) * ke;
+    partial[ch * kPad + 2] = vmax2;
+  });
+  *tool_work += move_kinematic(s, t + h, h);
+  return {partial_sum(m, sc, 1), energy ? partial_sum(m, sc, 0) : Real(0), partial_max(m, sc, 2)};
+}
+
+// ---- implicit Euler --------------------------------------------------------
+
+inline Sym3 sym_at(const Real* a, std::int64_t k) {
+  const Real* b = a + 6 * k;
+  return {b[0], b[1], b[2], b[3], b[4], b[5]};
+}
+inline void sym_store(Real* a, std::int64_t k, const Sym3& s) {
+  Real* b = a + 6 * k;
+  b[0] = s.xx, b[1] = s.yy, b[2] = s.zz, b[3] = s.xy, b[4] = s.xz, b[5] = s.yz;
+}
+inline void sym_add(Real* a, std::int64_t k, const Sym3& s) {
+  Real* b = a + 6 * k;
+  b[0] += s.xx, b[1] += s.yy, b[2] += s.zz, b[3] += s.xy, b[4] += s.xz, b[5] += s.yz;
+}
+
+// How apply_matrix reads its vector: p itself, or the PCG direction update
+// p_next = z + beta p fused into the read (beta == 0: z alone).
+enum class Read { plain, fused_first, fused };
+
+// y = A p on the free nodes (constrained rows zero), one pass over the
+// node-neighbour rows: y_i = D_i p_i - sum_j O_ij p_j. The fused modes also
+// write p_next for each node. Returns p.y (of p_next when fused).
+template <Read kRead>
+Real apply_matrix(const Model& m, State& s, const Real* p, const Real* z, Real beta, Real* p_next, Real* y) {
+  Scratch& sc = s.scratch;
+  const Real* D = sc.diag.data();
+  const Real* O = sc.offdiag.data();
+  const std::int32_t* nbr_first = m.nbr_first.data();
+  const std::int32_t* nbr = m.nbr.data();
+  const Real* w = s.inv_mass.data();
+  Real* partial = sc.partial.data();
+  auto dir = [&](std::int32_t j) {
+    if constexpr (kRead == Read::plain) return load3(p, j);
+    else if constexpr (kRead == Read::fused_first) return load3(z, j);
+    else return load3(z, j) + beta * load3(p, j);
+  };
+  for_chunks(m, [&](int ch) {
+    Real pq = 0;
+    for (std::int32_t i = chunk_begin(m, ch), e = chunk_end(m, ch); i < e; ++i) {
+      const Vec3 pi = dir(i);
+      if constexpr (kRead != Read::plain) store3(p_next, i, pi);
+      if (w[i] == 0) {
+        store3(y, i, Vec3{});
+        continue;
+      }
+      Vec3 yi = sym_at(D, i) * pi;
+      for (std::int32_t k = nbr_first[i], ke = nbr_first[i + 1]; k < ke; ++k) yi -= sym_at(O, k) * dir(nbr[k]);
+      store3(y, i, yi);
+      pq += dot(pi, yi);
+    }
+    partial[ch * kPad + 3] = pq;
+  });
+  return partial_sum(m, sc, 3);
+}
+
+inline Vec3 apply_precond(const Real* P, std::int32_t i, const Vec3& r) { return sym_at(P, i) * r; }
+
+Check implicit_substep(const Model& m, State& s, Real t, Real h, const SolverOptions& o, Real* tool_work,
+                       int* iterations) {
+  Scratch& sc = s.scratch;
+  const Real* x = s.x.data();
+  Real* f = s.f.data();
+  Real* partial = sc.partial.data();
+  Real* vnew = sc.vnew.data();
+
+  // spring attachments, implicit in x: k (target(t+h) - x) - h^2 k v' (stiffness in the diagonal)
+  for (const auto& a : s.attachments) {
+    if (a.stiffness == 0 || a.nodes.empty()) continue;
+    const Vec3 p = a.path.at(t + h);
+    for (std::size_t j = 0; j < a.nodes.size(); ++j) {
+      const auto i = a.nodes[j];
+      const Vec3 target = p + load3(a.offset.data(), static_cast<std::int64_t>(j));
+      store3(sc.attach_f.data(), i, load3(sc.attach_f.data(), i) + a.stiffness * (target - load3(x, i)));
+    }
+  }
+  // prescribed velocities of kinematic nodes
+  for (const auto& a : s.attachments) {
+    if (a.stiffness != 0 || a.nodes.empty()) continue;
+    const Vec3 p = a.path.at(t + h);
+    for (std::size_t j = 0; j < a.nodes.size(); ++j) {
+      const auto i = a.nodes[j];
+      if (s.pin[i] != Pin::kinematic) continue;
+      store3(vnew, i, (1 / h) * (p + load3(a.offset.data(), static_cast<std::int64_t>(j)) - load3(x, i)));
+    }
+  }
+
+  // one pass per node over all its springs: elastic force, the matrix row
+  // (diagonal block and one block per neighbour), right-hand side,
+  // preconditioner and initial guess
+  const std::int32_t* a_first = m.a_first.data();
+  const std::int32_t* b_first = m.b_first.data();
+  const std::int32_t* b_spring = m.b_spring.data();
+  const std::int32_t* sa = m.spring_a.data();
+  const std::int32_t* sb = m.spring_b.data();
+  const std::int32_t* slot_a = m.slot_a.data();
+  const std::int32_t* slot_b = m.slot_b.data();
+  const std::int32_t* nbr_first = m.nbr_first.data();
+  const Real* rest = m.spring_rest.data();
+  const Real* k = m.spring_k.data();
+  const Real* c = m.spring_c.data();
+  const std::uint8_t* ten = m.spring_tension.data();
+  const Real* fext = s.f_ext.data();
+  const Real* fatt = sc.attach_f.data();
+  const Real* w = s.inv_mass.data();
+  const Real* mass = m.mass.data();
+  const Real* v = s.v.data();
+  const Real* warm = s.warm.data();
+  const Real* attach_k = sc.attach_k.data();
+  Real* rhs = sc.rhs.data();
+  Real* D = sc.diag.data();
+  Real* O = sc.offdiag.data();
+  Real* P = sc.precond.data();
+  const Vec3 g{o.gravity[0], o.gravity[1], o.gravity[2]};
+  const Real damp = 1 + h * o.mass_damping;
+  const bool block = o.preconditioner == Preconditioner::block_jacobi;
+  const bool use_warm = o.warm_start;
+  for_chunks(m, [&](int ch) {
+    Real u = 0, b2 = 0;
+    for (std::int32_t i = chunk_begin(m, ch), e = chunk_end(m, ch); i < e; ++i) {
+      const Vec3 xi = load3(x, i);
+      Vec3 fi{};
+      Sym3 Di;
+      for (std::int32_t kk = nbr_first[i]; kk < nbr_first[i + 1]; ++kk) sym_store(O, kk, Sym3{});
+      // springs are sorted by (a, b): a biphasic pair is adjacent in both lists and shares its geometry
+      std::int32_t prev = -1;
+      SpringGeometry geo{};
+      for (std::int32_t q = a_first[i], qe = a_first[i + 1]; q < qe; ++q) {
+        if (sb[q] != prev) {
+          prev = sb[q];
+          geo = spring_geometry(load3(x, prev) - xi, Vec3{});
+        }
+        const SpringForceBlock sf = spring_force_block(geo, rest[q], k[q], c[q], ten[q] != 0, h);
+        fi += sf.f;
+        u += sf.energy;
+        Di += sf.block;
+        sym_add(O, slot_a[q], sf.block);
+      }
+      prev = -1;
+      for (std::int32_t qq = b_first[i], qe = b_first[i + 1]; qq < qe; ++qq) {
+        const std::int32_t q = b_spring[qq];
+        if (sa[q] != prev) {
+          prev = sa[q];
+          geo = spring_geometry(xi - load3(x, prev), Vec3{});
+        }
+        const SpringForceBlock sf = spring_force_block(geo, rest[q], k[q], c[q], ten[q] != 0, h);
+        fi -= sf.f;
+        Di += sf.block;
+        sym_add(O, slot_b[q], sf.block);
+      }
+      fi += load3(fext, i);
+      if (w[i] == 0) {
+        store3(f, i, fi);
+        store3(rhs, i, Vec3{});
+        sym_store(P, i, Sym3{});
+        sym_store(D, i, Di);
+        if (s.pin[i] != Pin::kinematic) store3(vnew, i, Vec3{});
+        continue;
+      }
+      fi += mass[i] * g + load3(fatt, i);
+      store3(f, i, fi);
+      const Real md = damp * mass[i] + h * h * attach_k[i];
+      Di.xx += md, Di.yy += md, Di.zz += md;
+      sym_store(D, i, Di);
+      Sym3 inv;
+      if (block) {
+        inv = inverse(Di);
+      } else {
+        inv.xx = 1 / Di.xx, inv.yy = 1 / Di.yy, inv.zz = 1 / Di.zz;
+      }
+      sym_store(P, i, inv);
+      const Vec3 vi = load3(v, i);
+      const Vec3 bi = mass[i] * vi + h * fi;
+      store3(rhs, i, bi);
+      b2 += dot(bi, bi);
+      store3(vnew, i, use_warm ? vi + load3(warm, i) : vi);
+    }
+    partial[ch * kPad] = u;
+    partial[ch * kPad + 1] = b2;
+  });
+  const Real rhs2 = partial_sum(m, sc, 1);
+  for (const auto& a : s.attachments)
+    if (a.stiffness > 0)
+      for (auto i : a.nodes) store3(sc.attach_f.data(), i, Vec3{});
+
+  // PCG on the free nodes, from the initial guess in vnew
+  Real* r = sc.r.data();
+  Real* z = sc.z.data();
+  Real* q = sc.q.data();
+  apply_matrix<Read::plain>(m, s, vnew, nullptr, 0, nullptr, q);
+  for_chunks(m, [&](int ch) {
+    Real rz = 0, rr = 0;
+    for (std::int32_t i = chunk_begin(m, ch), e = chunk_end(m, ch); i < e; ++i) {
+      const Vec3 ri = w[i] == 0 ? Vec3{} : load3(rhs, i) - load3(q, i);
+      const Vec3 zi = apply_precond(P, i, ri);
+      store3(r, i, ri);
+      store3(z, i, zi);
+      rz += dot(ri, zi);
+      rr += dot(ri, ri);
+    }
+    partial[ch * kPad + 1] = rz;
+    partial[ch * kPad + 2] = rr;
+  });
+  Real rz = partial_sum(m, sc, 1);
+  Real rr = partial_sum(m, sc, 2);
+  const Real thresh = o.cg_tolerance * o.cg_tolerance * std::max(rhs2, rr);
+  int it = 0;
+  bool converged = rr <= thresh;
+  Real beta = 0;
+  while (!converged && it < o.cg_max_iterations) {
+    const Real pq = it == 0 ? apply_matrix<Read::fused_first>(m, s, sc.p.data(), z, 0, sc.p_next.data(), q)
+                            : apply_matrix<Read::fused>(m, s, sc.p.data(), z, beta, sc.p_next.data(), q);
+    sc.p.swap(sc.p_next);
+    ++it;
+    if (!(pq > 0) || !std::isfinite(pq)) break;  // not positive definite or not finite: stop here
+    const Real alpha = rz / pq;
+    const Real* p = sc.p.data();
+    for_chunks(m, [&](int ch) {
+      Real rz_c = 0, rr_c = 0;
+      for (std::int32_t i = chunk_begin(m, ch), e = chunk_end(m, ch); i < e; ++i) {
+        if (w[i] == 0) continue;
+        store3(vnew, i, load3(vnew, i) + alpha * load3(p, i));
+        const Vec3 ri = load3(r, i) - alpha * load3(q, i);
+        const Vec3 zi = apply_precond(P, i, ri);
+        store3(r, i, ri);
+        store3(z, i, zi);
+        rz_c += dot(ri, zi);
+        rr_c += dot(ri, ri);
+      }
+      partial[ch * kPad + 1] = rz_c;
+      partial[ch * kPad + 2] = rr_c;
+    });
+    const Real rz_new = partial_sum(m, sc, 1);
+    rr = partial_sum(m, sc, 2);
+    converged = rr <= thresh;
+    beta = rz > 0 ? rz_new / rz : 0;
+    rz = rz_new;
+  }
+  *iterations = it;
+  ++s.counters.cg_solves;
+  s.counters.cg_iterations += it;
+  s.counters.cg_max_iterations = std::max<std::int64_t>(s.counters.cg_max_iterations, it);
+  if (!converged) ++s.counters.cg_unconverged;
+
+  // update: v = v', x += h v' (kinematic nodes land exactly on their targets)
+  Real* xw = s.x.data();
+  Real* vw = s.v.data();
+  Real* warmw = s.warm.data();
+  for_chunks(m, [&](int ch) {
+    Real ke = 0, vmax2 = 0;
+    for (std::int32_t i = chunk_begin(m, ch), e = chunk_end(m, ch); i < e; ++i) {
+      if (w[i] == 0) continue;
+      const Vec3 vi = load3(vnew, i);
+      store3(warmw, i, vi - load3(vw, i));
+      store3(vw, i, vi);
+      store3(xw, i, load3(xw, i) + h * vi);
+      const Real v2 = dot(vi, vi);
+      ke += mass[i] * v2;
+      vmax2 = std::max(vmax2, v2);
+    }
+    partial[ch * kPad + 1] = Real(0.5) * ke;
+    partial[ch * kPad + 2] = vmax2;
+  });
+  Check out{partial_sum(m, sc, 1), partial_sum(m, sc, 0), partial_max(m, sc, 2)};
+  *tool_work += move_kinematic(s, t + h, h);
+  return out;
+}
+
+}  // namespace
+
+Real symplectic_step_limit(const Model& m, State& s, const SolverOptions& o) {
+  if (s.step_limit > 0) return s.step_limit;
+  // stiffness of spring attachments per node
+  std::vector<Real> extra(static_cast<std::size_t>(m.n_nodes), 0);
+  for (const auto& a : s.attachments)
+    if (a.stiffness > 0)
+      for (auto i : a.nodes) extra[static_cast<std::size_t>(i)] += a.stiffness;
+  Real w2 = 0, gam = 0;
+  for (std::int32_t i = 0; i < m.n_nodes; ++i) {
+    if (s.inv_mass[i] == 0) continue;
+    w2 = std::max(w2, m.omega2[i] + extra[static_cast<std::size_t>(i)] * m.inv_mass[i]);
+    gam = std::max(gam, m.gamma[i]);
+  }
+  gam += o.mass_damping;
+  s.step_limit = symplectic_limit(std::sqrt(w2), gam);
+  if (!(s.step_limit > 0)) s.step_limit = HUGE_VAL;
+  return s.step_limit;
+}
+
+StepInfo step(const Model& m, State& s, Real dt, const SolverOptions& o) {
+  StepInfo info;
+  const bool implicit = o.integrator == Integrator::implicit_euler;
+  ensure_scratch(m, s, implicit);
+  Scratch& sc = s.scratch;
+  if (!(dt > 0) || !std::isfinite(dt) || m.n_nodes == 0) {
+    s.time += (dt > 0 && std::isfinite(dt)) ? dt : 0;
+    ++s.counters.steps;
+    return info;
+  }
+
+  // substeps
+  long n_sub = o.substeps;
+  if (n_sub == 0) {
+    if (implicit) {
+      n_sub = 1;
+    } else {
+      const Real h_max = o.safety * symplectic_step_limit(m, s, o);
+      const Real want = std::ceil(dt / h_max);
+      n_sub = want >= o.max_substeps ? o.max_substeps : std::max<long>(1, static_cast<long>(want));
+    }
+  }
+  n_sub = std::min<long>(n_sub, o.max_substeps);
+
+  // spring-attachment stiffness per node (implicit diagonal)
+  bool has_spring_attach = false;
+  for (const auto& a : s.attachments)
+    if (a.stiffness > 0)
+      for (auto i : a.nodes) {
+        sc.attach_k[static_cast<std::size_t>(i)] += a.stiffness;
+        has_spring_attach = true;
+      }
+
+  // the step's energy budget (see solver.h)
+  Budget budget;
+  {
+    const Real M = m.total_mass;
+    const Real gmag = std::sqrt(o.gravity[0] * o.gravity[0] + o.gravity[1] * o.gravity[1] + o.gravity[2] * o.gravity[2]);
+    Real fext = 0;
+    for (std::int32_t i = 0; i < m.n_nodes; ++i)
+      if (s.inv_mass[i] > 0) fext += norm(load3(s.f_ext.data(), i));
+    Real v_tool = 0, e_tool = 0;
+    for (const auto& a : s.attachments) {
+      if (a.nodes.empty()) continue;
+      const Real speed = a.path.max_speed();
+      v_tool = std::max(v_tool, speed);
+      if (a.stiffness > 0) {
+        const Vec3 p = a.path.at(s.time);
+        for (std::size_t j = 0; j < a.nodes.size(); ++j) {
+          const Real gap = norm(p + load3(a.offset.data(), static_cast<std::int64_t>(j)) - load3(s.x.data(), a.nodes[j])) +
+                           speed * dt;
+          e_tool += Real(0.5) * a.stiffness * gap * gap;
+        }
+      }
+    }
+    const Real v_char = m.extent / 1.0;  // m/s: the model crossing its own size in a second
+    budget.scale = Real(0.5) * M * (v_char * v_char + v_tool * v_tool) + M * gmag * m.extent + fext * m.extent + e_tool;
+    Real ke = 0;
+    for (std::int32_t i = 0; i < m.n_nodes; ++i)
+      if (s.inv_mass[i] > 0) {
+        const Vec3 vi = load3(s.v.data(), i);
+        ke += Real(0.5) * m.mass[i] * dot(vi, vi);
+      }
+    budget.ke0 = ke;
+  }
+
+  // attempts: redo from the step's start with twice the substeps
+  const Real t0 = s.time;
+  std::memcpy(sc.x0.data(), s.x.data(), s.x.size() * sizeof(Real));
+  std::memcpy(sc.v0.data(), s.v.data(), s.v.size() * sizeof(Real));
+  std::vector<Real> warm0;
+  if (implicit) warm0 = s.warm;
+  bool ok = false;
+  Check last;
+  for (int attempt = 0; attempt <= o.max_retries; ++attempt) {
+    const Real h = dt / static_cast<Real>(n_sub);
+    budget.w_tool = 0;
+    int cg_its = 0;
+    long done = 0;
+    Verdict verdict = Verdict::ok;
+    for (long k = 0; k < n_sub; ++k) {
+      const Real t = t0 + h * static_cast<Real>(k);
+      int its = 0;
+      last = implicit ? implicit_substep(m, s, t, h, o, &budget.w_tool, &its)
+                      : symplectic_substep(m, s, t, h, o, &budget.w_tool, budget.u0 < 0);
+      cg_its += its;
+      ++done;
+      if (budget.u0 < 0) budget.u0 = std::isfinite(last.u) ? last.u : 0;
+      verdict = judge(m, last, budget, h, o);
+      if (verdict != Verdict::ok) break;
+    }
+    if (verdict == Verdict::ok) {
+      ok = true;
+      info.substeps = static_cast<int>(n_sub);
+      info.retries = attempt;
+      info.cg_iterations = cg_its;
+      s.counters.substeps += n_sub;
+      break;
+    }
+    // detected: count, restore, refine
+    ++s.counters.events;
+    if (verdict == Verdict::nonfinite) ++s.counters.nonfinite;
+    else ++s.counters.blowups;
+    s.counters.substeps_redone += done;
+    std::memcpy(s.x.data(), sc.x0.data(), s.x.size() * sizeof(Real));
+    std::memcpy(s.v.data(), sc.v0.data(), s.v.size() * sizeof(Real));
+    if (implicit) s.warm = warm0;
+    info.retries = attempt + 1;
+    if (n_sub >= o.max_substeps) break;
+    n_sub = std::min<long>(2 * n_sub, o.max_substeps);
+  }
+  if (ok) {
+    if (info.retries > 0) ++s.counters.recovered;
+  } else {
+    // give up: the step's start, at rest (never a NaN in the state)
+    ++s.counters.failed;
+    info.failed = true;
+    std::fill(s.v.begin(), s.v.end(), 0);
+    std::fill(s.warm.begin(), s.warm.end(), 0);
+    for (std::int32_t i = 0; i < m.n_nodes; ++i)
+      if (!std::isfinite(s.f[3 * i]) || !std::isfinite(s.f[3 * i + 1]) || !std::isfinite(s.f[3 * i + 2]))
+        store3(s.f.data(), i, Vec3{});
+    last = Check{0, budget.u0 > 0 ? budget.u0 : 0, 0};
+    // kinematic nodes still go where their tools are
+    for (const auto& a : s.attachments) {
+      if (a.stiffness != 0 || a.nodes.empty()) continue;
+      const Vec3 p = a.path.at(t0 + dt);
+      for (std::size_t j = 0; j < a.nodes.size(); ++j)
+        if (s.pin[a.nodes[j]] == Pin::kinematic)
+          store3(s.x.data(), a.nodes[j], p + load3(a.offset.data(), static_cast<std::int64_t>(j)));
+    }
+  }
+  if (has_spring_attach)
+    for (const auto& a : s.attachments)
+      if (a.stiffness > 0)
+        for (auto i : a.nodes) sc.attach_k[static_cast<std::size_t>(i)] = 0;
+  s.kinetic_energy = last.ke;
+  s.spring_energy = last.u;
+  s.time = t0 + dt;
+  ++s.counters.steps;
+  return info;
+}
+
+Energies energies(const Model& m, const State& s, const SolverOptions& o) {
+  Energies e;
+  for (std::int32_t i = 0; i < m.n_nodes; ++i) {
+    if (s.inv_mass[i] == 0) continue;
+    const Vec3 vi = load3(s.v.data(), i);
+    e.kinetic += Real(0.5) * m.mass[i] * dot(vi, vi);
+    e.gravity -= m.mass[i] * (o.gravity[0] * s.x[3 * i] + o.gravity[1] * s.x[3 * i + 1] + o.gravity[2] * s.x[3 * i + 2]);
+  }
+  for (std::int32_t q = 0; q < m.n_springs; ++q) {
+    const Vec3 d = load3(s.x.data(), m.spring_b[q]) - load3(s.x.data(), m.spring_a[q]);
+    e.elastic += spring_force_elastic(d, m.spring_rest[q], m.spring_k[q], m.spring_tension[q] != 0).energy;
+  }
+  return e;
+}
+
+std::array<Real, 6> momentum(const Model& m, const State& s) {
+  std::array<Real, 6> p{};
+  for (std::int32_t i = 0; i < m.n_nodes; ++i) {
+    if (s.inv_mass[i] == 0) continue;
+    const Vec3 x = load3(s.x.data(), i), v = m.mass[i] * load3(s.v.data(), i);
+    p[0] += v.x, p[1] += v.y, p[2] += v.z;
+    p[3] += x.y * v.z - x.z * v.y;
+    p[4] += x.z * v.x - x.x * v.z;
+    p[5] += x.x * v.y - x.y * v.x;
+  }
+  return p;
+}
+
+}  // namespace orthosim::runtime

@@ -1,0 +1,106 @@
+// The runtime's mutable state: everything a step reads and writes, apart
+// from the immutable Model (runtime/model.h). Copying a State snapshots a
+// simulation; two States can step one Model side by side.
+//
+// Arrays are (n_nodes x 3) flat, node i at [3i, 3i+3), SI units, the model
+// file's physical frame. Inputs a caller sets between steps (external
+// forces, pins, attachments) live here too, like MuJoCo's mjData holds ctrl
+// and xfrc_applied.
+#pragma once
+
+#include "runtime/model.h"
+#include "runtime/types.h"
+
+#include <cstdint>
+#include <span>
+#include <vector>
+
+namespace orthosim::runtime {
+
+// A piecewise-linear path of a point: times ascending (s), points (m). Held at
+// the first point before t[0] and at the last after t[n-1].
+struct Path {
+  std::vector<Real> t;  // (n) s
+  std::vector<Real> p;  // (n x 3) m
+  Vec3 at(Real time) const;
+  Real max_speed() const;  // m/s, largest segment speed
+};
+
+// Nodes attached to a moving point: node j follows path(t) + offset_j.
+// stiffness == 0: kinematic grip (positions prescribed, the node's pin is
+// kinematic); stiffness > 0: each node is pulled toward its target by a
+// spring of that stiffness (N/m) and stays free.
+struct Attachment {
+  std::vector<std::int32_t> nodes;  // local ids
+  std::vector<Real> offset;         // (n x 3) m
+  Path path;
+  Real stiffness = 0;  // N/m per node, 0 = kinematic
+};
+
+// Pin of a node: free, fixed in place, or moved kinematically by an attachment.
+enum class Pin : std::uint8_t { free = 0, fixed = 1, kinematic = 2 };
+
+// Stability and solver counters, accumulated over the State's life.
+struct Counters {
+  std::int64_t steps = 0;             // completed steps (calls of step())
+  std::int64_t substeps = 0;          // integrator substeps of completed steps (redone work not counted)
+  std::int64_t substeps_redone = 0;   // substeps thrown away by redos
+  std::int64_t events = 0;            // detections: non-finite values or energy blow-up
+  std::int64_t nonfinite = 0;         //   of which NaN or Inf
+  std::int64_t blowups = 0;           //   of which energy growth or runaway motion
+  std::int64_t recovered = 0;         // steps that succeeded after at least one redo
+  std::int64_t failed = 0;            // steps that failed max_retries times (state restored, velocities zeroed)
+  std::int64_t cg_solves = 0;         // implicit: linear solves
+  std::int64_t cg_iterations = 0;     // implicit: PCG iterations, all solves
+  std::int64_t cg_max_iterations = 0; // implicit: most iterations in one solve
+  std::int64_t cg_unconverged = 0;    // implicit: solves stopped at the iteration cap
+};
+
+// Scratch the solver resizes on demand (never read across steps).
+struct Scratch {
+  std::vector<Real> fs;        // (n_springs x 3) N: per-spring force on end a / PCG products
+  std::vector<Real> offdiag;   // (n_entries x 6) implicit matrix: coupling block of each node-neighbour entry
+  std::vector<Real> diag;      // (n_nodes x 6) implicit matrix: diagonal blocks
+  std::vector<Real> precond;   // (n_nodes x 6) inverse diagonal blocks (or inverse diagonals)
+  std::vector<Real> rhs, r, z, p, p_next, q, vnew;  // (n_nodes x 3)
+  std::vector<Real> x0, v0;    // (n_nodes x 3) step start, for redo
+  std::vector<Real> partial;   // (n_chunks x 4) per-chunk partial sums
+  std::vector<Real> attach_k;  // (n_nodes) N/m: spring-attachment stiffness per node
+  std::vector<Real> attach_f;  // (n_nodes x 3) N: spring-attachment forces of the substep (implicit)
+};
+
+struct State {
+  Real time = 0;                   // s
+  std::vector<Real> x;             // (n_nodes x 3) m, positions
+  std::vector<Real> v;             // (n_nodes x 3) m/s, velocities
+  std::vector<Real> f;             // (n_nodes x 3) N, total force on each node in the last substep
+  std::vector<Real> f_ext;         // (n_nodes x 3) N, external force applied through each step (input)
+  std::vector<Pin> pin;            // (n_nodes)
+  std::vector<Real> inv_mass;      // (n_nodes) 1/kg, effective: 0 where pinned
+  std::vector<Real> warm;          // (n_nodes x 3) m/s, implicit: last velocity change (PCG warm start)
+  std::vector<Attachment> attachments;
+
+  Real kinetic_energy = 0;  // J, after the last substep
+  Real spring_energy = 0;   // J, at the start of the last substep
+  Real step_limit = 0;      // s, cached symplectic stability limit; 0 = recompute (pins changed)
+  Counters counters;
+  Scratch scratch;
+};
+
+// A State at rest at the model's rest positions, anchors fixed.
+State make_state(const Model& m);
+
+// Fixes nodes in place (velocity zero) or releases them. Anchors stay fixed.
+void fix_nodes(const Model& m, State& s, std::span<const std::int32_t> nodes);
+void release_nodes(const Model& m, State& s, std::span<const std::int32_t> nodes);
+
+// Adds an attachment; kinematic ones pin their nodes. Returns its index.
+int attach(const Model& m, State& s, Attachment a);
+// Removes an attachment's effect: its nodes become free (unless fixed elsewhere).
+void detach(const Model& m, State& s, int index);
+
+// Order-sensitive 64-bit hash (FNV-1a) of time, positions and velocities:
+// equal bits give equal hashes. For determinism tests.
+std::uint64_t state_hash(const State& s);
+
+}  // namespace orthosim::runtime

@@ -1,0 +1,167 @@
+#include "runtime/vtk.h"
+
+#include "libmodel/format/atomic.h"
+
+#include <bit>
+#include <cmath>
+#include <cstdio>
+#include <fstream>
+#include <iomanip>
+#include <sstream>
+
+namespace orthosim::runtime {
+
+static_assert(std::endian::native == std::endian::little, "the VTK writer declares LittleEndian");
+
+namespace {
+
+constexpr std::uint8_t kVtkLine = 3, kVtkQuad = 9;
+
+// One array of a piece: XML header plus its payload.
+struct Array {
+  std::string type, name;
+  int components = 1;
+  std::string bytes;  // raw little-endian values
+  std::size_t count = 0;
+};
+
+template <class T>
+Array make_array(const std::string& type, const std::string& name, int components, const std::vector<T>& v) {
+  Array a{type, name, components, std::string(reinterpret_cast<const char*>(v.data()), v.size() * sizeof(T)), v.size()};
+  return a;
+}
+
+template <class T>
+void ascii_values(std::ostream& out, const std::string& bytes) {
+  const std::size_t n = bytes.size() / sizeof(T);
+  const T* p = reinterpret_cast<const T*>(bytes.data());
+  for (std::size_t i = 0; i < n; ++i) {
+    if constexpr (sizeof(T) == 1)
+      out << static_cast<int>(p[i]);
+    else
+      out << p[i];
+    out << ((i + 1) % 12 == 0 ? '\n' : ' ');
+  }
+}
+
+void write_ascii_array(std::ostream& out, const Array& a) {
+  out << "<DataArray type=\"" << a.type << "\"";
+  if (!a.name.empty()) out << " Name=\"" << a.name << "\"";
+  out << " NumberOfComponents=\"" << a.components << "\" format=\"ascii\">\n";
+  if (a.type == "Float64") ascii_values<double>(out, a.bytes);
+  else if (a.type == "Int64") ascii_values<std::int64_t>(out, a.bytes);
+  else ascii_values<std::uint8_t>(out, a.bytes);
+  out << "\n</DataArray>\n";
+}
+
+}  // namespace
+
+VtkSeries::VtkSeries(const Model& m, std::string dir, std::string name, VtkOptions o)
+    : dir_(std::move(dir)), name_(std::move(name)), opt_(o) {
+  std::int64_t off = 0;
+  if (opt_.surface) {
+    for (std::int32_t q = 0; q < m.n_quads; ++q) {
+      for (int k = 0; k < 4; ++k) connectivity_.push_back(m.quads[4 * static_cast<std::size_t>(q) + k]);
+      offsets_.push_back(off += 4);
+      types_.push_back(kVtkQuad);
+    }
+    n_quad_cells_ = m.n_quads;
+  }
+  if (opt_.springs) {
+    for (std::int32_t s = 0; s < m.n_springs; ++s) {
+      if (m.spring_tension[s]) continue;
+      connectivity_.push_back(m.spring_a[s]);
+      connectivity_.push_back(m.spring_b[s]);
+      offsets_.push_back(off += 2);
+      types_.push_back(kVtkLine);
+      line_spring_.push_back(s);
+    }
+  }
+}
+
+std::string VtkSeries::pvd_path() const { return dir_ + "/" + name_ + ".pvd"; }
+
+void VtkSeries::write(const Model& m, const State& s) {
+  const auto n = static_cast<std::size_t>(m.n_nodes);
+  std::vector<double> disp(3 * n), vel(s.v.begin(), s.v.end()), force(s.f.begin(), s.f.end());
+  for (std::size_t i = 0; i < 3 * n; ++i) disp[i] = s.x[i] - m.rest_x[i];
+  if (force.size() != 3 * n) force.assign(3 * n, 0);
+  std::vector<std::uint8_t> pin(n);
+  for (std::size_t i = 0; i < n; ++i) pin[i] = static_cast<std::uint8_t>(s.pin[i]);
+  std::vector<double> strain(static_cast<std::size_t>(n_quad_cells_), 0.0);
+  for (auto q : line_spring_) {
+    const Vec3 d = load3(s.x.data(), m.spring_b[q]) - load3(s.x.data(), m.spring_a[q]);
+    const Real rest = m.spring_rest[q];
+    strain.push_back(rest > 0 ? norm(d) / rest - 1 : 0);
+  }
+  std::vector<double> points(s.x.begin(), s.x.end());
+
+  std::vector<Array> point_data{make_array("Float64", "displacement", 3, disp), make_array("Float64", "velocity", 3, vel),
+                                make_array("Float64", "force", 3, force), make_array("UInt8", "pin", 1, pin)};
+  std::vector<Array> cell_data{make_array("Float64", "strain", 1, strain)};
+  Array pts = make_array("Float64", "", 3, points);
+  std::vector<Array> cells{make_array("Int64", "connectivity", 1, connectivity_),
+                           make_array("Int64", "offsets", 1, offsets_), make_array("UInt8", "types", 1, types_)};
+
+  char file[64];
+  std::snprintf(file, sizeof file, "%s_%06d.vtu", name_.c_str(), frames());
+  const std::string target = dir_ + "/" + file;
+  AtomicFile out(target);
+  {
+    std::ofstream os(out.temp(), std::ios::binary);
+    if (!os) throw Error(target, "cannot write");
+    os << std::setprecision(17);
+    os << "<?xml version=\"1.0\"?>\n"
+       << "<VTKFile type=\"UnstructuredGrid\" version=\"1.0\" byte_order=\"LittleEndian\" header_type=\"UInt64\">\n"
+       << "<UnstructuredGrid>\n<FieldData>\n"
+       << "<DataArray type=\"Float64\" Name=\"TimeValue\" NumberOfTuples=\"1\" format=\"ascii\">" << s.time
+       << "</DataArray>\n</FieldData>\n"
+       << "<Piece NumberOfPoints=\"" << n << "\" NumberOfCells=\"" << types_.size() << "\">\n";
+    std::uint64_t offset = 0;
+    std::vector<const Array*> appended;
+    auto emit = [&](const Array& a) {
+      if (!opt_.binary) {
+        write_ascii_array(os, a);
+        return;
+      }
+      os << "<DataArray type=\"" << a.type << "\"";
+      if (!a.name.empty()) os << " Name=\"" << a.name << "\"";
+      os << " NumberOfComponents=\"" << a.components << "\" format=\"appended\" offset=\"" << offset << "\"/>\n";
+      offset += sizeof(std::uint64_t) + a.bytes.size();
+      appended.push_back(&a);
+    };
+    os << "<PointData Vectors=\"velocity\">\n";
+    for (const auto& a : point_data) emit(a);
+    os << "</PointData>\n<CellData Scalars=\"strain\">\n";
+    for (const auto& a : cell_data) emit(a);
+    os << "</CellData>\n<Points>\n";
+    emit(pts);
+    os << "</Points>\n<Cells>\n";
+    for (const auto& a : cells) emit(a);
+    os << "</Cells>\n</Piece>\n</UnstructuredGrid>\n";
+    if (opt_.binary) {
+      os << "<AppendedData encoding=\"raw\">\n_";
+      for (const Array* a : appended) {
+        const std::uint64_t nbytes = a->bytes.size();
+        os.write(reinterpret_cast<const char*>(&nbytes), sizeof nbytes);
+        os.write(a->bytes.data(), static_cast<std::streamsize>(a->bytes.size()));
+      }
+      os << "\n</AppendedData>\n";
+    }
+    os << "</VTKFile>\n";
+    os.flush();
+    if (!os) throw Error(target, "write failed (disk full?)");
+    bytes_ += static_cast<std::int64_t>(os.tellp());
+  }
+  out.commit();
+  files_.emplace_back(s.time, file);
+
+  std::ostringstream pvd;
+  pvd << std::setprecision(17);
+  pvd << "<?xml version=\"1.0\"?>\n<VTKFile type=\"Collection\" version=\"0.1\" byte_order=\"LittleEndian\">\n<Collection>\n";
+  for (const auto& [t, f] : files_) pvd << "<DataSet timestep=\"" << t << "\" group=\"\" part=\"0\" file=\"" << f << "\"/>\n";
+  pvd << "</Collection>\n</VTKFile>\n";
+  write_text_file(pvd_path(), pvd.str());
+}
+
+}  // namespace orthosim::runtime

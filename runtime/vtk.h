@@ -1,0 +1,52 @@
+// ParaView output without the VTK library: one XML UnstructuredGrid file
+// (.vtu) per frame and a .pvd collection listing them with their times.
+//
+// Points are the model's nodes (anchors included). Cells: the loaded layers'
+// surface quads (VTK_QUAD) when the model has them and `surface` is set, and
+// one line (VTK_LINE) per always-active spring when `springs` is set.
+// Point data: displacement (m, from rest), velocity (m/s), force (N, total
+// in the last substep), pin (0 free, 1 fixed, 2 kinematic). Cell data:
+// strain (L/L0 - 1 for lines, 0 for quads).
+//
+// Encodings: ASCII, or raw binary appended data (header_type UInt64,
+// little-endian), both readable by ParaView 5. Every file is written through
+// AtomicFile; the .pvd is rewritten after each frame, so a series stays
+// openable while a run is in progress.
+#pragma once
+
+#include "runtime/model.h"
+#include "runtime/state.h"
+
+#include <string>
+#include <vector>
+
+namespace orthosim::runtime {
+
+struct VtkOptions {
+  bool binary = true;   // false: ASCII
+  bool surface = true;  // quads
+  bool springs = true;  // lines
+};
+
+class VtkSeries {
+ public:
+  // `dir` must exist; files are <dir>/<name>_<frame>.vtu and <dir>/<name>.pvd.
+  VtkSeries(const Model& m, std::string dir, std::string name, VtkOptions o);
+  // Writes one frame of `s` at time s.time and updates the .pvd.
+  void write(const Model& m, const State& s);
+  int frames() const { return static_cast<int>(files_.size()); }
+  std::string pvd_path() const;
+  std::int64_t bytes_written() const { return bytes_; }
+
+ private:
+  std::string dir_, name_;
+  VtkOptions opt_;
+  std::vector<std::int64_t> connectivity_, offsets_;
+  std::vector<std::uint8_t> types_;
+  std::vector<std::int32_t> line_spring_;  // spring of each line cell
+  std::int64_t n_quad_cells_ = 0;
+  std::vector<std::pair<double, std::string>> files_;
+  std::int64_t bytes_ = 0;
+};
+
+}  // namespace orthosim::runtime

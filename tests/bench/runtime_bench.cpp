@@ -1,0 +1,447 @@
+// Runtime benchmarks (issue 8). Google Benchmark timings plus tables:
+//   runtime_bench                                  all timings
+//   runtime_bench --benchmark_filter=Paper         the 39x9x4 lattice
+//   runtime_bench --tables=DIR [--quick]           write DIR/runtime_tables.md: the run-time
+//                                                  against error table, the stress sweep, the Bullet
+//                                                  comparison (when built with ORTHOSIM_WITH_BULLET_PEER)
+// Timings are medians of repetitions when run with --benchmark_repetitions.
+#include "runtime/solver.h"
+#include "runtime/testing/lattice.h"
+#include "runtime/testing/newton.h"
+#include "runtime/testing/stress.h"
+
+#include <benchmark/benchmark.h>
+#include <tbb/blocked_range.h>
+#include <tbb/parallel_for.h>
+#include <tbb/partitioner.h>
+#include <tbb/task_arena.h>
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <cstdio>
+#include <cstring>
+#include <fstream>
+#include <map>
+#include <memory>
+#include <sstream>
+#include <string>
+#include <vector>
+
+#ifdef ORTHOSIM_HAVE_BULLET
+#include <BulletSoftBody/btSoftBody.h>
+#include <BulletSoftBody/btSoftBodyHelpers.h>
+#include <BulletSoftBody/btSoftBodyRigidBodyCollisionConfiguration.h>
+#include <BulletSoftBody/btSoftRigidDynamicsWorld.h>
+#include <btBulletDynamicsCommon.h>
+#endif
+
+namespace rt = orthosim::runtime;
+using rt::Real;
+
+namespace {
+
+using clock_type = std::chrono::steady_clock;
+double seconds_since(clock_type::time_point t0) { return std::chrono::duration<double>(clock_type::now() - t0).count(); }
+
+// ---- shared fixtures ---------------------------------------------------------
+
+struct Lattice {
+  rt::Model model;
+  rt::State rest;
+};
+
+// The paper-sized block (or larger), bone fixed. Cached per size.
+const Lattice& lattice(int nu, int nv, int layers) {
+  static std::map<std::array<int, 3>, std::unique_ptr<Lattice>> cache;
+  auto& slot = cache[{nu, nv, layers}];
+  if (!slot) {
+    const auto b = rt::testing::make_layered_block(nu, nv, layers);
+    slot = std::make_unique<Lattice>();
+    slot->model = rt::model_from_layers(b.layers, b.sets);
+    slot->rest = rt::make_state(slot->model);
+    rt::fix_nodes(slot->model, slot->rest, slot->model.set("fixed"));
+  }
+  return *slot;
+}
+
+// Minimum memory traffic of one symplectic step (bytes): per spring, pass 1
+// reads the second end, rest, k, c, tension flag and writes the force; pass 2
+// reads the spring id and force again. Per node: positions, velocities,
+// forces, external force, masses, offsets (neighbours' x, v assumed cached).
+double symplectic_step_bytes(const rt::Model& m) {
+  const double per_spring = 4 + 3 * 8 + 1 + 3 * 8 + 4 + 3 * 8;
+  const double per_node = (6 * 8 + 4 + 3 * 8) + (3 * 8 + 3 * 8 + 4 + 8 + 8 + 2 * 6 * 8);
+  return per_spring * m.n_springs + per_node * m.n_nodes;
+}
+
+// ---- STREAM-like triad: the machine's memory bandwidth -------------------------
+
+double g_triad_bandwidth[3] = {0, 0, 0};  // GB/s by thread count (1, 2)
+
+void BM_StreamTriad(benchmark::State& state) {
+  const int threads = static_cast<int>(state.range(0));
+  const std::size_t n = std::size_t(1) << 23;  // 8 Mi doubles per array, 3 x 64 MiB
+  static std::vector<double> a(n, 1.0), b(n, 2.0), c(n, 0.5);
+  tbb::task_arena arena(threads);
+  const double s = 3.0;
+  for (auto _ : state) {
+    arena.execute([&] {
+      tbb::parallel_for(tbb::blocked_range<std::size_t>(0, n, n / 64), [&](const tbb::blocked_range<std::size_t>& r) {
+        for (std::size_t i = r.begin(); i < r.end(); ++i) a[i] = b[i] + s * c[i];
+      }, tbb::static_partitioner());
+    });
+    benchmark::ClobberMemory();
+  }
+  state.SetBytesProcessed(static_cast<std::int64_t>(state.iterations()) * static_cast<std::int64_t>(3 * n * sizeof(double)));
+  state.counters["GBps"] = benchmark::Counter(static_cast<double>(3 * n * sizeof(double)) * 1e-9,
+                                              benchmark::Counter::kIsIterationInvariantRate);
+}
+BENCHMARK(BM_StreamTriad)->Arg(1)->Arg(2)->UseRealTime()->Unit(benchmark::kMillisecond);
+
+// ---- symplectic Euler: integrator steps per second ----------------------------------
+
+void symplectic_steps(benchmark::State& state, int nu, int nv) {
+  const int threads = static_cast<int>(state.range(0));
+  const Lattice& L = lattice(nu, nv, 4);
+  rt::State s = L.rest;
+  rt::SolverOptions o;
+  o.substeps = 1;
+  const Real h = o.safety * rt::symplectic_step_limit(L.model, s, o);
+  tbb::task_arena arena(threads);
+  for (auto _ : state) arena.execute([&] { rt::step(L.model, s, h, o); });
+  if (s.counters.events != 0) state.SkipWithError("stability events in a stable run");
+  state.counters["steps_per_s"] = benchmark::Counter(1, benchmark::Counter::kIsIterationInvariantRate);
+  state.counters["ns_per_spring"] = benchmark::Counter(1e9 / L.model.n_springs, benchmark::Counter::kIsIterationInvariantRate |
+                                                                                   benchmark::Counter::kInvert);
+  state.counters["springs"] = L.model.n_springs;
+  state.counters["nodes"] = L.model.n_nodes;
+  state.counters["h_s"] = h;
+  const double bytes = symplectic_step_bytes(L.model);
+  state.counters["GBps"] = benchmark::Counter(bytes * 1e-9, benchmark::Counter::kIsIterationInvariantRate);
+}
+
+void BM_Paper_Symplectic(benchmark::State& state) { symplectic_steps(state, 39, 9); }
+BENCHMARK(BM_Paper_Symplectic)->Arg(1)->Arg(2)->UseRealTime()->Unit(benchmark::kMicrosecond);
+
+void BM_Large_Symplectic(benchmark::State& state) { symplectic_steps(state, 400, 100); }
+BENCHMARK(BM_Large_Symplectic)->Arg(1)->Arg(2)->UseRealTime()->Unit(benchmark::kMillisecond);
+
+// One frame of 1/60 s with automatic substeps (what a 60 Hz scene costs).
+void BM_Paper_SymplecticFrame60(benchmark::State& state) {
+  const int threads = static_cast<int>(state.range(0));
+  const Lattice& L = lattice(39, 9, 4);
+  rt::State s = L.rest;
+  rt::SolverOptions o;
+  tbb::task_arena arena(threads);
+  long substeps = 0;
+  for (auto _ : state) arena.execute([&] { substeps += rt::step(L.model, s, 1.0 / 60, o).substeps; });
+  state.counters["frames_per_s"] = benchmark::Counter(1, benchmark::Counter::kIsIterationInvariantRate);
+  state.counters["sim_s_per_wall_s"] = benchmark::Counter(1.0 / 60, benchmark::Counter::kIsIterationInvariantRate);
+  state.counters["substeps_per_frame"] = static_cast<double>(substeps) / static_cast<double>(state.iterations());
+}
+BENCHMARK(BM_Paper_SymplecticFrame60)->Arg(2)->UseRealTime()->Unit(benchmark::kMillisecond);
+
+// ---- implicit Euler ------------------------------------------------------------------
+
+void implicit_steps(benchmark::State& state, int nu, int nv) {
+  const int threads = static_cast<int>(state.range(0));
+  const Real dt = 1.0 / static_cast<Real>(state.range(1));
+  const Lattice& L = lattice(nu, nv, 4);
+  rt::State s = L.rest;
+  rt::SolverOptions o;
+  o.integrator = rt::Integrator::implicit_euler;
+  o.cg_tolerance = 1e-4;
+  o.mass_damping = 1;
+  tbb::task_arena arena(threads);
+  for (int k = 0; k < 5; ++k) arena.execute([&] { rt::step(L.model, s, dt, o); });  // warm start
+  const auto c0 = s.counters;
+  for (auto _ : state) arena.execute([&] { rt::step(L.model, s, dt, o); });
+  state.counters["steps_per_s"] = benchmark::Counter(1, benchmark::Counter::kIsIterationInvariantRate);
+  state.counters["sim_s_per_wall_s"] = benchmark::Counter(dt, benchmark::Counter::kIsIterationInvariantRate);
+  state.counters["cg_its"] = static_cast<double>(s.counters.cg_iterations - c0.cg_iterations) /
+                             static_cast<double>(std::max<std::int64_t>(1, s.counters.cg_solves - c0.cg_solves));
+  state.counters["dt_s"] = dt;
+}
+void BM_Paper_Implicit(benchmark::State& state) { implicit_steps(state, 39, 9); }
+BENCHMARK(BM_Paper_Implicit)->Args({1, 1000})->Args({2, 1000})->Args({2, 60})->UseRealTime()->Unit(benchmark::kMicrosecond);
+void BM_Large_Implicit(benchmark::State& state) { implicit_steps(state, 400, 100); }
+BENCHMARK(BM_Large_Implicit)->Args({2, 1000})->Args({2, 60})->UseRealTime()->Unit(benchmark::kMillisecond)->Iterations(5);
+
+// ---- static sag: ours and Bullet's against Newton -----------------------------------
+
+// Mean displacement of the skin along gravity at equilibrium.
+Real skin_sag(const rt::Model& m, const std::vector<Real>& x) {
+  Real s = 0;
+  const auto& skin = m.set("skin");
+  for (auto i : skin) s += m.rest_x[3 * static_cast<std::size_t>(i) + 1] - x[3 * static_cast<std::size_t>(i) + 1];
+  return s / static_cast<Real>(skin.size());
+}
+
+Real newton_sag(const Lattice& L) {
+  static std::map<const Lattice*, Real> cache;
+  auto it = cache.find(&L);
+  if (it != cache.end()) return it->second;
+  rt::testing::NewtonOptions no;
+  const auto r = rt::testing::solve_static(L.model, L.rest, no);
+  return cache[&L] = skin_sag(L.model, r.x);
+}
+
+// Our integrators at dt: time per step while settling, and the sag error after settling.
+void BM_Paper_SagOurs(benchmark::State& state) {
+  const bool implicit = state.range(0) == 1;
+  const Real dt = 1.0 / static_cast<Real>(state.range(1));
+  const Lattice& L = lattice(39, 9, 4);
+  rt::SolverOptions o;
+  o.integrator = implicit ? rt::Integrator::implicit_euler : rt::Integrator::symplectic_euler;
+  o.mass_damping = 20;
+  o.cg_tolerance = 1e-4;
+  tbb::task_arena arena(2);
+  const Real ref = newton_sag(L);
+  Real err = 0;
+  for (auto _ : state) {
+    state.PauseTiming();
+    rt::State s = L.rest;
+    state.ResumeTiming();
+    arena.execute([&] {
+      for (int k = 0; k < static_cast<int>(2.0 / dt); ++k) rt::step(L.model, s, dt, o);  // 2 s of settling
+    });
+    state.PauseTiming();
+    err = std::abs(skin_sag(L.model, s.x) - ref) / ref;
+    state.ResumeTiming();
+  }
+  const double steps = 2.0 / dt;
+  state.counters["us_per_step"] = benchmark::Counter(steps * 1e-6, benchmark::Counter::kIsIterationInvariantRate |
+                                                                     benchmark::Counter::kInvert);
+  state.counters["sag_error"] = err;
+  state.counters["newton_sag_m"] = ref;
+}
+BENCHMARK(BM_Paper_SagOurs)->Args({1, 60})->Args({1, 30})->Args({0, 60})->UseRealTime()->Unit(benchmark::kMillisecond)->Iterations(1);
+
+#ifdef ORTHOSIM_HAVE_BULLET
+// Bullet's btSoftBody on the same nodes (fixed nodes mass 0) and the same
+// always-active springs as links with full linear stiffness (kLST = 1),
+// one position iteration, in a btSoftRigidDynamicsWorld.
+struct BulletLattice {
+  std::unique_ptr<btSoftBodyRigidBodyCollisionConfiguration> config;
+  std::unique_ptr<btCollisionDispatcher> dispatcher;
+  std::unique_ptr<btDbvtBroadphase> broadphase;
+  std::unique_ptr<btSequentialImpulseConstraintSolver> solver;
+  std::unique_ptr<btSoftRigidDynamicsWorld> world;
+  btSoftBody* body = nullptr;
+  BulletLattice(const Lattice& L, int iterations, Real kLST) {
+    config = std::make_unique<btSoftBodyRigidBodyCollisionConfiguration>();
+    dispatcher = std::make_unique<btCollisionDispatcher>(config.get());
+    broadphase = std::make_unique<btDbvtBroadphase>();
+    solver = std::make_unique<btSequentialImpulseConstraintSolver>();
+    world = std::make_unique<btSoftRigidDynamicsWorld>(dispatcher.get(), broadphase.get(), solver.get(), config.get());
+    world->setGravity(btVector3(0, -9.81f, 0));
+    auto& wi = world->getWorldInfo();
+    wi.m_gravity = btVector3(0, -9.81f, 0);
+    wi.m_sparsesdf.Initialize();
+    const rt::Model& m = L.model;
+    std::vector<btVector3> x(static_cast<std::size_t>(m.n_nodes));
+    std::vector<btScalar> mass(static_cast<std::size_t>(m.n_nodes));
+    for (std::int32_t i = 0; i < m.n_nodes; ++i) {
+      x[i] = btVector3(btScalar(m.rest_x[3 * i]), btScalar(m.rest_x[3 * i + 1]), btScalar(m.rest_x[3 * i + 2]));
+      mass[i] = L.rest.inv_mass[i] > 0 ? btScalar(m.mass[i]) : btScalar(0);
+    }
+    body = new btSoftBody(&wi, m.n_nodes, x.data(), mass.data());
+    btSoftBody::Material* mat = body->appendMaterial();
+    mat->m_kLST = btScalar(kLST);
+    for (std::int32_t q = 0; q < m.n_springs; ++q)
+      if (!m.spring_tension[q]) body->appendLink(m.spring_a[q], m.spring_b[q], mat);
+    body->m_cfg.piterations = iterations;
+    body->m_cfg.kDP = btScalar(0.01);
+    body->m_cfg.collisions = 0;
+    for (std::int32_t i = 0; i < m.n_nodes; ++i)
+      if (L.rest.inv_mass[i] == 0) body->setMass(i, 0);
+    world->addSoftBody(body);
+  }
+  ~BulletLattice() {
+    world->removeSoftBody(body);
+    delete body;
+  }
+  std::vector<Real> positions() const {
+    std::vector<Real> x(static_cast<std::size_t>(3 * body->m_nodes.size()));
+    for (int i = 0; i < body->m_nodes.size(); ++i)
+      for (int k = 0; k < 3; ++k) x[3 * static_cast<std::size_t>(i) + k] = body->m_nodes[i].m_x[k];
+    return x;
+  }
+};
+
+void BM_Paper_SagBullet(benchmark::State& state) {
+  const int iterations = static_cast<int>(state.range(0));
+  const Real dt = 1.0 / 60;
+  const Lattice& L = lattice(39, 9, 4);
+  const Real ref = newton_sag(L);
+  Real err = 0, sag = 0;
+  for (auto _ : state) {
+    state.PauseTiming();
+    BulletLattice b(L, iterations, 1.0);
+    state.ResumeTiming();
+    for (int k = 0; k < static_cast<int>(2.0 / dt); ++k) b.world->stepSimulation(btScalar(dt), 0);
+    state.PauseTiming();
+    sag = skin_sag(L.model, b.positions());
+    err = std::abs(sag - ref) / ref;
+    state.ResumeTiming();
+  }
+  state.counters["us_per_step"] = benchmark::Counter((2.0 / dt) * 1e-6, benchmark::Counter::kIsIterationInvariantRate |
+                                                                           benchmark::Counter::kInvert);
+  state.counters["sag_error"] = err;
+  state.counters["sag_fraction"] = sag / ref;
+}
+BENCHMARK(BM_Paper_SagBullet)->Arg(1)->Arg(10)->UseRealTime()->Unit(benchmark::kMillisecond)->Iterations(1);
+#endif
+
+// ---- tables ----------------------------------------------------------------------------
+
+// Run-time against error: a 13 x 5 x 4 block, gravity and a pull, T = 0.05 s,
+// against symplectic Euler at 1e-7 s (converged to the RK4 solution within
+// the first-order error of that step).
+std::string error_table(bool quick) {
+  rt::testing::LayeredBlockOptions bo;
+  bo.nu = 13, bo.nv = 5;
+  const auto b = rt::testing::make_layered_block(bo);
+  rt::Model m = rt::model_from_layers(b.layers, b.sets);
+  rt::State s0 = rt::make_state(m);
+  rt::fix_nodes(m, s0, m.set("fixed"));
+  rt::Attachment a;
+  const auto& skin = m.set("skin");
+  a.nodes = {skin[skin.size() / 2]};
+  a.offset = {0, 0, 0};
+  const rt::Vec3 p = rt::load3(m.rest_x.data(), a.nodes[0]);
+  a.path.t = {0, 0.05};
+  a.path.p = {p.x, p.y, p.z, p.x, p.y - 0.004, p.z};
+  rt::attach(m, s0, a);
+  const Real T = 0.05;
+  auto simulate = [&](rt::SolverOptions o, Real dt, double* wall, rt::Counters* c) {
+    rt::State s = s0;
+    tbb::task_arena arena(1);
+    const auto t0 = clock_type::now();
+    const long n = std::lround(T / dt);
+    arena.execute([&] {
+      for (long k = 0; k < n; ++k) rt::step(m, s, dt, o);
+    });
+    *wall = seconds_since(t0);
+    *c = s.counters;
+    return s.x;
+  };
+  rt::SolverOptions ro;
+  ro.substeps = 1;
+  double wref = 0;
+  rt::Counters cref;
+  const Real href = quick ? 2e-6 : 1e-7;
+  const auto ref = simulate(ro, href, &wref, &cref);
+  Real motion = 0;
+  for (std::int32_t i = 0; i < m.n_nodes; ++i) motion = std::max(motion, rt::norm(rt::load3(ref.data(), i) - rt::load3(s0.x.data(), i)));
+  std::ostringstream out;
+  out << "| integrator | dt (s) | substeps/step | wall s per simulated s | max position error / max motion | stability events (failed) |\n"
+      << "|---|---|---|---|---|---|\n";
+  struct Mode {
+    const char* name;
+    rt::Integrator integ;
+    int substeps;
+  };
+  for (const Mode& md : {Mode{"symplectic, 1 substep", rt::Integrator::symplectic_euler, 1},
+                         Mode{"symplectic, auto substeps", rt::Integrator::symplectic_euler, 0},
+                         Mode{"implicit, 1 Newton step", rt::Integrator::implicit_euler, 0}}) {
+    for (Real dt : {1e-5, 1e-4, 1e-3, 1e-2, 1.0 / 30}) {
+      rt::SolverOptions o;
+      o.integrator = md.integ;
+      o.substeps = md.substeps;
+      o.cg_tolerance = 1e-6;
+      double wall = 0;
+      rt::Counters c;
+      const auto x = simulate(o, dt, &wall, &c);
+      Real err = 0;
+      for (std::int32_t i = 0; i < m.n_nodes; ++i) err = std::max(err, rt::norm(rt::load3(x.data(), i) - rt::load3(ref.data(), i)));
+      char line[256];
+      std::snprintf(line, sizeof line, "| %s | %.3g | %.1f | %.3g | %.2e | %lld (%lld) |\n", md.name, dt,
+                    static_cast<double>(c.substeps) / std::max<double>(1, static_cast<double>(c.steps)), wall / T,
+                    err / motion, static_cast<long long>(c.events), static_cast<long long>(c.failed));
+      out << line;
+    }
+  }
+  char foot[256];
+  std::snprintf(foot, sizeof foot, "\nReference: symplectic Euler at %.0e s (%.1f s wall); max motion %.3g m; %d nodes, %d springs, 1 thread.\n",
+                href, wref, motion, m.n_nodes, m.n_springs);
+  out << foot;
+  return out.str();
+}
+
+std::string stress_table(bool quick) {
+  using namespace rt::testing;
+  StressSize size;
+  size.nu = quick ? 4 : 8, size.nv = quick ? 3 : 5, size.layers = 4;
+  size.steps = quick ? 6 : 12;
+  size.max_substeps = quick ? 1 << 14 : 1 << 16;
+  const std::vector<Real> dts{1e-5, 1e-4, 1e-3, 1e-2, 1.0 / 30};
+  const std::vector<Real> krs{1, 10, 1e2, 1e3, 1e4};
+  const std::vector<Real> mrs{1, 1e2, 1e4};
+  std::ostringstream out;
+  out << "Cells: dt x K2/K1; each cell counts stable/recovered/failed over mass ratio {1, 1e2, 1e4} x degenerate springs {none, zero, near-zero} (9 runs).\n\n";
+  long nan_runs = 0, runs = 0, unbounded_implicit = 0;
+  double wall = 0;
+  for (StressMode mode : {StressMode::symplectic_auto, StressMode::symplectic_fixed, StressMode::implicit}) {
+    out << "\n**" << to_string(mode) << "**\n\n| dt (s) |";
+    for (Real kr : krs) out << " K2/K1 = " << kr << " |";
+    out << "\n|---|";
+    for (std::size_t i = 0; i < krs.size(); ++i) out << "---|";
+    out << "\n";
+    for (Real dt : dts) {
+      char head[32];
+      std::snprintf(head, sizeof head, "| %.3g |", dt);
+      out << head;
+      for (Real kr : krs) {
+        int st = 0, rc = 0, fl = 0;
+        for (Real mr : mrs)
+          for (Degenerate d : {Degenerate::none, Degenerate::zero, Degenerate::near_zero}) {
+            const auto r = run_stress_case(StressCase{dt, kr, mr, d, mode}, size);
+            wall += r.wall_s;
+            ++runs;
+            nan_runs += r.nan_seen;
+            if (mode == StressMode::implicit && !r.bounded) ++unbounded_implicit;
+            const auto v = r.verdict();
+            (v == "stable" ? st : v == "recovered" ? rc : fl)++;
+          }
+        out << " " << st << "/" << rc << "/" << fl << " |";
+      }
+      out << "\n";
+    }
+  }
+  char foot[256];
+  std::snprintf(foot, sizeof foot,
+                "\n%ld runs, %ld with a non-finite value in the state, %ld implicit runs unbounded; block %dx%dx%d, %d steps per run, "
+                "at most %d substeps per step; %.1f s.\n",
+                runs, nan_runs, unbounded_implicit, size.nu, size.nv, size.layers, size.steps, size.max_substeps, wall);
+  out << foot;
+  return out.str();
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  std::string tables;
+  bool quick = false;
+  std::vector<char*> args;
+  for (int i = 0; i < argc; ++i) {
+    if (std::strncmp(argv[i], "--tables=", 9) == 0) tables = argv[i] + 9;
+    else if (std::strcmp(argv[i], "--quick") == 0) quick = true;
+    else args.push_back(argv[i]);
+  }
+  if (!tables.empty()) {
+    std::ostringstream md;
+    md << "# runtime tables (generated by runtime_bench --tables)\n\n## Run time against error\n\n"
+       << error_table(quick) << "\n## Stability stress sweep (stable/recovered/failed)\n\n" << stress_table(quick);
+    std::ofstream(tables + "/runtime_tables.md") << md.str();
+    std::fputs(md.str().c_str(), stdout);
+    return 0;
+  }
+  int n = static_cast<int>(args.size());
+  benchmark::Initialize(&n, args.data());
+  if (benchmark::ReportUnrecognizedArguments(n, args.data())) return 1;
+  benchmark::RunSpecifiedBenchmarks();
+  benchmark::Shutdown();
+  return 0;
+}

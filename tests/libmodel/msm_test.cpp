@@ -1,0 +1,447 @@
+// The multilayer mass-spring builder (libmodel/msm): the stiffness rule
+// against the exact lattice moduli of ../shared/reference/lattice-elasticity.md
+// through a static solve, centroid projection against analytic cylinders,
+// mass conservation, topology and quality checks, bad input.
+#include "libmodel/msm/biphasic.h"
+#include "libmodel/msm/build.h"
+#include "libmodel/msm/lattice.h"
+#include "libmodel/msm/project.h"
+#include "libmodel/msm/specimen.h"
+#include "libmodel/msm/tetra.h"
+#include "libmodel/tissues.h"
+#include "tests/libmodel/msm_fixtures.h"
+#include "tests/test_util.h"
+
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <random>
+
+using namespace orthosim;
+using namespace orthosim::msm;
+
+namespace {
+
+// E and the two lateral Poisson ratios measured at a small strain
+struct Measured {
+  double E, nu1, nu2;
+};
+Measured measure(const Specimen& s, int axis, double strain = 1e-4) {
+  UniaxialOptions o;
+  o.axis = axis;
+  auto c = uniaxial_test(s, {strain}, o);
+  return {c.stress_pa[0] / strain, -c.lateral_strain[0] / strain, -c.lateral_strain[1] / strain};
+}
+
+TissueTable table(bool with_fat = true) { return parse_tissue_table(test::msm_tissue_table(with_fat), "t.json"); }
+
+std::vector<LayerSpec> default_specs() { return {{"skin", "tetra"}, {"fat", "lattice"}, {"muscle", "lattice"}}; }
+
+std::string expect_error(const std::function<void()>& f) {
+  try {
+    f();
+  } catch (const Error& e) {
+    EXPECT_EQ(std::string(e.what()).find('\n'), std::string::npos) << e.what();
+    return e.what();
+  }
+  ADD_FAILURE() << "no error";
+  return "";
+}
+
+}  // namespace
+
+// ---- the stiffness rule ----------------------------------------------------
+
+TEST(MsmRule, CubeIsTheReferenceAssembly) {
+  const CellRule r = cell_rule(1e-3, 1e-3, 1e-3, false);
+  EXPECT_TRUE(r.exact);
+  for (double e : r.edge) EXPECT_NEAR(e, 0.1, 1e-15);  // k_e = E a / 10
+  for (double f : r.face) EXPECT_NEAR(f, 0.4, 1e-15);  // k_f = E a / 5  (l^2 = 2 a^2)
+  const auto C = box_stiffness(1, 1, 1, r);
+  EXPECT_NEAR(C(0, 0), 1.2, 1e-14);  // lambda + 2 mu with lambda = mu = 2E/5
+  EXPECT_NEAR(C(0, 1), 0.4, 1e-14);
+  EXPECT_NEAR(C(3, 3), 0.4, 1e-14);
+  for (double e : axis_moduli(C)) EXPECT_NEAR(e, 1.0, 1e-12);
+}
+
+TEST(MsmRule, BoxesExactWhenFeasibleLeastSquaresOtherwise) {
+  const CellRule r = cell_rule(1.0, 1.1, 0.9, false);
+  EXPECT_TRUE(r.exact);
+  for (double e : axis_moduli(box_stiffness(1.0, 1.1, 0.9, r))) EXPECT_NEAR(e, 1.0, 1e-12);
+  const CellRule q = cell_rule(1.0, 2.5, 1.0, false);  // b^2/a^2 + b^2/c^2 = 12.5 > 3: no isotropic lattice
+  EXPECT_FALSE(q.exact);
+  EXPECT_GT(q.residual, 0.01);
+  for (double e : q.edge) EXPECT_GE(e, 0);
+  for (double f : q.face) EXPECT_GE(f, 0);
+}
+
+// ---- static solve of lattice blocks: measured modulus vs the rule and the oracle
+
+TEST(MsmSpecimen, CubicLatticeModulusMatchesRuleAndOracle) {
+  SpecimenOptions so;
+  so.cells = {4, 4, 4};
+  so.cell_m = {1e-3, 1e-3, 1e-3};
+  Specimen s = make_specimen(so);
+  const double E = 2300;  // Pa
+  apply_law(s, {E, E, 0});
+  // interior springs all have the same stiffness k: the oracle E = 5k / (2a)
+  const double k = s.network.k1.maxCoeff();
+  for (Eigen::Index i = 0; i < s.k_per_pa.size(); ++i)
+    if (s.cells(i) == (s.spring_class(i) == static_cast<std::uint8_t>(SpringClass::shear) ? 2 : 4))
+      EXPECT_NEAR(s.network.k1(i), k, 1e-12 * k);
+  const double oracle = 5 * k / (2 * 1e-3);
+  EXPECT_NEAR(oracle, E, 1e-9 * E);
+  for (int axis = 0; axis < 3; ++axis) {
+    const Measured m = measure(s, axis);
+    EXPECT_NEAR(m.E / oracle, 1.0, 0.02) << "axis " << axis;
+    EXPECT_NEAR(m.E / E, 1.0, 1e-3) << "axis " << axis;  // exact up to the geometric nonlinearity (strain 1e-4)
+    EXPECT_NEAR(m.nu1, 0.25, 1e-3);
+    EXPECT_NEAR(m.nu2, 0.25, 1e-3);
+    RecordProperty("E_error_axis" + std::to_string(axis), std::to_string(m.E / E - 1));
+  }
+}
+
+TEST(MsmSpecimen, BoxLatticesHaveThePredictedModuli) {
+  const double E = 1000;
+  for (auto cell : {std::array<double, 3>{1e-3, 1.1e-3, 0.9e-3}, std::array<double, 3>{1e-3, 2.5e-3, 1e-3}}) {
+    SpecimenOptions so;
+    so.cells = {4, 3, 4};
+    so.cell_m = cell;
+    Specimen s = make_specimen(so);
+    apply_law(s, {E, E, 0});
+    const CellRule r = cell_rule(cell[0], cell[1], cell[2], false);
+    const auto predicted = axis_moduli(box_stiffness(cell[0], cell[1], cell[2], r));
+    for (int axis = 0; axis < 3; ++axis) {
+      const Measured m = measure(s, axis);
+      EXPECT_NEAR(m.E / (E * predicted[static_cast<std::size_t>(axis)]), 1.0, 0.02)
+          << "cell " << cell[1] / cell[0] << " axis " << axis;
+    }
+  }
+}
+
+TEST(MsmSpecimen, BodyDiagonalOracleAndEdgesOnlyMechanism) {
+  // all infinite-lattice springs k (per cell: edges k/4, faces k/2, body k):
+  // E[100] = 27 k / (10 a), nu[100] = 7/20
+  SpecimenOptions so;
+  so.cells = {4, 4, 4};
+  so.body_diagonals = true;
+  Specimen s = make_specimen(so);
+  const double k = 3.0, a = so.cell_m[0];
+  for (Eigen::Index i = 0; i < s.k_per_pa.size(); ++i) {
+    const auto c = static_cast<SpringClass>(s.spring_class(i));
+    const double share = c == SpringClass::body ? k : c == SpringClass::shear ? k / 2 : k / 4;
+    s.network.k1(i) = s.network.k2(i) = s.cells(i) * share;
+  }
+  const Measured m = measure(s, 0);
+  EXPECT_NEAR(m.E / (27 * k / (10 * a)), 1.0, 0.02);
+  EXPECT_NEAR(m.nu1, 0.35, 0.35 * 0.02);
+  EXPECT_NEAR(m.nu2, 0.35, 0.35 * 0.02);
+  // edges only: no shear stiffness, the solver must say so
+  for (Eigen::Index i = 0; i < s.k_per_pa.size(); ++i) {
+    const auto c = static_cast<SpringClass>(s.spring_class(i));
+    if (c == SpringClass::shear || c == SpringClass::body) s.network.k1(i) = s.network.k2(i) = 0;
+  }
+  const std::string e = expect_error([&] { measure(s, 0); });
+  EXPECT_NE(e.find("mechanism"), std::string::npos) << e;
+}
+
+TEST(MsmSpecimen, BiphasicBelowTurningIsK1AndTetraSlabIsStiff) {
+  SpecimenOptions so;
+  so.cells = {3, 3, 3};
+  Specimen s = make_specimen(so);
+  apply_law(s, {100, 18800, 0.4});
+  UniaxialOptions uo;
+  auto c = uniaxial_test(s, {0.001, 0.01}, uo);
+  EXPECT_NEAR(c.stress_pa[0] / 0.001 / 100, 1.0, 0.02);
+  EXPECT_NEAR(c.stress_pa[1] / 0.01 / 100, 1.0, 0.02);
+  // far past the turning strain the response stiffens by orders of magnitude
+  auto big = uniaxial_test(s, {0.2, 0.4, 0.6}, uo);
+  EXPECT_GT((big.stress_pa[2] - big.stress_pa[1]) / 0.2, 20 * 100);
+
+  SpecimenOptions to;
+  to.kind = "tetra";
+  to.cells = {6, 6, 1};
+  Specimen t = make_specimen(to);
+  EXPECT_EQ(t.tets, 6 * 6 * 2 * 7);
+  EXPECT_NEAR(t.volume_m3, 6e-3 * 6e-3 * 1e-3, 1e-15);
+  apply_law(t, {1000, 1000, 0});
+  for (int axis = 0; axis < 3; ++axis) {
+    const Measured m = measure(t, axis);
+    EXPECT_GT(m.E, 100);  // finite, positive stiffness in every direction (documented values in docs/msm.md)
+    EXPECT_LT(m.E, 10000);
+  }
+}
+
+// ---- biphasic decomposition --------------------------------------------------
+
+TEST(MsmBiphasic, TwoLinearSpringsReproduceTheLaw) {
+  Layer l;
+  const int n = 50;
+  std::mt19937 rng(3);
+  std::uniform_real_distribution<double> U(0.1, 2.0);
+  l.springs.resize(n, 2);
+  l.rest_length.resize(n), l.k1.resize(n), l.k2.resize(n), l.turning_length.resize(n), l.damping.resize(n);
+  for (int s = 0; s < n; ++s) {
+    l.springs.row(s) << s, s + 1;
+    l.rest_length(s) = U(rng);
+    l.k1(s) = U(rng);
+    l.k2(s) = s % 5 == 0 ? l.k1(s) : l.k1(s) * (1 + 100 * U(rng));
+    l.turning_length(s) = s % 5 == 0 ? l.rest_length(s) : l.rest_length(s) * (1 + 0.5 * U(rng));
+    l.damping(s) = 0.01 * U(rng);
+  }
+  decompose_biphasic(l);
+  EXPECT_EQ(l.lin_springs.rows(), n + n - n / 5);
+  for (int s = 0; s < n; ++s)
+    for (double f : {0.0, 0.5, 0.9, 1.0, 1.3, 2.0, 3.5}) {
+      const double L = l.rest_length(s) * f;
+      double sum = 0;
+      for (Eigen::Index r = 0; r < l.lin_springs.rows(); ++r) {
+        if (l.lin_springs(r, 0) != s) continue;
+        const double ext = L - l.lin_rest_length(r);
+        sum += l.lin_slack(r) ? (ext > 0 ? l.lin_k(r) * ext : 0.0) : l.lin_k(r) * ext;
+      }
+      EXPECT_NEAR(sum, biphasic_force(L, l.rest_length(s), l.k1(s), l.k2(s), l.turning_length(s)),
+                  1e-12 * (1 + std::abs(sum)));
+    }
+}
+
+// ---- centroid projection -------------------------------------------------------
+
+TEST(MsmProject, CentroidsLandOnTheInnerCylinder) {
+  // coarse outer cylinder, inner cylinder faceted finely enough that its
+  // sagitta R (1 - cos(pi/n)) = 3.7e-10 m is below the tolerance
+  const double Ro = 0.03, Ri = 0.02, L = 0.12;
+  const Surface upper = triangulate(test::cylinder(39, 9, L, Ro).vertices, test::cylinder(39, 9, L, Ro).quads);
+  QuadSurface fine = test::cylinder(16384, 2, L + 0.02, Ri);
+  fine.vertices.col(2).array() -= 0.01;
+  const Surface lower = triangulate(fine.vertices, fine.quads);
+  ProjectionOptions po;
+  po.min_barycentric = 0;  // the raw hits
+  const Projection p = project_centroids(upper, lower, {}, {}, po);
+  EXPECT_EQ(p.counts.hits, upper.faces.rows());
+  EXPECT_EQ(p.counts.fallbacks(), 0);
+  double worst_radius = 0, worst_analytic = 0;
+  for (Eigen::Index f = 0; f < upper.faces.rows(); ++f) {
+    const Eigen::Vector3d a = upper.vertices.row(upper.faces(f, 0)), b = upper.vertices.row(upper.faces(f, 1)),
+                          c = upper.vertices.row(upper.faces(f, 2));
+    const Eigen::Vector3d g = (a + b + c) / 3, d = -(b - a).cross(c - a).normalized();
+    // analytic ray-cylinder intersection: |g_xy + t d_xy| = Ri, first t > 0
+    const double A = d.head<2>().squaredNorm(), B = 2 * g.head<2>().dot(d.head<2>()), C = g.head<2>().squaredNorm() - Ri * Ri;
+    const double t = (-B - std::sqrt(B * B - 4 * A * C)) / (2 * A);
+    const Eigen::Vector3d exact = g + t * d;
+    const Eigen::Vector3d hit = p.points.row(f);
+    worst_radius = std::max(worst_radius, std::abs(hit.head<2>().norm() - Ri));
+    worst_analytic = std::max(worst_analytic, (hit - exact).norm());
+  }
+  EXPECT_LT(worst_radius, 1e-9);
+  EXPECT_LT(worst_analytic, 1e-9);
+  RecordProperty("worst_radius_error_m", std::to_string(worst_radius));
+}
+
+TEST(MsmProject, HitsAreExactOnTheFacetsOfCorrespondingGrids) {
+  const QuadSurface o = test::cylinder(39, 9, 0.12, 0.03), i = test::cylinder(39, 9, 0.12, 0.02);
+  const Surface upper = triangulate(o.vertices, o.quads), lower = triangulate(i.vertices, i.quads);
+  VecXi expected(upper.faces.rows());
+  for (Eigen::Index f = 0; f < expected.size(); ++f) expected(f) = static_cast<int>(f);
+  ProjectionOptions po;
+  po.min_barycentric = 0;
+  const Projection p = project_centroids(upper, lower, expected, {}, po);
+  EXPECT_EQ(p.counts.hits, upper.faces.rows());  // every centroid lands in the triangle under its own
+  for (Eigen::Index f = 0; f < upper.faces.rows(); ++f) {
+    const Eigen::Vector3d a = upper.vertices.row(upper.faces(f, 0)), b = upper.vertices.row(upper.faces(f, 1)),
+                          c = upper.vertices.row(upper.faces(f, 2));
+    const Eigen::Vector3d g = (a + b + c) / 3, d = -(b - a).cross(c - a).normalized();
+    const Eigen::Vector3d p0 = lower.vertices.row(lower.faces(f, 0)), p1 = lower.vertices.row(lower.faces(f, 1)),
+                          p2 = lower.vertices.row(lower.faces(f, 2));
+    const Eigen::Vector3d n = (p1 - p0).cross(p2 - p0);
+    const Eigen::Vector3d exact = g + ((p0 - g).dot(n) / d.dot(n)) * d;  // ray-plane
+    EXPECT_LT((Eigen::Vector3d(p.points.row(f)) - exact).norm(), 1e-12);
+    EXPECT_EQ(p.faces(f), f);
+  }
+}
+
+// ---- the layered build ---------------------------------------------------------
+
+TEST(MsmBuild, ConcentricCylindersTopologyAndMass) {
+  const int nu = 39, nv = 9, ng = nu * nv, nq = nu * (nv - 1);
+  const double L = 0.12;
+  const std::vector<double> R = {0.030, 0.028, 0.022, 0.010};
+  const auto surfaces = test::cylinder_stack(nu, nv, L, R);
+  const auto tt = table();
+  const BuiltModel m = build_layers(surfaces, default_specs(), tt, BuildOptions{});
+  const BuildReport& r = m.report;
+  ASSERT_EQ(m.layers.size(), 4u);
+  EXPECT_EQ(m.names, (std::vector<std::string>{"skin", "fat", "muscle", "bone"}));
+  EXPECT_EQ(r.nodes, 4 * ng + 2 * nq);
+  EXPECT_EQ(m.layers[0].nodes.rows(), ng + 2 * nq);
+  EXPECT_EQ(m.layers[1].node_offset, ng + 2 * nq);
+  EXPECT_EQ(m.layers[3].kind, "rigid");
+  EXPECT_EQ(m.layers[0].tets.rows(), 2 * nq * 7);
+  EXPECT_EQ(r.components, 1);
+  EXPECT_EQ(r.duplicate_springs, 0);
+  EXPECT_EQ(r.zero_length_springs, 0);
+  EXPECT_EQ(r.inverted_tets, 0);
+  EXPECT_EQ(r.projection_fallbacks, 0);
+  EXPECT_EQ(r.surface_intersections, 0);
+  EXPECT_LT(r.spring_ratio, 100);
+  // mass: each layer = density x volume of the faceted layer (exactly) and of
+  // the analytic shell within 1 % (the 39-gon's area is 0.43 % short)
+  for (int l = 0; l < 3; ++l) {
+    const auto& lr = r.layers[static_cast<std::size_t>(l)];
+    EXPECT_LT(lr.mass_error, 1e-9) << lr.name;
+    const double shell = M_PI * (R[l] * R[l] - R[l + 1] * R[l + 1]) * L;
+    EXPECT_NEAR(lr.mass_kg / (lr.density_kg_m3 * shell), 1.0, 0.01) << lr.name;
+  }
+  double node_mass = 0;
+  for (const auto& layer : m.layers) node_mass += layer.masses.sum();
+  EXPECT_NEAR(node_mass, r.layer_mass_kg, 1e-12 * node_mass);
+  for (const auto& layer : m.layers)
+    for (Eigen::Index i = 0; i < layer.masses.size(); ++i) ASSERT_GT(layer.masses(i), 0);
+  // every tetrahedron positive; projected centroids on the fat surface's facets
+  MatX3d X(r.nodes, 3);
+  for (const auto& layer : m.layers) X.middleRows(layer.node_offset, layer.nodes.rows()) = layer.nodes;
+  for (Eigen::Index t = 0; t < m.layers[0].tets.rows(); ++t) {
+    const auto& T = m.layers[0].tets;
+    ASSERT_GT(tet_volume(X.row(T(t, 0)), X.row(T(t, 1)), X.row(T(t, 2)), X.row(T(t, 3))), 0);
+  }
+  const Surface fat = triangulate(surfaces[1].second.vertices, surfaces[1].second.quads);
+  for (int f = 0; f < 2 * nq; ++f) {
+    const Eigen::Vector3d c = X.row(ng + f);
+    const Eigen::Vector3d p0 = fat.vertices.row(fat.faces(f, 0)), p1 = fat.vertices.row(fat.faces(f, 1)),
+                          p2 = fat.vertices.row(fat.faces(f, 2));
+    EXPECT_LT(std::abs((c - p0).dot((p1 - p0).cross(p2 - p0).normalized())), 1e-12);
+  }
+  // biphasic skin: two linear springs each; linear fat: one
+  EXPECT_EQ(m.layers[0].lin_springs.rows(), 2 * m.layers[0].springs.rows());
+  EXPECT_EQ(m.layers[1].lin_springs.rows(), m.layers[1].springs.rows());
+  EXPECT_TRUE((m.layers[0].k2.array() > m.layers[0].k1.array()).all());
+  EXPECT_TRUE((m.layers[0].turning_length.array() > m.layers[0].rest_length.array()).all());
+  // node sets
+  std::map<std::string, VecXi> sets(m.node_sets.begin(), m.node_sets.end());
+  ASSERT_TRUE(sets.count("fixed") && sets.count("skin") && sets.count("layer_fat") && sets.count("surface_bone"));
+  EXPECT_EQ(sets["fixed"].size(), ng);
+  EXPECT_EQ(sets["fixed"](0), m.layers[3].node_offset);
+  EXPECT_EQ(sets["skin"].size(), ng);
+  EXPECT_EQ(sets["skin"](0), 0);
+  for (Eigen::Index i = 0; i < ng; ++i) EXPECT_NEAR(X.row(sets["fixed"](i)).head<2>().norm(), R[3], 1e-15);
+  // the interface springs: the fat grid's in-surface springs in both skin and fat
+  EXPECT_GT(r.layers[1].interface_springs, 0);
+}
+
+TEST(MsmBuild, DeterministicAndRoundTripsThroughTheModelFile) {
+  const auto surfaces = test::limb_stack(24, 7);
+  const auto tt = table();
+  const BuiltModel a = build_layers(surfaces, default_specs(), tt, BuildOptions{});
+  const BuiltModel b = build_layers(surfaces, default_specs(), tt, BuildOptions{});
+  test::TempDir dir("msm");
+  const std::string path = dir / "m.h5";
+  {
+    ModelWriter w(path, ModelWriter::Start::fresh);
+    for (std::size_t l = 0; l < a.layers.size(); ++l) w.write_layer(a.names[l], a.layers[l]);
+    for (const auto& [n, ids] : a.node_sets) w.write_node_set(n, ids);
+    w.commit();
+  }
+  ModelReader rd(path);
+  for (std::size_t l = 0; l < a.layers.size(); ++l) {
+    const Layer& x = a.layers[l];
+    const Layer& y = b.layers[l];
+    const Layer z = rd.layer(a.names[l]);
+    for (const Layer* o : {&y, &z}) {
+      EXPECT_EQ(x.nodes, o->nodes);
+      EXPECT_EQ(x.masses, o->masses);
+      EXPECT_EQ(x.springs, o->springs);
+      EXPECT_EQ(x.k1, o->k1);
+      EXPECT_EQ(x.k2, o->k2);
+      EXPECT_EQ(x.damping, o->damping);
+      EXPECT_EQ(x.lin_k, o->lin_k);
+      EXPECT_EQ(x.lin_slack, o->lin_slack);
+      EXPECT_EQ(x.tets, o->tets);
+      EXPECT_EQ(x.node_offset, o->node_offset);
+      EXPECT_EQ(x.kind, o->kind);
+    }
+  }
+  EXPECT_EQ(rd.node_set("fixed"), a.node_sets[0].second);
+  EXPECT_EQ(a.report.components, 1);
+  EXPECT_LT(a.report.max_mass_error, 1e-9);
+}
+
+TEST(MsmBuild, LimbStackThroughCellsAndTetraOverTetra) {
+  const auto surfaces = test::limb_stack(39, 9);
+  const auto tt = table();
+  BuildOptions o;
+  o.through_cells = 3;
+  const BuiltModel m = build_layers(surfaces, default_specs(), tt, o);
+  EXPECT_EQ(m.report.components, 1);
+  EXPECT_LT(m.report.max_mass_error, 1e-9);
+  EXPECT_EQ(m.layers[1].nodes.rows(), 3 * 39 * 9);  // top grid + 2 interior grids
+  EXPECT_LE(m.report.projection_fallbacks, m.report.layers[0].projection.rays / 100);
+  EXPECT_GT(m.report.layers[1].rule.cells, 0);
+  // two tetra layers in a row: the second projects the centroids of the fat grid's triangles
+  const BuiltModel t = build_layers(surfaces, {{"skin", "tetra"}, {"fat", "tetra"}, {"muscle", "lattice"}}, tt,
+                                    BuildOptions{});
+  EXPECT_EQ(t.report.components, 1);
+  EXPECT_EQ(t.report.duplicate_springs, 0);
+  EXPECT_LT(t.report.max_mass_error, 1e-9);
+  EXPECT_EQ(t.layers[1].tets.rows(), 2 * 39 * 8 * 7);
+}
+
+TEST(MsmBuild, ResolveStack) {
+  const auto tt = table();
+  Stack s = resolve_stack({}, {"bone", "muscle", "skin", "fat"}, tt);
+  EXPECT_EQ(s.surfaces, (std::vector<std::string>{"skin", "fat", "muscle", "bone"}));
+  ASSERT_EQ(s.layers.size(), 3u);
+  EXPECT_EQ(s.layers[0].kind, "tetra");
+  EXPECT_EQ(s.layers[2].kind, "lattice");
+  s = resolve_stack(parse_layer_specs("skin:tetra,muscle:lattice"), {"bone", "muscle", "skin", "fat"}, tt);
+  EXPECT_EQ(s.surfaces, (std::vector<std::string>{"skin", "muscle", "bone"}));
+  EXPECT_NE(expect_error([&] { resolve_stack(parse_layer_specs("fat:lattice,skin:tetra"), {"skin", "fat", "bone"}, tt); })
+                .find("out of order"),
+            std::string::npos);
+  EXPECT_NE(expect_error([&] { resolve_stack({}, {"skin", "fat", "bone", "tendon"}, tt); }).find("missing from the tissue table"),
+            std::string::npos);
+  EXPECT_NE(expect_error([&] { parse_layer_specs("skin:cube"); }).find("tetra or lattice"), std::string::npos);
+  EXPECT_NE(expect_error([&] { resolve_stack(parse_layer_specs("muscle:lattice,bone:lattice"), {"muscle", "bone"}, tt); })
+                .find("no quad surface below"),
+            std::string::npos);
+}
+
+TEST(MsmBuild, BadInputIsOneLineError) {
+  const auto tt = table();
+  const auto good = test::cylinder_stack(16, 5);
+  auto build = [&](std::vector<std::pair<std::string, QuadSurface>> s, const TissueTable& t = table()) {
+    return expect_error([&] { build_layers(s, default_specs(), t, BuildOptions{}); });
+  };
+  EXPECT_NE(build(good, table(false)).find("missing from the tissue table"), std::string::npos);
+  {
+    auto s = good;  // fat outside skin
+    std::swap(s[0].second, s[1].second);
+    EXPECT_NE(build(s).find("out of order or intersecting"), std::string::npos);
+  }
+  {
+    auto s = good;
+    s[1].second = test::cylinder(17, 5, 0.12, 0.028);
+    EXPECT_NE(build(s).find("grids do not match"), std::string::npos);
+  }
+  {
+    auto s = good;
+    s[1].second = test::cylinder(16, 5, 0.12, 0.030 - 2e-6);
+    EXPECT_NE(build(s).find("thinner than"), std::string::npos);
+  }
+  {
+    // fat turned by half a cell, bulging through the skin's flat facets
+    // while every grid vertex is still inside: only the exact test sees it
+    auto s = good;
+    s[1].second = test::tube(16, 5, 0.12, [](double, double) { return 0.0299; });
+    for (Eigen::Index v = 0; v < s[1].second.vertices.rows(); ++v) {
+      const double th = 2 * M_PI * ((v % 16) + 0.5) / 16;
+      s[1].second.vertices(v, 0) = 0.0299 * std::cos(th);
+      s[1].second.vertices(v, 1) = 0.0299 * std::sin(th);
+    }
+    EXPECT_NE(build(s).find("layers intersect"), std::string::npos);
+  }
+  {
+    auto s = good;  // inward-facing quads
+    for (auto& [n, q] : s) q.quads = q.quads.rowwise().reverse().eval();
+    EXPECT_NE(build(s).find("faces inward"), std::string::npos);
+  }
+}

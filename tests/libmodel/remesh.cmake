@@ -1,0 +1,13 @@
+# remesh: library tests on analytic tubes, CLI tests, phantom tests when the phantom stage exists.
+orthosim_add_test(remesh_test SOURCES libmodel/remesh_test.cpp LIBS orthosim_remesh ${OpenCV_LIBS})
+target_include_directories(remesh_test SYSTEM PRIVATE ${OpenCV_INCLUDE_DIRS})
+orthosim_add_test(remesh_cli_test SOURCES libmodel/remesh_cli_test.cpp LIBS orthosim_remesh ${OpenCV_LIBS} CLI)
+target_include_directories(remesh_cli_test SYSTEM PRIVATE ${OpenCV_INCLUDE_DIRS})
+if(TARGET orthosim_phantom)
+  orthosim_add_test(remesh_phantom_test SOURCES libmodel/remesh_phantom_test.cpp LIBS orthosim_remesh orthosim_phantom)
+endif()
+orthosim_add_bench(remesh_bench SOURCES bench/remesh_bench.cpp LIBS orthosim_remesh)
+if(TARGET remesh_bench AND TARGET orthosim_phantom)
+  target_link_libraries(remesh_bench PRIVATE orthosim_phantom)
+  target_compile_definitions(remesh_bench PRIVATE ORTHOSIM_HAVE_PHANTOM_LIB)
+endif()

@@ -1,0 +1,117 @@
+// orthosim remesh on analytic STL files: outputs, model groups, exit codes.
+#include "libmodel/format/model.h"
+#include "libmodel/remesh/remesh.h"
+#include "tests/libmodel/remesh_shapes.h"
+#include "tests/test_util.h"
+
+#include <gtest/gtest.h>
+#include <nlohmann/json.hpp>
+#include <opencv2/imgcodecs.hpp>
+
+#include <filesystem>
+
+using namespace orthosim;
+namespace fs = std::filesystem;
+
+namespace {
+
+struct Files {
+  test::TempDir d{"remesh-cli"};
+  Files() {
+    const double L = 0.1;
+    write_stl(d / "skin.stl", test::cylinder(0.030, L, 96, 32));
+    write_stl(d / "fat.stl", test::cylinder(0.026, L, 96, 32));
+    write_stl(d / "bone.stl", test::merge(test::cylinder(0.006, L, 32, 16, 0.01, 0), test::cylinder(0.005, L, 32, 16, -0.01, 0)));
+    write_stl(d / "big.stl", test::cylinder(0.040, L, 96, 32));
+    Surface open = test::cylinder(0.03, L, 32, 8);
+    open.faces.conservativeResize(open.faces.rows() - 2, 3);
+    write_stl(d / "open.stl", open);
+    write_stl(d / "two.stl", test::merge(test::cylinder(0.01, L, 32, 8), test::cylinder(0.01, L, 32, 8, 0.05, 0)));
+    write_stl(d / "torus.stl", test::torus(0.05, 0.01));
+    test::write_file(d / "empty.stl", "");
+  }
+  std::string operator/(const std::string& r) const { return d / r; }
+};
+
+void expect_usage_error(const test::RunResult& r, const std::string& needle, const std::string& out_dir) {
+  EXPECT_EQ(r.code, 2) << r.err;
+  EXPECT_EQ(test::count_lines(r.err), 1) << r.err;
+  EXPECT_NE(r.err.find("orthosim remesh: error: "), std::string::npos) << r.err;
+  EXPECT_NE(r.err.find(needle), std::string::npos) << r.err;
+  EXPECT_FALSE(fs::exists(out_dir)) << "partial output";
+}
+
+}  // namespace
+
+TEST(RemeshCli, LayersIntoDirectoryAndModel) {
+  Files f;
+  const std::string out = f / "out", model = f / "model.h5";
+  const auto r = test::run_cli("remesh --surface " + f / "skin.stl" + " --inner " + f / "fat.stl" + "," + f / "bone.stl" +
+                               " --grid 24x6 --out " + out + " --model " + model + " --report " + f / "r.json");
+  ASSERT_EQ(r.code, 0) << r.err;
+  for (const char* n : {"skin", "fat", "bone"}) EXPECT_TRUE(fs::exists(out + "/" + n + "_quads.obj")) << n;
+  ModelReader m(model);
+  for (const char* n : {"skin", "fat", "bone"}) {
+    const QuadSurface q = m.quads(n);
+    EXPECT_EQ(q.nu, 24);
+    EXPECT_EQ(q.nv, 6);
+    EXPECT_EQ(q.quads.rows(), 24 * 5);
+  }
+  EXPECT_TRUE(m.has("/provenance/remesh"));
+  const auto j = nlohmann::json::parse(test::read_file(f / "r.json"));
+  EXPECT_EQ(j["metrics"]["layers"].size(), 3u);
+  EXPECT_EQ(j["metrics"]["layers"][2]["components"], 2);
+  EXPECT_GT(j["metrics"]["layers"][2]["bridged"].get<int>(), 0);
+  EXPECT_LT(j["metrics"]["layers"][0]["distance"]["hausdorff_m"].get<double>(), 1e-3);
+  EXPECT_EQ(j["metrics"]["layers"][0]["quality"]["flipped"], 0);
+  EXPECT_TRUE(j["metrics"].contains("worst_misalignment"));
+  EXPECT_NE(r.out.find("skin -> fat"), std::string::npos);
+  // a second run replaces /quads
+  const auto r2 = test::run_cli("remesh -q --surface " + f / "skin.stl" + " --grid 12x4 --out " + out + " --model " + model);
+  ASSERT_EQ(r2.code, 0) << r2.err;
+  ModelReader m2(model);
+  EXPECT_EQ(m2.names("/quads"), std::vector<std::string>{"skin"});
+}
+
+TEST(RemeshCli, TextureExports) {
+  Files f;
+  const int n = 80, nz = 101;
+  fs::create_directories(f / "stack/slices");
+  for (int k = 0; k < nz; ++k) {
+    cv::Mat img(n, n, CV_8UC3, cv::Scalar(140, 160, 205));
+    char name[64];
+    std::snprintf(name, sizeof name, "/stack/slices/slice_%04d.png", k);
+    cv::imwrite(f.d.path.string() + name, img);
+  }
+  const std::string out = f / "tex";
+  const auto r = test::run_cli("remesh -q --surface " + f / "skin.stl" + " --grid 39x9 --out " + out + " --stack " +
+                               f / "stack" + " --texture --spacing 1,1,1 --origin -39.5,-39.5,0");
+  ASSERT_EQ(r.code, 0) << r.err;
+  for (const char* file : {"skin_quads.obj", "skin_quads.mtl", "skin_texture.png", "skin.gltf", "skin.bin"})
+    EXPECT_TRUE(fs::exists(out + "/" + file)) << file;
+  const cv::Mat t = cv::imread(out + "/skin_texture.png");
+  ASSERT_FALSE(t.empty());
+  EXPECT_EQ(t.at<cv::Vec3b>(t.rows / 2, t.cols / 2), cv::Vec3b(140, 160, 205));
+  expect_usage_error(test::run_cli("remesh --surface " + f / "skin.stl" + " --out " + f / "t2" + " --texture"), "--stack", f / "t2");
+}
+
+TEST(RemeshCli, BadInputExitsTwoWithoutOutput) {
+  Files f;
+  const std::string out = f / "never";
+  const std::string skin = " --surface " + f / "skin.stl";
+  expect_usage_error(test::run_cli("remesh" + skin + " --grid 0x9 --out " + out), "--grid", out);
+  expect_usage_error(test::run_cli("remesh" + skin + " --grid 10001x9 --out " + out), "3..10000", out);
+  expect_usage_error(test::run_cli("remesh" + skin + " --grid 39x10001 --out " + out), "2..10000", out);
+  expect_usage_error(test::run_cli("remesh --surface " + f / "open.stl" + " --out " + out), "open surface", out);
+  expect_usage_error(test::run_cli("remesh --surface " + f / "empty.stl" + " --out " + out), "empty", out);
+  expect_usage_error(test::run_cli("remesh --surface " + f / "two.stl" + " --out " + out), "2 components", out);
+  expect_usage_error(test::run_cli("remesh --surface " + f / "torus.stl" + " --out " + out), "not tube-like", out);
+  expect_usage_error(test::run_cli("remesh" + skin + " --inner " + f / "big.stl" + " --out " + out),
+                     "big.stl: not inside skin", out);
+  expect_usage_error(test::run_cli("remesh --surface " + f / "missing.stl" + " --out " + out), "missing.stl", out);
+  // the model is not touched either
+  const std::string model = f / "m.h5";
+  expect_usage_error(test::run_cli("remesh" + skin + " --inner " + f / "big.stl" + " --out " + out + " --model " + model),
+                     "not inside", out);
+  EXPECT_FALSE(fs::exists(model));
+}

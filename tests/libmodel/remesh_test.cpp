@@ -1,0 +1,426 @@
+#include "libmodel/remesh/remesh.h"
+#include "libmodel/remesh/texture.h"
+#include "tests/libmodel/remesh_shapes.h"
+#include "tests/test_util.h"
+
+#include <gtest/gtest.h>
+#include <nlohmann/json.hpp>
+#include <opencv2/imgcodecs.hpp>
+
+#include <cmath>
+#include <cstring>
+#include <filesystem>
+
+using namespace orthosim;
+using orthosim::test::kPi;
+using Vec3 = Eigen::Vector3d;
+
+namespace {
+
+RemeshOptions grid(int nu, int nv) {
+  RemeshOptions o;
+  o.nu = nu;
+  o.nv = nv;
+  return o;
+}
+
+std::string error_of(const std::function<void()>& f) {
+  try {
+    f();
+  } catch (const Error& e) {
+    return e.what();
+  }
+  return "";
+}
+
+double radius_xy(const QuadSurface& q, Eigen::Index r) { return std::hypot(q.vertices(r, 0), q.vertices(r, 1)); }
+
+}  // namespace
+
+// ---- input -------------------------------------------------------------------
+
+TEST(RemeshStl, BinaryRoundTripWelds) {
+  test::TempDir d("stl");
+  const Surface s = test::cylinder(0.03, 0.1, 32, 8);
+  write_stl(d / "c.stl", s);
+  const Surface r = read_stl(d / "c.stl");
+  EXPECT_EQ(r.vertices.rows(), s.vertices.rows());
+  EXPECT_EQ(r.faces.rows(), s.faces.rows());
+  const SurfaceCheck c = check_closed_surface(r, "c.stl", true);
+  EXPECT_EQ(c.components, 1);
+  EXPECT_EQ(c.euler, 2);
+  EXPECT_GT(c.volume_m3, 0);
+  EXPECT_NEAR(c.volume_m3, kPi * 0.03 * 0.03 * 0.1, 0.01 * kPi * 0.03 * 0.03 * 0.1);
+}
+
+TEST(RemeshStl, AsciiTetrahedron) {
+  test::TempDir d("stl");
+  const char* text = R"(solid t
+facet normal 0 0 -1
+ outer loop
+  vertex 0 0 0
+  vertex 0 1 0
+  vertex 1 0 0
+ endloop
+endfacet
+facet normal 0 -1 0
+ outer loop
+  vertex 0 0 0
+  vertex 1 0 0
+  vertex 0 0 1
+ endloop
+endfacet
+facet normal -1 0 0
+ outer loop
+  vertex 0 0 0
+  vertex 0 0 1
+  vertex 0 1 0
+ endloop
+endfacet
+facet normal 1 1 1
+ outer loop
+  vertex 1 0 0
+  vertex 0 1 0
+  vertex 0 0 1
+ endloop
+endfacet
+endsolid t
+)";
+  test::write_file(d / "t.stl", text);
+  const Surface s = read_stl(d / "t.stl");
+  EXPECT_EQ(s.vertices.rows(), 4);
+  EXPECT_EQ(s.faces.rows(), 4);
+  EXPECT_NEAR(check_closed_surface(s, "t", true).volume_m3, 1.0 / 6, 1e-12);
+  test::write_file(d / "bad.stl", "hello");
+  EXPECT_NE(error_of([&] { read_stl(d / "bad.stl"); }).find("not an STL"), std::string::npos);
+  EXPECT_NE(error_of([&] { read_stl(d / "missing.stl"); }).find("cannot open"), std::string::npos);
+}
+
+TEST(RemeshCheck, RejectsBadSurfaces) {
+  const Surface good = test::cylinder(0.03, 0.1, 16, 4);
+  EXPECT_NE(error_of([] { check_closed_surface(Surface{}, "e", true); }).find("empty"), std::string::npos);
+  Surface open = good;
+  open.faces.conservativeResize(open.faces.rows() - 1, 3);
+  EXPECT_NE(error_of([&] { check_closed_surface(open, "o", true); }).find("open surface"), std::string::npos);
+  Surface dup = good;
+  dup.faces.conservativeResize(dup.faces.rows() + 1, 3);
+  dup.faces.row(dup.faces.rows() - 1) = good.faces.row(0);
+  EXPECT_NE(error_of([&] { check_closed_surface(dup, "d", true); }).find("non-manifold"), std::string::npos);
+  Surface flip = good;
+  std::swap(flip.faces(3, 0), flip.faces(3, 1));
+  EXPECT_NE(error_of([&] { check_closed_surface(flip, "f", true); }).find("inconsistently oriented"), std::string::npos);
+  const Surface two = test::merge(good, test::cylinder(0.01, 0.1, 16, 4, 0.1, 0));
+  EXPECT_NE(error_of([&] { check_closed_surface(two, "two.stl", true); }).find("2 components"), std::string::npos);
+  EXPECT_EQ(check_closed_surface(two, "two.stl", false).components, 2);
+  Surface nan = good;
+  nan.vertices(0, 0) = std::nan("");
+  EXPECT_NE(error_of([&] { check_closed_surface(nan, "n", true); }).find("non-finite"), std::string::npos);
+}
+
+TEST(RemeshOptionsTest, GridLimits) {
+  EXPECT_NO_THROW(validate(grid(39, 9)));
+  EXPECT_NO_THROW(validate(grid(10000, 10000)));
+  EXPECT_THROW(validate(grid(0, 9)), Error);
+  EXPECT_THROW(validate(grid(39, 0)), Error);
+  EXPECT_THROW(validate(grid(10001, 9)), Error);
+  EXPECT_THROW(validate(grid(39, 10001)), Error);
+  EXPECT_THROW(validate(grid(2, 9)), Error);
+}
+
+// ---- analytic tubes -----------------------------------------------------------
+
+TEST(Remesh, Cylinder39x9) {
+  const double R = 0.03, L = 0.12;
+  const Surface s = test::cylinder(R, L, 256, 64);
+  const auto r = remesh_layers({{"skin", s}}, grid(39, 9));
+  const QuadSurface& q = r.layers[0];
+  ASSERT_EQ(q.nu, 39);
+  ASSERT_EQ(q.nv, 9);
+  ASSERT_EQ(q.vertices.rows(), 39 * 9);
+  ASSERT_EQ(q.quads.rows(), 39 * 8);
+  EXPECT_TRUE(r.sweep.flat_cap[0] && r.sweep.flat_cap[1]);
+  EXPECT_NEAR(r.sweep.length_m, L, 1e-4 * L);
+  const double chord = R * (1 - std::cos(kPi / 256));
+  for (Eigen::Index v = 0; v < q.vertices.rows(); ++v) {
+    EXPECT_LE(radius_xy(q, v), R + 1e-12);
+    EXPECT_GE(radius_xy(q, v), R - chord - 1e-12);
+  }
+  // end rings are the rims of the caps; rings evenly spaced on a cylinder
+  for (int i = 0; i < 39; ++i) {
+    EXPECT_NEAR(q.vertices(i, 2), 0, 2e-5 * L);
+    EXPECT_NEAR(q.vertices(8 * 39 + i, 2), L, 2e-5 * L);
+  }
+  for (int j = 0; j < 9; ++j) EXPECT_NEAR(q.vertices(j * 39, 2), L * j / 8, 0.02 * L / 8);
+  // phase: u = 0 at +x, counter-clockwise around +z
+  for (int j = 0; j < 9; ++j) {
+    EXPECT_NEAR(std::atan2(q.vertices(j * 39, 1), q.vertices(j * 39, 0)), 0, 1e-3);
+    EXPECT_GT(q.vertices(j * 39 + 1, 1), 0);
+  }
+  const QuadQuality qq = quad_quality(q, r.ring_centre);
+  EXPECT_EQ(qq.flipped, 0);
+  EXPECT_EQ(qq.degenerate, 0);
+  EXPECT_NEAR(qq.min_angle_deg, 90, 1);
+  EXPECT_NEAR(qq.max_angle_deg, 90, 1);
+  const auto e = evaluate_remesh(r, {{"skin", s}});
+  // the worst chord of a 39-gon, plus the input's own
+  const double sag = R * (1 - std::cos(kPi / 39));
+  EXPECT_NEAR(e.distance[0].hausdorff_m, sag, 0.1 * sag);
+  EXPECT_LT(e.distance[0].mean_m, sag);
+  EXPECT_NEAR(e.distance[0].compared_input_area_m2, 2 * kPi * R * L, 0.01 * 2 * kPi * R * L);
+}
+
+TEST(Remesh, AngleSamplingOnCylinder) {
+  const Surface s = test::cylinder(0.03, 0.1, 256, 32);
+  RemeshOptions o = grid(16, 4);
+  o.around = RingSampling::angle;
+  const auto r = remesh_layers({{"skin", s}}, o);
+  for (int i = 0; i < 16; ++i) {
+    const double a = std::atan2(r.layers[0].vertices(i, 1), r.layers[0].vertices(i, 0));
+    EXPECT_NEAR(std::remainder(a - 2 * kPi * i / 16, 2 * kPi), 0, 1e-9);
+  }
+}
+
+TEST(Remesh, BentEllipticTubeFollowsTheArc) {
+  const test::BentTube b;
+  const Surface s = b.mesh(256, 128);
+  const auto r = remesh_layers({{"skin", s}}, grid(40, 12));
+  const QuadSurface& q = r.layers[0];
+  EXPECT_TRUE(r.sweep.flat_cap[0] && r.sweep.flat_cap[1]);
+  EXPECT_NEAR(r.sweep.length_m, b.rho * b.phi, 2e-3 * b.rho * b.phi);
+  // end planes are the caps: normals along the arc tangents at the ends
+  const Vec3 t0(0, 0, 1), t1(std::sin(b.phi), 0, std::cos(b.phi));
+  EXPECT_GT(Vec3(r.ring_normal.row(0)).dot(t0), 1 - 1e-9);
+  EXPECT_GT(Vec3(r.ring_normal.row(11)).dot(t1), 1 - 1e-9);
+  // ring centres on the arc, every normal along the arc tangent
+  for (int j = 0; j < 12; ++j) {
+    const Vec3 c = r.ring_centre.row(j);
+    const double f = std::atan2(c.z(), b.rho - c.x());
+    EXPECT_NEAR((c - b.centre(f / b.phi)).norm(), 0, 2e-4);
+    EXPECT_GT(Vec3(r.ring_normal.row(j)).dot(Vec3(std::sin(f), 0, std::cos(f))), 1 - 1e-4);
+    // rotation-minimising frame of a planar arc stays in the bend plane: u = 0 on the long axis
+    EXPECT_NEAR(q.vertices(j * 40, 1), 0, 1e-4);
+    EXPECT_NEAR((Vec3(q.vertices.row(j * 40)) - c).norm(), b.a, 1e-3);
+  }
+  const QuadQuality qq = quad_quality(q, r.ring_centre);
+  EXPECT_EQ(qq.flipped, 0);
+  EXPECT_EQ(qq.degenerate, 0);
+  EXPECT_GT(qq.min_angle_deg, 70);
+  const auto e = evaluate_remesh(r, {{"skin", s}});
+  EXPECT_LT(e.distance[0].hausdorff_m, 1.5e-3);
+}
+
+TEST(Remesh, TaperingCone) {
+  const double r0 = 0.035, r1 = 0.02, L = 0.12;
+  const Surface s = test::cone(r0, r1, L, 256, 64);
+  const auto r = remesh_layers({{"skin", s}}, grid(30, 10));
+  const QuadSurface& q = r.layers[0];
+  for (int i = 0; i < 30; ++i) {
+    EXPECT_NEAR(radius_xy(q, i), r0, 1e-4);
+    EXPECT_NEAR(radius_xy(q, 9 * 30 + i), r1, 1e-4);
+  }
+  for (int j = 0; j < 10; ++j) {
+    const double z = q.vertices(j * 30, 2);
+    EXPECT_NEAR(radius_xy(q, j * 30), r0 + (r1 - r0) * z / L, 1e-4);
+  }
+  EXPECT_EQ(quad_quality(q, r.ring_centre).flipped, 0);
+}
+
+TEST(Remesh, ConvergesAsHSquared) {
+  const test::BentTube b;
+  const Surface s = b.mesh(384, 192);
+  std::vector<double> err, h;
+  for (int k : {1, 2, 4}) {
+    const auto r = remesh_layers({{"skin", s}}, grid(20 * k, 5 * k));
+    const auto e = evaluate_remesh(r, {{"skin", s}}, 2);
+    err.push_back(e.distance[0].hausdorff_m);
+    h.push_back(e.quality[0].max_edge_m);
+  }
+  for (int i = 0; i + 1 < 3; ++i) {
+    const double order = std::log(err[i] / err[i + 1]) / std::log(h[i] / h[i + 1]);
+    EXPECT_GT(order, 1.7) << i;
+    EXPECT_LT(order, 2.4) << i;
+  }
+}
+
+TEST(Remesh, RoundedEndsAreTrimmed) {
+  const double R = 0.02, L = 0.08;
+  const Surface s = test::capsule(R, L, 128, 192);
+  const auto r = remesh_layers({{"bone", s}}, grid(24, 8));
+  EXPECT_FALSE(r.sweep.flat_cap[0]);
+  EXPECT_FALSE(r.sweep.flat_cap[1]);
+  EXPECT_GT(r.sweep.uncovered_m2[0], 0);
+  // the end rings sit where the section area is a quarter of the shaft's: radius R/2
+  const QuadSurface& q = r.layers[0];
+  EXPECT_NEAR(radius_xy(q, 0), 0.5 * R, 0.05 * R);
+  EXPECT_NEAR(radius_xy(q, 7 * 24), 0.5 * R, 0.05 * R);
+  EXPECT_EQ(quad_quality(q, r.ring_centre).flipped, 0);
+}
+
+TEST(Remesh, Deterministic) {
+  const test::BentTube b;
+  const Surface s = b.mesh(128, 64);
+  const auto r1 = remesh_layers({{"skin", s}}, grid(39, 9));
+  const auto r2 = remesh_layers({{"skin", s}}, grid(39, 9));
+  EXPECT_EQ(0, std::memcmp(r1.layers[0].vertices.data(), r2.layers[0].vertices.data(),
+                           sizeof(double) * r1.layers[0].vertices.size()));
+}
+
+// ---- layers -------------------------------------------------------------------
+
+namespace {
+std::vector<NamedSurface> concentric_layers() {
+  const double L = 0.12;
+  return {{"skin", test::cylinder(0.030, L, 192, 48)},
+          {"fat", test::cylinder(0.026, L, 160, 48)},
+          {"muscle", test::cylinder(0.021, L, 128, 48)},
+          // radius and ulna: two components, caps in the same planes as the limb's
+          {"bone", test::merge(test::cylinder(0.006, L, 48, 24, 0.010, 0.002), test::cylinder(0.005, L, 48, 24, -0.009, -0.001))}};
+}
+}  // namespace
+
+TEST(RemeshLayers, CorrespondRadially) {
+  const auto in = concentric_layers();
+  const auto r = remesh_layers(in, grid(39, 9));
+  ASSERT_EQ(r.layers.size(), 4u);
+  for (const auto& q : r.layers) {
+    EXPECT_EQ(q.nu, 39);
+    EXPECT_EQ(q.nv, 9);
+  }
+  EXPECT_EQ(r.stats[3].components, 2);
+  EXPECT_GT(r.stats[3].bridged, 0);
+  EXPECT_EQ(r.stats[3].filled, 0);
+  EXPECT_EQ(r.stats[1].bridged + r.stats[2].bridged, 0);
+  // concentric: fat and muscle vertices at their radii, on the skin's rays
+  for (int k : {1, 2}) {
+    const double R = k == 1 ? 0.026 : 0.021;
+    for (Eigen::Index v = 0; v < r.layers[k].vertices.rows(); ++v) EXPECT_NEAR(radius_xy(r.layers[k], v), R, 2e-4);
+  }
+  // the bone envelope lies on or outside both bones and inside the muscle
+  for (Eigen::Index v = 0; v < r.layers[3].vertices.rows(); ++v) {
+    const Vec3 p = r.layers[3].vertices.row(v);
+    const double d1 = std::hypot(p.x() - 0.010, p.y() - 0.002) - 0.006, d2 = std::hypot(p.x() + 0.009, p.y() + 0.001) - 0.005;
+    EXPECT_GT(std::min(d1, d2), -2e-5);
+    EXPECT_LT(radius_xy(r.layers[3], v), 0.021);
+  }
+  const auto e = evaluate_remesh(r, in);
+  ASSERT_EQ(e.alignment.size(), 3u);
+  for (const auto& a : e.alignment) {
+    EXPECT_LT(a.max_ray_angle_deg, 1e-6) << a.inner;
+    EXPECT_EQ(e.quality[0].flipped, 0);
+  }
+  EXPECT_DOUBLE_EQ(e.alignment[0].ray_in_quad, 1.0);  // skin -> fat
+  EXPECT_DOUBLE_EQ(e.alignment[1].ray_in_quad, 1.0);  // fat -> muscle
+  EXPECT_LT(e.alignment[0].max_lateral_m, 1e-6);
+  for (const auto& qq : e.quality) {
+    EXPECT_EQ(qq.flipped, 0);
+    EXPECT_EQ(qq.degenerate, 0);
+  }
+}
+
+TEST(RemeshLayers, MissingRingsAreFilledAlongTheAxis) {
+  const double L = 0.12;
+  // a bone that stops half way: rings beyond it take the last ring's shape
+  const auto r = remesh_layers({{"skin", test::cylinder(0.03, L, 128, 32)}, {"bone", test::cylinder(0.008, 0.5 * L, 64, 16)}},
+                               grid(20, 9));
+  EXPECT_EQ(r.stats[1].filled, 4 * 20);
+  for (int j = 5; j < 9; ++j)
+    for (int i = 0; i < 20; ++i) EXPECT_NEAR(radius_xy(r.layers[1], j * 20 + i), 0.008, 1e-4);
+}
+
+// ---- bad input ---------------------------------------------------------------
+
+TEST(RemeshErrors, OneLineMessages) {
+  const Surface skin = test::cylinder(0.03, 0.12, 64, 16);
+  auto msg = [](const std::vector<NamedSurface>& l) {
+    return error_of([&] { remesh_layers(l, grid(20, 5)); });
+  };
+  EXPECT_NE(msg({{"t.stl", test::torus(0.05, 0.01)}}).find("not tube-like"), std::string::npos);
+  EXPECT_NE(msg({{"two.stl", test::merge(skin, test::cylinder(0.01, 0.1, 16, 4, 0.2, 0))}}).find("2 components"),
+            std::string::npos);
+  EXPECT_NE(msg({{"skin", skin}, {"fat", test::cylinder(0.035, 0.12, 64, 16)}}).find("fat: not inside skin"),
+            std::string::npos);
+  EXPECT_NE(msg({{"skin", skin}, {"fat", test::cylinder(0.02, 0.14, 64, 16, 0, 0, -0.01)}}).find("not inside skin"),
+            std::string::npos);
+  EXPECT_NE(msg({{"skin", skin}, {"fat", test::cylinder(0.02, 0.1, 64, 16, 0.02, 0, 0.01)}}).find("not inside skin"),
+            std::string::npos);
+  EXPECT_NE(msg({{"skin", Surface{}}}).find("empty"), std::string::npos);
+  for (const std::string& m : {msg({{"t.stl", test::torus(0.05, 0.01)}}), msg({{"skin", Surface{}}})})
+    EXPECT_EQ(m.find('\n'), std::string::npos);
+}
+
+// ---- texture and exports -------------------------------------------------------
+
+TEST(RemeshTexture, SamplesTheStackAndExports) {
+  test::TempDir d("tex");
+  // 64 x 64 x 40 stack, 1 mm voxels, centred on the axis: red where x > 0,
+  // blue where x < 0, green rising with z
+  const int n = 64, nz = 40;
+  std::filesystem::create_directories(d / "stack/slices");
+  const std::array<double, 3> sp{1e-3, 1e-3, 1e-3}, org{-31.5e-3, -31.5e-3, 0};
+  for (int k = 0; k < nz; ++k) {
+    cv::Mat img(n, n, CV_8UC3);
+    for (int y = 0; y < n; ++y)
+      for (int x = 0; x < n; ++x) {
+        const double px = org[0] + x * sp[0];
+        img.at<cv::Vec3b>(y, x) = px > 0 ? cv::Vec3b(0, static_cast<uchar>(5 * k), 255) : cv::Vec3b(255, static_cast<uchar>(5 * k), 0);
+      }
+    char name[64];
+    std::snprintf(name, sizeof name, "/stack/slices/slice_%04d.png", k);
+    cv::imwrite(d.path.string() + name, img);
+  }
+  const Surface s = test::cylinder(0.02, 0.039, 128, 32);
+  const auto r = remesh_layers({{"skin", s}}, grid(24, 6));
+  const ColourStack st = open_colour_stack(d / "stack", sp, org);
+  EXPECT_EQ(st.files.size(), 40u);
+  const TextureImage t = bake_texture(s, r.sweep, RingSampling::arc_length, st, TextureOptions{}, "skin");
+  EXPECT_NEAR(t.width, 2 * kPi * 0.02 / 1e-3, 2);
+  EXPECT_NEAR(t.height, 39, 1);
+  EXPECT_EQ(t.outside, 0);
+  auto px = [&](int a, int b) { return &t.rgb[(static_cast<std::size_t>(b) * t.width + a) * 3]; };
+  const int b = t.height / 2;
+  EXPECT_EQ(px(0, b)[0], 255);                // u ~ 0: +x, red
+  EXPECT_EQ(px(t.width / 2, b)[2], 255);      // u ~ 0.5: -x, blue
+  EXPECT_LT(px(0, 2)[1], px(0, t.height - 3)[1]);  // green rises along the axis (v down the image)
+
+  const std::string out = d / "out";
+  std::filesystem::create_directories(out);
+  write_texture_png(out + "/skin_texture.png", t);
+  write_mtl(out + "/skin_quads.mtl", "skin", "skin_texture.png");
+  write_quad_obj(out + "/skin_quads.obj", r.layers[0], "skin_quads.mtl", "skin");
+  write_gltf(out + "/skin.gltf", r.layers[0], "skin_texture.png", "skin");
+  const std::string obj = test::read_file(out + "/skin_quads.obj");
+  int faces = 0, vts = 0;
+  std::istringstream lines(obj);
+  for (std::string line; std::getline(lines, line);) {
+    if (line.rfind("f ", 0) == 0) {
+      ++faces;
+      EXPECT_EQ(std::count(line.begin(), line.end(), ' '), 4);
+    }
+    vts += line.rfind("vt ", 0) == 0;
+  }
+  EXPECT_EQ(faces, 24 * 5);
+  EXPECT_EQ(vts, 25 * 6);
+  EXPECT_NE(obj.find("mtllib skin_quads.mtl"), std::string::npos);
+  EXPECT_EQ(cv::imread(out + "/skin_texture.png").cols, t.width);
+  // glTF: the texture is referenced and the first vertex has uv (0, 0) (top-left origin)
+  const auto g = nlohmann::json::parse(test::read_file(out + "/skin.gltf"));
+  EXPECT_EQ(g["images"][0]["uri"], "skin_texture.png");
+  const auto& prim = g["meshes"][0]["primitives"][0];
+  const auto& acc = g["accessors"][prim["attributes"]["TEXCOORD_0"].get<int>()];
+  EXPECT_EQ(acc["count"], 25 * 6);
+  const auto& view = g["bufferViews"][acc["bufferView"].get<int>()];
+  const std::string bin = test::read_file(out + "/" + g["buffers"][0]["uri"].get<std::string>());
+  const std::size_t off = view.value("byteOffset", 0) + acc.value("byteOffset", 0);
+  float uv[4];
+  std::memcpy(uv, bin.data() + off, sizeof uv);
+  EXPECT_FLOAT_EQ(uv[0], 0);
+  EXPECT_FLOAT_EQ(uv[1], 0);
+  EXPECT_NEAR(uv[2], 1.0 / 24, 1e-6);
+}
+TEST(RemeshDebug, Bent) {
+  const test::BentTube b;
+  const Surface s = b.mesh(256, 128);
+  const auto r = remesh_layers({{"skin", s}}, grid(40, 12));
+  std::cerr << "len " << r.sweep.length_m << " caps " << r.sweep.flat_cap[0] << r.sweep.flat_cap[1] << " axis " << r.sweep.axis_direction.transpose() << "\n";
+  for (int j = 0; j < 12; ++j) std::cerr << "s " << r.stations_m(j) << " c " << r.ring_centre.row(j) << " n " << r.ring_normal.row(j) << " v0 " << r.layers[0].vertices.row(j*40) << "\n";
+}

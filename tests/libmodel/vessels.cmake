@@ -1,0 +1,5 @@
+# vessels: library tests on analytic tubes and the phantom, CLI tests.
+if(TARGET orthosim_vessels AND TARGET orthosim_phantom)
+  orthosim_add_test(vessels_test SOURCES libmodel/vessels_test.cpp LIBS orthosim_vessels orthosim_phantom)
+endif()
+orthosim_add_bench(vessels_bench SOURCES bench/vessels_bench.cpp LIBS orthosim_vessels orthosim_phantom)

@@ -1,0 +1,341 @@
+// vessels: accuracy against analytic tubes and the phantom's true vessel
+// trees, tree rules, Bezier and tube-mesh invariants, bad input, the CLI.
+#include "libmodel/vessels/vessels.h"
+#include "libmodel/phantom/phantom.h"
+#include "tests/libmodel/vessels_shapes.h"
+#include "tests/test_util.h"
+
+#include <gtest/gtest.h>
+#include <tbb/global_control.h>
+
+#include <cmath>
+#include <cstdio>
+#include <filesystem>
+
+// temporary debug helper appended to test
+namespace orthosim {
+inline void dump_worst(const VesselTree& ex, const VesselTree& tr, int n = 8) {
+  std::vector<std::pair<double, int>> d;
+  for (Eigen::Index i = 0; i < ex.nodes.rows(); ++i) {
+    double best = 1e9, rt = 0;
+    for (Eigen::Index e = 0; e < tr.edges.rows(); ++e) {
+      Eigen::Vector3d a = tr.nodes.row(tr.edges(e, 0)), b = tr.nodes.row(tr.edges(e, 1)), p = ex.nodes.row(i);
+      double t = std::clamp((p - a).dot(b - a) / (b - a).squaredNorm(), 0.0, 1.0);
+      double dd = (p - a - t * (b - a)).norm();
+      if (dd < best) best = dd, rt = tr.radii(tr.edges(e, 0));
+    }
+    d.push_back({getenv("RADIUS") ? std::abs(ex.radii(i) - rt) / rt : best, (int)i});
+  }
+  std::sort(d.rbegin(), d.rend());
+  for (int k = 0; k < n && k < (int)d.size(); ++k) {
+    int i = d[k].second;
+    int br = -1;
+    for (Eigen::Index b = 0; b + 1 < ex.branch_offsets.size(); ++b)
+      for (int j = ex.branch_offsets(b); j < ex.branch_offsets(b + 1); ++j) if (ex.branch_nodes(j) == i) br = b;
+    std::printf("   worst %.3f mm at node %d (branch %d) (%.2f %.2f %.2f) mm r %.3f\n", 1e3 * d[k].first, i, br,
+                1e3 * ex.nodes(i, 0), 1e3 * ex.nodes(i, 1), 1e3 * ex.nodes(i, 2), 1e3 * ex.radii(i));
+  }
+}
+}
+namespace orthosim {
+namespace {
+
+using test::TubeSpec;
+constexpr double kPi = 3.14159265358979323846;
+
+// ---- shared checks --------------------------------------------------------------------
+
+void print(const std::string& name, const VesselResult& r, const CentrelineError& e, double vox) {
+  const VesselMetrics& m = r.metrics;
+  std::printf(
+      "[%s] branches %d trees %d bif %d trif %d | mean %.3f max %.3f vox (truth->ext mean %.3f max %.3f) | overlap "
+      "%.4f/%.4f | radius mean %.1f%% p95 %.1f%% max %.1f%% | bezier %d pieces dev %.4f mm (tol %.4f) | tube %lld q "
+      "%lld t, self-x %d, boundary mean %.3f p95 %.3f max %.3f mm | spurs %d loops %d contacts %d | %.0f ms\n",
+      name.c_str(), m.branches, m.trees, m.bifurcations, m.trifurcations, e.mean_m / vox, e.max_m / vox,
+      e.truth_mean_m / vox, e.truth_max_m / vox, e.overlap_extracted, e.overlap_truth, 100 * e.radius_mean_rel,
+      100 * e.radius_p95_rel, 100 * e.radius_max_rel, m.bezier_pieces, 1e3 * m.bezier_max_deviation_m,
+      1e3 * m.tolerance_m, static_cast<long long>(m.tube_quads), static_cast<long long>(m.tube_tris),
+      m.self_intersections, 1e3 * m.boundary_mean_m, 1e3 * m.boundary_p95_m, 1e3 * m.boundary_max_m, m.spurs_pruned,
+      m.loops_broken, m.contacts_cut,
+      1e3 * (m.distance_s + m.thinning_s + m.graph_s + m.centreline_s + m.fit_s + m.tube_s));
+}
+
+// The extracted centreline against the truth: distances in voxels, overlap
+// both ways, radius error.
+void expect_accuracy(const CentrelineError& e, double vox) {
+  EXPECT_LE(e.mean_m, 0.5 * vox);
+  EXPECT_LE(e.max_m, 2.0 * vox);
+  EXPECT_GE(e.overlap_extracted, 0.99);
+  EXPECT_GE(e.overlap_truth, 0.99);
+  EXPECT_LE(e.radius_mean_rel, 0.10);
+  EXPECT_LE(e.radius_p95_rel, 0.10);
+}
+
+// Same branch count and the same parent of every branch, up to the order of siblings.
+void expect_topology(const VesselTree& t, const std::vector<int>& parents) {
+  ASSERT_EQ(t.branch_parent.size(), static_cast<Eigen::Index>(parents.size()));
+  std::vector<int> a(t.branch_parent.data(), t.branch_parent.data() + t.branch_parent.size());
+  std::vector<int> b = parents;
+  std::sort(a.begin(), a.end());
+  std::sort(b.begin(), b.end());
+  EXPECT_EQ(a, b);
+  // parents come first and children start at their parent's end node
+  for (Eigen::Index i = 0; i < t.branch_parent.size(); ++i) {
+    const int p = t.branch_parent(i);
+    if (p < 0) continue;
+    EXPECT_LT(p, i);
+    EXPECT_EQ(t.branch_nodes(t.branch_offsets(i)), t.branch_nodes(t.branch_offsets(p + 1) - 1));
+  }
+}
+
+// Bezier: 3k+1 control points per branch, within the tolerance of the
+// centreline both ways, C1 in arc length at every join.
+void expect_bezier(const VesselTree& t, double tol) {
+  for (Eigen::Index b = 0; b + 1 < t.branch_offsets.size(); ++b) {
+    const int nc = t.bezier_offsets(b + 1) - t.bezier_offsets(b);
+    ASSERT_EQ((nc - 1) % 3, 0);
+    const int pieces = bezier_pieces(t, static_cast<int>(b));
+    ASSERT_GE(pieces, 1);
+    std::vector<Eigen::Vector3d> poly;
+    for (int k = t.branch_offsets(b); k < t.branch_offsets(b + 1); ++k) poly.push_back(t.nodes.row(t.branch_nodes(k)).transpose());
+    // curve -> centreline polyline
+    double worst = 0;
+    std::vector<Eigen::Vector3d> samples;
+    for (int p = 0; p < pieces; ++p)
+      for (int i = 0; i <= 40; ++i) samples.push_back(bezier_point(t, static_cast<int>(b), p, i / 40.0));
+    for (const auto& q : samples) {
+      double d = 1e300;
+      for (std::size_t i = 0; i + 1 < poly.size(); ++i) {
+        const Eigen::Vector3d a = poly[i], c = poly[i + 1], e = c - a;
+        const double s = std::clamp((q - a).dot(e) / e.squaredNorm(), 0.0, 1.0);
+        d = std::min(d, (q - (a + s * e)).norm());
+      }
+      worst = std::max(worst, d);
+    }
+    EXPECT_LE(worst, tol * 1.05 + 1e-9) << "branch " << b;
+    // centreline nodes -> curve
+    double worst2 = 0;
+    for (const auto& q : poly) {
+      double d = 1e300;
+      for (std::size_t i = 0; i + 1 < samples.size(); ++i) {
+        const Eigen::Vector3d a = samples[i], c = samples[i + 1], e = c - a;
+        const double s = e.squaredNorm() > 0 ? std::clamp((q - a).dot(e) / e.squaredNorm(), 0.0, 1.0) : 0.0;
+        d = std::min(d, (q - (a + s * e)).norm());
+      }
+      worst2 = std::max(worst2, d);
+    }
+    EXPECT_LE(worst2, tol * 1.05 + 1e-9) << "branch " << b;
+    // joins: the same tangent direction, speeds in the ratio of the pieces' lengths
+    for (int p = 0; p + 1 < pieces; ++p) {
+      const Eigen::Vector3d d0 = bezier_derivative(t, static_cast<int>(b), p, 1.0);
+      const Eigen::Vector3d d1 = bezier_derivative(t, static_cast<int>(b), p + 1, 0.0);
+      EXPECT_NEAR(d0.normalized().dot(d1.normalized()), 1.0, 1e-9);
+    }
+  }
+}
+
+void expect_tube(const VesselResult& r, int trees) {
+  const VesselTree& t = r.tree;
+  const MeshCheck c = check_mesh(t.tube_vertices, t.tube_quads, t.tube_tris);
+  EXPECT_TRUE(c.closed()) << c.boundary_edges << " boundary edges";
+  EXPECT_TRUE(c.manifold()) << c.nonmanifold_edges << " non-manifold edges, " << c.nonmanifold_vertices << " vertices";
+  EXPECT_TRUE(c.oriented()) << c.misoriented_edges;
+  EXPECT_EQ(c.degenerate_faces, 0);
+  EXPECT_EQ(c.components, trees);
+  for (int e : c.euler) EXPECT_EQ(e, 2);
+  EXPECT_GT(c.volume_m3, 0);
+  EXPECT_EQ(r.metrics.self_intersections, 0);
+  EXPECT_GT(t.tube_quads.rows(), 0);
+  EXPECT_GE(t.tube_quads.rows(), 10 * t.tube_tris.rows());  // quads preferred
+}
+
+struct Case {
+  Volume v;
+  std::vector<TubeSpec> tubes;
+  VesselTree truth;
+  double vox;
+};
+
+Case make_case(int nx, int ny, int nz, std::array<double, 3> h, std::vector<TubeSpec> tubes, bool clip = true) {
+  Case c;
+  c.v = test::empty_volume(nx, ny, nz, h, {0, 0, 0});
+  test::rasterise(c.v, tubes, 6);
+  c.vox = std::min({h[0], h[1], h[2]});
+  c.truth = test::truth_tree(tubes, 0.25 * c.vox, clip ? &c.v : nullptr);
+  c.tubes = std::move(tubes);
+  return c;
+}
+
+// ---- analytic cases ------------------------------------------------------------------------
+
+TEST(Vessels, StraightTubeCutByTheBorder) {
+  const double h = 0.5e-3;
+  // along z, slightly tilted, through both end faces of the volume
+  Case c = make_case(40, 40, 60, {h, h, h},
+                     {{test::segment({9.5e-3, 10e-3, -2e-3}, {10.5e-3, 9.5e-3, 32e-3}), test::constant(3e-3), -1}});
+  const VesselResult r = extract_vessels(c.v, "artery", {});
+  const CentrelineError e = compare_centrelines(r.tree, c.truth);
+  print("straight", r, e, c.vox);
+  expect_accuracy(e, c.vox);
+  expect_topology(r.tree, {-1});
+  expect_bezier(r.tree, r.metrics.tolerance_m);
+  expect_tube(r, 1);
+  // both ends are open (cut by the border) and reported
+  ASSERT_EQ(r.metrics.ends.size(), 2u);
+  for (const auto& end : r.metrics.ends) EXPECT_TRUE(end.open);
+  // a straight tube needs few pieces
+  EXPECT_LE(r.metrics.bezier_pieces, 4);
+}
+
+TEST(Vessels, Helix) {
+  const double h = 0.4e-3;
+  const double R = 6e-3, pitch = 16e-3, turns = 1.5, r = 1.6e-3;
+  const Eigen::Vector3d c0(12e-3, 12e-3, 4e-3);
+  auto centre = [=](double t) {
+    const double a = 2 * kPi * turns * t;
+    return Eigen::Vector3d(c0.x() + R * std::cos(a), c0.y() + R * std::sin(a), c0.z() + pitch * turns * t);
+  };
+  Case c = make_case(60, 60, 80, {h, h, h}, {{centre, test::constant(r), -1}});
+  const VesselResult res = extract_vessels(c.v, "artery", {});
+  const CentrelineError e = compare_centrelines(res.tree, c.truth);
+  print("helix", res, e, c.vox);
+  expect_accuracy(e, c.vox);
+  expect_topology(res.tree, {-1});
+  expect_bezier(res.tree, res.metrics.tolerance_m);
+  expect_tube(res, 1);
+  // closed ends inside the volume
+  for (const auto& end : res.metrics.ends) EXPECT_FALSE(end.open);
+  // curvature-adaptive: a bent vessel needs more pieces per length than a straight one
+  EXPECT_GE(res.metrics.bezier_pieces, 6);
+}
+
+TEST(Vessels, YBifurcation) {
+  const double h = 0.4e-3;
+  Case c = make_case(70, 40, 100, {h, h, h},
+                     test::y_tubes({14e-3, 8e-3, -1e-3}, 16e-3, 26e-3, 0.45, 2.2e-3, 1.8e-3));
+  const VesselResult r = extract_vessels(c.v, "artery", {});
+  const CentrelineError e = compare_centrelines(r.tree, c.truth);
+  print("Y", r, e, c.vox);
+  expect_accuracy(e, c.vox);
+  expect_topology(r.tree, {-1, 0, 0});
+  EXPECT_EQ(r.metrics.bifurcations, 1);
+  expect_bezier(r.tree, r.metrics.tolerance_m);
+  expect_tube(r, 1);
+  // the root is the wide end cut by the border (z = 0)
+  EXPECT_LT(r.tree.nodes(r.tree.branch_nodes(0), 2), 1e-3);
+}
+
+TEST(Vessels, Trifurcation) {
+  const double h = 0.4e-3;
+  const Eigen::Vector3d a(14e-3, 14e-3, -1e-3), b(14e-3, 14e-3, 14e-3);
+  std::vector<TubeSpec> tubes{{test::segment(a, b), test::constant(2.2e-3), -1}};
+  for (int i = 0; i < 3; ++i) {
+    const double phi = 2 * kPi * i / 3 + 0.3;
+    const Eigen::Vector3d e = b + Eigen::Vector3d(9e-3 * std::cos(phi), 9e-3 * std::sin(phi), 17e-3);
+    tubes.push_back({test::segment(b, e), [](double t) { return 2.2e-3 - 0.6e-3 * std::min(1.0, 3 * t); }, 0});
+  }
+  Case c = make_case(70, 70, 90, {h, h, h}, tubes);
+  const VesselResult r = extract_vessels(c.v, "artery", {});
+  const CentrelineError e = compare_centrelines(r.tree, c.truth);
+  print("trifurcation", r, e, c.vox);
+  dump_worst(r.tree, c.truth, 20);
+  expect_accuracy(e, c.vox);
+  expect_topology(r.tree, {-1, 0, 0, 0});
+  EXPECT_EQ(r.metrics.trifurcations, 1);
+  expect_bezier(r.tree, r.metrics.tolerance_m);
+  expect_tube(r, 1);
+  // refused clearly when only bifurcations are allowed
+  VesselOptions o;
+  o.max_children = 2;
+  try {
+    extract_vessels(c.v, "artery", o);
+    ADD_FAILURE() << "a trifurcation with max_children = 2 was accepted";
+  } catch (const Error& err) {
+    EXPECT_NE(std::string(err.what()).find("3 children"), std::string::npos) << err.what();
+  }
+}
+
+TEST(Vessels, TwoTouchingVessels) {
+  // two tubes bowing toward each other, overlapping by 0.2 mm at mid-height:
+  // two trees, the contact cut and reported
+  const double h = 0.4e-3, r = 2e-3, gap = r - 0.1e-3;  // axis to the mid-plane at mid-height
+  auto bow = [=](double s) {
+    return [=](double t) {
+      const double x = 10e-3 + s * (gap + (3.5e-3 - gap) * (1 - std::sin(kPi * t)));
+      return Eigen::Vector3d(x, 10e-3, -1e-3 + 34e-3 * t);
+    };
+  };
+  Case c = make_case(50, 50, 80, {h, h, h}, {{bow(-1), test::constant(r), -1}, {bow(1), test::constant(r), -1}});
+  const VesselResult res = extract_vessels(c.v, "artery", {});
+  const CentrelineError e = compare_centrelines(res.tree, c.truth);
+  print("touching", res, e, c.vox);
+  expect_accuracy(e, c.vox);
+  expect_topology(res.tree, {-1, -1});
+  EXPECT_EQ(res.metrics.trees, 2);
+  EXPECT_GE(res.metrics.contacts_cut + res.metrics.loops_broken, 1);
+  EXPECT_FALSE(res.metrics.cuts.empty());
+  expect_tube(res, 2);
+}
+
+TEST(Vessels, LoopIsBrokenAtItsThinnestEdge) {
+  // a Y whose children come back and overlap by 0.2 mm lower down, then part
+  // again: a skeleton cycle, broken at the contact (reported); the tree keeps
+  // the parent and its two children
+  const double h = 0.4e-3, r = 1.8e-3, meet = r - 0.1e-3;
+  const Eigen::Vector3d b(14e-3, 10e-3, 10e-3);
+  std::vector<TubeSpec> tubes{{test::segment({14e-3, 10e-3, -1e-3}, b), test::constant(2.2e-3), -1}};
+  for (int s : {-1, 1})
+    tubes.push_back({[=](double t) {
+                       // out to 5 mm, back to `meet` at t = 0.6, out again to 4 mm
+                       const double g = t <= 0.6 ? meet * t / 0.6 + 5e-3 * std::sin(kPi * t / 0.6)
+                                                 : meet + 4e-3 * std::pow((t - 0.6) / 0.4, 2);
+                       return Eigen::Vector3d(b.x() + s * g, b.y(), b.z() + 28e-3 * t);
+                     },
+                     [](double t) { return 2.2e-3 - 0.4e-3 * std::min(1.0, 4 * t); }, 0});
+  Case c = make_case(70, 50, 100, {h, h, h}, tubes);
+  const VesselResult res = extract_vessels(c.v, "artery", {});
+  const CentrelineError e = compare_centrelines(res.tree, c.truth);
+  print("loop", res, e, c.vox);
+  EXPECT_GE(res.metrics.loops_broken, 1);
+  EXPECT_FALSE(res.metrics.cuts.empty());
+  expect_topology(res.tree, {-1, 0, 0});
+  expect_tube(res, 1);
+}
+
+TEST(Vessels, ObliqueTubeAnisotropicVoxels) {
+  const std::array<double, 3> h{0.3e-3, 0.3e-3, 0.9e-3};
+  Case c = make_case(80, 70, 40, h,
+                     {{test::segment({2e-3, 3e-3, -1e-3}, {22e-3, 18e-3, 36e-3}), test::constant(2.0e-3), -1}});
+  const VesselResult r = extract_vessels(c.v, "artery", {});
+  const CentrelineError e = compare_centrelines(r.tree, c.truth);
+  print("oblique", r, e, c.vox);
+  dump_worst(r.tree, c.truth);
+  expect_accuracy(e, c.vox);
+  expect_topology(r.tree, {-1});
+  expect_bezier(r.tree, r.metrics.tolerance_m);
+  expect_tube(r, 1);
+}
+
+// ---- the phantom ---------------------------------------------------------------------------
+
+TEST(Vessels, PhantomTrees) {
+  PhantomOptions po;
+  po.nx = po.ny = 160, po.nz = 64;
+  po.spacing_m = {0.4e-3, 0.4e-3, 1.2e-3};
+  const Volume v = phantom_labels(po);
+  const auto truth = phantom_vessels(po);
+  for (const std::string tissue : {"artery", "vein"}) {
+    const VesselResult r = extract_vessels(v, tissue, {});
+    const CentrelineError e = compare_centrelines(r.tree, truth.at(tissue));
+    print("phantom " + tissue, r, e, 0.4e-3);
+    expect_accuracy(e, 0.4e-3);
+    const VesselTree& t = truth.at(tissue);
+    expect_topology(r.tree, std::vector<int>(t.branch_parent.data(), t.branch_parent.data() + t.branch_parent.size()));
+    expect_bezier(r.tree, r.metrics.tolerance_m);
+    expect_tube(r, 1);
+    for (const auto& end : r.metrics.ends) EXPECT_TRUE(end.open);
+  }
+}
+
+}  // namespace
+}  // namespace orthosim

@@ -1,0 +1,137 @@
+// Lazy loading: only what a scene names is read from the model file.
+#include "runtime/loader.h"
+#include "runtime/testing/lattice.h"
+#include "tests/test_util.h"
+
+#include <gtest/gtest.h>
+
+#include <algorithm>
+
+namespace orthosim::runtime {
+namespace {
+
+using testing::make_layered_block;
+using testing::write_model_file;
+
+bool read_any(const h5::ReadStats& st, const std::string& prefix) {
+  return std::any_of(st.paths_read.begin(), st.paths_read.end(),
+                     [&](const std::string& p) { return p.rfind(prefix, 0) == 0; });
+}
+
+struct LoaderTest : ::testing::Test {
+  orthosim::test::TempDir dir{"loader"};
+  std::string file = dir / "model.h5";
+  testing::LayeredBlock block = make_layered_block(6, 4, 4);
+  void SetUp() override { write_model_file(file, block, /*extras=*/true); }
+};
+
+TEST_F(LoaderTest, SceneWithoutVesselsNeverReadsThem) {
+  ModelReader r(file);
+  LoadRequest req;
+  req.node_sets = {"fixed", "skin"};
+  Model m = load_model(r, req);
+  const auto& st = r.h5().stats();
+  EXPECT_FALSE(read_any(st, "/vessels"));
+  EXPECT_FALSE(read_any(st, "/volume"));
+  EXPECT_FALSE(read_any(st, "/surfaces"));
+  EXPECT_FALSE(read_any(st, "/quads"));
+  EXPECT_FALSE(read_any(st, "/tuning"));
+  // 4 layers x (nodes, masses, 5 lin_* fields) + 2 node sets; nothing else
+  EXPECT_EQ(st.datasets_read, 4 * 7 + 2);
+  for (const auto& p : st.paths_read) {
+    EXPECT_TRUE(p.find("/k1") == std::string::npos && p.find("/springs") == std::string::npos &&
+                p.find("/quads") == std::string::npos && p.find("/tets") == std::string::npos)
+        << p << " should not be read";
+  }
+  EXPECT_EQ(m.n_nodes, 6 * 4 * 4);
+  EXPECT_EQ(m.n_anchors, 0);
+  EXPECT_TRUE(m.vessels.empty());
+}
+
+TEST_F(LoaderTest, VesselsAndSurfacesAreReadWhenNamed) {
+  ModelReader r(file);
+  LoadRequest req;
+  req.vessels = {"artery"};
+  req.surface = true;
+  Model m = load_model(r, req);
+  const auto& st = r.h5().stats();
+  EXPECT_TRUE(read_any(st, "/vessels/artery/nodes"));
+  EXPECT_FALSE(read_any(st, "/vessels/artery/tube_vertices")) << "only what the runtime uses";
+  EXPECT_FALSE(read_any(st, "/volume"));
+  ASSERT_EQ(m.vessels.size(), 1u);
+  EXPECT_EQ(m.vessels[0].radii.size(), 3u);
+  EXPECT_EQ(m.n_quads, 4 * 5 * 3);
+}
+
+TEST_F(LoaderTest, OneLayerAnchorsItsNeighbours) {
+  const std::int32_t per_sheet = 6 * 4;
+  {
+    ModelReader r(file);
+    LoadRequest req;
+    req.layers = {"dermis"};
+    Model m = load_model(r, req);
+    EXPECT_EQ(m.n_nodes - m.n_anchors, per_sheet);
+    EXPECT_EQ(m.n_anchors, per_sheet) << "the next sheet's nodes anchor the inter-layer springs";
+    for (std::int32_t i = m.n_nodes - m.n_anchors; i < m.n_nodes; ++i) EXPECT_EQ(m.inv_mass[i], 0);
+    const auto& st = r.h5().stats();
+    EXPECT_FALSE(read_any(st, "/layers/muscle/lin_k")) << "muscle springs do not reach the dermis";
+    EXPECT_TRUE(read_any(st, "/layers/hypodermis/nodes")) << "anchor positions";
+    EXPECT_FALSE(read_any(st, "/layers/hypodermis/masses"));
+  }
+  {
+    ModelReader r(file);
+    LoadRequest req;
+    req.layers = {"hypodermis"};
+    Model m = load_model(r, req);
+    EXPECT_EQ(m.n_anchors, 2 * per_sheet) << "dermis-owned springs reach down, own springs reach the muscle";
+    EXPECT_TRUE(read_any(r.h5().stats(), "/layers/dermis/lin_k"));
+  }
+  {  // uncoupled: exactly the layer's seven datasets and its own anchors
+    ModelReader r(file);
+    LoadRequest req;
+    req.layers = {"hypodermis"};
+    req.couple_unloaded = false;
+    Model m = load_model(r, req);
+    EXPECT_EQ(r.h5().stats().datasets_read, 7 + 1);  // + muscle nodes for the anchors
+    EXPECT_EQ(m.n_anchors, per_sheet);
+  }
+}
+
+TEST_F(LoaderTest, MissingNamesAreOneLineErrors) {
+  ModelReader r(file);
+  auto expect_error = [&](const LoadRequest& req, const std::string& what) {
+    try {
+      load_model(r, req);
+      FAIL() << "expected an error containing " << what;
+    } catch (const Error& e) {
+      EXPECT_NE(std::string(e.what()).find(what), std::string::npos) << e.what();
+      EXPECT_EQ(std::string(e.what()).find('\n'), std::string::npos);
+    }
+  };
+  LoadRequest a;
+  a.layers = {"epidermis"};
+  expect_error(a, "no layer 'epidermis' in the model (layers: bone, dermis, hypodermis, muscle)");
+  LoadRequest b;
+  b.node_sets = {"clamp"};
+  expect_error(b, "no node set 'clamp'");
+  LoadRequest c;
+  c.vessels = {"vein"};
+  expect_error(c, "no vessel tree 'vein'");
+}
+
+TEST_F(LoaderTest, InvalidSpringDataIsRejected) {
+  auto bad = block;
+  bad.layers[1].second.lin_k[0] = -5;
+  const std::string f2 = dir / "bad.h5";
+  write_model_file(f2, bad);
+  ModelReader r(f2);
+  try {
+    load_model(r, LoadRequest{});
+    FAIL() << "negative stiffness accepted";
+  } catch (const Error& e) {
+    EXPECT_NE(std::string(e.what()).find("stiffness"), std::string::npos) << e.what();
+  }
+}
+
+}  // namespace
+}  // namespace orthosim::runtime

@@ -1,0 +1,85 @@
+// `orthosim run`: a scene on a generated model, the report, and bad input.
+#include "runtime/testing/lattice.h"
+#include "tests/test_util.h"
+
+#include <gtest/gtest.h>
+#include <nlohmann/json.hpp>
+
+#include <filesystem>
+
+namespace orthosim {
+namespace {
+
+namespace fs = std::filesystem;
+using test::run_cli;
+
+struct RunCli : ::testing::Test {
+  test::TempDir dir{"runcli"};
+  std::string model = dir / "model.h5";
+  void SetUp() override { runtime::testing::write_model_file(model, runtime::testing::make_layered_block(39, 9, 4)); }
+  std::string scene(const std::string& json) {
+    const std::string p = dir / "scene.json";
+    test::write_file(p, json);
+    return p;
+  }
+};
+
+TEST_F(RunCli, PullsTheSkinAndReports) {
+  const auto s = scene(R"({
+    "model": "model.h5", "fixed": ["fixed"], "gravity": [0, -9.81, 0], "damping": {"mass": 5},
+    "integrator": "symplectic", "dt": 0.01, "duration": 0.2,
+    "tools": [{"name": "grasper", "type": "pull", "nodes": "skin", "center": [0.076, 0, 0.016], "radius": 0.006,
+               "path": [[0, 0, 0, 0], [0.2, 0, -0.01, 0]]}],
+    "output": {"dir": "series", "every": 5}
+  })");
+  const auto r = run_cli("run " + s + " --report " + (dir / "r.json") + " --threads 2 --quiet");
+  ASSERT_EQ(r.code, 0) << r.err;
+  const auto j = nlohmann::json::parse(test::read_file(dir / "r.json"));
+  const auto& m = j["metrics"];
+  EXPECT_EQ(m["steps"], 20);
+  EXPECT_GT(m["steps_per_second"].get<double>(), 0);
+  EXPECT_GT(m["simulated_seconds_per_wall_second"].get<double>(), 0);
+  EXPECT_GE(m["substeps"].get<long>(), 20);
+  EXPECT_EQ(m["stability"]["events"], 0);
+  EXPECT_EQ(m["stability"]["failed_steps"], 0);
+  EXPECT_EQ(m["nodes"], 39 * 9 * 4);
+  EXPECT_EQ(m["frames"], 5);
+  EXPECT_TRUE(fs::exists(dir / "series/tissue.pvd"));
+  EXPECT_TRUE(fs::exists(dir / "series/tissue_000004.vtu"));
+
+  // --steps, --no-output, implicit
+  const auto s2 = scene(R"({"model": "model.h5", "fixed": ["fixed"], "integrator": "implicit", "dt": 0.0333})");
+  const auto r2 = run_cli("run " + s2 + " --steps 7 --no-output --report " + (dir / "r2.json") + " --quiet");
+  ASSERT_EQ(r2.code, 0) << r2.err;
+  const auto j2 = nlohmann::json::parse(test::read_file(dir / "r2.json"));
+  EXPECT_EQ(j2["metrics"]["steps"], 7);
+  EXPECT_GT(j2["metrics"]["cg"]["iterations"].get<long>(), 0);
+}
+
+TEST_F(RunCli, BadScenesExitTwoWithOneLine) {
+  const std::vector<std::pair<std::string, std::string>> cases{
+      {R"({"model": "missing.h5"})", "does not exist"},
+      {R"({"model": "model.h5", "layers": ["skin"]})", "no layer 'skin'"},
+      {R"({"model": "model.h5", "fixed": ["bone_surface"]})", "no node set 'bone_surface'"},
+      {R"({"model": "model.h5", "tools": [{"type": "pull", "center": [1, 1, 1], "radius": 0.001}]})", "takes no node"},
+      {R"({"model": "model.h5", "dt": 0})", "dt must be"},
+      {R"({"model": "model.h5", "duration": "long"})", "duration must be a number"},
+  };
+  for (const auto& [json, expect] : cases) {
+    const auto s = scene(json);
+    const auto r = run_cli("run " + s + " --out " + (dir / "never"));
+    EXPECT_EQ(r.code, 2) << json << " -> " << r.err;
+    EXPECT_EQ(test::count_lines(r.err), 1) << r.err;
+    EXPECT_NE(r.err.find("orthosim run: error: "), std::string::npos) << r.err;
+    EXPECT_NE(r.err.find(expect), std::string::npos) << r.err;
+    EXPECT_FALSE(fs::exists(dir / "never"));
+  }
+  const auto r = run_cli("run " + (dir / "nothing.json"));
+  EXPECT_EQ(r.code, 2);
+  EXPECT_NE(r.err.find("scene file not found"), std::string::npos) << r.err;
+  const auto ok = scene(R"({"model": "model.h5"})");
+  EXPECT_EQ(run_cli("run " + ok + " --steps -3").code, 2);
+}
+
+}  // namespace
+}  // namespace orthosim

@@ -1,0 +1,298 @@
+// Scenes: parsing and validation, the simulate/fetch_results API, tools and
+// ParaView output.
+#include "runtime/scene.h"
+#include "runtime/testing/lattice.h"
+#include "tests/runtime/runtime_test_util.h"
+#include "tests/test_util.h"
+
+#include <gtest/gtest.h>
+
+#include <filesystem>
+#include <cstring>
+
+namespace orthosim::runtime {
+namespace {
+
+namespace fs = std::filesystem;
+using testing::make_layered_block;
+
+struct SceneTest : ::testing::Test {
+  orthosim::test::TempDir dir{"scene"};
+  std::string model = dir / "model.h5";
+  testing::LayeredBlock block = make_layered_block(10, 5, 4);
+  void SetUp() override { testing::write_model_file(model, block); }
+
+  std::string scene_file(const std::string& json) {
+    const std::string p = dir / "scene.json";
+    orthosim::test::write_file(p, json);
+    return p;
+  }
+  // the skin node in the middle of the block, at rest
+  std::array<Real, 3> skin_point(int i = 5, int j = 2) const { return {i * 4e-3, 0.0, j * 4e-3}; }
+};
+
+std::string error_of(const std::function<void()>& f) {
+  try {
+    f();
+  } catch (const Error& e) {
+    return e.what();
+  }
+  return "";
+}
+
+TEST_F(SceneTest, ParsesAFullScene) {
+  const auto p = scene_file(R"({
+    "description": "pull the skin with the bone fixed",
+    "model": "model.h5", "layers": ["dermis", "hypodermis", "muscle", "bone"], "fixed": ["fixed"],
+    "gravity": [0, -9.81, 0], "damping": {"mass": 2}, "integrator": "implicit", "dt": 0.01, "substeps": 2,
+    "duration": 0.5, "threads": 2,
+    "stability": {"safety": 0.8, "max_retries": 5, "energy_growth": 20},
+    "implicit": {"cg_tolerance": 1e-5, "cg_max_iterations": 50, "preconditioner": "jacobi"},
+    "tools": [{"name": "grasper", "type": "pull", "nodes": "skin", "center": [0.02, 0, 0.008], "radius": 0.005,
+               "path": [[0, 0, 0, 0], [0.5, 0, -0.01, 0]]},
+              {"name": "hook", "type": "hook", "nodes": "skin", "center": [0, 0, 0], "radius": 0.003, "start": 0.1},
+              {"name": "press", "type": "pressure", "center": [0.03, 0, 0.008], "radius": 0.004, "pressure": 100,
+               "direction": [0, 2, 0]}],
+    "output": {"dir": "out", "every": 5, "format": "ascii"}
+  })");
+  const SceneDef d = parse_scene_file(p);
+  EXPECT_EQ(d.model, (dir.path / "model.h5").string());
+  EXPECT_EQ(d.solver.integrator, Integrator::implicit_euler);
+  EXPECT_EQ(d.solver.substeps, 2);
+  EXPECT_EQ(d.solver.preconditioner, Preconditioner::jacobi);
+  EXPECT_DOUBLE_EQ(d.solver.mass_damping, 2);
+  ASSERT_EQ(d.tools.size(), 3u);
+  EXPECT_EQ(d.tools[2].direction[1], 1.0);
+  EXPECT_EQ(d.output.dir, (dir.path / "out").string());
+  EXPECT_FALSE(d.output.vtk.binary);
+  Scene s(d);
+  EXPECT_EQ(s.model().n_nodes, 10 * 5 * 4);
+  EXPECT_GT(s.tool_nodes(0).size(), 0u);
+}
+
+TEST_F(SceneTest, BadScenesAreOneLineErrorsBeforeAnyStep) {
+  struct Case {
+    std::string json, expect;
+  };
+  const std::vector<Case> cases{
+      {R"({"dt": 0.01})", "missing model"},
+      {R"({"model": "nope.h5"})", "does not exist"},
+      {R"({"model": "model.h5", "layers": ["epidermis"]})", "no layer 'epidermis'"},
+      {R"({"model": "model.h5", "fixed": ["clamp"]})", "no node set 'clamp'"},
+      {R"({"model": "model.h5", "tools": [{"type": "pull", "center": [1, 1, 1], "radius": 0.001}]})", "takes no node"},
+      {R"({"model": "model.h5", "tools": [{"type": "pull", "nodes": "gone", "center": [0, 0, 0], "radius": 0.01}]})",
+       "no node set 'gone'"},
+      {R"({"model": "model.h5", "dt": -0.01})", "dt must be a finite number in (0"},
+      {R"({"model": "model.h5", "dt": "fast"})", "dt must be a number"},
+      {R"({"model": "model.h5", "dt": 1e999})", ""},
+      {R"({"model": "model.h5", "substeps": 0})", "substeps must be in [1"},
+      {R"({"model": "model.h5", "gravity": [0, "down", 0]})", "gravity must be three finite numbers"},
+      {R"({"model": "model.h5", "integrator": "rk4"})", "integrator must be symplectic or implicit"},
+      {R"({"model": "model.h5", "dtt": 0.01})", "unknown key 'dtt'"},
+      {R"({"model": "model.h5", "fluid": {"particles": 5000}})", "fluid is not supported"},
+      {R"({"model": "model.h5", "tools": [{"type": "pull", "center": [0, 0, 0]}]})", "radius is required"},
+      {R"({"model": "model.h5", "tools": [{"type": "pressure", "center": [0, 0, 0], "radius": 0.01, "pressure": 5}]})",
+       "direction must be a non-zero"},
+      {R"({"model": "model.h5", "tools": [{"type": "pull", "center": [0, 0, 0], "radius": 0.01, "path": [[1, 0, 0, 0], [0.5, 0, 0, 0]]}]})",
+       "path times must be >= 0 and increasing"},
+      {R"({"model": "model.h5", "damping": {"mass": -1}})", "mass must be a finite number"},
+      {R"({"model": "model.h5", "output": {"every": 3}})", "missing dir"},
+      {R"({"model": "model.h5",)", "invalid JSON"},
+  };
+  for (const auto& c : cases) {
+    const auto p = scene_file(c.json);
+    const std::string e = error_of([&] { Scene s(parse_scene_file(p)); });
+    EXPECT_FALSE(e.empty()) << c.json;
+    EXPECT_NE(e.find(c.expect), std::string::npos) << c.json << " -> " << e;
+    EXPECT_EQ(e.find('\n'), std::string::npos) << e;
+    EXPECT_EQ(e.rfind(p, 0), 0u) << "the error names the scene file: " << e;
+  }
+  // a bad tool never creates the output directory
+  const auto p = scene_file(R"({"model": "model.h5", "output": {"dir": "never"},
+                                 "tools": [{"type": "pull", "center": [9, 9, 9], "radius": 0.001}]})");
+  EXPECT_FALSE(error_of([&] { Scene s(parse_scene_file(p)); }).empty());
+  EXPECT_FALSE(fs::exists(dir / "never"));
+}
+
+TEST_F(SceneTest, SimulateFetchResultsAndCallsBetweenSteps) {
+  SceneDef d;
+  d.model = model;
+  d.fixed = {"fixed"};
+  d.sets = {"skin"};
+  d.dt = 1.0 / 60;
+  Scene s(d);
+  const std::int32_t node = s.model().set("skin")[3];
+  s.add_force(node, {0, -0.01, 0});
+  s.simulate(d.dt);
+  EXPECT_TRUE(s.in_step());
+  EXPECT_FALSE(error_of([&] { s.add_force(node, {0, 0, 0}); }).empty()) << "refused inside a step";
+  EXPECT_FALSE(error_of([&] { s.simulate(d.dt); }).empty());
+  const StepInfo info = s.fetch_results();
+  EXPECT_GE(info.substeps, 1);
+  EXPECT_NEAR(s.time(), d.dt, 1e-15);
+  EXPECT_LT(s.positions()[3 * static_cast<std::size_t>(node) + 1], 0.0) << "pushed by the force and gravity";
+  // fix a node: it stays; release it: it moves
+  const std::int32_t other = s.model().set("skin")[7];
+  const std::vector<std::int32_t> one{other};
+  s.fix(one);
+  const Real y = s.positions()[3 * static_cast<std::size_t>(other) + 1];
+  for (int k = 0; k < 5; ++k) {
+    s.simulate(d.dt);
+    s.fetch_results();
+  }
+  EXPECT_EQ(s.positions()[3 * static_cast<std::size_t>(other) + 1], y);
+  s.release(one);
+  for (int k = 0; k < 5; ++k) {
+    s.simulate(d.dt);
+    s.fetch_results();
+  }
+  EXPECT_NE(s.positions()[3 * static_cast<std::size_t>(other) + 1], y);
+  EXPECT_FALSE(error_of([&] { s.simulate(-1); }).empty());
+  EXPECT_FALSE(error_of([&] { s.add_force(-3, {0, 0, 0}); }).empty());
+}
+
+TEST_F(SceneTest, PullToolDragsItsNodesAlongThePath) {
+  SceneDef d;
+  d.model = model;
+  d.fixed = {"fixed"};
+  d.dt = 0.01;
+  ToolDef t;
+  t.name = "grasper";
+  t.nodes = "skin";
+  t.center = skin_point();
+  t.has_center = true;
+  t.radius = 4.5e-3;
+  t.path.t = {0, 0.1};
+  t.path.p = {0, 0, 0, 0, -0.01, 0.002};
+  d.tools = {t};
+  Scene s(d);
+  const auto nodes = s.tool_nodes(0);
+  ASSERT_TRUE(s.model().node_sets.count("skin")) << "loaded for the tool";
+  ASSERT_EQ(nodes.size(), 5u) << "centre and its four neighbours at 4 mm";
+  for (int k = 0; k < 15; ++k) {
+    s.simulate(d.dt);
+    s.fetch_results();
+  }
+  for (auto i : nodes) {
+    const auto g = static_cast<std::size_t>(i);
+    EXPECT_NEAR(s.positions()[3 * g + 1] - s.model().rest_x[3 * g + 1], -0.01, 1e-12);
+    EXPECT_NEAR(s.positions()[3 * g + 2] - s.model().rest_x[3 * g + 2], 0.002, 1e-12);
+  }
+  // move_tool: straight to a new point over the next step
+  const Vec3 now = s.state().attachments[0].path.at(s.time());
+  s.move_tool(s.tool("grasper"), {now.x + 0.003, now.y, now.z});
+  s.simulate(d.dt);
+  s.fetch_results();
+  const auto g = static_cast<std::size_t>(nodes[0]);
+  EXPECT_NEAR(s.positions()[3 * g] - s.model().rest_x[3 * g], 0.003, 1e-12);
+  // the neighbours follow: the skin next to the grasp moved outward
+  const std::int32_t nb = s.model().set("skin")[2 * 10 + 7];
+  EXPECT_LT(s.positions()[3 * static_cast<std::size_t>(nb) + 1], -1e-4);
+  EXPECT_EQ(s.counters().failed, 0);
+}
+
+TEST_F(SceneTest, HookHoldsAndPressurePushes) {
+  SceneDef d;
+  d.model = model;
+  d.fixed = {"fixed"};
+  d.dt = 0.01;
+  d.solver.gravity = {0, 0, 0};
+  ToolDef hook;
+  hook.name = "hook";
+  hook.type = ToolType::hook;
+  hook.nodes = "skin";
+  hook.center = skin_point(2, 2);
+  hook.has_center = true;
+  hook.radius = 1e-3;
+  ToolDef press;
+  press.name = "press";
+  press.type = ToolType::pressure;
+  press.center = skin_point(6, 2);
+  press.has_center = true;
+  press.radius = 4.5e-3;
+  press.pressure = 2000;
+  press.direction = {0, 1, 0};
+  press.end = 0.2;
+  d.tools = {hook, press};
+  Scene s(d);
+  const auto hooked = s.tool_nodes(0)[0];
+  const auto pressed = s.tool_nodes(1)[0];
+  for (int k = 0; k < 10; ++k) {
+    s.simulate(d.dt);
+    s.fetch_results();
+  }
+  const auto h = static_cast<std::size_t>(hooked), p = static_cast<std::size_t>(pressed);
+  EXPECT_EQ(s.positions()[3 * h + 1], s.model().rest_x[3 * h + 1]) << "the hook holds";
+  EXPECT_GT(s.positions()[3 * p + 1] - s.model().rest_x[3 * p + 1], 1e-5) << "pressed inward (+y)";
+  EXPECT_EQ(s.state().pin[h], Pin::fixed);
+}
+
+TEST_F(SceneTest, WritesAParaViewSeries) {
+  for (bool binary : {true, false}) {
+    SceneDef d;
+    d.model = model;
+    d.fixed = {"fixed"};
+    d.dt = 0.01;
+    d.output.enabled = true;
+    d.output.dir = dir / (binary ? "bin" : "ascii");
+    d.output.every = 2;
+    d.output.vtk.binary = binary;
+    Scene s(d);
+    const auto r = run(s, 5);
+    EXPECT_EQ(r.frames, 1 + 2 + 1) << "initial, steps 2 and 4, and the last";
+    const std::string pvd = orthosim::test::read_file(d.output.dir + "/tissue.pvd");
+    EXPECT_EQ(std::count(pvd.begin(), pvd.end(), '\n') - 5, 4) << pvd;
+    const std::string vtu = orthosim::test::read_file(d.output.dir + "/tissue_000003.vtu");
+    const Model& m = s.model();
+    const long cells = m.n_quads + std::count(m.spring_tension.begin(), m.spring_tension.end(), 0);
+    EXPECT_NE(vtu.find("NumberOfPoints=\"" + std::to_string(m.n_nodes) + "\""), std::string::npos);
+    EXPECT_NE(vtu.find("NumberOfCells=\"" + std::to_string(cells) + "\""), std::string::npos);
+    if (binary) {
+      // appended block: 9 arrays, each an 8-byte length and its bytes
+      const auto start = vtu.find("<AppendedData encoding=\"raw\">\n_") + std::string("<AppendedData encoding=\"raw\">\n_").size();
+      std::size_t pos = start;
+      int arrays = 0;
+      while (arrays < 9) {
+        std::uint64_t n = 0;
+        std::memcpy(&n, vtu.data() + pos, 8);
+        pos += 8 + n;
+        ++arrays;
+      }
+      EXPECT_EQ(vtu.substr(pos, 16), "\n</AppendedData>");
+      // each appended array is declared once, with its offset
+      std::size_t declared = 0;
+      for (std::size_t at = vtu.find("format=\"appended\""); at < start; at = vtu.find("format=\"appended\"", at + 1)) ++declared;
+      EXPECT_EQ(declared, 9u);
+    } else {
+      EXPECT_EQ(vtu.find("AppendedData"), std::string::npos);
+      EXPECT_NE(vtu.find("format=\"ascii\""), std::string::npos);
+    }
+  }
+}
+
+}  // namespace
+}  // namespace orthosim::runtime
+
+namespace orthosim::runtime {
+namespace {
+
+// The sample scenes parse and run on a lattice model (the builder's model
+// replaces it in scripts/demo).
+TEST_F(SceneTest, SampleScenesRunOnALatticeModel) {
+  for (const char* name : {"pull_skin.json", "pull_skin_symplectic.json"}) {
+    SCOPED_TRACE(name);
+    SceneDef d = parse_scene_file(std::string(ORTHOSIM_SOURCE_DIR) + "/data-samples/scenes/" + name);
+    EXPECT_NE(d.model.find("out/demo/model.h5"), std::string::npos);
+    d.model = model;
+    if (d.output.enabled) d.output.dir = dir / "sample";
+    Scene s(d);
+    ASSERT_GE(s.tool_nodes(0).size(), 4u) << "center_in_box lands on the middle of the skin";
+    ASSERT_LE(s.tool_nodes(0).size(), 10u);
+    const auto r = run(s, 3);
+    EXPECT_EQ(r.steps, 3);
+    EXPECT_EQ(s.counters().failed, 0);
+  }
+}
+
+}  // namespace
+}  // namespace orthosim::runtime

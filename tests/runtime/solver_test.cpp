@@ -1,0 +1,450 @@
+// Accuracy, conservation and determinism of the mass-spring solver.
+#include "runtime/solver.h"
+#include "runtime/testing/lattice.h"
+#include "runtime/testing/newton.h"
+#include "tests/runtime/runtime_test_util.h"
+
+#include <Eigen/Core>
+#include <gtest/gtest.h>
+#include <tbb/task_arena.h>
+
+#include <cmath>
+#include <random>
+
+namespace orthosim::runtime {
+namespace {
+
+using test::all_finite;
+using test::make_model;
+using test::max_node_distance;
+using testing::make_layered_block;
+
+SolverOptions no_gravity(Integrator i) {
+  SolverOptions o;
+  o.integrator = i;
+  o.gravity = {0, 0, 0};
+  return o;
+}
+
+// ---- biphasic oscillator against its analytic solution -----------------------
+
+// A mass m on a biphasic spring (k1 below the turning extension xt, total
+// slope k2 above), released at rest from extension x0 > xt. Piecewise
+// harmonic: above xt, x = xc + (x0 - xc) cos(w2 t) about xc = (k2 - k1) xt / k2;
+// below, x = xt cos(w1 s) + (v1 / w1) sin(w1 s) from the crossing.
+struct Biphasic {
+  Real m, k1, k2, xt, x0;
+  Real w1() const { return std::sqrt(k1 / m); }
+  Real w2() const { return std::sqrt(k2 / m); }
+  Real xc() const { return (k2 - k1) * xt / k2; }
+  Real t1() const { return std::acos((xt - xc()) / (x0 - xc())) / w2(); }
+  Real v1() const { return -(x0 - xc()) * w2() * std::sin(w2() * t1()); }
+  Real amp1() const { return std::sqrt(xt * xt + (v1() / w1()) * (v1() / w1())); }
+  Real tau1() const { return (2 * M_PI - 2 * std::acos(xt / amp1())) / w1(); }
+  Real period() const { return 2 * t1() + tau1(); }
+  Real x(Real t) const {
+    t = std::fmod(t, period());
+    if (t < t1()) return xc() + (x0 - xc()) * std::cos(w2() * t);
+    if (t < t1() + tau1()) {
+      const Real s = t - t1();
+      return xt * std::cos(w1() * s) + (v1() / w1()) * std::sin(w1() * s);
+    }
+    return xc() + (x0 - xc()) * std::cos(w2() * (period() - t));
+  }
+};
+
+// max |x_sim - x_exact| over two periods
+Real oscillator_error(const Biphasic& b, Real L0, Integrator integ, Real dt) {
+  const Real Lt = L0 + b.xt;
+  Model m = make_model({0, 0, 0, L0 + b.x0, 0, 0}, {1.0, b.m},
+                       {{0, 1, L0, b.k1, 0, false}, {0, 1, Lt, b.k2 - b.k1, 0, true}});
+  State s = make_state(m);
+  fix_nodes(m, s, std::vector<std::int32_t>{0});
+  SolverOptions o = no_gravity(integ);
+  o.substeps = 1;
+  o.cg_tolerance = 1e-12;
+  const long n = std::lround(2 * b.period() / dt);
+  Real err = 0;
+  for (long k = 1; k <= n; ++k) {
+    step(m, s, dt, o);
+    err = std::max(err, std::abs((s.x[3] - L0) - b.x(s.time)));
+  }
+  EXPECT_EQ(s.counters.events, 0);
+  return err;
+}
+
+TEST(Solver, BiphasicOscillatorMatchesAnalyticSolution) {
+  const Biphasic b{0.01, 100, 1000, 0.01, 0.015};
+  const Real L0 = 0.1;
+  ASSERT_GT(b.x0, b.xt);
+  ASSERT_LT(b.amp1(), L0);  // never compressed through zero length
+  const Real amp = b.amp1();
+  const Real e5 = oscillator_error(b, L0, Integrator::symplectic_euler, 1e-5);
+  const Real e4 = oscillator_error(b, L0, Integrator::symplectic_euler, 1e-4);
+  EXPECT_LT(e5, 2e-3 * amp) << "symplectic Euler, dt 1e-5";
+  EXPECT_GT(e4 / e5, 4) << "first-order convergence expected";
+  const Real i5 = oscillator_error(b, L0, Integrator::implicit_euler, 1e-5);
+  EXPECT_LT(i5, 2e-2 * amp) << "implicit Euler, dt 1e-5 (numerical damping)";
+}
+
+TEST(Solver, TensionOnlySpringIsSlackWhenShort) {
+  // only the tension-only spring: at rest shorter than its rest length, nothing moves
+  Model m = make_model({0, 0, 0, 0.05, 0, 0}, {1.0, 0.1}, {{0, 1, 0.1, 1000, 0, true}});
+  State s = make_state(m);
+  fix_nodes(m, s, std::vector<std::int32_t>{0});
+  step(m, s, 0.01, no_gravity(Integrator::symplectic_euler));
+  EXPECT_EQ(s.x[3], 0.05);
+  EXPECT_EQ(s.v[3], 0.0);
+}
+
+// ---- hanging block: static equilibrium against a direct Newton solve ------------
+
+TEST(Solver, HangingBlockEquilibriumMatchesNewton) {
+  const auto block = make_layered_block(8, 4, 4);
+  Model m = model_from_layers(block.layers, block.sets);
+  State s0 = make_state(m);
+  fix_nodes(m, s0, m.set("fixed"));
+
+  testing::NewtonOptions no;
+  no.gravity = {0, -9.81, 0};
+  const auto ref = testing::solve_static(m, s0, no);
+  ASSERT_TRUE(ref.converged) << "Newton residual " << ref.residual;
+  const Real sag = max_node_distance(ref.x, m.rest_x);
+  ASSERT_GT(sag, 1e-4) << "the block should sag visibly";
+
+  {  // implicit Euler, large steps, mass damping: converges to the equilibrium
+    State s = s0;
+    SolverOptions o;
+    o.integrator = Integrator::implicit_euler;
+    o.mass_damping = 20;
+    o.cg_tolerance = 1e-10;
+    o.cg_max_iterations = 2000;
+    for (int k = 0; k < 60; ++k) step(m, s, 1.0 / 30, o);
+    const Real err = max_node_distance(s.x, ref.x);
+    EXPECT_LT(err, 1e-3 * sag) << "implicit: error " << err << " m, sag " << sag << " m";
+    EXPECT_EQ(s.counters.events, 0);
+  }
+  {  // symplectic Euler with automatic substeps and mass damping
+    State s = s0;
+    SolverOptions o;
+    o.mass_damping = 80;
+    for (int k = 0; k < 30; ++k) step(m, s, 1.0 / 60, o);
+    const Real err = max_node_distance(s.x, ref.x);
+    EXPECT_LT(err, 1e-3 * sag) << "symplectic: error " << err << " m, sag " << sag << " m";
+    EXPECT_EQ(s.counters.events, 0);
+  }
+}
+
+// ---- short trajectory against a small-step RK4 reference ----------------------
+
+// independent reference: straightforward AoS forces, classic RK4
+struct Rk4 {
+  const Model& m;
+  const State& s0;
+  Eigen::Vector3d g;
+  void accel(const std::vector<Eigen::Vector3d>& x, const std::vector<Eigen::Vector3d>& v,
+             std::vector<Eigen::Vector3d>& a) const {
+    const std::size_t n = x.size();
+    std::vector<Eigen::Vector3d> f(n, Eigen::Vector3d::Zero());
+    for (std::int32_t q = 0; q < m.n_springs; ++q) {
+      const auto i = m.spring_a[q], j = m.spring_b[q];
+      const Eigen::Vector3d d = x[j] - x[i];
+      const double L = d.norm();
+      if (L == 0) continue;
+      const Eigen::Vector3d nrm = d / L;
+      if (m.spring_tension[q] && L < m.spring_rest[q]) continue;
+      const Eigen::Vector3d fa = (m.spring_k[q] * (L - m.spring_rest[q]) + m.spring_c[q] * (v[j] - v[i]).dot(nrm)) * nrm;
+      f[i] += fa;
+      f[j] -= fa;
+    }
+    a.assign(n, Eigen::Vector3d::Zero());
+    for (std::size_t i = 0; i < n; ++i)
+      if (s0.inv_mass[i] > 0) a[i] = f[i] * s0.inv_mass[i] + g;
+  }
+  std::vector<Real> run(Real T, Real h) const {
+    const std::size_t n = static_cast<std::size_t>(m.n_nodes);
+    std::vector<Eigen::Vector3d> x(n), v(n), k1x, k1v, k2x, k2v, k3x, k3v, k4x, k4v, xt(n), vt(n);
+    for (std::size_t i = 0; i < n; ++i) {
+      x[i] = Eigen::Vector3d(s0.x[3 * i], s0.x[3 * i + 1], s0.x[3 * i + 2]);
+      v[i] = Eigen::Vector3d(s0.v[3 * i], s0.v[3 * i + 1], s0.v[3 * i + 2]);
+    }
+    const long steps = std::lround(T / h);
+    for (long k = 0; k < steps; ++k) {
+      k1x = v;
+      accel(x, v, k1v);
+      for (std::size_t i = 0; i < n; ++i) xt[i] = x[i] + 0.5 * h * k1x[i], vt[i] = v[i] + 0.5 * h * k1v[i];
+      k2x = vt;
+      accel(xt, vt, k2v);
+      for (std::size_t i = 0; i < n; ++i) xt[i] = x[i] + 0.5 * h * k2x[i], vt[i] = v[i] + 0.5 * h * k2v[i];
+      k3x = vt;
+      accel(xt, vt, k3v);
+      for (std::size_t i = 0; i < n; ++i) xt[i] = x[i] + h * k3x[i], vt[i] = v[i] + h * k3v[i];
+      k4x = vt;
+      accel(xt, vt, k4v);
+      for (std::size_t i = 0; i < n; ++i) {
+        x[i] += h / 6 * (k1x[i] + 2 * k2x[i] + 2 * k3x[i] + k4x[i]);
+        v[i] += h / 6 * (k1v[i] + 2 * k2v[i] + 2 * k3v[i] + k4v[i]);
+      }
+    }
+    std::vector<Real> out(3 * n);
+    for (std::size_t i = 0; i < n; ++i)
+      for (int k = 0; k < 3; ++k) out[3 * i + k] = x[i][k];
+    return out;
+  }
+};
+
+TEST(Solver, ShortTrajectoryConvergesToRk4) {
+  testing::LayeredBlockOptions bo;
+  bo.nu = 5, bo.nv = 3, bo.layers = 3;
+  bo.thickness = {3e-3, 4e-3};
+  bo.youngs = {50e3, 10e3};
+  bo.youngs2 = bo.youngs;
+  bo.turning_strain = {0, 0};
+  bo.density = {1000, 1000};
+  bo.names = {"a", "b", "c"};
+  const auto block = make_layered_block(bo);
+  Model m = model_from_layers(block.layers, block.sets);
+  State s0 = make_state(m);
+  fix_nodes(m, s0, m.set("fixed"));
+  // a lateral kick on the skin so the motion is not purely along gravity
+  for (auto i : m.set("skin")) s0.v[3 * static_cast<std::size_t>(i)] = 0.05;
+  const Real T = 0.01;
+  Rk4 rk{m, s0, Eigen::Vector3d(0, -9.81, 0)};
+  const auto ref = rk.run(T, 1e-6);
+  const Real motion = max_node_distance(ref, s0.x);
+  ASSERT_GT(motion, 1e-5);
+
+  for (Integrator integ : {Integrator::symplectic_euler, Integrator::implicit_euler}) {
+    // implicit Euler damps the stiff modes: it reaches the asymptotic regime at smaller steps
+    const std::vector<Real> ladder = integ == Integrator::symplectic_euler ? std::vector<Real>{4e-5, 2e-5, 1e-5}
+                                                                          : std::vector<Real>{1e-5, 5e-6, 2.5e-6};
+    std::vector<Real> err;
+    for (Real h : ladder) {
+      State s = s0;
+      SolverOptions o;
+      o.integrator = integ;
+      o.substeps = 1;
+      o.cg_tolerance = 1e-12;
+      o.cg_max_iterations = 1000;
+      const long n = std::lround(T / h);
+      for (long k = 0; k < n; ++k) step(m, s, h, o);
+      EXPECT_EQ(s.counters.events, 0);
+      err.push_back(max_node_distance(s.x, ref));
+    }
+    SCOPED_TRACE(to_string(integ));
+    EXPECT_LT(err[2], 2e-2 * motion) << "error at dt " << ladder[2] << ": " << err[2] << " m of " << motion << " m motion";
+    EXPECT_GT(err[0] / err[1], 1.6) << "first order: halving dt halves the error";
+    EXPECT_GT(err[1] / err[2], 1.6);
+    EXPECT_LT(err[1] / err[2], 2.6);
+  }
+}
+
+// ---- conservation -------------------------------------------------------------
+
+Model random_free_network(int n, int n_springs, std::uint32_t seed) {
+  std::mt19937 rng(seed);
+  std::uniform_real_distribution<Real> u(-0.05, 0.05), km(50, 500), mm(0.01, 0.1), cm(0, 0.05);
+  std::vector<Real> x(3 * static_cast<std::size_t>(n)), mass(static_cast<std::size_t>(n));
+  for (auto& v : x) v = u(rng);
+  for (auto& v : mass) v = mm(rng);
+  std::vector<test::SpringSpec> sp;
+  std::uniform_int_distribution<int> pick(0, n - 1);
+  for (int q = 0; q < n_springs; ++q) {
+    int a = pick(rng), b = pick(rng);
+    if (a == b) b = (a + 1) % n;
+    const Real L = std::sqrt((x[3 * a] - x[3 * b]) * (x[3 * a] - x[3 * b]) + (x[3 * a + 1] - x[3 * b + 1]) * (x[3 * a + 1] - x[3 * b + 1]) +
+                             (x[3 * a + 2] - x[3 * b + 2]) * (x[3 * a + 2] - x[3 * b + 2]));
+    sp.push_back({a, b, L * (0.8 + 0.4 * (q % 5) / 4.0), km(rng), cm(rng), q % 7 == 0});
+  }
+  return make_model(x, mass, sp);
+}
+
+TEST(Solver, FreeSpringsConserveMomentum) {
+  Model m = random_free_network(30, 90, 7);
+  for (Integrator integ : {Integrator::symplectic_euler, Integrator::implicit_euler}) {
+    State s = make_state(m);
+    std::mt19937 rng(3);
+    std::uniform_real_distribution<Real> u(-0.5, 0.5);
+    for (auto& v : s.v) v = u(rng);
+    SolverOptions o = no_gravity(integ);
+    o.cg_tolerance = 1e-12;
+    o.cg_max_iterations = 1000;
+    const auto p0 = momentum(m, s);
+    Real scale = 0, lscale = 0;
+    for (std::int32_t i = 0; i < m.n_nodes; ++i) {
+      scale += m.mass[i] * norm(load3(s.v.data(), i));
+      lscale += m.mass[i] * norm(load3(s.v.data(), i)) * norm(load3(s.x.data(), i));
+    }
+    for (int k = 0; k < 200; ++k) step(m, s, 1e-3, o);
+    const auto p1 = momentum(m, s);
+    SCOPED_TRACE(to_string(integ));
+    for (int c = 0; c < 3; ++c) EXPECT_NEAR(p1[c], p0[c], 1e-11 * scale) << "linear momentum " << c;
+    if (integ == Integrator::symplectic_euler) {  // central forces: exact for symplectic Euler
+      for (int c = 3; c < 6; ++c) EXPECT_NEAR(p1[c], p0[c], 1e-10 * lscale) << "angular momentum " << c - 3;
+    }
+    EXPECT_EQ(s.counters.events, 0);
+  }
+}
+
+TEST(Solver, SymplecticEnergyDriftIsBoundedOver1e5Steps) {
+  testing::LayeredBlockOptions bo;
+  bo.nu = 3, bo.nv = 3, bo.layers = 2;
+  bo.thickness = {4e-3};
+  bo.youngs = {20e3};
+  bo.youngs2 = bo.youngs;
+  bo.turning_strain = {0};
+  bo.density = {1000};
+  bo.names = {"a", "b"};
+  bo.damping_ratio = 0;
+  const auto block = make_layered_block(bo);
+  Model m = model_from_layers(block.layers, block.sets);
+  State s = make_state(m);
+  std::mt19937 rng(11);
+  std::uniform_real_distribution<Real> u(-2e-4, 2e-4);
+  for (auto& x : s.x) x += u(rng);  // a free, undamped, perturbed block
+  SolverOptions o = no_gravity(Integrator::symplectic_euler);
+  const Real h = 0.1 * symplectic_step_limit(m, s, o);
+  o.substeps = 1;
+  const Real e0 = energies(m, s, o).total();
+  ASSERT_GT(e0, 0);
+  const long n = 100000;
+  Real dev = 0, first = 0, last = 0;
+  int n_first = 0, n_last = 0;
+  for (long k = 1; k <= n; ++k) {
+    step(m, s, h, o);
+    if (k % 50 == 0) {
+      const Real e = energies(m, s, o).total();
+      dev = std::max(dev, std::abs(e - e0) / e0);
+      if (k <= n / 10) first += e, ++n_first;
+      if (k > n - n / 10) last += e, ++n_last;
+    }
+  }
+  const Real drift = std::abs(last / n_last - first / n_first) / e0;
+  EXPECT_LT(dev, 0.05) << "energy oscillation bounded";
+  EXPECT_LT(drift, 2e-3) << "no secular drift over 1e5 steps";
+  EXPECT_EQ(s.counters.events, 0);
+}
+
+// ---- determinism ------------------------------------------------------------------
+
+std::uint64_t run_hash(Integrator integ, int threads) {
+  auto bo = make_layered_block(20, 9, 4).options;
+  bo.youngs2 = bo.youngs;  // linear: fewer substeps, same code paths
+  bo.youngs2[0] = 3 * bo.youngs[0];
+  bo.turning_strain[0] = 0.01;
+  const auto block = testing::make_layered_block(bo);
+  Model m = model_from_layers(block.layers, block.sets);
+  State s = make_state(m);
+  fix_nodes(m, s, m.set("fixed"));
+  Attachment a;
+  const auto& skin = m.set("skin");
+  for (std::size_t j = 0; j < skin.size(); j += 7) {
+    a.nodes.push_back(skin[j]);
+    for (int k = 0; k < 3; ++k) a.offset.push_back(0);
+  }
+  for (std::size_t j = 0; j < a.nodes.size(); ++j)
+    for (int k = 0; k < 3; ++k) a.offset[3 * j + k] = m.rest_x[3 * static_cast<std::size_t>(a.nodes[j]) + k];
+  a.path.t = {0, 0.1};
+  a.path.p = {0, 0, 0, 0, -0.004, 0.001};
+  attach(m, s, a);
+  SolverOptions o;
+  o.integrator = integ;
+  o.mass_damping = 1;
+  tbb::task_arena arena(threads);
+  arena.execute([&] {
+    for (int k = 0; k < (integ == Integrator::implicit_euler ? 30 : 10); ++k) step(m, s, 1.0 / 120, o);
+  });
+  EXPECT_TRUE(all_finite(s));
+  return state_hash(s);
+}
+
+TEST(Solver, DeterministicAcrossRunsAndThreadCounts) {
+  for (Integrator integ : {Integrator::symplectic_euler, Integrator::implicit_euler}) {
+    SCOPED_TRACE(to_string(integ));
+    const auto h1 = run_hash(integ, 1);
+    EXPECT_EQ(run_hash(integ, 1), h1) << "same thread count, same hash";
+    EXPECT_EQ(run_hash(integ, 2), h1) << "two threads, same hash";
+  }
+}
+
+// ---- pins and attachments ----------------------------------------------------------
+
+TEST(Solver, FixedAndKinematicNodes) {
+  const auto block = make_layered_block(6, 3, 3);
+  Model m = model_from_layers(block.layers, block.sets);
+  State s = make_state(m);
+  fix_nodes(m, s, m.set("fixed"));
+  Attachment a;
+  a.nodes = {m.set("skin")[4]};
+  a.offset = {0, 0, 0};
+  a.path.t = {0, 0.1};
+  a.path.p = {0, 0, 0, 0.002, -0.003, 0};
+  for (int k = 0; k < 3; ++k) a.path.p[k] = m.rest_x[3 * static_cast<std::size_t>(a.nodes[0]) + k];
+  for (int k = 0; k < 3; ++k) a.path.p[3 + k] += m.rest_x[3 * static_cast<std::size_t>(a.nodes[0]) + k];
+  attach(m, s, a);
+  for (Integrator integ : {Integrator::symplectic_euler, Integrator::implicit_euler}) {
+    State t = s;
+    SolverOptions o;
+    o.integrator = integ;
+    for (int k = 0; k < 12; ++k) step(m, t, 0.01, o);
+    const auto g = static_cast<std::size_t>(a.nodes[0]);
+    EXPECT_NEAR(t.x[3 * g], a.path.p[3], 1e-12);
+    EXPECT_NEAR(t.x[3 * g + 1], a.path.p[4], 1e-12);
+    for (auto i : m.set("fixed"))
+      for (int k = 0; k < 3; ++k) EXPECT_EQ(t.x[3 * static_cast<std::size_t>(i) + k], m.rest_x[3 * static_cast<std::size_t>(i) + k]);
+    // released, the node moves again
+    detach(m, t, 0);
+    const Real before = t.x[3 * g + 1];
+    for (int k = 0; k < 5; ++k) step(m, t, 0.01, o);
+    EXPECT_NE(t.x[3 * g + 1], before);
+  }
+}
+
+// ---- stability: detection and redo --------------------------------------------------
+
+TEST(Solver, TooLargeFixedSubstepIsDetectedAndRedone) {
+  const auto block = make_layered_block(6, 3, 3);
+  Model m = model_from_layers(block.layers, block.sets);
+  State s = make_state(m);
+  fix_nodes(m, s, m.set("fixed"));
+  SolverOptions o;
+  const Real limit = symplectic_step_limit(m, s, o);
+  o.substeps = 1;  // told otherwise: no automatic substeps
+  const Real dt = 64 * limit;
+  for (int k = 0; k < 20; ++k) {
+    const auto info = step(m, s, dt, o);
+    ASSERT_TRUE(all_finite(s)) << "step " << k;
+    EXPECT_FALSE(info.failed);
+  }
+  EXPECT_GT(s.counters.events, 0);
+  EXPECT_GT(s.counters.recovered, 0);
+  EXPECT_EQ(s.counters.failed, 0);
+
+  // without redos the step fails: the state is restored, at rest, finite
+  State t = make_state(m);
+  fix_nodes(m, t, m.set("fixed"));
+  o.max_retries = 0;
+  Real last_time = 0;
+  for (int k = 0; k < 30; ++k) {
+    step(m, t, dt, o);
+    ASSERT_TRUE(all_finite(t));
+    last_time = t.time;
+  }
+  EXPECT_GT(t.counters.failed, 0);
+  EXPECT_NEAR(last_time, 30 * dt, 1e-12);
+}
+
+TEST(Solver, AutomaticSubstepsFollowTheStabilityLimit) {
+  const auto block = make_layered_block(6, 3, 3);
+  Model m = model_from_layers(block.layers, block.sets);
+  State s = make_state(m);
+  fix_nodes(m, s, m.set("fixed"));
+  SolverOptions o;
+  const Real limit = symplectic_step_limit(m, s, o);
+  const auto info = step(m, s, 1.0 / 60, o);
+  EXPECT_EQ(info.substeps, static_cast<int>(std::ceil((1.0 / 60) / (o.safety * limit))));
+  EXPECT_EQ(info.retries, 0);
+}
+
+}  // namespace
+}  // namespace orthosim::runtime

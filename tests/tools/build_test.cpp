@@ -1,0 +1,102 @@
+// orthosim build on a model file with analytic /quads: the layers, node sets
+// and report it writes, and bad input (one line, exit 2, file untouched).
+#include "libmodel/format/model.h"
+#include "libmodel/provenance.h"
+#include "tests/libmodel/msm_fixtures.h"
+#include "tests/test_util.h"
+
+#include <gtest/gtest.h>
+#include <nlohmann/json.hpp>
+
+using namespace orthosim;
+
+namespace {
+
+std::string write_model(const test::TempDir& dir, const std::vector<std::pair<std::string, QuadSurface>>& s,
+                        const std::string& name = "m.h5") {
+  const std::string p = dir / name;
+  ModelWriter w(p, ModelWriter::Start::fresh);
+  for (const auto& [tissue, q] : s) w.write(tissue, q);
+  w.commit();
+  return p;
+}
+
+std::string write_table(const test::TempDir& dir, bool with_fat = true) {
+  const std::string p = dir / (with_fat ? "tissues.json" : "tissues_nofat.json");
+  test::write_file(p, test::msm_tissue_table(with_fat));
+  return p;
+}
+
+void expect_refused(const std::string& args, const std::string& model, const std::string& needle) {
+  const std::string before = hash_path(model);
+  auto r = test::run_cli(args);
+  EXPECT_EQ(r.code, 2) << r.err;
+  EXPECT_EQ(test::count_lines(r.err), 1) << r.err;
+  EXPECT_NE(r.err.find(needle), std::string::npos) << r.err;
+  EXPECT_EQ(r.err.rfind("orthosim build: error: ", 0), 0u) << r.err;
+  EXPECT_EQ(hash_path(model), before) << "the model file changed";
+}
+
+}  // namespace
+
+TEST(BuildCli, WritesLayersSetsAndReport) {
+  test::TempDir dir("build");
+  const std::string model = write_model(dir, test::cylinder_stack(39, 9));
+  const std::string tissues = write_table(dir);
+  auto r = test::run_cli("build --model " + model + " --tissues " + tissues +
+                         " --layers skin:tetra,fat:lattice,muscle:lattice --report " + (dir / "r.json"));
+  ASSERT_EQ(r.code, 0) << r.err;
+  ModelReader m(model);
+  EXPECT_EQ(m.names("/layers"), (std::vector<std::string>{"bone", "fat", "muscle", "sets", "skin"}));
+  const Layer skin = m.layer("skin");
+  EXPECT_EQ(skin.kind, "tetra");
+  EXPECT_EQ(skin.node_offset, 0);
+  EXPECT_EQ(skin.tets.rows(), 39 * 8 * 2 * 7);
+  EXPECT_EQ(m.layer("bone").kind, "rigid");
+  EXPECT_EQ(m.node_set("fixed").size(), 39 * 9);
+  EXPECT_EQ(m.node_set("skin").size(), 39 * 9);
+  EXPECT_TRUE(m.has("/layers/sets/layer_muscle"));
+  EXPECT_TRUE(m.has("/provenance/build"));
+  EXPECT_TRUE(m.has("/quads/skin"));  // the input is still there
+  auto rep = nlohmann::json::parse(test::read_file(dir / "r.json"));
+  EXPECT_EQ(rep["metrics"]["components"], 1);
+  EXPECT_EQ(rep["metrics"]["projection_fallbacks"], 0);
+  EXPECT_EQ(rep["metrics"]["layers"].size(), 4u);
+  EXPECT_LT(rep["metrics"]["max_mass_error"].get<double>(), 1e-9);
+  // default stack from the tissue table gives the same layers; a rebuild replaces /layers
+  r = test::run_cli("build --model " + model + " --tissues " + tissues + " --quiet");
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_EQ(ModelReader(model).layer("skin").springs, skin.springs);
+  // inspect summarises the layers
+  r = test::run_cli("inspect " + model);
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_NE(r.out.find("/layers/skin"), std::string::npos) << r.out;
+  EXPECT_NE(r.out.find("kind=\"tetra\""), std::string::npos) << r.out;
+}
+
+TEST(BuildCli, BadInputOneLineExit2NoOutput) {
+  test::TempDir dir("build-bad");
+  const auto good = test::cylinder_stack(16, 5);
+  const std::string tissues = write_table(dir), nofat = write_table(dir, false);
+  const std::string model = write_model(dir, good);
+  expect_refused("build --model " + model + " --tissues " + nofat, model, "missing from the tissue table");
+  expect_refused("build --model " + model + " --tissues " + tissues + " --layers fat:lattice,skin:tetra", model,
+                 "out of order");
+  expect_refused("build --model " + model + " --tissues " + tissues + " --layers skin:cube", model, "tetra or lattice");
+  auto swapped = good;
+  std::swap(swapped[0].second, swapped[1].second);
+  const std::string m2 = write_model(dir, swapped, "swapped.h5");
+  expect_refused("build --model " + m2 + " --tissues " + tissues, m2, "out of order or intersecting");
+  auto mismatch = good;
+  mismatch[2].second = test::cylinder(16, 6, 0.12, 0.022);
+  const std::string m3 = write_model(dir, mismatch, "mismatch.h5");
+  expect_refused("build --model " + m3 + " --tissues " + tissues, m3, "grids do not match");
+  auto thin = good;
+  thin[1].second = test::cylinder(16, 5, 0.12, 0.030 - 1e-6);
+  const std::string m4 = write_model(dir, thin, "thin.h5");
+  expect_refused("build --model " + m4 + " --tissues " + tissues, m4, "thinner than");
+  // a model that already has layers keeps them when a rebuild fails
+  ASSERT_EQ(test::run_cli("build --model " + model + " --tissues " + tissues + " --quiet").code, 0);
+  expect_refused("build --model " + model + " --tissues " + nofat, model, "missing from the tissue table");
+  EXPECT_TRUE(ModelReader(model).has("/layers/skin"));
+}

@@ -1,0 +1,275 @@
+// orthosim remesh --surface skin.stl [--inner fat.stl,muscle.stl,bone.stl]
+//   --grid 39x9 --out DIR [--model model.h5] [--stack DIR --texture]
+// Re-parameterises the tissue surfaces into corresponding nu x nv quad grids
+// (docs/remesh.md), writes DIR/<tissue>_quads.obj for every layer, with
+// --texture the skin's texture (OBJ + MTL + PNG, glTF), with --model the
+// grids into /quads/<tissue>.
+#include "libmodel/provenance.h"
+#include "libmodel/remesh/remesh.h"
+#include "libmodel/remesh/texture.h"
+#include "tools/common.h"
+
+#include <filesystem>
+#include <iomanip>
+#include <iostream>
+#include <optional>
+#include <sstream>
+
+namespace orthosim::cli {
+
+namespace {
+
+using nlohmann::json;
+
+std::vector<std::string> split_commas(const std::string& text) {
+  std::vector<std::string> out;
+  std::stringstream s(text);
+  std::string part;
+  while (std::getline(s, part, ','))
+    if (!part.empty()) out.push_back(part);
+  return out;
+}
+
+json quality_json(const QuadQuality& q) {
+  return {{"min_angle_deg", q.min_angle_deg}, {"max_angle_deg", q.max_angle_deg}, {"max_aspect", q.max_aspect},
+          {"mean_aspect", q.mean_aspect},     {"min_edge_m", q.min_edge_m},       {"max_edge_m", q.max_edge_m},
+          {"mean_edge_m", q.mean_edge_m},     {"max_warp_deg", q.max_warp_deg},   {"flipped", q.flipped},
+          {"degenerate", q.degenerate}};
+}
+
+json distance_json(const SurfaceDistance& d) {
+  return {{"hausdorff_m", d.hausdorff_m},
+          {"mean_m", d.mean_m},
+          {"quad_to_input_max_m", d.quad_to_input_max_m},
+          {"quad_to_input_mean_m", d.quad_to_input_mean_m},
+          {"input_to_quad_max_m", d.input_to_quad_max_m},
+          {"input_to_quad_mean_m", d.input_to_quad_mean_m},
+          {"compared_input_area_m2", d.compared_input_area_m2}};
+}
+
+}  // namespace
+
+void add_remesh_command(CLI::App& app) {
+  auto* sub = app.add_subcommand(
+      "remesh", "re-parameterise tissue surfaces (STL) into corresponding nu x nv quad grids, optionally textured");
+  struct Args {
+    std::string surface, inner, names, grid = "39x9", out, model, stack, spacing, origin, around = "arc";
+    bool texture = false, uniform = false;
+    double texel_mm = 0, depth_mm = -1;
+    CommonOptions common;
+  };
+  static Args a;
+  sub->add_option("--surface", a.surface, "outer closed surface (STL, metres), one tube-like component")->required();
+  sub->add_option("--inner", a.inner, "inner surfaces, outer to inner, comma-separated (STL); may have several components");
+  sub->add_option("--names", a.names, "tissue names of the surfaces, comma-separated (default: the file stems)");
+  sub->add_option("--grid", a.grid, "NUxNV: points around each ring x rings along the axis, each 3..10000 x 2..10000")
+      ->capture_default_str();
+  sub->add_option("--out", a.out, "output directory: <tissue>_quads.obj, and with --texture the textured skin")
+      ->required();
+  sub->add_option("--model", a.model, "model file to write /quads/<tissue> into (replaces /quads)");
+  sub->add_option("--around", a.around, "ring sampling: arc (equal arc length) or angle (equal angles)")
+      ->capture_default_str();
+  sub->add_flag("--uniform", a.uniform, "rings at equal arc length (default: more where the surface bends along the axis)");
+  sub->add_option("--stack", a.stack, "colour slice directory (DIR/slices/*.png or DIR/*.png) for --texture");
+  sub->add_flag("--texture", a.texture, "bake the outer surface's texture from --stack: OBJ + MTL + PNG and glTF");
+  sub->add_option("--spacing", a.spacing, "voxel size of the stack in mm, X,Y,Z (default: the model's /volume)");
+  sub->add_option("--origin", a.origin, "centre of voxel (0,0,0) in mm, X,Y,Z (default: the model's /volume, else 0,0,0)");
+  sub->add_option("--texel", a.texel_mm, "texel size in mm (default: the in-plane voxel size)");
+  sub->add_option("--texture-depth", a.depth_mm, "sample the colour this far inside the surface, mm (default: one voxel)");
+  add_common_options(sub, a.common);
+
+  on_run(sub, "remesh", [] {
+    // ---- flags, before any work -----------------------------------------------
+    RemeshOptions o;
+    {
+      std::vector<int> g;
+      try {
+        g = parse_size(a.grid, 2, "--grid");
+      } catch (const UsageError&) {
+        throw UsageError("--grid: expected NUxNV with NU in 3..10000 and NV in 2..10000, got '" + a.grid + "'");
+      }
+      o.nu = g[0], o.nv = g[1];
+    }
+    o.adaptive = !a.uniform;
+    if (a.around == "arc")
+      o.around = RingSampling::arc_length;
+    else if (a.around == "angle")
+      o.around = RingSampling::angle;
+    else
+      throw UsageError("--around: expected arc or angle, got '" + a.around + "'");
+    try {
+      validate(o);
+    } catch (const Error& e) {
+      throw UsageError("--" + e.message());
+    }
+    std::vector<std::string> files{a.surface};
+    for (const auto& f : split_commas(a.inner)) files.push_back(f);
+    std::vector<std::string> names;
+    if (!a.names.empty()) {
+      names = split_commas(a.names);
+      if (names.size() != files.size())
+        throw UsageError("--names: " + std::to_string(files.size()) + " names needed, got " + std::to_string(names.size()));
+    } else {
+      for (const auto& f : files) names.push_back(std::filesystem::path(f).stem().string());
+    }
+    for (std::size_t i = 0; i < names.size(); ++i)
+      for (std::size_t j = 0; j < i; ++j)
+        if (names[i] == names[j]) throw UsageError("two surfaces are named '" + names[i] + "': use --names");
+    if (a.texture && a.stack.empty()) throw UsageError("--texture needs --stack DIR");
+    if (!(a.texel_mm >= 0)) throw UsageError("--texel must be >= 0");
+    check_output_dir(a.out);
+    if (!a.model.empty()) check_output_file(a.model);
+
+    Report report("remesh");
+    report.parameters() = {{"grid", {o.nu, o.nv}},
+                           {"around", a.around},
+                           {"adaptive", o.adaptive},
+                           {"max_spacing_ratio", o.max_spacing_ratio},
+                           {"axis_sections", o.axis_sections},
+                           {"axis_iterations", o.axis_iterations},
+                           {"end_area_fraction", o.end_area_fraction},
+                           {"cap_angle_deg", o.cap_angle_deg},
+                           {"names", names},
+                           {"texture", a.texture}};
+
+    // ---- read and remesh (validates everything) --------------------------------
+    std::vector<NamedSurface> in;
+    {
+      Phase p(report, "read");
+      for (std::size_t i = 0; i < files.size(); ++i) {
+        in.push_back({names[i], read_stl(files[i])});
+        report.input(files[i]);
+      }
+    }
+    RemeshResult r;
+    try {
+      r = remesh_layers(in, o);
+    } catch (const Error& e) {
+      // name the file rather than the tissue
+      for (std::size_t i = 0; i < names.size(); ++i)
+        if (e.file() == names[i]) throw Error(files[i], e.message());
+      throw;
+    }
+    report.phase("check", r.check_s);
+    report.phase("axis", r.axis_s);
+    report.phase("rings", r.rings_s);
+    RemeshEvaluation ev;
+    {
+      Phase p(report, "evaluate");
+      ev = evaluate_remesh(r, in);
+    }
+
+    // ---- texture -----------------------------------------------------------------
+    TextureImage tex;
+    if (a.texture) {
+      Phase p(report, "texture");
+      std::array<double, 3> spacing{0, 0, 0}, origin{0, 0, 0};
+      bool have_spacing = false;
+      if (!a.model.empty() && std::filesystem::exists(a.model)) {
+        ModelReader m(a.model);
+        if (m.has("/volume")) {
+          const Volume v = m.volume();
+          spacing = v.spacing_m, origin = v.origin_m;
+          have_spacing = true;
+        }
+      }
+      if (!a.spacing.empty()) {
+        const auto s = parse_list(a.spacing, 3, "--spacing", true);
+        for (int k = 0; k < 3; ++k) spacing[k] = s[k] * 1e-3;
+        have_spacing = true;
+      }
+      if (!a.origin.empty()) {
+        const auto s = parse_list(a.origin, 3, "--origin", false);
+        for (int k = 0; k < 3; ++k) origin[k] = s[k] * 1e-3;
+      }
+      if (!have_spacing) throw UsageError("--texture needs the voxel size: --spacing X,Y,Z (mm) or a --model with /volume");
+      const ColourStack st = open_colour_stack(a.stack, spacing, origin);
+      report.input(a.stack);
+      TextureOptions to;
+      to.texel_m = a.texel_mm * 1e-3;
+      to.depth_m = a.depth_mm < 0 ? -1 : a.depth_mm * 1e-3;
+      tex = bake_texture(in[0].surface, r.sweep, o.around, st, to, names[0]);
+      report.metrics()["texture"] = {{"width", tex.width}, {"height", tex.height}, {"outside", tex.outside}};
+    }
+
+    // ---- outputs: the directory, then the model ------------------------------------
+    {
+      Phase p(report, "write");
+      AtomicDir dir(a.out);
+      for (std::size_t l = 0; l < r.layers.size(); ++l) {
+        const std::string& n = names[l];
+        if (l == 0 && a.texture) {
+          write_texture_png(dir.temp_path(n + "_texture.png"), tex);
+          write_mtl(dir.temp_path(n + "_quads.mtl"), n, n + "_texture.png");
+          write_quad_obj(dir.temp_path(n + "_quads.obj"), r.layers[l], n + "_quads.mtl", n);
+          write_gltf(dir.temp_path(n + ".gltf"), r.layers[l], n + "_texture.png", n);
+        } else {
+          write_quad_obj(dir.temp_path(n + "_quads.obj"), r.layers[l]);
+        }
+      }
+      std::optional<ModelWriter> w;
+      if (!a.model.empty()) {
+        w.emplace(a.model, ModelWriter::Start::update);
+        w->remove("/quads");
+        for (std::size_t l = 0; l < r.layers.size(); ++l) w->write(names[l], r.layers[l]);
+        w->write("remesh", make_provenance(command_line(), report.json()["inputs"].dump(),
+                                           report.parameters().dump(), 0, r.check_s + r.axis_s + r.rings_s));
+      }
+      dir.commit();
+      if (w) w->commit();
+    }
+    for (const auto& n : names) report.output(a.out + "/" + n + "_quads.obj");
+    if (!a.model.empty()) report.output(a.model);
+
+    // ---- metrics and summary ---------------------------------------------------------
+    json& m = report.metrics();
+    m["sweep"] = {{"length_m", r.sweep.length_m},
+                  {"flat_cap", {r.sweep.flat_cap[0], r.sweep.flat_cap[1]}},
+                  {"uncovered_m2", {r.sweep.uncovered_m2[0], r.sweep.uncovered_m2[1]}},
+                  {"stations_m", std::vector<double>(r.stations_m.data(), r.stations_m.data() + r.stations_m.size())}};
+    m["layers"] = json::array();
+    for (std::size_t l = 0; l < r.layers.size(); ++l)
+      m["layers"].push_back({{"name", names[l]},
+                             {"components", r.stats[l].components},
+                             {"hit", r.stats[l].hit},
+                             {"bridged", r.stats[l].bridged},
+                             {"filled", r.stats[l].filled},
+                             {"quality", quality_json(ev.quality[l])},
+                             {"distance", distance_json(ev.distance[l])}});
+    m["alignment"] = json::array();
+    for (const auto& al : ev.alignment)
+      m["alignment"].push_back({{"outer", al.outer},
+                                {"inner", al.inner},
+                                {"max_ray_angle_deg", al.max_ray_angle_deg},
+                                {"max_lateral_m", al.max_lateral_m},
+                                {"max_lateral_rel", al.max_lateral_rel},
+                                {"ray_in_quad", al.ray_in_quad},
+                                {"max_ray_miss_m", al.max_ray_miss_m}});
+    m["worst_misalignment"] = {{"lateral_m", ev.worst_lateral_m},
+                               {"lateral_rel", ev.worst_lateral_rel},
+                               {"ray_miss_m", ev.worst_ray_miss_m}};
+    if (!a.common.quiet) {
+      std::cout << std::fixed << std::setprecision(3);
+      std::cout << "remesh: " << o.nu << "x" << o.nv << " grid, axis " << r.sweep.length_m * 1e3 << " mm, ends "
+                << (r.sweep.flat_cap[0] ? "flat cap" : "trimmed") << " / " << (r.sweep.flat_cap[1] ? "flat cap" : "trimmed")
+                << ", " << (r.check_s + r.axis_s + r.rings_s) * 1e3 << " ms\n";
+      for (std::size_t l = 0; l < r.layers.size(); ++l) {
+        const auto& q = ev.quality[l];
+        const auto& d = ev.distance[l];
+        std::cout << "  " << names[l] << ": hausdorff " << d.hausdorff_m * 1e3 << " mm, mean " << d.mean_m * 1e3
+                  << " mm, angles " << std::setprecision(1) << q.min_angle_deg << ".." << q.max_angle_deg
+                  << " deg, aspect <= " << q.max_aspect << ", flipped " << q.flipped << ", degenerate "
+                  << q.degenerate << std::setprecision(3);
+        if (l > 0) std::cout << ", bridged " << r.stats[l].bridged << ", filled " << r.stats[l].filled;
+        std::cout << "\n";
+      }
+      for (const auto& al : ev.alignment)
+        std::cout << "  " << al.outer << " -> " << al.inner << ": lateral offset <= " << al.max_lateral_m * 1e3
+                  << " mm (" << al.max_lateral_rel << " of a quad), normal rays in quad (i,j) "
+                  << std::setprecision(1) << 100 * al.ray_in_quad << " %" << std::setprecision(3) << "\n";
+    }
+    report.write(a.common.report);
+  });
+}
+
+}  // namespace orthosim::cli

@@ -1,0 +1,182 @@
+// orthosim segment --stack DIR --tissues T.json --spacing X,Y,Z --out labels.h5:
+// classifies a colour slice stack into the tissue table's labels
+// (libmodel/segment/segment.h, docs/segment-surface.md).
+#include "libmodel/segment/segment.h"
+#include "tools/common.h"
+
+#include <sys/resource.h>
+#include <tbb/global_control.h>
+
+#include <iomanip>
+#include <iostream>
+#include <memory>
+#include <sstream>
+
+namespace orthosim::cli {
+
+void add_segment_command(CLI::App& app) {
+  auto* sub = app.add_subcommand("segment", "classify a colour slice stack into tissue labels (/volume)");
+  struct Args {
+    std::string stack, tissues, spacing, origin = "0,0,0", out, nrrd, truth, normalise = "plane", scratch_dir;
+    bool no_cleanup = false, no_order = false, no_fill_holes = false;
+    int speck_support = 2, calibration_slices = 9, refine_iterations = 8, slab = 8, threads = 0;
+    std::int64_t min_island = 64, min_vessel = 4;
+    double refine_max_shift = 30, lightness_weight = 1, min_body_fraction = 0.1;
+    CommonOptions common;
+  };
+  static Args a;
+  sub->add_option("--stack", a.stack, "folder of colour slices (png, jpg, tif, bmp), natural name order")
+      ->required();
+  sub->add_option("--tissues", a.tissues, "tissue table (tissues.json) with colour prototypes")->required();
+  sub->add_option("--spacing", a.spacing, "voxel size in mm along x (columns), y (rows), z (slices)")->required();
+  sub->add_option("--origin", a.origin, "position of voxel (0,0,0) in mm")->capture_default_str();
+  sub->add_option("--out", a.out, "output model file (writes /volume)")->required();
+  sub->add_option("--nrrd", a.nrrd, "also write the labels as NRRD (3D Slicer)");
+  sub->add_option("--truth", a.truth, "model file with a true /volume: per-tissue Dice in the report");
+  sub->add_option("--normalise", a.normalise, "background normalisation: none, gain, plane")->capture_default_str();
+  sub->add_flag("--no-cleanup", a.no_cleanup, "no clean-up at all (order, rank filter, components)");
+  sub->add_flag("--no-order", a.no_order, "do not enforce the anatomical order of the table's 'inside'");
+  sub->add_flag("--no-fill-holes", a.no_fill_holes, "keep background enclosed by the body");
+  sub->add_option("--speck-support", a.speck_support, "like neighbours (of 26) a voxel needs to keep its label")
+      ->capture_default_str();
+  sub->add_option("--min-island", a.min_island, "smallest 3-D island of a bulk tissue kept, voxels")
+      ->capture_default_str();
+  sub->add_option("--min-vessel", a.min_vessel, "smallest 3-D island of a vessel tissue kept, voxels")
+      ->capture_default_str();
+  sub->add_option("--min-body-fraction", a.min_body_fraction,
+                  "keep body components of at least this fraction of the largest")
+      ->capture_default_str();
+  sub->add_option("--calibration-slices", a.calibration_slices, "slices used to calibrate the colours")
+      ->capture_default_str();
+  sub->add_option("--refine-iterations", a.refine_iterations, "k-means iterations (0: table colours as they are)")
+      ->capture_default_str();
+  sub->add_option("--refine-max-shift", a.refine_max_shift, "largest prototype move by k-means, CIE76 units")
+      ->capture_default_str();
+  sub->add_option("--lightness-weight", a.lightness_weight, "weight of lightness against chroma")
+      ->capture_default_str();
+  sub->add_option("--slab", a.slab, "slices classified together (memory ~ slab x slice size)")
+      ->capture_default_str();
+  sub->add_option("--scratch-dir", a.scratch_dir, "folder for the scratch file of large stacks (default: temp)");
+  sub->add_option("--threads", a.threads, "worker threads (0: all cores)")->capture_default_str();
+  add_common_options(sub, a.common);
+
+  on_run(sub, "segment", [] {
+    SegmentOptions o;
+    const std::vector<double> s = parse_list(a.spacing, 3, "--spacing", true);
+    const std::vector<double> org = parse_list(a.origin, 3, "--origin", false);
+    for (int k = 0; k < 3; ++k) o.spacing_m[k] = s[k] * 1e-3, o.origin_m[k] = org[k] * 1e-3;
+    if (a.normalise == "none") o.normalise = SegmentOptions::Normalise::none;
+    else if (a.normalise == "gain") o.normalise = SegmentOptions::Normalise::gain;
+    else if (a.normalise == "plane") o.normalise = SegmentOptions::Normalise::plane;
+    else throw UsageError("--normalise: expected none, gain or plane, got '" + a.normalise + "'");
+    o.cleanup = !a.no_cleanup;
+    o.enforce_order = !a.no_order;
+    o.fill_holes = !a.no_fill_holes;
+    o.speck_support = a.speck_support;
+    o.min_island_voxels = a.min_island;
+    o.min_vessel_voxels = a.min_vessel;
+    o.min_body_fraction = a.min_body_fraction;
+    o.calibration_slices = a.calibration_slices;
+    o.refine_iterations = a.refine_iterations;
+    o.refine_max_shift = a.refine_max_shift;
+    o.lightness_weight = a.lightness_weight;
+    o.slab = a.slab;
+    o.scratch_dir = a.scratch_dir;
+    try {
+      validate(o);
+    } catch (const Error& e) {
+      throw UsageError(e.message());
+    }
+    if (a.threads < 0) throw UsageError("--threads: must be >= 0");
+    std::unique_ptr<tbb::global_control> threads;
+    if (a.threads > 0)
+      threads = std::make_unique<tbb::global_control>(tbb::global_control::max_allowed_parallelism, a.threads);
+
+    // inputs first: nothing is written unless all of them are good
+    const TissueTable table = load_tissue_table(a.tissues);
+    check_output_file(a.out);
+    if (!a.nrrd.empty()) check_output_file(a.nrrd);
+    if (!a.truth.empty()) ModelReader check_truth(a.truth);
+
+    Report report("segment");
+    report.input(a.stack);
+    report.input(a.tissues);
+    report.parameters() = nlohmann::json::parse(segment_parameters_json(o));
+    report.parameters()["threads"] = a.threads;
+
+    SegmentFiles f;
+    f.stack_dir = a.stack;
+    f.tissues_path = a.tissues;
+    f.out_h5 = a.out;
+    f.nrrd_path = a.nrrd;
+    f.command_line = command_line();
+    f.inputs_json = report.json()["inputs"].dump();
+    SegmentMetrics m;
+    {
+      Progress bar("segment", 1, a.common.quiet);
+      m = segment_stack(f, table, o, [&](long done, long total) {
+        (void)total;
+        bar.update(done);
+      });
+    }
+    report.phase("calibrate", m.calibrate_s);
+    report.phase("classify", m.classify_s);
+    report.phase("cleanup", m.cleanup_s);
+    report.phase("components", m.components_s);
+    report.phase("write", m.write_s);
+    report.output(a.out);
+    if (!a.nrrd.empty()) report.output(a.nrrd);
+    auto& j = report.metrics();
+    const double voxels = static_cast<double>(m.nx) * m.ny * m.nz;
+    j["size"] = {m.nx, m.ny, m.nz};
+    j["voxels"] = m.voxels;
+    j["read_cpu_s"] = m.read_s;
+    j["voxels_per_s"] = voxels / std::max(1e-9, m.calibrate_s + m.classify_s + m.cleanup_s + m.components_s +
+                                                     m.write_s);
+    nlohmann::json protos = nlohmann::json::array();
+    const auto names = table.label_names();
+    for (const auto& p : m.prototypes) {
+      const double d = std::sqrt((p.lab[0] - p.table_lab[0]) * (p.lab[0] - p.table_lab[0]) +
+                                 (p.lab[1] - p.table_lab[1]) * (p.lab[1] - p.table_lab[1]) +
+                                 (p.lab[2] - p.table_lab[2]) * (p.lab[2] - p.table_lab[2]));
+      protos.push_back({{"tissue", p.label < static_cast<int>(names.size()) ? names[p.label] : ""},
+                        {"table_lab", p.table_lab},
+                        {"lab", p.lab},
+                        {"shift", d},
+                        {"samples", p.samples}});
+    }
+    j["prototypes"] = protos;
+    j["gain_min"] = m.gain_min;
+    j["gain_max"] = m.gain_max;
+    j["normalise_fallbacks"] = m.normalise_fallbacks;
+    j["cleanup"] = {{"order_changed", m.order_changed},     {"speck_changed", m.speck_changed},
+                    {"holes_filled", m.holes_filled},       {"islands_absorbed", m.islands_absorbed}, {"misplaced_absorbed", m.misplaced_absorbed},
+                    {"detached_removed", m.detached_removed}, {"components", m.components},
+                    {"body_components", m.body_components}};
+    j["scratch_bytes"] = m.scratch_bytes;
+    j["scratch_spilled"] = m.scratch_spilled;
+    rusage ru{};
+    getrusage(RUSAGE_SELF, &ru);
+    j["peak_rss_mib"] = static_cast<double>(ru.ru_maxrss) / 1024.0;
+    if (!a.truth.empty()) {
+      Phase p(report, "dice");
+      std::map<std::string, std::int64_t> tv;
+      j["dice"] = dice_per_tissue(a.out, a.truth, &tv);
+      j["truth_voxels"] = tv;
+    }
+    report.write(a.common.report);
+    if (!a.common.quiet) {
+      std::ostringstream line;
+      line << "segment: wrote " << a.out << ": " << m.nx << "x" << m.ny << "x" << m.nz << " voxels in " << std::fixed
+           << std::setprecision(2) << report.json()["wall_s"].get<double>() << " s (" << std::setprecision(1)
+           << j["voxels_per_s"].get<double>() / 1e6 << " M voxels/s)";
+      if (j.contains("dice")) {
+        line << ", Dice";
+        for (const auto& [k, v] : j["dice"].items()) line << " " << k << " " << std::setprecision(3) << v.get<double>();
+      }
+      std::cout << line.str() << "\n";
+    }
+  });
+}
+
+}  // namespace orthosim::cli
