@@ -8,6 +8,7 @@
 #include <Eigen/Sparse>
 
 #include <algorithm>
+#include <limits>
 #include <chrono>
 #include <cmath>
 #include <deque>
@@ -468,7 +469,6 @@ TubeSweep sweep_impl(const Surface& s, const Topology& topo, const Slicer& sl, c
   }
   if (pts.size() < 2) throw Error(name, "not tube-like: too few sections cut the surface");
   double radius[2] = {std::sqrt(areas.front() / kPi), std::sqrt(areas.back() / kPi)};
-  if (getenv("RDBG")) { fprintf(stderr, "caps %d %d area %g %g sec %g %g ta %g tb %g\n", caps[0].flat, caps[1].flat, caps[0].area, caps[1].area, areas.front(), areas.back(), ta, tb); }
 
   auto build_curve = [&](const std::vector<Vec3>& p) {
     const Vec3* front = caps[0].flat ? &caps[0].q : nullptr;
@@ -495,8 +495,16 @@ TubeSweep sweep_impl(const Surface& s, const Topology& topo, const Slicer& sl, c
   };
   Curve curve = build_curve(pts);
 
-  // refinement: centroids of sections normal to the current axis
+  // refinement: centroids of sections normal to the current axis. The true
+  // axis makes the sections normal to it smallest (a tilted plane cuts a
+  // larger section), so a refinement is kept only while the total section
+  // area falls; a pass that raises it (the centroid iteration can oscillate
+  // on tapering, non-circular sections near flat caps) is undone and the
+  // refinement stops there.
   std::vector<double> sec_s, sec_a;
+  Curve prev_curve = curve;
+  std::vector<double> prev_s, prev_a;
+  double prev_total = std::numeric_limits<double>::infinity();
   for (int it = 0; it <= o.axis_iterations; ++it) {
     const NormalField nf = normal_field(curve, caps, radius);
     std::vector<Vec3> next;
@@ -517,8 +525,16 @@ TubeSweep sweep_impl(const Surface& s, const Topology& topo, const Slicer& sl, c
       sec_a.push_back(std::abs(l->area));
     }
     if (next.size() < 2) throw Error(name, "not tube-like: the sections do not surround an axis");
-    if (getenv("RDBG")) fprintf(stderr, "it %d len %g n %zu\n", it, curve.length(), next.size());
+    // mean area per unit length of axis, comparable between curves of different length
+    double total = 0;
+    for (double a : sec_a) total += a;
+    total /= static_cast<double>(sec_a.size());
+    if (it > 0 && !(total < prev_total)) {
+      curve = prev_curve, sec_s = prev_s, sec_a = prev_a;
+      break;
+    }
     if (it == o.axis_iterations) break;  // last pass only measures the section areas
+    prev_curve = curve, prev_s = sec_s, prev_a = sec_a, prev_total = total;
     curve = build_curve(next);
     radius[0] = std::sqrt(sec_a.front() / kPi), radius[1] = std::sqrt(sec_a.back() / kPi);
   }
@@ -707,7 +723,6 @@ VecXd place_stations(const TubeSweep& sw, const Slicer& sl, const RemeshOptions&
   if (!(gm > 0)) return st;
   std::vector<double> m(K);
   for (int k = 0; k < K; ++k) m[k] = std::sqrt(g[k] + gm);
-  if (getenv("RDBG")) { fprintf(stderr, "gm %g rmean %g\n", gm, rmean); for (int k = 0; k < K; ++k) fprintf(stderr, "%.3g ", g[k]); fprintf(stderr, "\n"); }
   const double mmin = *std::min_element(m.begin(), m.end());
   for (auto& x : m) x = std::min(x, mmin * o.max_spacing_ratio);
   std::vector<double> cum(K, 0);
