@@ -25,6 +25,7 @@ const char* to_string(ToolType t) {
     case ToolType::pull: return "pull";
     case ToolType::pressure: return "pressure";
     case ToolType::hook: return "hook";
+    case ToolType::cut: return "cut";
   }
   return "?";
 }
@@ -134,7 +135,8 @@ ToolDef parse_tool(const json& j, std::size_t index, const std::string& file) {
   if (type == "pull") t.type = ToolType::pull;
   else if (type == "pressure") t.type = ToolType::pressure;
   else if (type == "hook") t.type = ToolType::hook;
-  else o.fail("type must be pull, pressure or hook (got '" + type + "')");
+  else if (type == "cut") t.type = ToolType::cut;
+  else o.fail("type must be pull, pressure, hook or cut (got '" + type + "')");
   t.nodes = o.string("nodes", "");
   if (o.has("center") && o.has("center_in_box")) o.fail("give center or center_in_box, not both");
   if (o.has("center") || o.has("center_in_box")) {
@@ -151,7 +153,27 @@ ToolDef parse_tool(const json& j, std::size_t index, const std::string& file) {
     if (!o.has("radius")) o.fail("radius is required with center");
   } else {
     if (o.has("radius")) o.fail("radius needs a center");
-    if (t.nodes.empty()) o.fail("needs a center and radius, or a node set in 'nodes'");
+    if (t.nodes.empty() && t.type != ToolType::cut) o.fail("needs a center and radius, or a node set in 'nodes'");
+  }
+  if (t.type == ToolType::cut) {
+    if (t.has_center) o.fail("a cut takes a polyline, not a center");
+    if (o.has("polyline") == o.has("polyline_in_box")) o.fail("a cut needs polyline or polyline_in_box (one of them)");
+    const char* key = o.has("polyline") ? "polyline" : "polyline_in_box";
+    t.polyline_relative = !o.has("polyline");
+    const json& p = o.at(key);
+    if (!p.is_array() || p.size() < 2) o.fail(std::string(key) + " must be a list of at least 2 [x, y, z]");
+    for (const auto& e : p) {
+      if (!e.is_array() || e.size() != 3) o.fail(std::string(key) + " must be a list of [x, y, z]");
+      for (const auto& x : e) {
+        if (!x.is_number() || !std::isfinite(x.get<Real>())) o.fail(std::string(key) + " values must be finite numbers");
+        if (t.polyline_relative && (x.get<Real>() < 0 || x.get<Real>() > 1)) o.fail("polyline_in_box fractions must be in [0, 1]");
+        t.polyline.push_back(x.get<Real>());
+      }
+    }
+    t.depth = o.number("depth", 0, 0, 10, true);
+    if (!o.has("depth")) o.fail("depth (m) is required");
+    t.direction = o.vec3("direction", {0, 0, 0});
+    t.snap = o.boolean("snap", true);
   }
   t.start = o.number("start", 0, 0, 1e9);
   t.end = o.number("end", std::numeric_limits<Real>::infinity(), 0, 1e9);
@@ -295,7 +317,9 @@ void validate(const SceneDef& d) {
   for (const auto& t : d.tools) {
     if (!names.insert(t.name).second) fail("two tools are named '" + t.name + "'");
     if (t.has_center && !(std::isfinite(t.radius) && t.radius > 0)) fail("tool '" + t.name + "': radius must be > 0");
-    if (!t.has_center && t.nodes.empty()) fail("tool '" + t.name + "' needs a center and radius, or a node set");
+    if (!t.has_center && t.nodes.empty() && t.type != ToolType::cut) fail("tool '" + t.name + "' needs a center and radius, or a node set");
+    if (t.type == ToolType::cut && (t.polyline.size() < 6 || t.polyline.size() % 3 || !(t.depth > 0)))
+      fail("tool '" + t.name + "': a cut needs a polyline of at least 2 points and a depth > 0");
     if (!(t.end > t.start)) fail("tool '" + t.name + "': end must be after start");
     if (!(std::isfinite(t.stiffness) && t.stiffness >= 0)) fail("tool '" + t.name + "': stiffness must be >= 0");
     if (!std::isfinite(t.pressure)) fail("tool '" + t.name + "': pressure must be finite");
@@ -385,6 +409,44 @@ void Scene::init(const std::string& model_file) {
       for (std::int32_t i = 0; i < m.n_nodes; ++i)
         if (m.inv_mass[i] > 0) candidates.push_back(i);
     }
+    if (t.type == ToolType::cut) {
+      if (candidates.empty()) throw Error(file, "tool '" + t.name + "' has no candidate node");
+      Vec3 lo{HUGE_VAL, HUGE_VAL, HUGE_VAL}, hi{-HUGE_VAL, -HUGE_VAL, -HUGE_VAL};
+      for (auto i : candidates) {
+        const Vec3 p = load3(m.rest_x.data(), i);
+        lo = {std::min(lo.x, p.x), std::min(lo.y, p.y), std::min(lo.z, p.z)};
+        hi = {std::max(hi.x, p.x), std::max(hi.y, p.y), std::max(hi.z, p.z)};
+      }
+      for (std::size_t k = 0; 3 * k < t.polyline.size(); ++k) {
+        Vec3 p = load3(t.polyline.data(), static_cast<std::int64_t>(k));
+        if (t.polyline_relative) p = {lo.x + p.x * (hi.x - lo.x), lo.y + p.y * (hi.y - lo.y), lo.z + p.z * (hi.z - lo.z)};
+        if (t.snap) {
+          Real best = HUGE_VAL;
+          Vec3 q = p;
+          for (auto i : candidates) {
+            const Vec3 r = load3(m.rest_x.data(), i);
+            if (norm(r - p) < best) best = norm(r - p), q = r;
+          }
+          p = q;
+        }
+        store3(run.def.polyline.data(), static_cast<std::int64_t>(k), p);
+      }
+      CutDef cd;
+      for (std::size_t k = 0; 3 * k < run.def.polyline.size(); ++k)
+        cd.polyline.push_back(load3(run.def.polyline.data(), static_cast<std::int64_t>(k)));
+      cd.depth = t.depth;
+      cd.direction = {t.direction[0], t.direction[1], t.direction[2]};
+      try {
+        run.def.direction = [&] {
+          const Vec3 d = cut_direction(m, cd);
+          return std::array<Real, 3>{d.x, d.y, d.z};
+        }();
+      } catch (const Error& e) {
+        throw Error(file, "tool '" + t.name + "': " + e.message());
+      }
+      tools_.push_back(std::move(run));
+      continue;
+    }
     if (t.has_center && t.center_relative) {
       Vec3 lo{HUGE_VAL, HUGE_VAL, HUGE_VAL}, hi{-HUGE_VAL, -HUGE_VAL, -HUGE_VAL};
       for (auto i : candidates) {
@@ -445,7 +507,9 @@ void Scene::check_mutable(const char* what) const {
 }
 
 void Scene::update_tools(Real t) {
-  const Model& m = *model_;
+  // a cut replaces model_: keep the model of this pass alive (node ids do not change)
+  const std::shared_ptr<const Model> hold = model_;
+  const Model& m = *hold;
   const Real eps = 1e-9 * def_.dt;
   for (auto& tr : tools_) {
     const ToolDef& d = tr.def;
@@ -481,8 +545,39 @@ void Scene::update_tools(Real t) {
         tr.attachment = attach(m, state_, std::move(a));
       }
       if (d.type == ToolType::hook) fix_nodes(m, state_, tr.nodes);
+      if (d.type == ToolType::cut) {
+        CutDef cd;
+        for (std::size_t k = 0; 3 * k < d.polyline.size(); ++k)
+          cd.polyline.push_back(load3(d.polyline.data(), static_cast<std::int64_t>(k)));
+        cd.depth = d.depth;
+        cd.direction = {d.direction[0], d.direction[1], d.direction[2]};
+        apply_cut(cd);
+        tr.active = false;
+        tr.done = true;
+      }
     }
   }
+}
+
+CutReport Scene::apply_cut(const CutDef& def) {
+  auto edited = std::make_shared<Model>(*model_);
+  CutReport rep = cut_model(*edited, state_.x, def);
+  model_ = edited;
+  if (!rep.detached.empty()) fix_nodes(*model_, state_, rep.detached);
+  state_.step_limit = 0;
+  if (vtk_) vtk_->set_topology(*model_);
+  cuts_.push_back(rep);
+  return rep;
+}
+
+CutReport Scene::cut(const CutDef& def) {
+  check_mutable("cut()");
+  try {
+    validate(def);
+  } catch (const Error& e) {
+    throw Error(def_.file, e.message());
+  }
+  return apply_cut(def);
 }
 
 void Scene::simulate(Real dt) {

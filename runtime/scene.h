@@ -22,23 +22,35 @@
 // to the scene file's directory.
 #pragma once
 
+#include "runtime/cut.h"
 #include "libmodel/format/h5file.h"
+#include "runtime/cut.h"
 #include "runtime/model.h"
+#include "runtime/cut.h"
 #include "runtime/solver.h"
+#include "runtime/cut.h"
 #include "runtime/state.h"
+#include "runtime/cut.h"
 #include "runtime/vtk.h"
 
+#include "runtime/cut.h"
 #include <array>
+#include "runtime/cut.h"
 #include <functional>
+#include "runtime/cut.h"
 #include <limits>
+#include "runtime/cut.h"
 #include <memory>
+#include "runtime/cut.h"
 #include <span>
+#include "runtime/cut.h"
 #include <string>
+#include "runtime/cut.h"
 #include <vector>
 
 namespace orthosim::runtime {
 
-enum class ToolType { pull, pressure, hook };
+enum class ToolType { pull, pressure, hook, cut };
 const char* to_string(ToolType t);
 
 // A tool. Its nodes are chosen once, when the scene is created, at rest
@@ -62,6 +74,15 @@ struct ToolDef {
   Real stiffness = 0;                    // pull: N/m per node; 0 = kinematic grip
   Real pressure = 0;                     // pressure: Pa; total force pressure * pi radius^2, shared equally
   std::array<Real, 3> direction{0, 0, 0};  // pressure: direction of the force (normalised)
+  // cut: the incision polyline (n x 3) m, or, with polyline_relative, as
+  // fractions of the candidates' rest bounding box; with snap, each point
+  // moves to the nearest candidate node at its rest position (the polyline
+  // then lies on the tissue surface). The blade goes `depth` m along
+  // `direction` (zero: towards the model's axis, runtime/cut.h) at `start`.
+  std::vector<Real> polyline;
+  bool polyline_relative = false;
+  bool snap = true;
+  Real depth = 0;
   Real start = 0;                        // s: taken at the first step starting at or after start
   Real end = std::numeric_limits<Real>::infinity();  // s: released at the first step starting at or after end
 };
@@ -153,6 +174,10 @@ class Scene {
   void fix(std::span<const std::int32_t> nodes);
   void release(std::span<const std::int32_t> nodes);
   const std::vector<std::int32_t>& tool_nodes(int tool) const;
+  // Cuts the tissue now (between steps), as a cut tool would; returns what it did.
+  CutReport cut(const CutDef& def);
+  // Every cut made so far, in order (the cut tools' and cut()'s).
+  const std::vector<CutReport>& cuts() const { return cuts_; }
 
   // ---- output
   // Writes a frame if output is enabled (the CLI calls it every K steps).
@@ -162,6 +187,7 @@ class Scene {
  private:
   void init(const std::string& model_file);
   void update_tools(Real t);
+  CutReport apply_cut(const CutDef& def);
   void check_mutable(const char* what) const;
 
   SceneDef def_;
@@ -175,6 +201,7 @@ class Scene {
     int attachment = -1;
   };
   std::vector<ToolRun> tools_;
+  std::vector<CutReport> cuts_;
   std::vector<Real> user_force_;  // (n_nodes x 3) N, for the next step
   bool user_force_set_ = false;
   bool in_step_ = false;

@@ -58,6 +58,12 @@ void write_ascii_array(std::ostream& out, const Array& a) {
 
 VtkSeries::VtkSeries(const Model& m, std::string dir, std::string name, VtkOptions o)
     : dir_(std::move(dir)), name_(std::move(name)), opt_(o) {
+  set_topology(m);
+}
+
+void VtkSeries::set_topology(const Model& m) {
+  connectivity_.clear(), offsets_.clear(), types_.clear(), line_spring_.clear();
+  n_quad_cells_ = 0;
   std::int64_t off = 0;
   if (opt_.surface) {
     for (std::int32_t q = 0; q < m.n_quads; ++q) {

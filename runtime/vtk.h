@@ -32,6 +32,8 @@ class VtkSeries {
  public:
   // `dir` must exist; files are <dir>/<name>_<frame>.vtu and <dir>/<name>.pvd.
   VtkSeries(const Model& m, std::string dir, std::string name, VtkOptions o);
+  // Re-reads the cells from `m` after a topology edit (an incision).
+  void set_topology(const Model& m);
   // Writes one frame of `s` at time s.time and updates the .pvd.
   void write(const Model& m, const State& s);
   int frames() const { return static_cast<int>(files_.size()); }

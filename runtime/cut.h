@@ -1,0 +1,80 @@
+// Incision: cutting the mass-spring tissue along a polyline to a depth
+// (paper §5, Fig. 4a/b: "an incision is made ... held open by hooks").
+//
+// The blade sweeps a ruled surface: every segment p_i p_{i+1} of the
+// polyline is moved along the inward direction d by the depth, giving the
+// quad p_i, p_{i+1}, p_{i+1} + depth d, p_i + depth d (started a little
+// outside the polyline, `lead` x depth against d, so that the springs of the
+// skin surface the polyline lies on are caught too). A linear spring whose
+// segment between its two ends' *current* positions crosses that surface is
+// severed (removed from the model; a biphasic pair goes together, since both
+// join the same two nodes). Surface quads with an edge or a diagonal across
+// the blade are removed from the rendered and collision surface, leaving the
+// wound open. Vessel centreline edges the blade crosses are reported with
+// the crossing point and the vessel radius there: a scene turns them into
+// bleeding emitters.
+//
+// The model stays immutable for the solver: a cut edits a copy and calls
+// Model::finalize() again (runtime/model.h); node ids do not change, so a
+// State and the tools' node lists stay valid. Nodes left with no spring at
+// all are reported (a scene pins them: a lone mass point is not tissue).
+//
+// Cost: O(n_springs + n_quads + n_vessel_edges) per cut after an AABB test
+// against the blade, plus finalize() (O(n_springs log n_springs)).
+#pragma once
+
+#include "runtime/model.h"
+#include "runtime/types.h"
+
+#include <cstdint>
+#include <span>
+#include <string>
+#include <vector>
+
+namespace orthosim::runtime {
+
+struct CutDef {
+  std::vector<Vec3> polyline;  // (>= 2 points) m, on or just outside the tissue surface
+  // Inward unit direction of the blade. Zero: automatic, from the polyline's
+  // midpoint towards the nearest point of the principal axis of the model's
+  // rest positions (the limb axis of a limb-like model).
+  Vec3 direction{0, 0, 0};
+  Real depth = 0;   // m, > 0: how deep the blade goes along `direction`
+  Real lead = 0.1;  // the blade starts lead x depth outside the polyline, [0, 1]
+};
+
+// Throws Error("", ...) naming the problem (fewer than 2 points, non-finite
+// coordinates, depth <= 0, a zero-length polyline, lead outside [0, 1]).
+void validate(const CutDef& def);
+
+struct VesselHit {
+  int vessel = 0;          // index into Model::vessels
+  std::int32_t edge = 0;   // edge of that vessel's centreline
+  Vec3 point;              // m, where the blade crosses the centreline
+  Vec3 tangent;            // unit centreline direction there
+  Real radius = 0;         // m, vessel radius there (interpolated)
+};
+
+struct CutReport {
+  Vec3 direction;                      // the blade direction used (unit)
+  std::int32_t springs_cut = 0;        // linear springs removed
+  std::int32_t quads_removed = 0;      // surface quads removed
+  std::vector<std::int32_t> detached;  // nodes left without any spring, ascending
+  std::vector<VesselHit> vessel_hits;
+};
+
+// The blade direction a CutDef resolves to on model `m` (unit).
+Vec3 cut_direction(const Model& m, const CutDef& def);
+
+// Cuts `m` in place at the node positions `x` ((n_nodes x 3) m, usually
+// State::x) and re-finalizes it. Never produces non-finite data; throws
+// Error("", ...) only for an invalid def (call validate first to check).
+CutReport cut_model(Model& m, std::span<const Real> x, const CutDef& def);
+
+// Segment p q against triangle a b c: true when they cross (Moller and
+// Trumbore 1997 with the segment parameter in [0, 1]); degenerate triangles
+// never cross.
+bool segment_crosses_triangle(const Vec3& p, const Vec3& q, const Vec3& a, const Vec3& b, const Vec3& c,
+                              Real* t = nullptr);
+
+}  // namespace orthosim::runtime
