@@ -188,11 +188,19 @@ void junction_patch(Mesh& m, const Ring& P, const std::vector<const Ring*>& C, i
     throw Error("", "ring_vertices " + std::to_string(k) + " is not a multiple of " + std::to_string(2 * n) +
                         " as a junction with " + std::to_string(n) + " children needs");
   const Eigen::Vector3d up = P.u, vp = P.t.cross(P.u);
-  // children counter-clockwise around the parent's axis
+  // children counter-clockwise around the parent's axis, seen from the
+  // centroid of their first rings (not from the parent's centre: when one
+  // child continues the parent's axis its angle around that axis is
+  // meaningless, while the children always lie around their own centroid)
+  Eigen::Vector3d mid = Eigen::Vector3d::Zero();
+  for (int c = 0; c < n; ++c) mid += C[c]->c;
+  mid /= n;
+  std::vector<Eigen::Vector3d> radial(n);
   std::vector<std::pair<double, int>> ang;
   for (int c = 0; c < n; ++c) {
-    Eigen::Vector3d d = C[c]->c - P.c;
+    Eigen::Vector3d d = C[c]->c - mid;
     d -= d.dot(P.t) * P.t;
+    radial[c] = d.norm() > 0 ? Eigen::Vector3d(d.normalized()) : up;
     ang.push_back({std::atan2(d.dot(vp), d.dot(up)), c});
   }
   std::sort(ang.begin(), ang.end());
@@ -219,9 +227,7 @@ void junction_patch(Mesh& m, const Ring& P, const std::vector<const Ring*>& C, i
     seam[i] = curve(m, a, outer, half);
     crotch[i] = curve(m, X, inner, spoke);
     // which half of the ring faces the next child (counter-clockwise)
-    Eigen::Vector3d d = R.c - P.c;
-    d -= d.dot(P.t) * P.t;
-    const Eigen::Vector3d w = P.t.cross(d.norm() > 0 ? d.normalized() : up);
+    const Eigen::Vector3d w = P.t.cross(radial[ang[i].second]);
     const Eigen::Vector3d q = m.v[R.ids[k / 4]] - R.c;
     std::vector<int> plus, minus;  // inner -> outer through k/4 and through 3k/4
     for (int j = 0; j <= half; ++j) plus.push_back(R.ids[j]), minus.push_back(R.ids[(k - j) % k]);
