@@ -94,6 +94,13 @@ std::vector<int> parse_size(const std::string& text, int n, const std::string& f
 // Parses "a,b,c" into n finite numbers; `positive` requires each > 0.
 std::vector<double> parse_list(const std::string& text, int n, const std::string& flag, bool positive);
 
+// Registers every subcommand this build has on `app` (tools/main.cpp).
+void register_commands(CLI::App& app);
+// Runs one subcommand in this process, as `orthosim args...` would
+// (`orthosim pipeline` chains the stages this way); returns its exit code.
+// Parse errors print one line, like main(), and return 2.
+int run_command(const std::vector<std::string>& args);
+
 // The command line as typed, for provenance.
 std::string& command_line();
 

@@ -17,15 +17,8 @@ ORTHOSIM_DECLARE(run)
 ORTHOSIM_DECLARE(bench)
 ORTHOSIM_DECLARE(pipeline)
 #undef ORTHOSIM_DECLARE
-}  // namespace orthosim::cli
 
-int main(int argc, char** argv) {
-  using namespace orthosim::cli;
-  for (int i = 0; i < argc; ++i) command_line() += (i ? " " : "") + std::string(argv[i]);
-
-  CLI::App app{"orthosim: colour cryosection stacks to simulation-ready surgical models, and their runtime"};
-  app.set_version_flag("--version", std::string("orthosim ") + ORTHOSIM_VERSION);
-  app.require_subcommand(1);
+void register_commands(CLI::App& app) {
 #ifdef ORTHOSIM_HAVE_PHANTOM
   add_phantom_command(app);
 #endif
@@ -59,7 +52,50 @@ int main(int argc, char** argv) {
 #ifdef ORTHOSIM_HAVE_PIPELINE
   add_pipeline_command(app);
 #endif
+}
 
+}  // namespace orthosim::cli
+
+namespace orthosim::cli {
+namespace {
+
+// one line, exit 2, whatever CLI11 would have printed
+int parse_error(CLI::App& app, const CLI::ParseError& e) {
+  std::string sub;
+  for (auto* s : app.get_subcommands()) sub = " " + s->get_name();
+  std::string what = e.what();
+  for (auto& c : what)
+    if (c == '\n') c = ' ';
+  std::cerr << "orthosim" << sub << ": error: " << what << "\n";
+  return 2;
+}
+
+}  // namespace
+
+int run_command(const std::vector<std::string>& args) {
+  CLI::App app{"orthosim"};
+  app.require_subcommand(1);
+  register_commands(app);
+  std::vector<std::string> reversed(args.rbegin(), args.rend());  // CLI11 takes them last first
+  exit_code() = 0;
+  try {
+    app.parse(reversed);
+  } catch (const CLI::ParseError& e) {
+    if (e.get_exit_code() == 0) return 0;  // --help and --version
+    return parse_error(app, e);
+  }
+  return exit_code();
+}
+
+}  // namespace orthosim::cli
+
+int main(int argc, char** argv) {
+  using namespace orthosim::cli;
+  for (int i = 0; i < argc; ++i) command_line() += (i ? " " : "") + std::string(argv[i]);
+  CLI::App app{"orthosim: colour cryosection stacks to simulation-ready surgical models, and their runtime"};
+  app.set_version_flag("--version", std::string("orthosim ") + ORTHOSIM_VERSION);
+  app.require_subcommand(1);
+  register_commands(app);
   try {
     app.parse(argc, argv);
   } catch (const CLI::CallForHelp& e) {
@@ -69,14 +105,7 @@ int main(int argc, char** argv) {
   } catch (const CLI::CallForVersion& e) {
     return app.exit(e);
   } catch (const CLI::ParseError& e) {
-    // one line, exit 2, whatever CLI11 would have printed
-    std::string sub;
-    for (auto* s : app.get_subcommands()) sub = " " + s->get_name();
-    std::string what = e.what();
-    for (auto& c : what)
-      if (c == '\n') c = ' ';
-    std::cerr << "orthosim" << sub << ": error: " << what << "\n";
-    return 2;
+    return parse_error(app, e);
   }
   return exit_code();
 }

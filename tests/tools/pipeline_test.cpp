@@ -1,0 +1,154 @@
+// `orthosim pipeline`: a cold run builds a complete model, a warm run does no
+// work, a changed grid re-runs only remesh and what follows, a scene without
+// vessels skips the vessel stage, a corrupt cache entry is rebuilt, and a
+// failing stage reports its own one-line error and leaves the previous model.
+#include "libmodel/format/model.h"
+#include "libmodel/pipeline/cache.h"
+#include "test_util.h"
+
+#include <gtest/gtest.h>
+#include <nlohmann/json.hpp>
+
+#include <filesystem>
+#include <fstream>
+
+using namespace orthosim;
+namespace fs = std::filesystem;
+
+namespace {
+
+struct Sample {
+  test::TempDir dir{"pipeline"};
+  std::string stack, tissues;
+  Sample() {
+    const auto r = test::run_cli("phantom --out " + (dir / "ph") + " --size 96x96x32 --spacing 0.75,0.75,3 --seed 3 --quiet");
+    EXPECT_EQ(r.code, 0) << r.err;
+    stack = dir / "ph/slices";
+    tissues = dir / "ph/tissues.json";
+  }
+  std::string args(const std::string& extra) const {
+    return "pipeline --stack " + stack + " --tissues " + tissues + " --spacing 0.75,0.75,3 --work " + (dir / "work") +
+           " --out " + (dir / "model.h5") + " --report " + (dir / "r.json") + " --no-texture --tune-budget-s 5 --quiet " + extra;
+  }
+  nlohmann::json report() const { return nlohmann::json::parse(test::read_file(dir / "r.json")); }
+  std::set<std::string> ran() const {
+    std::set<std::string> s;
+    for (const auto& st : report()["stages"])
+      if (st.value("ran", false)) s.insert(st["stage"].get<std::string>());
+    return s;
+  }
+};
+
+const Sample& sample() {
+  static Sample s;
+  return s;
+}
+
+}  // namespace
+
+TEST(PipelineCache, KeysAndManifests) {
+  test::TempDir d("cache");
+  EXPECT_NE(pipeline::stage_key("a", {"bc"}), pipeline::stage_key("a", {"b", "c"}));
+  EXPECT_EQ(pipeline::stage_key("a", {"b"}), pipeline::stage_key("a", {"b"}));
+  auto e = pipeline::open_entry(d.path, "s", "k1");
+  EXPECT_FALSE(e.hit);
+  test::write_file(e.dir + "/out.txt", "hello");
+  pipeline::commit_entry(e, {"out.txt"});
+  EXPECT_TRUE(pipeline::open_entry(d.path, "s", "k1").hit);
+  // a changed output is detected and the entry cleared
+  test::write_file(e.dir + "/out.txt", "hellO");
+  auto again = pipeline::open_entry(d.path, "s", "k1");
+  EXPECT_FALSE(again.hit);
+  EXPECT_EQ(again.reason, "out.txt changed");
+  EXPECT_FALSE(fs::exists(e.dir + "/out.txt"));
+  // no manifest (an interrupted stage) is a miss
+  test::write_file(e.dir + "/out.txt", "x");
+  EXPECT_FALSE(pipeline::open_entry(d.path, "s", "k1").hit);
+}
+
+TEST(Pipeline, ColdWarmAndIncremental) {
+  const Sample& s = sample();
+  // cold: every stage runs, the model has everything
+  auto r = test::run_cli(s.args(""));
+  ASSERT_EQ(r.code, 0) << r.err;
+  const auto cold = s.ran();
+  for (const char* st : {"segment", "surface", "remesh", "build"}) EXPECT_TRUE(cold.count(st)) << st;
+  {
+    ModelReader m(s.dir / "model.h5");
+    EXPECT_TRUE(m.h5().is_group("/volume"));
+    EXPECT_TRUE(m.h5().is_group("/quads"));
+    EXPECT_TRUE(m.h5().is_group("/layers"));
+  }
+  const std::string model_hash = test::read_file(s.dir / "model.h5");
+  // warm: nothing runs, the same model comes out
+  r = test::run_cli(s.args(""));
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_TRUE(s.ran().empty());
+  EXPECT_EQ(test::read_file(s.dir / "model.h5"), model_hash);
+  // a new grid: remesh and what follows, not segment or surface
+  r = test::run_cli(s.args("--grid 20x6"));
+  ASSERT_EQ(r.code, 0) << r.err;
+  auto ran = s.ran();
+  EXPECT_FALSE(ran.count("segment"));
+  EXPECT_FALSE(ran.count("surface"));
+  EXPECT_TRUE(ran.count("remesh"));
+  EXPECT_TRUE(ran.count("build"));
+  // a corrupt cache entry is rebuilt, never used
+  const auto stages = s.report()["stages"];
+  std::string build_dir;
+  for (const auto& st : stages)
+    if (st["stage"] == "build") build_dir = st["dir"];
+  ASSERT_FALSE(build_dir.empty());
+  {
+    std::ofstream f(build_dir + "/model.h5", std::ios::binary | std::ios::in | std::ios::out);
+    f.seekp(1000);
+    f.write("garbage", 7);
+  }
+  r = test::run_cli(s.args("--grid 20x6"));
+  ASSERT_EQ(r.code, 0) << r.err;
+  ran = s.ran();
+  EXPECT_TRUE(ran.count("build"));
+  EXPECT_FALSE(ran.count("remesh"));
+}
+
+TEST(Pipeline, SceneWithoutVesselsSkipsThem) {
+  const Sample& s = sample();
+  test::write_file(s.dir / "scene.json", R"({"model": "model.h5", "layers": ["skin", "fat", "muscle", "bone"]})");
+  const auto r = test::run_cli(s.args("--no-tune --scene " + (s.dir / "scene.json")));
+  ASSERT_EQ(r.code, 0) << r.err;
+  bool skipped = false;
+  for (const auto& st : s.report()["stages"])
+    if (st["stage"] == "vessels") skipped = !st.value("ran", true) && st["why"] == "the scene uses no vessels";
+  EXPECT_TRUE(skipped);
+  ModelReader m(s.dir / "model.h5");
+  EXPECT_FALSE(m.h5().is_group("/vessels"));
+}
+
+TEST(Pipeline, AFailingStageKeepsThePreviousModel) {
+  const Sample& s = sample();
+  ASSERT_TRUE(fs::exists(s.dir / "model.h5"));
+  const std::string before = test::read_file(s.dir / "model.h5");
+  // slices of another size in a copy of the stack: segment refuses it
+  test::TempDir bad("pipeline-bad");
+  fs::create_directories(bad / "slices");
+  for (const auto& e : fs::directory_iterator(s.stack)) fs::copy_file(e.path(), bad / ("slices/" + e.path().filename().string()));
+  test::write_file(bad / "slices/zz_extra.png", "not an image");
+  const auto r = test::run_cli("pipeline --stack " + (bad / "slices") + " --tissues " + s.tissues +
+                               " --spacing 0.75,0.75,3 --work " + (s.dir / "work") + " --out " + (s.dir / "model.h5") +
+                               " --no-texture --no-tune --quiet");
+  EXPECT_EQ(r.code, 2);
+  EXPECT_EQ(test::count_lines(r.err), 1) << r.err;
+  EXPECT_NE(r.err.find("orthosim segment: error:"), std::string::npos) << r.err;
+  EXPECT_EQ(test::read_file(s.dir / "model.h5"), before);
+}
+
+TEST(Pipeline, BadFlags) {
+  const Sample& s = sample();
+  auto r = test::run_cli("pipeline --stack " + s.stack + " --tissues " + s.tissues + " --spacing 0,1,1 --out " + (s.dir / "x.h5"));
+  EXPECT_EQ(r.code, 2);
+  EXPECT_EQ(test::count_lines(r.err), 1) << r.err;
+  EXPECT_FALSE(fs::exists(s.dir / "x.h5"));
+  r = test::run_cli("pipeline --stack " + (s.dir / "nope") + " --tissues " + s.tissues + " --spacing 1,1,1 --out " + (s.dir / "x.h5"));
+  EXPECT_EQ(r.code, 2);
+  EXPECT_FALSE(fs::exists(s.dir / "x.h5"));
+}
