@@ -22,30 +22,19 @@
 // to the scene file's directory.
 #pragma once
 
-#include "runtime/cut.h"
 #include "libmodel/format/h5file.h"
 #include "runtime/cut.h"
 #include "runtime/model.h"
-#include "runtime/cut.h"
 #include "runtime/solver.h"
-#include "runtime/cut.h"
 #include "runtime/state.h"
-#include "runtime/cut.h"
 #include "runtime/vtk.h"
 
-#include "runtime/cut.h"
 #include <array>
-#include "runtime/cut.h"
 #include <functional>
-#include "runtime/cut.h"
 #include <limits>
-#include "runtime/cut.h"
 #include <memory>
-#include "runtime/cut.h"
 #include <span>
-#include "runtime/cut.h"
 #include <string>
-#include "runtime/cut.h"
 #include <vector>
 
 namespace orthosim::runtime {

@@ -170,4 +170,72 @@ void VtkSeries::write(const Model& m, const State& s) {
   write_text_file(pvd_path(), pvd.str());
 }
 
+
+void write_vtp(const std::string& path, std::span<const double> points, std::span<const std::int32_t> triangles,
+               const std::vector<VtpArray>& point_data, bool binary, double time) {
+  if (points.size() % 3 != 0 || triangles.size() % 3 != 0) throw Error(path, "vtp: points and triangles must be (n x 3)");
+  const std::size_t n = points.size() / 3, nt = triangles.size() / 3;
+  for (const auto& a : point_data)
+    if (a.components < 1 || a.values.size() != n * static_cast<std::size_t>(a.components))
+      throw Error(path, "vtp: point array '" + a.name + "' has " + std::to_string(a.values.size()) + " values for " +
+                            std::to_string(n) + " points");
+  std::vector<Array> pd;
+  for (const auto& a : point_data) pd.push_back(make_array("Float64", a.name, a.components, a.values));
+  const Array pts = make_array("Float64", "", 3, std::vector<double>(points.begin(), points.end()));
+  std::vector<std::int64_t> conn, offs;
+  if (nt > 0) {
+    conn.assign(triangles.begin(), triangles.end());
+    for (std::size_t t = 0; t < nt; ++t) offs.push_back(static_cast<std::int64_t>(3 * (t + 1)));
+  } else {
+    for (std::size_t i = 0; i < n; ++i) conn.push_back(static_cast<std::int64_t>(i)), offs.push_back(static_cast<std::int64_t>(i + 1));
+  }
+  const std::vector<Array> cells{make_array("Int64", "connectivity", 1, conn), make_array("Int64", "offsets", 1, offs)};
+  AtomicFile out(path);
+  {
+    std::ofstream os(out.temp(), std::ios::binary);
+    if (!os) throw Error(path, "cannot write");
+    os << std::setprecision(17);
+    os << "<?xml version=\"1.0\"?>\n"
+       << "<VTKFile type=\"PolyData\" version=\"1.0\" byte_order=\"LittleEndian\" header_type=\"UInt64\">\n"
+       << "<PolyData>\n<FieldData>\n"
+       << "<DataArray type=\"Float64\" Name=\"TimeValue\" NumberOfTuples=\"1\" format=\"ascii\">" << time
+       << "</DataArray>\n</FieldData>\n"
+       << "<Piece NumberOfPoints=\"" << n << "\" NumberOfVerts=\"" << (nt > 0 ? 0 : n)
+       << "\" NumberOfLines=\"0\" NumberOfStrips=\"0\" NumberOfPolys=\"" << nt << "\">\n";
+    std::uint64_t offset = 0;
+    std::vector<const Array*> appended;
+    auto emit = [&](const Array& a) {
+      if (!binary) {
+        write_ascii_array(os, a);
+        return;
+      }
+      os << "<DataArray type=\"" << a.type << "\"";
+      if (!a.name.empty()) os << " Name=\"" << a.name << "\"";
+      os << " NumberOfComponents=\"" << a.components << "\" format=\"appended\" offset=\"" << offset << "\"/>\n";
+      offset += sizeof(std::uint64_t) + a.bytes.size();
+      appended.push_back(&a);
+    };
+    os << "<PointData>\n";
+    for (const auto& a : pd) emit(a);
+    os << "</PointData>\n<Points>\n";
+    emit(pts);
+    os << "</Points>\n" << (nt > 0 ? "<Polys>\n" : "<Verts>\n");
+    for (const auto& a : cells) emit(a);
+    os << (nt > 0 ? "</Polys>\n" : "</Verts>\n") << "</Piece>\n</PolyData>\n";
+    if (binary) {
+      os << "<AppendedData encoding=\"raw\">\n_";
+      for (const Array* a : appended) {
+        const std::uint64_t nbytes = a->bytes.size();
+        os.write(reinterpret_cast<const char*>(&nbytes), sizeof nbytes);
+        os.write(a->bytes.data(), static_cast<std::streamsize>(a->bytes.size()));
+      }
+      os << "\n</AppendedData>\n";
+    }
+    os << "</VTKFile>\n";
+    os.flush();
+    if (!os) throw Error(path, "write failed (disk full?)");
+  }
+  out.commit();
+}
+
 }  // namespace orthosim::runtime

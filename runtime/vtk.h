@@ -17,6 +17,7 @@
 #include "runtime/model.h"
 #include "runtime/state.h"
 
+#include <span>
 #include <string>
 #include <vector>
 
@@ -50,5 +51,23 @@ class VtkSeries {
   std::vector<std::pair<double, std::string>> files_;
   std::int64_t bytes_ = 0;
 };
+
+
+// ---- PolyData (.vtp), added for the fluid (issue 9) --------------------------
+
+// One point-data array of write_vtp: (n_points x components) values.
+struct VtpArray {
+  std::string name;
+  int components = 1;
+  std::vector<double> values;
+};
+
+// Writes one XML PolyData file (.vtp) atomically: points (n x 3, m);
+// triangles (m x 3) as polygons, or, when there are none, one vertex cell
+// per point (a particle cloud); point data arrays (sizes must match, else
+// Error). ASCII or raw appended binary as VtkSeries; `time` goes into the
+// file's TimeValue field.
+void write_vtp(const std::string& path, std::span<const double> points, std::span<const std::int32_t> triangles,
+               const std::vector<VtpArray>& point_data, bool binary = true, double time = 0);
 
 }  // namespace orthosim::runtime

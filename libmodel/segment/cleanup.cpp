@@ -38,7 +38,7 @@ struct Span {
 
 // ---- anatomical order ----------------------------------------------------------
 
-std::int64_t enforce_order(const LabelInfo& info, const ColourModel& m, const std::uint8_t* lab8, int nx, int ny,
+std::int64_t enforce_order(const LabelInfo& info, const ColourModel& m, const std::uint8_t* rgb, int nx, int ny,
                            std::uint8_t* labels) {
   std::int64_t changed = 0;
   std::vector<Span> spans;
@@ -86,7 +86,8 @@ std::int64_t enforce_order(const LabelInfo& info, const ColourModel& m, const st
           if (info.is_vessel[l]) continue;      // vessels cross layers
           if (l == 0 && !info.fill_holes) continue;  // holes are kept when not filled
           const std::size_t i = static_cast<std::size_t>(y) * nx + x;
-          const int c = m.nearest_allowed(lab8_to_lab(lab8 + 3 * i), e.allowed);
+          const std::uint8_t* p = rgb + 3 * i;
+          const int c = m.nearest_allowed(srgb8_to_lab(p[0], p[1], p[2]), e.allowed);
           if (c < 0) continue;
           const std::uint8_t nl = static_cast<std::uint8_t>(m.centres[static_cast<std::size_t>(c)].label);
           if (nl != l) row[x] = nl, ++changed;

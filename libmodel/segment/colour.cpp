@@ -1,11 +1,9 @@
 // The colour model: CIELAB prototypes, calibration by k-means, per-slice
-// background normalisation and the nearest-prototype lookup table.
+// background normalisation and the nearest-prototype table over 24-bit
+// colours.
 #include "libmodel/segment/detail.h"
 
 #include <Eigen/Dense>
-#include <opencv2/core.hpp>
-#include <opencv2/imgproc.hpp>
-#include <tbb/blocked_range.h>
 #include <tbb/parallel_for.h>
 
 #include <algorithm>
@@ -15,14 +13,16 @@ namespace orthosim::segment_detail {
 
 // ---- colour spaces ---------------------------------------------------------
 
-std::array<double, 3> srgb_to_lab(double r, double g, double b) {
-  // sRGB (IEC 61966-2-1) to linear, to XYZ (D65), to CIELAB; the constants
-  // match OpenCV's cvtColor so that both paths agree.
-  auto lin = [](double v) {
-    v = std::clamp(v / 255.0, 0.0, 1.0);
-    return v <= 0.04045 ? v / 12.92 : std::pow((v + 0.055) / 1.055, 2.4);
-  };
-  const double R = lin(r), G = lin(g), B = lin(b);
+namespace {
+
+// sRGB (IEC 61966-2-1) transfer curve: channel in [0, 255] to linear.
+double srgb_linear(double v) {
+  v = std::clamp(v / 255.0, 0.0, 1.0);
+  return v <= 0.04045 ? v / 12.92 : std::pow((v + 0.055) / 1.055, 2.4);
+}
+
+// Linear sRGB to XYZ (D65) to CIELAB; the constants are OpenCV's (cvtColor).
+std::array<double, 3> linear_to_lab(double R, double G, double B) {
   const double X = (0.412453 * R + 0.357580 * G + 0.180423 * B) / 0.950456;
   const double Y = 0.212671 * R + 0.715160 * G + 0.072169 * B;
   const double Z = (0.019334 * R + 0.119193 * G + 0.950227 * B) / 1.088754;
@@ -32,15 +32,19 @@ std::array<double, 3> srgb_to_lab(double r, double g, double b) {
   return {L, 500.0 * (fx - fy), 200.0 * (fy - fz)};
 }
 
-void rgb_to_lab8(const std::uint8_t* rgb, std::uint8_t* lab8, std::size_t n) {
-  // in blocks so that each call stays in cache; OpenCV's integer path
-  constexpr std::size_t kBlock = 1 << 14;
-  for (std::size_t at = 0; at < n; at += kBlock) {
-    const int m = static_cast<int>(std::min(kBlock, n - at));
-    cv::Mat src(1, m, CV_8UC3, const_cast<std::uint8_t*>(rgb + 3 * at));
-    cv::Mat dst(1, m, CV_8UC3, lab8 + 3 * at);
-    cv::cvtColor(src, dst, cv::COLOR_RGB2Lab);
-  }
+}  // namespace
+
+std::array<double, 3> srgb_to_lab(double r, double g, double b) {
+  return linear_to_lab(srgb_linear(r), srgb_linear(g), srgb_linear(b));
+}
+
+std::array<double, 3> srgb8_to_lab(std::uint8_t r, std::uint8_t g, std::uint8_t b) {
+  static const std::array<double, 256> lin = [] {
+    std::array<double, 256> t{};
+    for (int i = 0; i < 256; ++i) t[static_cast<std::size_t>(i)] = srgb_linear(i);
+    return t;
+  }();
+  return linear_to_lab(lin[r], lin[g], lin[b]);
 }
 
 // ---- the tissue tree ---------------------------------------------------------
@@ -134,24 +138,10 @@ int ColourModel::nearest_allowed(const std::array<double, 3>& lab, const std::ve
   return best;
 }
 
-void ColourModel::build_lut() {
+void ColourModel::reset_table() {
   centre_label.resize(centres.size());
   for (std::size_t i = 0; i < centres.size(); ++i) centre_label[i] = static_cast<std::uint8_t>(centres[i].label);
-  lut.assign(std::size_t(1) << 21, 0);
-  tbb::parallel_for(tbb::blocked_range<int>(0, 128), [&](const tbb::blocked_range<int>& r) {
-    for (int li = r.begin(); li < r.end(); ++li) {
-      // the centre of the cell of 8-bit codes (2li, 2li+1) is 2li + 0.5
-      const double L = (2 * li + 0.5) * (100.0 / 255.0);
-      for (int ai = 0; ai < 128; ++ai) {
-        const double a = 2 * ai + 0.5 - 128;
-        for (int bi = 0; bi < 128; ++bi) {
-          const double b = 2 * bi + 0.5 - 128;
-          lut[(static_cast<std::size_t>(li) << 14) | (static_cast<std::size_t>(ai) << 7) | bi] =
-              static_cast<std::uint8_t>(nearest({L, a, b}));
-        }
-      }
-    }
-  });
+  memo_.assign(std::size_t(1) << 24, kUnknown);
 }
 
 ColourModel initial_model(const TissueTable& t, const SegmentOptions& o) {
@@ -185,8 +175,11 @@ struct Samples {
 Samples grid_samples(const std::uint8_t* rgb, int nx, int ny, int stride) {
   Samples s;
   const int off = stride / 2;
-  for (int y = std::min(off, ny - 1); y < ny; y += stride)
-    for (int x = std::min(off, nx - 1); x < nx; x += stride) {
+  const int x0 = std::min(off, nx - 1), y0 = std::min(off, ny - 1);
+  const std::size_t n = static_cast<std::size_t>((nx - x0 + stride - 1) / stride) * ((ny - y0 + stride - 1) / stride);
+  s.rgb.reserve(3 * n), s.u.reserve(n), s.v.reserve(n);
+  for (int y = y0; y < ny; y += stride)
+    for (int x = x0; x < nx; x += stride) {
       const std::uint8_t* p = rgb + (static_cast<std::size_t>(y) * nx + x) * 3;
       s.rgb.insert(s.rgb.end(), p, p + 3);
       s.u.push_back((x - 0.5 * (nx - 1)) / nx);
@@ -207,7 +200,8 @@ void correct_samples(const GainField& g, const Samples& s, std::vector<std::uint
     }
 }
 
-double median(std::vector<double> v) {
+// The median of v (reordered in place).
+double median_inplace(std::vector<double>& v) {
   if (v.empty()) return 0;
   auto mid = v.begin() + static_cast<std::ptrdiff_t>(v.size() / 2);
   std::nth_element(v.begin(), mid, v.end());
@@ -222,30 +216,35 @@ GainField fit_samples(const std::vector<std::array<double, 3>>& I, const std::ve
   GainField g;
   const std::size_t n = I.size();
   std::vector<std::uint8_t> use(n, 1);
+  std::vector<double> r;
+  r.reserve(n);
   for (int round = 0; round < 2; ++round) {
     for (int c = 0; c < 3; ++c) {
-      Eigen::Matrix3d A = Eigen::Matrix3d::Zero();
-      Eigen::Vector3d rhs = Eigen::Vector3d::Zero();
+      // normal equations of the rows (T, T u, T v): the six distinct entries
+      // of the symmetric 3x3 matrix and the right-hand side, in registers
+      double a00 = 0, a01 = 0, a02 = 0, a11 = 0, a12 = 0, a22 = 0, b0 = 0, b1 = 0, b2 = 0;
       for (std::size_t i = 0; i < n; ++i) {
         if (!use[i]) continue;
-        const Eigen::Vector3d row(T[i][c], T[i][c] * u[i], T[i][c] * v[i]);
-        A += row * row.transpose();
-        rhs += row * I[i][c];
+        const double r0 = T[i][c], r1 = T[i][c] * u[i], r2 = T[i][c] * v[i], y = I[i][c];
+        a00 += r0 * r0, a01 += r0 * r1, a02 += r0 * r2, a11 += r1 * r1, a12 += r1 * r2, a22 += r2 * r2;
+        b0 += r0 * y, b1 += r1 * y, b2 += r2 * y;
       }
       if (plane) {
-        const Eigen::Vector3d x = A.ldlt().solve(rhs);
+        Eigen::Matrix3d A;
+        A << a00, a01, a02, a01, a11, a12, a02, a12, a22;
+        const Eigen::Vector3d x = A.ldlt().solve(Eigen::Vector3d(b0, b1, b2));
         if (x.allFinite()) g.coef[c] = {x[0], x[1], x[2]};
-      } else if (A(0, 0) > 0) {
-        g.coef[c] = {rhs[0] / A(0, 0), 0, 0};
+      } else if (a00 > 0) {
+        g.coef[c] = {b0 / a00, 0, 0};
       }
     }
     if (round == 1) break;
     // robust trimming
     for (int c = 0; c < 3; ++c) {
-      std::vector<double> r;
-      r.reserve(n);
+      r.clear();
       for (std::size_t i = 0; i < n; ++i) r.push_back(std::abs(I[i][c] - T[i][c] * gain_at(g, c, u[i], v[i])));
-      const double mad = median(r);
+      std::vector<double> sorted = r;
+      const double mad = median_inplace(sorted);
       const double cut = std::max(3 * 1.4826 * mad, 3.0);
       for (std::size_t i = 0; i < n; ++i)
         if (r[i] > cut) use[i] = 0;
@@ -259,20 +258,20 @@ GainField fit_samples(const std::vector<std::array<double, 3>>& I, const std::ve
 GainField fit_gain(const ColourModel& m, const std::uint8_t* rgb, int nx, int ny, SegmentOptions::Normalise mode) {
   GainField g;
   if (mode == SegmentOptions::Normalise::none || m.bg_reference.empty()) return g;
-  // about 96 x 96 samples whatever the slice size: plenty for 3 parameters
-  const int stride = std::max(1, std::min(nx, ny) / 96);
+  // at most about 96 samples along the shorter side whatever the slice
+  // size: plenty for 3 parameters
+  const int stride = std::max(1, (std::min(nx, ny) + 95) / 96);
   const Samples s = grid_samples(rgb, nx, ny, stride);
-  std::vector<std::uint8_t> corr, lab8;
+  std::vector<std::uint8_t> corr;
   std::vector<std::array<double, 3>> I, T;
   std::vector<double> u, v;
+  I.reserve(s.u.size()), T.reserve(s.u.size()), u.reserve(s.u.size()), v.reserve(s.u.size());
   for (int iter = 0; iter < 2; ++iter) {
     correct_samples(g, s, corr);
-    lab8.resize(corr.size());
-    rgb_to_lab8(corr.data(), lab8.data(), s.u.size());
     I.clear(), T.clear(), u.clear(), v.clear();
     double umin = 1, umax = -1, vmin = 1, vmax = -1;
     for (std::size_t i = 0; i < s.u.size(); ++i) {
-      const int c = m.lut_centre(&lab8[3 * i]);
+      const int c = m.centre_of(&corr[3 * i]);
       if (m.centres[static_cast<std::size_t>(c)].label != 0) continue;
       I.push_back({double(s.rgb[3 * i]), double(s.rgb[3 * i + 1]), double(s.rgb[3 * i + 2])});
       T.push_back(m.bg_reference[static_cast<std::size_t>(c)]);
@@ -303,8 +302,8 @@ GainField fit_gain(const ColourModel& m, const std::uint8_t* rgb, int nx, int ny
   return g;
 }
 
-void apply_gain(const GainField& g, const std::uint8_t* rgb, int nx, int ny, std::uint8_t* out) {
-  for (int y = 0; y < ny; ++y) {
+void apply_gain_rows(const GainField& g, const std::uint8_t* rgb, int nx, int ny, int y0, int y1, std::uint8_t* out) {
+  for (int y = y0; y < y1; ++y) {
     const double v = (y - 0.5 * (ny - 1)) / ny;
     float inv0[3], dinv[3];
     for (int c = 0; c < 3; ++c) {
@@ -324,6 +323,10 @@ void apply_gain(const GainField& g, const std::uint8_t* rgb, int nx, int ny, std
   }
 }
 
+void apply_gain(const GainField& g, const std::uint8_t* rgb, int nx, int ny, std::uint8_t* out) {
+  apply_gain_rows(g, rgb, nx, ny, 0, ny, out);
+}
+
 // ---- calibration -------------------------------------------------------------
 
 void calibrate(ColourModel& m, const std::vector<std::vector<std::uint8_t>>& slices, int nx, int ny,
@@ -337,12 +340,9 @@ void calibrate(ColourModel& m, const std::vector<std::vector<std::uint8_t>>& sli
   m.bg_reference.clear();
   if (nb > 0 && o.normalise != SegmentOptions::Normalise::none) {
     std::vector<std::array<std::vector<double>, 3>> vals(static_cast<std::size_t>(nb));
-    std::vector<std::uint8_t> lab8;
     for (const auto& s : samples) {
-      lab8.resize(s.rgb.size());
-      rgb_to_lab8(s.rgb.data(), lab8.data(), s.u.size());
       for (std::size_t i = 0; i < s.u.size(); ++i) {
-        const int c = m.lut_centre(&lab8[3 * i]);
+        const int c = m.centre_of(&s.rgb[3 * i]);
         if (m.centres[static_cast<std::size_t>(c)].label != 0) continue;
         for (int k = 0; k < 3; ++k) vals[static_cast<std::size_t>(c)][k].push_back(s.rgb[3 * i + k]);
       }
@@ -351,7 +351,7 @@ void calibrate(ColourModel& m, const std::vector<std::vector<std::uint8_t>>& sli
     for (int c = 0; c < nb; ++c) {
       std::array<double, 3> ref = m.centres[static_cast<std::size_t>(c)].table_rgb;
       if (vals[static_cast<std::size_t>(c)][0].size() >= 32) {
-        for (int k = 0; k < 3; ++k) ref[k] = std::max(1.0, median(vals[static_cast<std::size_t>(c)][k]));
+        for (int k = 0; k < 3; ++k) ref[k] = std::max(1.0, median_inplace(vals[static_cast<std::size_t>(c)][k]));
         any = true;
       }
       m.bg_reference.push_back(ref);
@@ -359,24 +359,36 @@ void calibrate(ColourModel& m, const std::vector<std::vector<std::uint8_t>>& sli
     if (!any) m.bg_reference.clear();
   }
 
-  // 2. normalised Lab samples of every calibration slice
-  std::vector<std::array<double, 3>> lab;
+  // 2. normalised colours of every calibration slice, as distinct colours
+  // with their counts (24-bit keys, sorted: the order is fixed)
+  std::vector<std::uint32_t> keys;
   {
-    std::vector<std::uint8_t> corr, lab8;
+    std::vector<std::uint8_t> corr;
     for (std::size_t k = 0; k < slices.size(); ++k) {
       const GainField g = fit_gain(m, slices[k].data(), nx, ny, o.normalise);
       correct_samples(g, samples[k], corr);
-      lab8.resize(corr.size());
-      rgb_to_lab8(corr.data(), lab8.data(), samples[k].u.size());
-      for (std::size_t i = 0; i < samples[k].u.size(); ++i) lab.push_back(lab8_to_lab(&lab8[3 * i]));
+      for (std::size_t i = 0; i < samples[k].u.size(); ++i)
+        keys.push_back(static_cast<std::uint32_t>(corr[3 * i]) << 16 | static_cast<std::uint32_t>(corr[3 * i + 1]) << 8 |
+                       corr[3 * i + 2]);
     }
+  }
+  std::sort(keys.begin(), keys.end());
+  std::vector<std::array<double, 3>> lab;
+  std::vector<double> weight;
+  for (std::size_t i = 0; i < keys.size();) {
+    std::size_t j = i;
+    while (j < keys.size() && keys[j] == keys[i]) ++j;
+    lab.push_back(srgb8_to_lab(static_cast<std::uint8_t>(keys[i] >> 16), static_cast<std::uint8_t>(keys[i] >> 8),
+                               static_cast<std::uint8_t>(keys[i])));
+    weight.push_back(static_cast<double>(j - i));
+    i = j;
   }
 
   // 3. k-means seeded by the prototypes, shrunk towards them (a conjugate
   // prior of weight n0 samples per prototype), moves clamped
   const std::size_t C = m.centres.size(), N = lab.size();
-  const double n0 = o.refine_prior * static_cast<double>(N) / static_cast<double>(C);
-  constexpr std::size_t kChunk = 8192;
+  const double n0 = o.refine_prior * static_cast<double>(keys.size()) / static_cast<double>(C);
+  constexpr std::size_t kChunk = 4096;
   const std::size_t chunks = (N + kChunk - 1) / kChunk;
   std::vector<std::vector<std::array<double, 4>>> part(chunks, std::vector<std::array<double, 4>>(C));
   for (int it = 0; it < o.refine_iterations; ++it) {
@@ -386,7 +398,8 @@ void calibrate(ColourModel& m, const std::vector<std::vector<std::uint8_t>>& sli
       for (std::size_t i = k * kChunk; i < std::min(N, (k + 1) * kChunk); ++i) {
         const int c = m.nearest(lab[i]);
         auto& a = acc[static_cast<std::size_t>(c)];
-        a[0] += lab[i][0], a[1] += lab[i][1], a[2] += lab[i][2], a[3] += 1;
+        const double w = weight[i];
+        a[0] += w * lab[i][0], a[1] += w * lab[i][1], a[2] += w * lab[i][2], a[3] += w;
       }
     });
     double moved = 0;
@@ -408,25 +421,29 @@ void calibrate(ColourModel& m, const std::vector<std::vector<std::uint8_t>>& sli
     }
     if (moved < 0.01) break;
   }
-  m.build_lut();
+  m.reset_table();
 }
 
 GainField classify_slice(const ColourModel& m, const SegmentOptions& o, const std::uint8_t* rgb, int nx, int ny,
                          SliceWork& work, std::uint8_t* labels) {
   const std::size_t n = static_cast<std::size_t>(nx) * ny;
   const GainField g = fit_gain(m, rgb, nx, ny, o.normalise);
-  const std::uint8_t* src = rgb;
   const bool identity = g.coef[0] == std::array<double, 3>{1, 0, 0} && g.coef[1] == std::array<double, 3>{1, 0, 0} &&
                         g.coef[2] == std::array<double, 3>{1, 0, 0};
+  const std::uint8_t* src = rgb;
   if (!identity) {
     work.corrected.resize(3 * n);
-    apply_gain(g, rgb, nx, ny, work.corrected.data());
     src = work.corrected.data();
   }
-  work.lab8.resize(3 * n);
-  rgb_to_lab8(src, work.lab8.data(), n);
-  const std::uint8_t* lab8 = work.lab8.data();
-  for (std::size_t i = 0; i < n; ++i) labels[i] = m.centre_label[static_cast<std::size_t>(m.lut_centre(lab8 + 3 * i))];
+  // row by row: correct, then classify while the row is in cache
+  for (int y = 0; y < ny; ++y) {
+    const std::size_t r = static_cast<std::size_t>(y) * nx;
+    if (!identity) apply_gain_rows(g, rgb, nx, ny, y, y + 1, work.corrected.data());
+    const std::uint8_t* c = src + 3 * r;
+    std::uint8_t* l = labels + r;
+    for (int x = 0; x < nx; ++x) l[x] = m.centre_label[static_cast<std::size_t>(m.centre_of(c + 3 * x))];
+  }
+  work.colour = src;
   return g;
 }
 

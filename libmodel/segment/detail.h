@@ -5,6 +5,7 @@
 #include "libmodel/segment/segment.h"
 
 #include <array>
+#include <atomic>
 #include <cstdint>
 #include <unordered_map>
 #include <vector>
@@ -15,14 +16,9 @@ namespace orthosim::segment_detail {
 
 // CIELAB (D65, CIE 1976) of an sRGB colour with channels in [0, 255].
 std::array<double, 3> srgb_to_lab(double r, double g, double b);
-
-// 8-bit RGB (n pixels, interleaved) to OpenCV's 8-bit Lab encoding:
-// L*255/100, a+128, b+128 (n pixels, interleaved).
-void rgb_to_lab8(const std::uint8_t* rgb, std::uint8_t* lab8, std::size_t n);
-
-inline std::array<double, 3> lab8_to_lab(const std::uint8_t* p) {
-  return {p[0] * (100.0 / 255.0), p[1] - 128.0, p[2] - 128.0};
-}
+// The same for 8-bit channels, through a table of the sRGB transfer curve
+// (equal to srgb_to_lab(r, g, b)).
+std::array<double, 3> srgb8_to_lab(std::uint8_t r, std::uint8_t g, std::uint8_t b);
 
 // Static facts about the table that the kernels need, indexed by label value.
 struct LabelInfo {
@@ -61,7 +57,6 @@ struct ColourModel {
   // Reference background colour (RGB) of each background centre, from the
   // calibration slices; normalisation maps a slice's background onto it.
   std::vector<std::array<double, 3>> bg_reference;
-  std::vector<std::uint8_t> lut;  // 128^3 over 8-bit Lab / 2: nearest centre index
   std::vector<std::uint8_t> centre_label;
 
   int n_background() const {
@@ -73,14 +68,31 @@ struct ColourModel {
     const double dl = lab[0] - c[0], da = lab[1] - c[1], db = lab[2] - c[2];
     return wl2 * dl * dl + da * da + db * db;
   }
+  // Nearest centre (first of equals) under dist2.
   int nearest(const std::array<double, 3>& lab) const;
   // Nearest centre whose label is allowed[label] != 0; -1 if none.
   int nearest_allowed(const std::array<double, 3>& lab, const std::vector<std::uint8_t>& allowed) const;
-  int lut_centre(const std::uint8_t* lab8) const {
-    return lut[(static_cast<std::size_t>(lab8[0] >> 1) << 14) | (static_cast<std::size_t>(lab8[1] >> 1) << 7) |
-               (lab8[2] >> 1)];
+
+  // nearest(srgb8_to_lab(r, g, b)) through a table over all 2^24 colours,
+  // filled on first use of each colour (kUnknown: not yet). Filling races
+  // are benign: every thread writes the same value.
+  static constexpr std::uint8_t kUnknown = 0xFF;
+  int centre_of(std::uint8_t r, std::uint8_t g, std::uint8_t b) const {
+    const std::size_t key = static_cast<std::size_t>(r) << 16 | static_cast<std::size_t>(g) << 8 | b;
+    std::atomic_ref<std::uint8_t> slot(memo_[key]);
+    std::uint8_t c = slot.load(std::memory_order_relaxed);
+    if (c == kUnknown) {
+      c = static_cast<std::uint8_t>(nearest(srgb8_to_lab(r, g, b)));
+      slot.store(c, std::memory_order_relaxed);
+    }
+    return c;
   }
-  void build_lut();
+  int centre_of(const std::uint8_t* rgb) const { return centre_of(rgb[0], rgb[1], rgb[2]); }
+  // Call after the centres change (and before the first centre_of).
+  void reset_table();
+
+ private:
+  mutable std::vector<std::uint8_t> memo_;  // 2^24, indexed r << 16 | g << 8 | b
 };
 
 // Centres from the table (refined later by calibrate()).
@@ -99,8 +111,10 @@ struct GainField {
 // references. `mode`: the requested normalisation.
 GainField fit_gain(const ColourModel& m, const std::uint8_t* rgb, int nx, int ny, SegmentOptions::Normalise mode);
 
-// Applies the gain field: out = rgb / s, rounded and clamped.
+// Applies the gain field: out = rgb / s, rounded and clamped; the _rows
+// form does rows [y0, y1) only.
 void apply_gain(const GainField& g, const std::uint8_t* rgb, int nx, int ny, std::uint8_t* out);
+void apply_gain_rows(const GainField& g, const std::uint8_t* rgb, int nx, int ny, int y0, int y1, std::uint8_t* out);
 
 // Calibration: reference background from the slices, then k-means.
 void calibrate(ColourModel& m, const std::vector<std::vector<std::uint8_t>>& slices, int nx, int ny,
@@ -108,19 +122,21 @@ void calibrate(ColourModel& m, const std::vector<std::vector<std::uint8_t>>& sli
 
 // Per-slice scratch reused by one thread.
 struct SliceWork {
-  std::vector<std::uint8_t> corrected;  // ny*nx*3
-  std::vector<std::uint8_t> lab8;       // ny*nx*3
+  std::vector<std::uint8_t> rgb;        // ny*nx*3, the slice as read
+  std::vector<std::uint8_t> corrected;  // ny*nx*3, after normalisation
+  const std::uint8_t* colour = nullptr;  // the colours classified: corrected, or the input when the gain is 1
 };
 
-// Classifies one slice: normalisation, Lab, nearest centre. Fills labels
-// (ny*nx) and work.lab8; returns the gain field used.
+// Classifies one slice: normalisation, nearest centre in CIELAB. Fills labels
+// (ny*nx) and work.colour; returns the gain field used.
 GainField classify_slice(const ColourModel& m, const SegmentOptions& o, const std::uint8_t* rgb, int nx, int ny,
                          SliceWork& work, std::uint8_t* labels);
 
 // ---- clean-up kernels ----------------------------------------------------
 
-// Anatomical order in one slice (see segment.h). Returns voxels changed.
-std::int64_t enforce_order(const LabelInfo& info, const ColourModel& m, const std::uint8_t* lab8, int nx, int ny,
+// Anatomical order in one slice (see segment.h); `rgb` are the colours that
+// were classified (SliceWork::colour). Returns voxels changed.
+std::int64_t enforce_order(const LabelInfo& info, const ColourModel& m, const std::uint8_t* rgb, int nx, int ny,
                            std::uint8_t* labels);
 
 // 3-D rank filter of slice z: prev/next may be null at the stack ends.

@@ -203,7 +203,7 @@ SegmentMetrics segment(const SliceSource& src, const TissueTable& table, const S
 
   const LabelInfo info = make_label_info(table, opt.fill_holes);
   ColourModel model = initial_model(table, opt);
-  model.build_lut();
+  model.reset_table();
 
   // ---- calibration
   auto t0 = std::chrono::steady_clock::now();
@@ -243,7 +243,7 @@ SegmentMetrics segment(const SliceSource& src, const TissueTable& table, const S
     std::vector<std::vector<std::uint8_t>> fresh(static_cast<std::size_t>(b - a));
     tbb::parallel_for(a, b, [&](int z) {
       SliceWork& w = works.local();
-      std::vector<std::uint8_t> rgb;
+      std::vector<std::uint8_t>& rgb = w.rgb;
       const auto tr = std::chrono::steady_clock::now();
       src.read(z, rgb);
       if (rgb.size() != 3 * plane) throw Error(src.name, "slice " + std::to_string(z) + " has the wrong size");
@@ -253,7 +253,7 @@ SegmentMetrics segment(const SliceSource& src, const TissueTable& table, const S
       const GainField g = classify_slice(model, opt, rgb.data(), nx, ny, w, lab.data());
       gains[static_cast<std::size_t>(z)] = g.mean_gain();
       fallbacks[static_cast<std::size_t>(z)] = g.fallback;
-      if (cleanup && opt.enforce_order) order_changed += enforce_order(info, model, w.lab8.data(), nx, ny, lab.data());
+      if (cleanup && opt.enforce_order) order_changed += enforce_order(info, model, w.colour, nx, ny, lab.data());
     });
     for (int z = a; z < b; ++z) l1[z] = std::move(fresh[static_cast<std::size_t>(z - a)]);
     met.classify_s += seconds_since(t0);

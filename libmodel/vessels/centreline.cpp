@@ -102,21 +102,33 @@ Section fit_section(const Grid& g, const Eigen::Vector3d& c, const Eigen::Vector
   if (g.mask_at(c) < 0.5) return s;
   const int m = 32;
   const Eigen::Vector3d u = perpendicular(t), v = t.cross(u);
-  const double step = 0.5 * g.hmin();
+  // steps of one (smallest) voxel, then bisection to 1/128 of it: a single
+  // background voxel across the ray keeps the indicator below 0.5 over about
+  // a voxel, so no boundary is stepped over
+  const double step = g.hmin();
   const double dmax = 2.5 * std::max(rho, 2 * g.hmin()) + 2 * g.hmax();
+  // The march may start where the boundary can first be: every corner of the
+  // cell around c + a dir lies within a + diag of c, and the voxel centres
+  // nearer to c than its distance to the background (at least rho - diag, rho
+  // being interpolated) are tissue or outside the volume; so below
+  // rho - 2 diag the indicator is 1 or the ray has left the (convex) volume,
+  // which it then never re-enters. The samples stay those of a march from 0.
+  const double diag = std::sqrt(g.h[0] * g.h[0] + g.h[1] * g.h[1] + g.h[2] * g.h[2]);
+  const int k0 = std::max(1, static_cast<int>(std::floor((rho - 2 * diag) / step)));
   double d[m];
   bool ok[m];
   for (int j = 0; j < m; ++j) {
     const double phi = 2 * kPi * j / m;
     const Eigen::Vector3d dir = std::cos(phi) * u + std::sin(phi) * v;
     ok[j] = false;
-    double prev = 0;
-    for (double a = step; a <= dmax; a += step) {
+    double prev = (k0 - 1) * step;
+    for (int ka = k0; ka * step <= dmax; ++ka) {
+      const double a = ka * step;
       const double val = g.mask_at(c + a * dir);
       if (val < 0) break;  // left the volume: unknown
       if (val < 0.5) {
         double lo = prev, hi = a;
-        for (int it = 0; it < 6; ++it) {
+        for (int it = 0; it < 7; ++it) {
           const double mid = 0.5 * (lo + hi);
           const double mv = g.mask_at(c + mid * dir);
           (mv >= 0.5 ? lo : hi) = mid;

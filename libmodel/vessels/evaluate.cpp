@@ -129,9 +129,26 @@ VecXd distance_to_label_boundary(const Volume& v, int label, const MatX3d& point
   };
   std::vector<Face> faces;
   const int n[3] = {v.nx, v.ny, v.nz};
+  // the label's bounding box (plus one voxel): no face of the label lies outside it
+  int blo[3] = {v.nx, v.ny, v.nz}, bhi[3] = {-1, -1, -1};
   for (int z = 0; z < v.nz; ++z)
-    for (int y = 0; y < v.ny; ++y)
-      for (int x = 0; x < v.nx; ++x) {
+    for (int y = 0; y < v.ny; ++y) {
+      const std::uint8_t* row = v.labels.data() + v.index(0, y, z);
+      int x0 = -1, x1 = -1;
+      for (int x = 0; x < v.nx; ++x)
+        if (row[x] == label) {
+          if (x0 < 0) x0 = x;
+          x1 = x;
+        }
+      if (x0 < 0) continue;
+      blo[0] = std::min(blo[0], x0), bhi[0] = std::max(bhi[0], x1);
+      blo[1] = std::min(blo[1], y), bhi[1] = std::max(bhi[1], y);
+      blo[2] = std::min(blo[2], z), bhi[2] = std::max(bhi[2], z);
+    }
+  for (int a = 0; a < 3; ++a) blo[a] = std::max(0, blo[a] - 1), bhi[a] = std::min(n[a] - 1, bhi[a] + 1);
+  for (int z = blo[2]; z <= bhi[2]; ++z)
+    for (int y = blo[1]; y <= bhi[1]; ++y)
+      for (int x = blo[0]; x <= bhi[0]; ++x) {
         const bool in = v.at(x, y, z) == label;
         const int c[3] = {x, y, z};
         for (int a = 0; a < 3; ++a) {
@@ -146,15 +163,18 @@ VecXd distance_to_label_boundary(const Volume& v, int label, const MatX3d& point
       }
   VecXd out = VecXd::Constant(points.rows(), max_m);
   if (faces.empty()) return out;
-  // hash grid of face centres
-  const double cell = 2 * std::max({v.spacing_m[0], v.spacing_m[1], v.spacing_m[2]});
+  // grid of face centres, cells of two voxels along each axis
+  const Eigen::Vector3d cell(2 * v.spacing_m[0], 2 * v.spacing_m[1], 2 * v.spacing_m[2]);
+  const double cmin = cell.minCoeff();
+  // the largest half-diagonal of a face: a face whose centre is d away is at least d - fh away
+  const double fh = 0.5 * std::sqrt(0.25 * cell.squaredNorm() - 0.25 * cmin * cmin);
   Eigen::Vector3d lo = faces[0].c, hi = faces[0].c;
   for (const Face& f : faces) lo = lo.cwiseMin(f.c), hi = hi.cwiseMax(f.c);
-  const Eigen::Vector3i dim = (((hi - lo) / cell).array().floor().cast<int>() + 1).matrix();
+  const Eigen::Vector3i dim = ((hi - lo).cwiseQuotient(cell).array().floor().cast<int>() + 1).matrix();
   auto cell_of = [&](const Eigen::Vector3d& p) {
-    return Eigen::Vector3i(static_cast<int>(std::floor((p.x() - lo.x()) / cell)),
-                           static_cast<int>(std::floor((p.y() - lo.y()) / cell)),
-                           static_cast<int>(std::floor((p.z() - lo.z()) / cell)));
+    return Eigen::Vector3i(static_cast<int>(std::floor((p.x() - lo.x()) / cell.x())),
+                           static_cast<int>(std::floor((p.y() - lo.y()) / cell.y())),
+                           static_cast<int>(std::floor((p.z() - lo.z()) / cell.z())));
   };
   std::vector<int> start(static_cast<std::size_t>(dim.prod()) + 1, 0);
   auto lin = [&](const Eigen::Vector3i& c) { return (static_cast<std::size_t>(c.z()) * dim.y() + c.y()) * dim.x() + c.x(); };
@@ -182,8 +202,8 @@ VecXd distance_to_label_boundary(const Volume& v, int label, const MatX3d& point
             const std::size_t l = lin({x, y, z});
             for (int k = start[l]; k < start[l + 1]; ++k) best = std::min(best, face_distance(faces[order[k]], p));
           }
-      // everything within ring * cell of p has been seen (face centres are binned)
-      if (best <= (ring - 0.5) * cell || ring * cell > max_m + 2 * cell ||
+      // every face centre within ring * cmin of p has been seen
+      if (best <= ring * cmin - fh || ring * cmin > max_m + cell.maxCoeff() ||
           ring > dim.maxCoeff() + std::abs(c.maxCoeff()) + std::abs(c.minCoeff()))
         break;
     }

@@ -2,6 +2,9 @@
 // distance-ordered topology-preserving curve thinning.
 #include "libmodel/vessels/detail.h"
 
+#include <tbb/blocked_range.h>
+#include <tbb/parallel_for.h>
+
 #include <algorithm>
 #include <cmath>
 #include <limits>
@@ -45,29 +48,6 @@ int Grid::border_distance(std::size_t i) const {
   const Eigen::Vector3i c = coords(i);
   const int x = c.x() + ox, y = c.y() + oy, z = c.z() + oz;
   return std::min({x, y, z, vx - 1 - x, vy - 1 - y, vz - 1 - z});
-}
-
-double Grid::mask_at(const Eigen::Vector3d& p) const {
-  // outside the volume's voxel centres: unknown
-  double f[3];
-  int i0[3];
-  const int n[3] = {nx, ny, nz}, o[3] = {ox, oy, oz}, vn[3] = {vx, vy, vz};
-  for (int d = 0; d < 3; ++d) {
-    const double u = (p(d) - origin(d)) / h[d];
-    const double uv = u + o[d];  // volume index coordinate
-    if (uv < -1e-9 || uv > vn[d] - 1 + 1e-9) return -1;
-    const double fl = std::floor(u);
-    i0[d] = static_cast<int>(fl);
-    f[d] = u - fl;
-    if (i0[d] < 0 || i0[d] + 1 >= n[d]) return 0;  // outside the crop: not tissue
-  }
-  double acc = 0;
-  for (int c = 0; c < 8; ++c) {
-    const int dx = c & 1, dy = (c >> 1) & 1, dz = (c >> 2) & 1;
-    const double w = (dx ? f[0] : 1 - f[0]) * (dy ? f[1] : 1 - f[1]) * (dz ? f[2] : 1 - f[2]);
-    if (w > 0 && mask[index(i0[0] + dx, i0[1] + dy, i0[2] + dz)]) acc += w;
-  }
-  return acc;
 }
 
 double Grid::dt_at(const Eigen::Vector3d& p) const {
@@ -141,21 +121,25 @@ void distance_transform(Grid& g) {
         f[i] = (!g.mask[i] && g.in_volume(x, y, z)) ? 0.0 : kInf;
       }
   const int nmax = std::max({g.nx, g.ny, g.nz});
-  std::vector<double> in(nmax), out(nmax), zz(nmax + 1);
-  std::vector<int> vv(nmax);
   const int dims[3] = {g.nx, g.ny, g.nz};
   const std::size_t stride[3] = {1, static_cast<std::size_t>(g.nx), static_cast<std::size_t>(g.nx) * g.ny};
+  // one pass per axis; the lines of a pass are independent (parallel over
+  // planes, each line written by one task: deterministic)
   for (int axis = 0; axis < 3; ++axis) {
     const int a1 = (axis + 1) % 3, a2 = (axis + 2) % 3;
     const double w = g.h[axis] * g.h[axis];
-    for (int j = 0; j < dims[a2]; ++j)
-      for (int i = 0; i < dims[a1]; ++i) {
-        const std::size_t base = i * stride[a1] + j * stride[a2];
-        const int len = dims[axis];
-        for (int q = 0; q < len; ++q) in[q] = f[base + q * stride[axis]];
-        edt_1d(in.data(), len, w, out.data(), vv.data(), zz.data());
-        for (int q = 0; q < len; ++q) f[base + q * stride[axis]] = out[q];
-      }
+    tbb::parallel_for(tbb::blocked_range<int>(0, dims[a2]), [&](const tbb::blocked_range<int>& range) {
+      std::vector<double> in(nmax), out(nmax), zz(nmax + 1);
+      std::vector<int> vv(nmax);
+      for (int j = range.begin(); j < range.end(); ++j)
+        for (int i = 0; i < dims[a1]; ++i) {
+          const std::size_t base = i * stride[a1] + j * stride[a2];
+          const int len = dims[axis];
+          for (int q = 0; q < len; ++q) in[q] = f[base + q * stride[axis]];
+          edt_1d(in.data(), len, w, out.data(), vv.data(), zz.data());
+          for (int q = 0; q < len; ++q) f[base + q * stride[axis]] = out[q];
+        }
+    });
   }
   g.dt.resize(n);
   for (std::size_t i = 0; i < n; ++i) g.dt[i] = f[i] == kInf ? 1e3f : static_cast<float>(std::sqrt(f[i]));

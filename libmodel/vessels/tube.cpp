@@ -19,9 +19,12 @@
 // so a valley splits from an interior point into three structured quad grids
 // (S1 x S2, S3 x S4, S5 x S6): the patch is all quads, shares every ring
 // vertex with the tubes (watertight by construction) and is a manifold.
-// Positions of the new vertices minimise the umbrella-Laplacian energy with
-// the rings and the tubes' next rings fixed (a discrete thin plate), which
-// joins the tubes with continuous tangent planes.
+// The crotch (S4 of every valley: the crotch centre and its spokes to the
+// children's inner points) is placed, a cubic Hermite curve per spoke that
+// dips below the inner points and arrives along each child's axis. The other
+// new vertices minimise the umbrella-Laplacian energy with the rings, the
+// tubes' next rings and the crotch fixed (a discrete thin plate), which joins
+// the tubes with continuous tangent planes.
 #include "libmodel/vessels/detail.h"
 
 #include <Eigen/Dense>
@@ -217,15 +220,44 @@ void junction_patch(Mesh& m, const Ring& P, const std::vector<const Ring*>& C, i
     if (cost < bcost) bcost = cost, base = b;
   }
   const int half = k / 2, spoke = k / (2 * n);
+  // The crotch is placed, not faired: its centre X lies below the centroid of
+  // the children's inner points (along their mean axis) by their mean
+  // distance to that centroid, and each spoke is the cubic Hermite curve from
+  // X, leaving level toward the child, to the child's inner point, arriving
+  // along the child's axis. Left free, the thin plate pulls X and the spokes
+  // into a pinch where the two sides of a tight crotch pass through each
+  // other.
+  Eigen::Vector3d cin = Eigen::Vector3d::Zero(), axis = Eigen::Vector3d::Zero();
+  for (int c = 0; c < n; ++c) cin += m.v[C[c]->ids[0]], axis += C[c]->t;
+  cin /= n;
+  axis = axis.norm() > 1e-12 ? Eigen::Vector3d(axis.normalized()) : P.t;
+  double spread = 0;
+  for (int c = 0; c < n; ++c) spread += (m.v[C[c]->ids[0]] - cin).norm() / n;
+  const Eigen::Vector3d xc = cin - spread * axis;
+  const int X = m.add(xc);
+  auto spoke_curve = [&](const Ring& R) {
+    const Eigen::Vector3d b = m.v[R.ids[0]];
+    Eigen::Vector3d ta = b - xc;
+    ta -= ta.dot(axis) * axis;
+    ta = ta.norm() > 1e-12 ? Eigen::Vector3d(ta.normalized()) : R.t;
+    const double L = (b - xc).norm();
+    std::vector<int> c{X};
+    for (int s = 1; s < spoke; ++s) {
+      const double u = static_cast<double>(s) / spoke, u2 = u * u, u3 = u2 * u;
+      c.push_back(m.add((2 * u3 - 3 * u2 + 1) * xc + (u3 - 2 * u2 + u) * L * ta + (-2 * u3 + 3 * u2) * b +
+                        (u3 - u2) * L * R.t));
+    }
+    c.push_back(R.ids[0]);
+    return c;
+  };
   // per child (in angular order): seam, crotch spoke, the two half rings
-  const int X = m.add(Eigen::Vector3d::Zero(), true);
   std::vector<std::vector<int>> seam(n), crotch(n), to_next(n), to_prev(n);
   for (int i = 0; i < n; ++i) {
     const Ring& R = *C[ang[i].second];
     const int a = P.ids[(base + i * arc) % k];
-    const int inner = R.ids[0], outer = R.ids[half];
+    const int outer = R.ids[half];
     seam[i] = curve(m, a, outer, half);
-    crotch[i] = curve(m, X, inner, spoke);
+    crotch[i] = spoke_curve(R);
     // which half of the ring faces the next child (counter-clockwise)
     const Eigen::Vector3d w = P.t.cross(radial[ang[i].second]);
     const Eigen::Vector3d q = m.v[R.ids[k / 4]] - R.c;

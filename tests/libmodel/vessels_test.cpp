@@ -1,5 +1,6 @@
 // vessels: accuracy against analytic tubes and the phantom's true vessel
-// trees, tree rules, Bezier and tube-mesh invariants, bad input, the CLI.
+// trees, tree rules, Bezier and tube-mesh invariants, determinism, bad input
+// (the CLI is vessels_cli_test.cpp).
 #include "libmodel/vessels/vessels.h"
 #include "libmodel/phantom/phantom.h"
 #include "tests/libmodel/vessels_shapes.h"
@@ -12,31 +13,6 @@
 #include <cstdio>
 #include <filesystem>
 
-// temporary debug helper appended to test
-namespace orthosim {
-inline void dump_worst(const VesselTree& ex, const VesselTree& tr, int n = 8) {
-  std::vector<std::pair<double, int>> d;
-  for (Eigen::Index i = 0; i < ex.nodes.rows(); ++i) {
-    double best = 1e9, rt = 0;
-    for (Eigen::Index e = 0; e < tr.edges.rows(); ++e) {
-      Eigen::Vector3d a = tr.nodes.row(tr.edges(e, 0)), b = tr.nodes.row(tr.edges(e, 1)), p = ex.nodes.row(i);
-      double t = std::clamp((p - a).dot(b - a) / (b - a).squaredNorm(), 0.0, 1.0);
-      double dd = (p - a - t * (b - a)).norm();
-      if (dd < best) best = dd, rt = tr.radii(tr.edges(e, 0));
-    }
-    d.push_back({getenv("RADIUS") ? std::abs(ex.radii(i) - rt) / rt : best, (int)i});
-  }
-  std::sort(d.rbegin(), d.rend());
-  for (int k = 0; k < n && k < (int)d.size(); ++k) {
-    int i = d[k].second;
-    int br = -1;
-    for (Eigen::Index b = 0; b + 1 < ex.branch_offsets.size(); ++b)
-      for (int j = ex.branch_offsets(b); j < ex.branch_offsets(b + 1); ++j) if (ex.branch_nodes(j) == i) br = b;
-    std::printf("   worst %.3f mm at node %d (branch %d) (%.2f %.2f %.2f) mm r %.3f\n", 1e3 * d[k].first, i, br,
-                1e3 * ex.nodes(i, 0), 1e3 * ex.nodes(i, 1), 1e3 * ex.nodes(i, 2), 1e3 * ex.radii(i));
-  }
-}
-}
 namespace orthosim {
 namespace {
 
@@ -225,6 +201,49 @@ TEST(Vessels, YBifurcation) {
   EXPECT_LT(r.tree.nodes(r.tree.branch_nodes(0), 2), 1e-3);
 }
 
+// Narrow bifurcations: the children's first rings are close and tilted
+// apart, so the crotch turns tightly. A faired (free) crotch folded through
+// itself here; the placed crotch keeps the patch free of self-intersections.
+TEST(Vessels, NarrowYBifurcation) {
+  const double h = 0.4e-3;
+  Case c = make_case(70, 40, 100, {h, h, h},
+                     test::y_tubes({14e-3, 8e-3, -1e-3}, 16e-3, 26e-3, 0.2, 2.2e-3, 1.8e-3));
+  const VesselResult r = extract_vessels(c.v, "artery", {});
+  const CentrelineError e = compare_centrelines(r.tree, c.truth);
+  print("narrow Y", r, e, c.vox);
+  expect_accuracy(e, c.vox);
+  expect_topology(r.tree, {-1, 0, 0});
+  expect_bezier(r.tree, r.metrics.tolerance_m);
+  expect_tube(r, 1);
+}
+
+// One child continues the parent's axis, the other leaves it: seen from the
+// parent's axis the continuing child has no angle, so the patch's split
+// points follow the children's directions around their own centroid.
+TEST(Vessels, SideBranchOffAStraightVessel) {
+  const double h = 0.4e-3, ang = 0.6;
+  const Eigen::Vector3d a(12e-3, 8e-3, -1e-3), b(12e-3, 8e-3, 15e-3);
+  std::vector<TubeSpec> tubes{{test::segment(a, b), test::constant(2.2e-3), -1}};
+  tubes.push_back({test::segment(b, b + Eigen::Vector3d(0, 0, 26e-3)),
+                   [](double t) { return 2.2e-3 - 0.3e-3 * std::min(1.0, 3 * t); }, 0});
+  const Eigen::Vector3d d(std::sin(ang), 0, std::cos(ang));
+  const Eigen::Vector3d p1 = b + 26e-3 / 3 * d, p3 = b + 26e-3 * Eigen::Vector3d(0.75 * std::sin(ang), 0, 0.95),
+                        p2 = p3 - 26e-3 / 3 * Eigen::Vector3d::UnitZ();
+  tubes.push_back({[=](double u) {
+                     const double w = 1 - u;
+                     return Eigen::Vector3d(w * w * w * b + 3 * w * w * u * p1 + 3 * w * u * u * p2 + u * u * u * p3);
+                   },
+                   [](double t) { return 2.2e-3 - 0.6e-3 * std::min(1.0, 3 * t); }, 0});
+  Case c = make_case(70, 40, 100, {h, h, h}, tubes);
+  const VesselResult r = extract_vessels(c.v, "artery", {});
+  const CentrelineError e = compare_centrelines(r.tree, c.truth);
+  print("side branch", r, e, c.vox);
+  expect_accuracy(e, c.vox);
+  expect_topology(r.tree, {-1, 0, 0});
+  expect_bezier(r.tree, r.metrics.tolerance_m);
+  expect_tube(r, 1);
+}
+
 TEST(Vessels, Trifurcation) {
   const double h = 0.4e-3;
   const Eigen::Vector3d a(14e-3, 14e-3, -1e-3), b(14e-3, 14e-3, 14e-3);
@@ -238,7 +257,6 @@ TEST(Vessels, Trifurcation) {
   const VesselResult r = extract_vessels(c.v, "artery", {});
   const CentrelineError e = compare_centrelines(r.tree, c.truth);
   print("trifurcation", r, e, c.vox);
-  dump_worst(r.tree, c.truth, 20);
   expect_accuracy(e, c.vox);
   expect_topology(r.tree, {-1, 0, 0, 0});
   EXPECT_EQ(r.metrics.trifurcations, 1);
@@ -309,7 +327,6 @@ TEST(Vessels, ObliqueTubeAnisotropicVoxels) {
   const VesselResult r = extract_vessels(c.v, "artery", {});
   const CentrelineError e = compare_centrelines(r.tree, c.truth);
   print("oblique", r, e, c.vox);
-  dump_worst(r.tree, c.truth);
   expect_accuracy(e, c.vox);
   expect_topology(r.tree, {-1});
   expect_bezier(r.tree, r.metrics.tolerance_m);
@@ -334,6 +351,95 @@ TEST(Vessels, PhantomTrees) {
     expect_bezier(r.tree, r.metrics.tolerance_m);
     expect_tube(r, 1);
     for (const auto& end : r.metrics.ends) EXPECT_TRUE(end.open);
+  }
+}
+
+// The default `orthosim phantom` sample (its bifurcation is narrow: the
+// children leave the brachial artery about 20 degrees apart) and a coarse one
+// (vessel radii of about two voxels): right trees and valid tubes.
+TEST(Vessels, PhantomTreesAtOtherResolutions) {
+  struct Res {
+    int n, nz;
+    double h, hz;
+    bool accuracy;
+  };
+  for (const Res res : {Res{256, 128, 0.3e-3, 1.0e-3, true}, Res{64, 32, 0.8e-3, 2.0e-3, false}}) {
+    PhantomOptions po;
+    po.nx = po.ny = res.n, po.nz = res.nz;
+    po.spacing_m = {res.h, res.h, res.hz};
+    const Volume v = phantom_labels(po);
+    const auto truth = phantom_vessels(po);
+    for (const std::string tissue : {"artery", "vein"}) {
+      SCOPED_TRACE(tissue + " " + std::to_string(res.n) + "x" + std::to_string(res.nz));
+      const VesselResult r = extract_vessels(v, tissue, {});
+      const CentrelineError e = compare_centrelines(r.tree, truth.at(tissue));
+      print("phantom " + std::to_string(res.n) + " " + tissue, r, e, res.h);
+      if (res.accuracy) expect_accuracy(e, res.h);
+      EXPECT_LE(e.max_m, 2.0 * res.h);
+      const VesselTree& t = truth.at(tissue);
+      expect_topology(r.tree, std::vector<int>(t.branch_parent.data(), t.branch_parent.data() + t.branch_parent.size()));
+      expect_tube(r, 1);
+    }
+  }
+}
+
+// ---- determinism, bad input ---------------------------------------------------------------
+
+TEST(Vessels, SameResultWhateverTheThreadCount) {
+  const double h = 0.4e-3;
+  Case c = make_case(70, 40, 100, {h, h, h},
+                     test::y_tubes({14e-3, 8e-3, -1e-3}, 16e-3, 26e-3, 0.45, 2.2e-3, 1.8e-3));
+  VesselResult one, two;
+  {
+    tbb::global_control gc(tbb::global_control::max_allowed_parallelism, 1);
+    one = extract_vessels(c.v, "artery", {});
+  }
+  {
+    tbb::global_control gc(tbb::global_control::max_allowed_parallelism, 2);
+    two = extract_vessels(c.v, "artery", {});
+  }
+  EXPECT_EQ(one.tree.nodes, two.tree.nodes);
+  EXPECT_EQ(one.tree.radii, two.tree.radii);
+  EXPECT_EQ(one.tree.bezier_ctrl, two.tree.bezier_ctrl);
+  EXPECT_EQ(one.tree.tube_vertices, two.tree.tube_vertices);
+  EXPECT_EQ(one.tree.tube_quads, two.tree.tube_quads);
+  EXPECT_EQ(one.metrics.boundary_max_m, two.metrics.boundary_max_m);
+}
+
+TEST(Vessels, BadInputIsRefusedWithAMessage) {
+  const double h = 0.4e-3;
+  Case c = make_case(40, 40, 60, {h, h, h},
+                     {{test::segment({9.5e-3, 10e-3, -2e-3}, {10.5e-3, 9.5e-3, 32e-3}), test::constant(3e-3), -1}});
+  auto message = [&](const std::string& tissue, const VesselOptions& o) -> std::string {
+    try {
+      extract_vessels(c.v, tissue, o);
+    } catch (const Error& e) {
+      EXPECT_TRUE(e.file().empty());
+      return e.message();
+    }
+    return "(accepted)";
+  };
+  EXPECT_NE(message("nerve", {}).find("unknown tissue 'nerve'"), std::string::npos);
+  EXPECT_NE(message("background", {}).find("unknown tissue"), std::string::npos);
+  EXPECT_NE(message("vein", {}).find("no voxels of tissue 'vein'"), std::string::npos);
+  VesselOptions o;
+  o.ring_vertices = 26;
+  EXPECT_NE(message("artery", o).find("ring_vertices"), std::string::npos);
+  o = {};
+  o.tolerance_m = -1;
+  EXPECT_NE(message("artery", o).find("tolerance"), std::string::npos);
+  o = {};
+  o.roots_m.push_back(Eigen::Vector3d(0, std::nan(""), 0));
+  EXPECT_NE(message("artery", o).find("root"), std::string::npos);
+  // a speck is no vessel
+  Volume speck = test::empty_volume(20, 20, 20, {h, h, h}, {0, 0, 0});
+  speck.labels[speck.index(10, 10, 10)] = 6;
+  speck.labels[speck.index(11, 10, 10)] = 6;
+  try {
+    extract_vessels(speck, "artery", {});
+    ADD_FAILURE() << "a two-voxel speck was accepted";
+  } catch (const Error& e) {
+    EXPECT_NE(std::string(e.what()).find("no vessel"), std::string::npos) << e.what();
   }
 }
 

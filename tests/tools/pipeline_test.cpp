@@ -4,7 +4,7 @@
 // failing stage reports its own one-line error and leaves the previous model.
 #include "libmodel/format/model.h"
 #include "libmodel/pipeline/cache.h"
-#include "test_util.h"
+#include "tests/test_util.h"
 
 #include <gtest/gtest.h>
 #include <nlohmann/json.hpp>
@@ -33,7 +33,8 @@ struct Sample {
   nlohmann::json report() const { return nlohmann::json::parse(test::read_file(dir / "r.json")); }
   std::set<std::string> ran() const {
     std::set<std::string> s;
-    for (const auto& st : report()["stages"])
+    const nlohmann::json r = report();  // (a range-for over report()["stages"] would dangle)
+    for (const auto& st : r["stages"])
       if (st.value("ran", false)) s.insert(st["stage"].get<std::string>());
     return s;
   }
@@ -117,7 +118,8 @@ TEST(Pipeline, SceneWithoutVesselsSkipsThem) {
   const auto r = test::run_cli(s.args("--no-tune --scene " + (s.dir / "scene.json")));
   ASSERT_EQ(r.code, 0) << r.err;
   bool skipped = false;
-  for (const auto& st : s.report()["stages"])
+  const nlohmann::json rep = s.report();
+  for (const auto& st : rep["stages"])
     if (st["stage"] == "vessels") skipped = !st.value("ran", true) && st["why"] == "the scene uses no vessels";
   EXPECT_TRUE(skipped);
   ModelReader m(s.dir / "model.h5");

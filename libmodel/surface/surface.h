@@ -1,0 +1,223 @@
+// surface: tissue label volume -> one closed, outward, 2-manifold triangle
+// surface per tissue (the second half of issue 3). docs/surface.md describes
+// the method, the accuracy against the phantom and the timings.
+//
+// Pipeline, all on plain data (Volume and Surface of libmodel/format/model.h):
+//
+//   label_parents (nesting: the tissue table's "inside", or inferred from the
+//   volume) -> solid_label_set (the tissue and every label nested in it) ->
+//   extract_surface:
+//     1. solid    the voxels whose label is in the set, with every pocket that
+//                 does not reach the lateral (x/y) border of the volume filled
+//                 (fill_holes), cropped to its bounding box plus a margin;
+//     2. field    the 0/1 indicator smoothed by a separable Gaussian of
+//                 sigma_vox voxels along each axis (the anisotropic grid),
+//                 values beyond the volume border replicated from the border;
+//     3. extract  marching tetrahedra (Freudenthal split of every cube into
+//                 six tetrahedra) at `iso` on that field, padded by one layer
+//                 of outside so the surface closes at the volume border;
+//     4. smooth   Taubin lambda|mu smoothing (does not shrink), then the
+//                 Gaussian's curvature shrinkage undone (compensate_blur);
+//     5. decimate CGAL edge collapse to target_faces (optional);
+//     6. check    closed, manifold, outward, Euler characteristic,
+//                 self-intersections (check_surface).
+//
+// A tissue's surface is the OUTER boundary of the tissue including everything
+// nested inside it (docs/phantom.md): the skin surface encloses the whole
+// limb, the fat surface fat, muscle, bone, marrow and vessels, the bone
+// surface bone and marrow. Where the limb is cut by the first or last slice
+// (or the tissue touches the lateral border) the surface closes with a flat
+// cap border_offset x spacing outside the centre of the border voxels.
+//
+// Marching tetrahedra on a sign field is closed and 2-manifold by
+// construction (the surface is the zero set of a piecewise-linear function on
+// a tetrahedral mesh; no ambiguous cases), so every extracted surface passes
+// the checks; check_surface still verifies it, and a failure is an internal
+// error (std::logic_error).
+//
+// Units: metres, the physical frame of the volume: voxel (i,j,k) at
+// origin_m + (i,j,k) * spacing_m. Deterministic: the same volume and options
+// give bit-identical surfaces whatever the thread count.
+//
+// STL files: read_stl / write_stl (binary, atomic) of libmodel/remesh/remesh.h,
+// which orthosim_surface links publicly.
+#pragma once
+
+#include "libmodel/format/model.h"
+#include "libmodel/tissues.h"
+
+#include <array>
+#include <cstdint>
+#include <string>
+#include <vector>
+
+namespace orthosim {
+
+// ---- options ---------------------------------------------------------------------------
+enum class DecimationCost {
+  lindstrom_turk,    // CGAL LindstromTurk cost and placement (volume- and shape-preserving)
+  garland_heckbert,  // CGAL GarlandHeckbert plane quadrics
+};
+
+struct SurfaceOptions {
+  // Standard deviation of the Gaussian that smooths the 0/1 indicator before
+  // extraction, in voxels along each axis (so sigma_vox * spacing_m[k] metres
+  // along axis k). 0: no smoothing, vertices at edge midpoints. [0, 4].
+  double sigma_vox = 0.7;
+  // Level of the smoothed indicator that is the surface, in (0, 1).
+  double iso = 0.5;
+  // Fill pockets of the solid that do not reach the lateral (x/y) border of
+  // the volume (background or other labels enclosed by the tissue).
+  bool fill_holes = true;
+  // Distance of the outside layer beyond the volume border, as a fraction of
+  // the spacing along that axis, in (0, 1]. The cap lies about half of it
+  // outside the border voxel centres (the phantom's caps lie on them).
+  double border_offset = 0.05;
+  // Taubin smoothing: iterations of a lambda step then a mu step with
+  // uniform (umbrella) weights. [0, 10000]; 0: none.
+  int smooth_iterations = 10;
+  double taubin_lambda = 0.5;   // in (0, 1)
+  double taubin_mu = -0.53;     // in (-1, -lambda): mu < -lambda makes it non-shrinking
+  // Undo the shrinkage of the Gaussian: the 0.5 level of a blurred indicator
+  // lies sigma^2 H inside the true surface (H the mean curvature, in voxel
+  // units), so after smoothing every vertex moves out by that much
+  // (compensate_blur). No effect when sigma_vox is 0.
+  bool compensate_blur = true;
+  // Decimation to at most this many faces by edge collapse (CGAL); 0: keep
+  // every face. Must be 0 or >= 4.
+  std::int64_t target_faces = 0;
+  DecimationCost decimation = DecimationCost::lindstrom_turk;
+  // Edge collapses that would turn a face normal by more than 90 degrees are
+  // refused (CGAL Bounded_normal_change_placement): fewer self-intersections.
+  bool bounded_normal_change = true;
+  // Count self-intersections (CGAL) in the final check. Costs about as much
+  // as the extraction for large surfaces; off: self_intersections = -1.
+  bool check_self_intersections = true;
+  // Nesting (orthosim surface, enforce_nesting): a nested tissue's surface is
+  // kept at least this far inside its parent's, as a fraction of the
+  // smallest voxel spacing. [0, 1].
+  double nest_clearance_vox = 0.1;
+};
+
+// Throws Error("", "<option>: ...") naming the bad option.
+void validate(const SurfaceOptions& o);
+
+// The options as a JSON object (for provenance and reports).
+std::string surface_parameters_json(const SurfaceOptions& o);
+
+// ---- metrics -----------------------------------------------------------------------------
+struct SurfaceMetrics {
+  std::int64_t faces = 0, vertices = 0;  // of the surface as returned
+  std::int64_t extracted_faces = 0;      // before decimation
+  std::int64_t solid_voxels = 0;         // voxels of the solid (after fill_holes)
+  std::int64_t filled_voxels = 0;        // of those, added by fill_holes
+  double volume_m3 = 0;                  // signed (> 0: outward)
+  double area_m2 = 0;
+  double smooth_volume_change = 0;       // (V after Taubin - V before) / V before
+  int euler = 0;                         // V - E + F over all components
+  int components = 0;                    // edge-connected components
+  bool closed = false;                   // every edge in exactly two faces, traversed opposite ways
+  bool manifold = false;                 // every vertex a single fan of faces, no isolated vertex
+  bool outward = false;                  // volume_m3 > 0
+  std::int64_t self_intersections = -1;  // intersecting face pairs (CGAL); -1: not checked
+  // wall time per phase (s)
+  double solid_s = 0, field_s = 0, extract_s = 0, smooth_s = 0, decimate_s = 0, check_s = 0;
+  double total_s() const { return solid_s + field_s + extract_s + smooth_s + decimate_s + check_s; }
+};
+
+struct SurfaceResult {
+  Surface surface;
+  SurfaceMetrics metrics;
+};
+
+// ---- nesting ------------------------------------------------------------------------------
+// parent[v] is the label that encloses label v (0: background, the outermost),
+// parent[0] = -1; size label_names.size() (at least the largest label + 1).
+//
+// From a tissue table: its "inside" relation, matched to the volume's label
+// names (a tissue with no "inside" or one absent from the volume has parent
+// 0). Throws Error(table.path, ...) when a volume label name is not in the table.
+std::vector<int> label_parents(const Volume& v, const TissueTable& table);
+// Inferred from the volume when no table is at hand: each label's parent is
+// the label (background included) it shares the most voxel faces with. For
+// an onion of shells (skin > fat > muscle > bone > marrow, vessels in
+// muscle) this is the anatomical nesting, because a shell's outer boundary is
+// larger than its inner one. Where two labels touch each other most (a
+// cycle), the one nearer the background (breadth-first depth over contacts
+// of at least 2 % of a label's faces) takes instead the shallower label it
+// shares the most faces with.
+std::vector<int> label_parents(const Volume& v);
+
+// The labels of `tissue`'s solid: its own label and every label nested in it
+// (transitively), sorted. Throws Error("", "unknown tissue '...' (the volume
+// has: ...)") for a name that is not a non-background label of the volume.
+std::vector<int> solid_label_set(const Volume& v, const std::string& tissue, const std::vector<int>& parents);
+
+// ---- extraction -----------------------------------------------------------------------------
+// The closed outward surface of the voxels whose label is in `solid_labels`
+// (values 1..255), through steps 1-6 above. Throws Error("", ...) when the
+// volume is malformed or no voxel has one of the labels, and std::logic_error
+// if the result fails the closed/manifold/outward check (a bug).
+SurfaceResult extract_surface(const Volume& v, const std::vector<int>& solid_labels, const SurfaceOptions& o);
+
+// Taubin lambda|mu smoothing with uniform weights (G. Taubin, "A signal
+// processing approach to fair surface design", SIGGRAPH 1995): each iteration
+// moves every vertex by lambda * L(p) then by mu * L(p), L(p) = mean of the
+// neighbours - p. Parallel, deterministic. Needs a closed surface.
+// With fixed_axes (one entry per vertex, or empty), bit k set keeps that
+// vertex's coordinate k (the flat caps at the volume border stay flat).
+void taubin_smooth(Surface& s, int iterations, double lambda, double mu,
+                   const std::vector<std::uint8_t>& fixed_axes = {});
+
+// Moves every vertex out by sigma_vox^2 H along its normal, in voxel units
+// (coordinates divided by spacing_m, where the blur was isotropic), H the
+// mean curvature (cotangent Laplacian, barycentric areas, clamped to radii of
+// at least one voxel and averaged over 8 rings of neighbours). This undoes
+// to first order the shift of the 0.5 level of a Gaussian-blurred indicator
+// (a ball of radius r comes out with radius r - sigma^2 / r). fixed_axes as
+// for taubin_smooth.
+void compensate_blur(Surface& s, const std::array<double, 3>& spacing_m, double sigma_vox,
+                     const std::vector<std::uint8_t>& fixed_axes = {});
+
+// Edge-collapse decimation (CGAL Surface_mesh_simplification) of a closed
+// triangle surface to at most target_faces faces (>= 4). The result is
+// compacted (no unused vertices). Throws Error("", ...) if the input is not a
+// closed oriented 2-manifold.
+Surface decimate_surface(const Surface& s, std::int64_t target_faces, DecimationCost cost, bool bounded_normal_change);
+
+// Topology and size of a triangle surface: faces, vertices, volume, area,
+// Euler characteristic, components, closed, manifold, outward; with
+// `self_intersections`, the number of intersecting face pairs (CGAL). Never
+// throws on a bad surface: it reports it.
+SurfaceMetrics check_surface(const Surface& s, bool self_intersections = true);
+
+// Intersecting pairs of non-adjacent faces (CGAL
+// Polygon_mesh_processing::self_intersections); 0 for an embedded surface.
+std::int64_t surface_self_intersections(const Surface& s);
+
+// Keeps `inner` inside `outer` (both closed and outward; inner is a tissue
+// nested in outer's): every vertex of inner that lies outside outer, or
+// inside but closer than clearance_m to it, moves to its closest point on
+// outer and then clearance_m inwards along that face's normal. The surfaces
+// of nested tissues are extracted, smoothed and decimated separately, so
+// where a shell is about a voxel thin (cortical bone around marrow) they can
+// cross by a fraction of a voxel; the remesh and build stages need strict
+// nesting. Returns the number of vertices moved. Parallel, deterministic.
+struct NestingResult {
+  std::int64_t moved = 0;          // vertices moved
+  std::int64_t outside = 0;        // of those, outside outer before
+  double max_move_m = 0;           // the largest move (m)
+  std::int64_t still_outside = 0;  // vertices outside outer after (0 unless outer is very thin there)
+};
+NestingResult enforce_nesting(Surface& inner, const Surface& outer, double clearance_m);
+
+// Unsigned distance (m) from each point (n x 3, m) to the surface's
+// triangles (CGAL AABB tree), in parallel. For accuracy tests and reports.
+VecXd distance_to_surface(const Surface& s, const MatX3d& points);
+
+// Points on the surface for distance statistics: every vertex, every face
+// centroid and every edge midpoint ((V + F + E) x 3, m; the edges taken from
+// the half-edges a -> b with a < b, each edge once on a closed surface).
+MatX3d surface_samples(const Surface& s);
+
+}  // namespace orthosim

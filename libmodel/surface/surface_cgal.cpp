@@ -1,0 +1,169 @@
+// The only CGAL translation unit of the surface stage: edge-collapse
+// decimation, self-intersection count and point-to-surface distances.
+#include "libmodel/surface/surface.h"
+
+#include <CGAL/AABB_face_graph_triangle_primitive.h>
+#include <CGAL/AABB_traits.h>
+#include <CGAL/AABB_tree.h>
+#include <CGAL/Exact_predicates_inexact_constructions_kernel.h>
+#include <CGAL/Polygon_mesh_processing/compute_normal.h>
+#include <CGAL/Polygon_mesh_processing/self_intersections.h>
+#include <CGAL/Side_of_triangle_mesh.h>
+#include <CGAL/Surface_mesh.h>
+#include <CGAL/Surface_mesh_simplification/Policies/Edge_collapse/Bounded_normal_change_placement.h>
+#include <CGAL/Surface_mesh_simplification/Policies/Edge_collapse/Count_stop_predicate.h>
+#include <CGAL/Surface_mesh_simplification/Policies/Edge_collapse/GarlandHeckbert_policies.h>
+#include <CGAL/Surface_mesh_simplification/Policies/Edge_collapse/LindstromTurk_cost.h>
+#include <CGAL/Surface_mesh_simplification/Policies/Edge_collapse/LindstromTurk_placement.h>
+#include <CGAL/Surface_mesh_simplification/edge_collapse.h>
+#include <CGAL/boost/graph/helpers.h>
+
+#include <tbb/blocked_range.h>
+#include <tbb/parallel_for.h>
+
+#include <algorithm>
+#include <cmath>
+#include <vector>
+
+namespace orthosim {
+
+namespace {
+
+using K = CGAL::Exact_predicates_inexact_constructions_kernel;
+using Point = K::Point_3;
+using Mesh = CGAL::Surface_mesh<Point>;
+namespace SMS = CGAL::Surface_mesh_simplification;
+
+Mesh to_mesh(const Surface& s, const char* what) {
+  Mesh m;
+  m.reserve(static_cast<Mesh::size_type>(s.vertices.rows()), static_cast<Mesh::size_type>(3 * s.faces.rows() / 2),
+            static_cast<Mesh::size_type>(s.faces.rows()));
+  std::vector<Mesh::Vertex_index> v;
+  v.reserve(static_cast<std::size_t>(s.vertices.rows()));
+  for (Eigen::Index i = 0; i < s.vertices.rows(); ++i) v.push_back(m.add_vertex(Point(s.vertices(i, 0), s.vertices(i, 1), s.vertices(i, 2))));
+  for (Eigen::Index i = 0; i < s.faces.rows(); ++i) {
+    const auto f = m.add_face(v[static_cast<std::size_t>(s.faces(i, 0))], v[static_cast<std::size_t>(s.faces(i, 1))],
+                              v[static_cast<std::size_t>(s.faces(i, 2))]);
+    if (f == Mesh::null_face()) throw Error("", std::string(what) + ": the surface is not an oriented 2-manifold");
+  }
+  return m;
+}
+
+// compacted copy, vertices in their original order
+Surface from_mesh(const Mesh& m) {
+  Surface s;
+  std::vector<std::int32_t> id(m.num_vertices() + m.number_of_removed_vertices(), -1);
+  std::int32_t n = 0;
+  for (auto v : m.vertices()) id[v.idx()] = n++;
+  s.vertices.resize(n, 3);
+  for (auto v : m.vertices()) {
+    const Point& p = m.point(v);
+    s.vertices.row(id[v.idx()]) << p.x(), p.y(), p.z();
+  }
+  s.faces.resize(static_cast<Eigen::Index>(m.number_of_faces()), 3);
+  Eigen::Index f = 0;
+  for (auto fi : m.faces()) {
+    int k = 0;
+    for (auto v : CGAL::vertices_around_face(m.halfedge(fi), m)) s.faces(f, k++) = id[v.idx()];
+    ++f;
+  }
+  return s;
+}
+
+}  // namespace
+
+Surface decimate_surface(const Surface& s, std::int64_t target_faces, DecimationCost cost, bool bounded_normal_change) {
+  if (target_faces < 4) throw Error("", "decimation: target faces must be >= 4");
+  Mesh m = to_mesh(s, "decimation");
+  if (!CGAL::is_closed(m) || !CGAL::is_triangle_mesh(m)) throw Error("", "decimation: the surface must be a closed triangle mesh");
+  // a closed triangle mesh has 3F/2 edges; each collapse removes 3 edges and 2 faces
+  SMS::Count_stop_predicate<Mesh> stop(static_cast<std::size_t>(3 * target_faces / 2));
+  if (cost == DecimationCost::lindstrom_turk) {
+    SMS::LindstromTurk_cost<Mesh> c;
+    if (bounded_normal_change) {
+      SMS::Bounded_normal_change_placement<SMS::LindstromTurk_placement<Mesh>> p;
+      SMS::edge_collapse(m, stop, CGAL::parameters::get_cost(c).get_placement(p));
+    } else {
+      SMS::LindstromTurk_placement<Mesh> p;
+      SMS::edge_collapse(m, stop, CGAL::parameters::get_cost(c).get_placement(p));
+    }
+  } else {
+    using GH = SMS::GarlandHeckbert_plane_policies<Mesh, K>;
+    GH gh(m);
+    if (bounded_normal_change) {
+      SMS::Bounded_normal_change_placement<GH::Get_placement> p(gh.get_placement());
+      SMS::edge_collapse(m, stop, CGAL::parameters::get_cost(gh.get_cost()).get_placement(p));
+    } else {
+      SMS::edge_collapse(m, stop, CGAL::parameters::get_cost(gh.get_cost()).get_placement(gh.get_placement()));
+    }
+  }
+  return from_mesh(m);
+}
+
+std::int64_t surface_self_intersections(const Surface& s) {
+  const Mesh m = to_mesh(s, "self-intersection test");
+  std::vector<std::pair<Mesh::Face_index, Mesh::Face_index>> pairs;
+  CGAL::Polygon_mesh_processing::self_intersections(faces(m), m, std::back_inserter(pairs));
+  return static_cast<std::int64_t>(pairs.size());
+}
+
+NestingResult enforce_nesting(Surface& inner, const Surface& outer, double clearance_m) {
+  using Primitive = CGAL::AABB_face_graph_triangle_primitive<Mesh>;
+  using Tree = CGAL::AABB_tree<CGAL::AABB_traits<K, Primitive>>;
+  NestingResult res;
+  const Eigen::Index n = inner.vertices.rows();
+  if (n == 0 || outer.faces.rows() == 0) return res;
+  const Mesh m = to_mesh(outer, "nesting");
+  Tree tree(faces(m).first, faces(m).second, m);
+  tree.accelerate_distance_queries();
+  const CGAL::Side_of_triangle_mesh<Mesh, K> side(tree);
+  const double c2 = clearance_m * clearance_m;
+  std::vector<std::uint8_t> was_outside(static_cast<std::size_t>(n), 0), moved(static_cast<std::size_t>(n), 0);
+  std::vector<double> move(static_cast<std::size_t>(n), 0.0);
+  auto fix = [&](Eigen::Index i) {
+    const Point p(inner.vertices(i, 0), inner.vertices(i, 1), inner.vertices(i, 2));
+    const auto where = side(p);
+    const auto [c, f] = tree.closest_point_and_primitive(p);
+    const double d2 = CGAL::squared_distance(p, c);
+    if (where == CGAL::ON_BOUNDED_SIDE && d2 >= c2) return;
+    const auto nf = CGAL::Polygon_mesh_processing::compute_face_normal(f, m);
+    const Eigen::Vector3d q(c.x() - clearance_m * nf.x(), c.y() - clearance_m * nf.y(), c.z() - clearance_m * nf.z());
+    const auto u = static_cast<std::size_t>(i);
+    move[u] = (q - inner.vertices.row(i).transpose()).norm();
+    inner.vertices.row(i) = q.transpose();
+    moved[u] = 1;
+    was_outside[u] = where != CGAL::ON_BOUNDED_SIDE;
+  };
+  fix(0);  // the first query finishes the trees' construction; the rest only read them
+  tbb::parallel_for(tbb::blocked_range<Eigen::Index>(1, n, 512), [&](const tbb::blocked_range<Eigen::Index>& r) {
+    for (Eigen::Index i = r.begin(); i != r.end(); ++i) fix(i);
+  });
+  for (Eigen::Index i = 0; i < n; ++i) {
+    const auto u = static_cast<std::size_t>(i);
+    if (!moved[u]) continue;
+    ++res.moved;
+    res.outside += was_outside[u];
+    res.max_move_m = std::max(res.max_move_m, move[u]);
+    if (side(Point(inner.vertices(i, 0), inner.vertices(i, 1), inner.vertices(i, 2))) != CGAL::ON_BOUNDED_SIDE)
+      ++res.still_outside;
+  }
+  return res;
+}
+
+VecXd distance_to_surface(const Surface& s, const MatX3d& points) {
+  using Primitive = CGAL::AABB_face_graph_triangle_primitive<Mesh>;
+  using Tree = CGAL::AABB_tree<CGAL::AABB_traits<K, Primitive>>;
+  VecXd d = VecXd::Zero(points.rows());
+  if (points.rows() == 0 || s.faces.rows() == 0) return d;
+  const Mesh m = to_mesh(s, "distance");
+  Tree tree(faces(m).first, faces(m).second, m);
+  tree.accelerate_distance_queries();
+  d(0) = std::sqrt(tree.squared_distance(Point(points(0, 0), points(0, 1), points(0, 2))));  // builds the tree
+  tbb::parallel_for(tbb::blocked_range<Eigen::Index>(1, points.rows(), 1024), [&](const tbb::blocked_range<Eigen::Index>& r) {
+    for (Eigen::Index i = r.begin(); i != r.end(); ++i)
+      d(i) = std::sqrt(tree.squared_distance(Point(points(i, 0), points(i, 1), points(i, 2))));
+  });
+  return d;
+}
+
+}  // namespace orthosim

@@ -1,0 +1,251 @@
+// SPH benchmarks (issue 9): the paper's Fig. 3(b), time per step against
+// particle count, and the dam-break resolution study.
+//   sph_bench                       the table: steps/s for 1k, 5k, 20k, 100k particles, 1 and 2 threads
+//   sph_bench --sizes=1000,5000     other sizes
+//   sph_bench --threads=2           one thread count
+//   sph_bench --dam-break [--full]  surge front against Martin & Moyce (1952) for 8..32 (40) particles per width
+//   sph_bench --benchmark_filter=.  the Google Benchmark timings (BM_FluidStep)
+// One "step" is one SPH substep: grid rebuild and sort, density pass, force
+// pass, integration with walls (fluid_step with dt at the CFL limit, so one
+// substep per call).
+#include "runtime/sph.h"
+#include "runtime/sph_surface.h"
+
+#include <benchmark/benchmark.h>
+#include <tbb/task_arena.h>
+
+#include <algorithm>
+#include <array>
+#include <chrono>
+#include <cmath>
+#include <cstdio>
+#include <cstring>
+#include <fstream>
+#include <sstream>
+#include <string>
+#include <vector>
+
+namespace rt = orthosim::runtime;
+using rt::Real;
+
+namespace {
+
+using clock_type = std::chrono::steady_clock;
+double seconds_since(clock_type::time_point t0) { return std::chrono::duration<double>(clock_type::now() - t0).count(); }
+
+// A 3-D dam break of about n particles: a column w x 2w x w of blood at 2 mm
+// spacing in a closed box 4w x 3w x w (walls, open top).
+struct Scenario {
+  rt::Fluid fluid;
+  rt::FluidBoundaries bounds;
+  rt::FluidState state;
+  Real dt = 0;  // one substep at the CFL limit of the expected speed
+};
+
+Scenario make_scenario(std::int64_t n) {
+  rt::FluidParams p;
+  p.spacing = 0.002;
+  const int m = std::max(2, static_cast<int>(std::lround(std::cbrt(n / 2.0))));
+  const Real w = m * p.spacing;
+  p.max_speed = std::sqrt(2 * 9.81 * 2 * w);
+  Scenario s{rt::make_fluid(p), rt::make_box_boundaries({0, 0, 0}, {4 * w, 3 * w, w}), rt::make_fluid_state(), 0};
+  s.bounds.faces[3] = rt::Face::open;
+  rt::fill_box(s.fluid, s.state, {0, 0, 0}, {w, 2 * w, w});
+  s.dt = 0.95 * p.cfl * s.fluid.h / (s.fluid.c0 + p.max_speed);
+  return s;
+}
+
+struct Row {
+  std::int64_t particles = 0;
+  int threads = 0;
+  double steps_per_s = 0, substeps_per_step = 0, neighbours = 0, compression = 0;
+};
+
+Row measure(std::int64_t n, int threads, double min_seconds) {
+  Scenario sc = make_scenario(n);
+  Row row;
+  row.particles = sc.state.size();
+  row.threads = threads;
+  tbb::task_arena arena(threads);
+  arena.execute([&] {
+    for (int k = 0; k < 20; ++k) rt::fluid_step(sc.fluid, sc.state, sc.dt, sc.bounds);  // warm up, the column starts to fall
+    long steps = 0, substeps = 0;
+    double comp = 0, nb = 0;
+    const auto t0 = clock_type::now();
+    while (steps < 10 || seconds_since(t0) < min_seconds) {
+      const rt::FluidStepInfo info = rt::fluid_step(sc.fluid, sc.state, sc.dt, sc.bounds);
+      ++steps;
+      substeps += info.substeps;
+      comp = std::max(comp, info.max_compression);
+      nb += info.mean_neighbours;
+    }
+    row.steps_per_s = steps / seconds_since(t0);
+    row.substeps_per_step = static_cast<double>(substeps) / steps;
+    row.neighbours = nb / steps;
+    row.compression = comp;
+  });
+  return row;
+}
+
+void print_table(const std::vector<std::int64_t>& sizes, const std::vector<int>& threads, double min_seconds) {
+  std::printf("SPH step (grid + density + forces + integration), 3-D dam break of blood, dx = 2 mm, Wendland C2 H = 2 dx\n");
+  std::printf("%10s %8s %12s %10s %14s %12s %12s %16s\n", "particles", "threads", "steps/s", "ms/step", "substeps/step",
+              "neighbours", "max drho %", "ns/particle-step");
+  for (std::int64_t n : sizes)
+    for (int t : threads) {
+      const Row r = measure(n, t, min_seconds);
+      std::printf("%10lld %8d %12.1f %10.3f %14.2f %12.1f %12.3f %16.1f\n", static_cast<long long>(r.particles), r.threads,
+                  r.steps_per_s, 1e3 / r.steps_per_s, r.substeps_per_step, r.neighbours, 100 * r.compression,
+                  1e9 / (r.steps_per_s * r.substeps_per_step * r.particles) * r.threads);
+      std::fflush(stdout);
+    }
+  std::printf("(ns/particle-step is per thread: wall time x threads / (particles x substeps))\n");
+}
+
+// ---- the dam-break resolution study ------------------------------------------------
+
+struct DamBreak {
+  std::int64_t particles = 0;
+  double wall_s = 0;
+  Real max_error = 0, speed_ratio = 0, lead_T = 0, max_error_lead = 0;
+  std::vector<std::array<Real, 3>> points;
+};
+
+DamBreak dam_break(int per_a) {
+  const Real a = 0.05715, g = 9.81;
+  rt::FluidParams p;
+  p.rest_density = 1000;
+  p.viscosity = 1e-3;
+  p.spacing = a / per_a;
+  p.max_speed = std::sqrt(2 * g * 2 * a);
+  const rt::Fluid f = rt::make_fluid(p);
+  const Real thick = 3 * f.H + 1e-12;
+  rt::FluidBoundaries b = rt::make_box_boundaries({0, 0, 0}, {4 * a, 3 * a, thick});
+  b.faces = {rt::Face::wall, rt::Face::wall, rt::Face::wall, rt::Face::open, rt::Face::periodic, rt::Face::periodic};
+  b.box_wall.slip = true;
+  rt::FluidState s = rt::make_fluid_state();
+  rt::fill_box(f, s, {0, 0, 0}, {a, 2 * a, thick});
+  DamBreak r;
+  r.particles = s.size();
+  std::ifstream in(std::string(ORTHOSIM_SHARED_DIR) + "/reference/dam-break-martin-moyce-1952-n2.csv");
+  std::string line;
+  const auto t0 = clock_type::now();
+  while (std::getline(in, line)) {
+    if (line.empty() || line[0] == '#' || line[0] == 'Z') continue;
+    Real Z, T;
+    char comma;
+    std::istringstream ls(line);
+    if (!(ls >> Z >> comma >> T) || Z > 3.01) continue;
+    const Real t = T / std::sqrt(2 * g / a);
+    while (s.time < t - 1e-12) rt::fluid_step(f, s, std::min(0.005, t - s.time), b);
+    Real front = 0;
+    for (std::size_t i = 0; i < s.id.size(); ++i)
+      if (s.x[1][i] < 3 * p.spacing) front = std::max(front, s.x[0][i]);
+    r.points.push_back({T, front / a, Z});
+  }
+  r.wall_s = seconds_since(t0);
+  std::vector<std::array<Real, 3>> q;
+  for (const auto& pt : r.points)
+    if (pt[2] >= 1.3) q.push_back(pt);
+  if (q.size() < 2) return r;
+  auto slope = [&](int col) {
+    Real mt = 0, mz = 0;
+    for (const auto& pt : q) mt += pt[0], mz += pt[col];
+    mt /= q.size(), mz /= q.size();
+    Real num = 0, den = 0;
+    for (const auto& pt : q) num += (pt[0] - mt) * (pt[col] - mz), den += (pt[0] - mt) * (pt[0] - mt);
+    return num / den;
+  };
+  const Real s_ref = slope(2);
+  r.speed_ratio = slope(1) / s_ref;
+  Real lead = 0;
+  for (const auto& pt : q) lead += pt[1] - pt[2];
+  lead /= q.size();
+  r.lead_T = lead / s_ref;
+  for (const auto& pt : q) {
+    r.max_error = std::max(r.max_error, std::abs(pt[1] - pt[2]) / pt[2]);
+    r.max_error_lead = std::max(r.max_error_lead, std::abs(pt[1] - lead - pt[2]) / pt[2]);
+  }
+  return r;
+}
+
+void print_dam_break(bool full) {
+  std::printf("Dam break, column a x 2a (a = 57.15 mm), 2-D-like periodic slab 3 H thick, against Martin & Moyce (1952)\n");
+  std::printf("errors over the points with 1.3 <= Z <= 3; lead = mean (Z_sim - Z_exp) / experimental front speed\n");
+  std::printf("%8s %10s %10s %14s %12s %10s %18s\n", "per a", "particles", "wall s", "max error %", "speed ratio", "lead T",
+              "error after lead %");
+  std::vector<int> res{8, 12, 16, 24, 32};
+  if (full) res.push_back(40);
+  std::vector<DamBreak> all;
+  for (int n : res) {
+    const DamBreak r = dam_break(n);
+    all.push_back(r);
+    std::printf("%8d %10lld %10.1f %14.1f %12.3f %10.3f %18.1f\n", n, static_cast<long long>(r.particles), r.wall_s,
+                100 * r.max_error, r.speed_ratio, r.lead_T, 100 * r.max_error_lead);
+    std::fflush(stdout);
+  }
+  std::printf("\nZ(T) at the finest resolution:\n%6s %8s %8s\n", "T", "Z sim", "Z exp");
+  for (const auto& pt : all.back().points) std::printf("%6.2f %8.3f %8.2f\n", pt[0], pt[1], pt[2]);
+}
+
+// ---- Google Benchmark ------------------------------------------------------------------
+
+void BM_FluidStep(benchmark::State& st) {
+  Scenario sc = make_scenario(st.range(0));
+  tbb::task_arena arena(static_cast<int>(st.range(1)));
+  arena.execute([&] {
+    for (int k = 0; k < 10; ++k) rt::fluid_step(sc.fluid, sc.state, sc.dt, sc.bounds);
+    for (auto _ : st) rt::fluid_step(sc.fluid, sc.state, sc.dt, sc.bounds);
+  });
+  st.counters["particles"] = static_cast<double>(sc.state.size());
+  st.counters["neighbours"] = sc.state.last.mean_neighbours;
+  st.SetItemsProcessed(st.iterations() * sc.state.size());
+}
+BENCHMARK(BM_FluidStep)->ArgsProduct({{1000, 5000, 20000, 100000}, {1, 2}})->Unit(benchmark::kMillisecond);
+
+void BM_FluidSurface(benchmark::State& st) {
+  Scenario sc = make_scenario(st.range(0));
+  for (int k = 0; k < 10; ++k) rt::fluid_step(sc.fluid, sc.state, sc.dt, sc.bounds);
+  std::int64_t tris = 0;
+  for (auto _ : st) tris = rt::extract_fluid_surface(sc.fluid, sc.state).n_triangles();
+  st.counters["triangles"] = static_cast<double>(tris);
+}
+BENCHMARK(BM_FluidSurface)->Arg(5000)->Arg(20000)->Unit(benchmark::kMillisecond);
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  std::vector<std::int64_t> sizes{1000, 5000, 20000, 100000};
+  std::vector<int> threads{1, 2};
+  bool dam = false, full = false, gbench = false;
+  double min_seconds = 2;
+  std::vector<char*> rest{argv[0]};
+  for (int i = 1; i < argc; ++i) {
+    const char* a = argv[i];
+    if (std::strncmp(a, "--sizes=", 8) == 0) {
+      sizes.clear();
+      std::stringstream ss(a + 8);
+      for (std::string t; std::getline(ss, t, ',');) sizes.push_back(std::stoll(t));
+    } else if (std::strncmp(a, "--threads=", 10) == 0) {
+      threads = {std::atoi(a + 10)};
+    } else if (std::strncmp(a, "--seconds=", 10) == 0) {
+      min_seconds = std::atof(a + 10);
+    } else if (std::strcmp(a, "--dam-break") == 0) {
+      dam = true;
+    } else if (std::strcmp(a, "--full") == 0) {
+      full = true;
+    } else {
+      if (std::strncmp(a, "--benchmark", 11) == 0) gbench = true;
+      rest.push_back(argv[i]);
+    }
+  }
+  if (gbench) {
+    int n = static_cast<int>(rest.size());
+    benchmark::Initialize(&n, rest.data());
+    benchmark::RunSpecifiedBenchmarks();
+    return 0;
+  }
+  if (dam) print_dam_break(full);
+  else print_table(sizes, threads, min_seconds);
+  return 0;
+}

@@ -1,0 +1,157 @@
+// `orthosim segment` through the CLI: a good stack gives the truth's labels
+// (Dice in the report), the same output twice (determinism), and every bad
+// input gives exit 2, one line naming the file and the problem, and no output.
+#include "libmodel/format/model.h"
+#include "tests/test_util.h"
+
+#include <gtest/gtest.h>
+#include <nlohmann/json.hpp>
+#include <opencv2/core.hpp>
+#include <opencv2/imgcodecs.hpp>
+
+#include <filesystem>
+#include <string>
+
+using namespace orthosim;
+namespace fs = std::filesystem;
+
+namespace {
+
+// A small phantom stack (PNG) with its truth and tissue table, made once.
+struct Stack {
+  test::TempDir dir{"segcli"};
+  std::string slices, tissues, truth;
+  Stack() {
+    const auto r = test::run_cli("phantom --out " + (dir / "ph") + " --size 64x64x12 --spacing 1,1,2 --seed 5 --quiet");
+    EXPECT_EQ(r.code, 0) << r.err;
+    slices = dir / "ph/slices";
+    tissues = dir / "ph/tissues.json";
+    truth = dir / "ph/truth.h5";
+  }
+};
+const Stack& stack() {
+  static Stack s;
+  return s;
+}
+
+// Copies the phantom's slices into a fresh folder for a test to spoil.
+std::string copy_slices(const test::TempDir& d) {
+  const std::string to = d / "slices";
+  fs::copy(stack().slices, to);
+  return to;
+}
+
+std::string first_slice(const std::string& folder) {
+  std::string best;
+  for (const auto& e : fs::directory_iterator(folder))
+    if (best.empty() || e.path().string() < best) best = e.path().string();
+  return best;
+}
+
+// The common expectations on a refused input: exit 2, one line on stderr
+// that names `file` and says `what`, no output file.
+void expect_refused(const test::RunResult& r, const std::string& out, const std::string& file, const std::string& what) {
+  EXPECT_EQ(r.code, 2) << r.err;
+  EXPECT_EQ(test::count_lines(r.err), 1) << r.err;
+  EXPECT_NE(r.err.find(file), std::string::npos) << r.err;
+  EXPECT_NE(r.err.find(what), std::string::npos) << r.err;
+  EXPECT_FALSE(fs::exists(out)) << out;
+}
+
+std::string segment_args(const std::string& slices, const std::string& out, const std::string& extra = "") {
+  return "segment --stack " + slices + " --tissues " + stack().tissues + " --spacing 1,1,2 --out " + out + " --quiet " +
+         extra;
+}
+
+}  // namespace
+
+TEST(SegmentCli, GoodStackMatchesTruthAndIsDeterministic) {
+  test::TempDir d("segcli-good");
+  const auto a = test::run_cli(segment_args(stack().slices, d / "a.h5", "--truth " + stack().truth + " --report " + (d / "r.json")));
+  ASSERT_EQ(a.code, 0) << a.err;
+  const auto rep = nlohmann::json::parse(test::read_file(d / "r.json"));
+  ASSERT_TRUE(rep["metrics"].contains("dice")) << rep.dump(1);
+  // the bulk tissues of a noise-free phantom are found almost exactly
+  for (const char* t : {"skin", "fat", "muscle", "bone"}) {
+    ASSERT_TRUE(rep["metrics"]["dice"].contains(t)) << t;
+    EXPECT_GT(rep["metrics"]["dice"][t].get<double>(), 0.9) << t;
+  }
+  {
+    ModelReader m(d / "a.h5");
+    const Volume v = m.volume();
+    EXPECT_EQ(v.nx, 64);
+    EXPECT_EQ(v.ny, 64);
+    EXPECT_EQ(v.nz, 12);
+    EXPECT_DOUBLE_EQ(v.spacing_m[2], 2e-3);  // mm on the command line, m in the file
+  }
+  const auto b = test::run_cli(segment_args(stack().slices, d / "b.h5"));
+  ASSERT_EQ(b.code, 0) << b.err;
+  ModelReader ma(d / "a.h5"), mb(d / "b.h5");
+  EXPECT_EQ(ma.volume().labels, mb.volume().labels);
+}
+
+TEST(SegmentCli, MissingStack) {
+  test::TempDir d("segcli-missing");
+  expect_refused(test::run_cli(segment_args(d / "nowhere", d / "o.h5")), d / "o.h5", d / "nowhere", "");
+}
+
+TEST(SegmentCli, EmptyFolder) {
+  test::TempDir d("segcli-empty");
+  fs::create_directories(d / "empty");
+  expect_refused(test::run_cli(segment_args(d / "empty", d / "o.h5")), d / "o.h5", d / "empty", "");
+}
+
+TEST(SegmentCli, SliceOfAnotherSize) {
+  test::TempDir d("segcli-size");
+  const std::string folder = copy_slices(d);
+  const std::string victim = first_slice(folder);
+  cv::Mat img(32, 40, CV_8UC3, cv::Scalar(120, 80, 60));
+  ASSERT_TRUE(cv::imwrite(victim, img));
+  expect_refused(test::run_cli(segment_args(folder, d / "o.h5")), d / "o.h5", fs::path(victim).filename().string(), "");
+}
+
+TEST(SegmentCli, TruncatedSlice) {
+  test::TempDir d("segcli-trunc");
+  const std::string folder = copy_slices(d);
+  const std::string victim = first_slice(folder);
+  const std::string bytes = test::read_file(victim);
+  test::write_file(victim, bytes.substr(0, bytes.size() / 2));
+  expect_refused(test::run_cli(segment_args(folder, d / "o.h5")), d / "o.h5", fs::path(victim).filename().string(),
+                 "corrupt");
+}
+
+TEST(SegmentCli, NotAnImage) {
+  test::TempDir d("segcli-text");
+  const std::string folder = copy_slices(d);
+  const std::string victim = first_slice(folder);
+  test::write_file(victim, "this is not an image\n");
+  expect_refused(test::run_cli(segment_args(folder, d / "o.h5")), d / "o.h5", fs::path(victim).filename().string(), "");
+}
+
+TEST(SegmentCli, BadSpacingAndTable) {
+  test::TempDir d("segcli-flags");
+  for (const char* spacing : {"0,1,1", "1,-1,1", "1,1", "a,b,c", "nan,1,1"}) {
+    const auto r = test::run_cli("segment --stack " + stack().slices + " --tissues " + stack().tissues + " --spacing " +
+                                 spacing + " --out " + (d / "o.h5") + " --quiet");
+    EXPECT_EQ(r.code, 2) << spacing << ": " << r.err;
+    EXPECT_EQ(test::count_lines(r.err), 1) << spacing << ": " << r.err;
+    EXPECT_FALSE(fs::exists(d / "o.h5")) << spacing;
+  }
+  test::write_file(d / "bad.json", "{\"format\": \"orthosim-tissues/1\", \"tissues\": [");
+  expect_refused(test::run_cli("segment --stack " + stack().slices + " --tissues " + (d / "bad.json") +
+                               " --spacing 1,1,2 --out " + (d / "o.h5") + " --quiet"),
+                 d / "o.h5", d / "bad.json", "");
+}
+
+TEST(SegmentCli, ExistingOutputIsKeptOnFailure) {
+  test::TempDir d("segcli-keep");
+  test::write_file(d / "o.h5", "previous");
+  const std::string folder = copy_slices(d);
+  test::write_file(first_slice(folder), "broken");
+  const auto r = test::run_cli(segment_args(folder, d / "o.h5"));
+  EXPECT_EQ(r.code, 2) << r.err;
+  EXPECT_EQ(test::read_file(d / "o.h5"), "previous");
+  int temps = 0;
+  for (const auto& e : fs::directory_iterator(d.path)) temps += e.path().filename().string().find(".tmp") != std::string::npos;
+  EXPECT_EQ(temps, 0);
+}

@@ -1,0 +1,637 @@
+// orthosim_surface: analytic solids (sphere, anisotropic ellipsoid, torus),
+// the phantom's tissues against their analytic interfaces, nesting,
+// determinism, and `orthosim surface` through the CLI (outputs, exit codes).
+//
+// Distances are in "voxels" = the SMALLEST spacing of the volume (the
+// strictest choice for anisotropic grids): mean <= 0.5 voxel, Hausdorff
+// <= 2 voxels, before and after decimation.
+#include "libmodel/format/h5file.h"
+#include "libmodel/phantom/phantom.h"
+#include "libmodel/remesh/remesh.h"
+#include "libmodel/surface/surface.h"
+#include "tests/test_util.h"
+
+#include <gtest/gtest.h>
+#include <nlohmann/json.hpp>
+#include <tbb/global_control.h>
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <filesystem>
+#include <functional>
+
+using namespace orthosim;
+namespace fs = std::filesystem;
+
+namespace {
+
+// ---- helpers ----------------------------------------------------------------------------------
+
+// A volume whose voxel (i,j,k) has label inside(position) (0 elsewhere).
+Volume voxelise(int nx, int ny, int nz, std::array<double, 3> spacing, std::array<double, 3> origin,
+                const std::function<int(const Eigen::Vector3d&)>& label, std::vector<std::string> names = {"background", "solid"}) {
+  Volume v;
+  v.nx = nx, v.ny = ny, v.nz = nz;
+  v.spacing_m = spacing, v.origin_m = origin;
+  v.label_names = std::move(names);
+  v.labels.resize(static_cast<std::size_t>(nx) * ny * nz);
+  for (int z = 0; z < nz; ++z)
+    for (int y = 0; y < ny; ++y)
+      for (int x = 0; x < nx; ++x) v.labels[v.index(x, y, z)] = static_cast<std::uint8_t>(label(v.position(x, y, z)));
+  return v;
+}
+
+double min_spacing(const Volume& v) { return *std::min_element(v.spacing_m.begin(), v.spacing_m.end()); }
+
+struct Dist {
+  double mean = 0, max = 0;
+};
+Dist stats(const VecXd& d) {
+  Dist r;
+  if (d.size() == 0) return r;
+  r.mean = d.mean();
+  r.max = d.maxCoeff();
+  return r;
+}
+
+// Distance from p to the ellipsoid sum (x_i / a_i)^2 = 1 centred at c: the
+// closest point is x_i = a_i^2 p_i / (t + a_i^2) with t the root of
+// sum (a_i p_i / (t + a_i^2))^2 = 1 (decreasing in t > -min a_i^2), by bisection.
+double ellipsoid_distance(const Eigen::Vector3d& q, const Eigen::Vector3d& c, const Eigen::Vector3d& a) {
+  const Eigen::Vector3d p = q - c;
+  auto F = [&](double t) {
+    double s = 0;
+    for (int i = 0; i < 3; ++i) s += std::pow(a(i) * p(i) / (t + a(i) * a(i)), 2);
+    return s - 1;
+  };
+  const double amin2 = a.minCoeff() * a.minCoeff();
+  double lo = -amin2 * (1 - 1e-12), hi = p.norm() * a.maxCoeff() + 1e-9;
+  if (F(lo) < 0) lo = -amin2 * (1 - 1e-12);  // deep inside near the medial axis (not on our surfaces)
+  for (int it = 0; it < 200; ++it) {
+    const double m = 0.5 * (lo + hi);
+    (F(m) > 0 ? lo : hi) = m;
+  }
+  const double t = 0.5 * (lo + hi);
+  Eigen::Vector3d x;
+  for (int i = 0; i < 3; ++i) x(i) = a(i) * a(i) * p(i) / (t + a(i) * a(i));
+  return (p - x).norm();
+}
+
+void expect_topology(const SurfaceMetrics& m, int euler, const std::string& what) {
+  EXPECT_TRUE(m.closed) << what;
+  EXPECT_TRUE(m.manifold) << what;
+  EXPECT_TRUE(m.outward) << what;
+  EXPECT_EQ(m.euler, euler) << what;
+  EXPECT_EQ(m.self_intersections, 0) << what;
+}
+
+// ---- analytic solids -------------------------------------------------------------------------------
+
+struct Analytic {
+  Volume v;
+  std::function<double(const Eigen::Vector3d&)> distance;
+  double volume_m3;
+  int euler;
+};
+
+Analytic sphere() {
+  const double r = 9.3e-3;
+  Analytic a;
+  a.v = voxelise(26, 26, 26, {1e-3, 1e-3, 1e-3}, {-12.5e-3, -12.5e-3, -12.5e-3},
+                 [&](const Eigen::Vector3d& p) { return p.norm() < r ? 1 : 0; });
+  a.distance = [r](const Eigen::Vector3d& p) { return std::abs(p.norm() - r); };
+  a.volume_m3 = 4.0 / 3.0 * M_PI * r * r * r;
+  a.euler = 2;
+  return a;
+}
+
+Analytic ellipsoid() {
+  const Eigen::Vector3d ax(11e-3, 7.5e-3, 14e-3), c(0.3e-3, -0.2e-3, 0.4e-3);
+  Analytic a;
+  a.v = voxelise(64, 44, 36, {0.4e-3, 0.4e-3, 0.9e-3}, {-12.6e-3, -8.6e-3, -15.75e-3}, [&](const Eigen::Vector3d& p) {
+    const Eigen::Vector3d q = (p - c).cwiseQuotient(ax);
+    return q.squaredNorm() < 1 ? 1 : 0;
+  });
+  a.distance = [ax, c](const Eigen::Vector3d& p) { return ellipsoid_distance(p, c, ax); };
+  a.volume_m3 = 4.0 / 3.0 * M_PI * ax.prod();
+  a.euler = 2;
+  return a;
+}
+
+Analytic torus() {
+  const double R = 10e-3, r = 3.5e-3;
+  Analytic a;
+  a.v = voxelise(60, 60, 22, {0.5e-3, 0.5e-3, 0.6e-3}, {-14.75e-3, -14.75e-3, -6.3e-3}, [&](const Eigen::Vector3d& p) {
+    return std::hypot(std::hypot(p.x(), p.y()) - R, p.z()) < r ? 1 : 0;
+  });
+  a.distance = [R, r](const Eigen::Vector3d& p) { return std::abs(std::hypot(std::hypot(p.x(), p.y()) - R, p.z()) - r); };
+  a.volume_m3 = 2 * M_PI * M_PI * R * r * r;
+  a.euler = 0;
+  return a;
+}
+
+Dist analytic_distance(const Analytic& a, const Surface& s) {
+  const MatX3d p = surface_samples(s);
+  VecXd d(p.rows());
+  for (Eigen::Index i = 0; i < p.rows(); ++i) d(i) = a.distance(p.row(i).transpose());
+  return stats(d);
+}
+
+void check_analytic(const Analytic& a, const std::string& name) {
+  const double vox = min_spacing(a.v);
+  for (std::int64_t target : {std::int64_t{0}, std::int64_t{2000}}) {
+    SurfaceOptions o;
+    o.target_faces = target;
+    const SurfaceResult r = extract_surface(a.v, {1}, o);
+    const std::string what = name + (target ? " decimated" : "");
+    expect_topology(r.metrics, a.euler, what);
+    if (target) EXPECT_LE(r.metrics.faces, target) << what;
+    const Dist d = analytic_distance(a, r.surface);
+    const double dv = r.metrics.volume_m3 / a.volume_m3 - 1;
+    std::printf("  %-20s faces %7lld (extracted %7lld)  volume %+.2f %%  mean %.3f  max %.3f voxel  Taubin dV %+.3f %%\n",
+                what.c_str(), static_cast<long long>(r.metrics.faces), static_cast<long long>(r.metrics.extracted_faces),
+                100 * dv, d.mean / vox, d.max / vox, 100 * r.metrics.smooth_volume_change);
+    EXPECT_LT(std::abs(dv), 0.03) << what;
+    EXPECT_LE(d.mean, 0.5 * vox) << what;
+    EXPECT_LE(d.max, 2.0 * vox) << what;
+    EXPECT_LT(std::abs(r.metrics.smooth_volume_change), 0.005) << what;  // Taubin does not shrink
+  }
+}
+
+}  // namespace
+
+TEST(SurfaceAnalytic, Sphere) { check_analytic(sphere(), "sphere"); }
+TEST(SurfaceAnalytic, EllipsoidAnisotropic) { check_analytic(ellipsoid(), "ellipsoid"); }
+TEST(SurfaceAnalytic, Torus) { check_analytic(torus(), "torus"); }
+
+TEST(SurfaceAnalytic, SettingsKeepTopology) {
+  const Analytic a = ellipsoid();
+  for (double sigma : {0.0, 0.5, 1.0})
+    for (int it : {0, 10}) {
+      SurfaceOptions o;
+      o.sigma_vox = sigma;
+      o.smooth_iterations = it;
+      const SurfaceResult r = extract_surface(a.v, {1}, o);
+      expect_topology(r.metrics, 2, "sigma " + std::to_string(sigma) + " iterations " + std::to_string(it));
+      const Dist d = analytic_distance(a, r.surface);
+      std::printf("  sigma %.1f Taubin %2d: faces %7lld  mean %.3f  max %.3f voxel\n", sigma, it,
+                  static_cast<long long>(r.metrics.faces), d.mean / min_spacing(a.v), d.max / min_spacing(a.v));
+      EXPECT_LE(d.max, 2.0 * min_spacing(a.v));
+    }
+  SurfaceOptions gh;
+  gh.target_faces = 1500;
+  gh.decimation = DecimationCost::garland_heckbert;
+  const SurfaceResult r = extract_surface(a.v, {1}, gh);
+  expect_topology(r.metrics, 2, "Garland-Heckbert");
+  EXPECT_LE(r.metrics.faces, 1500);
+}
+
+TEST(SurfaceAnalytic, TaubinDoesNotShrink) {
+  // Taubin's lambda|mu filter has a gain slightly above 1 at low
+  // frequencies, so a sphere grows a little; plain Laplacian smoothing
+  // (two lambda steps per iteration) shrinks it by much more
+  const Analytic a = sphere();
+  SurfaceOptions o;
+  o.smooth_iterations = 0;
+  o.compensate_blur = false;
+  const Surface s0 = extract_surface(a.v, {1}, o).surface;
+  Surface taubin = s0, laplace = s0;
+  taubin_smooth(taubin, 50, 0.5, -0.53);
+  taubin_smooth(laplace, 50, 0.5, 0.5);
+  const double v0 = check_surface(s0, false).volume_m3;
+  const double dt = check_surface(taubin, false).volume_m3 / v0 - 1;
+  const double dl = check_surface(laplace, false).volume_m3 / v0 - 1;
+  std::printf("  volume change after 50 iterations: Taubin %+.3f %%, Laplace %+.3f %%\n", 100 * dt, 100 * dl);
+  EXPECT_GT(dt, -0.001);
+  EXPECT_LT(std::abs(dt), 0.1 * std::abs(dl));
+  expect_topology(check_surface(taubin), 2, "50 Taubin iterations");
+}
+
+TEST(SurfaceAnalytic, BorderCapsAreFlatAndOnTheBorder) {
+  // a cylinder along z cut by the first and last slice: closed, caps flat
+  // (through Taubin smoothing and the blur compensation) at the border slices
+  const double r = 6e-3;
+  Volume v = voxelise(32, 32, 12, {0.5e-3, 0.5e-3, 1e-3}, {-7.75e-3, -7.75e-3, 0},
+                      [&](const Eigen::Vector3d& p) { return std::hypot(p.x(), p.y()) < r ? 1 : 0; });
+  SurfaceOptions o;
+  const SurfaceResult res = extract_surface(v, {1}, o);
+  expect_topology(res.metrics, 2, "cut cylinder");
+  double zmin = 1, zmax = -1;
+  for (Eigen::Index i = 0; i < res.surface.vertices.rows(); ++i)
+    zmin = std::min(zmin, res.surface.vertices(i, 2)), zmax = std::max(zmax, res.surface.vertices(i, 2));
+  // the cap planes: border_offset / 2 slices outside the first and last slice, exactly
+  EXPECT_NEAR(zmin, -0.5 * o.border_offset * 1e-3, 1e-15);
+  EXPECT_NEAR(zmax, 11e-3 + 0.5 * o.border_offset * 1e-3, 1e-15);
+  int on_caps = 0;
+  for (Eigen::Index i = 0; i < res.surface.vertices.rows(); ++i)
+    on_caps += res.surface.vertices(i, 2) == zmin || res.surface.vertices(i, 2) == zmax;
+  EXPECT_GT(on_caps, 2 * 100);
+  const double analytic = M_PI * r * r * 11e-3;
+  EXPECT_NEAR(res.metrics.volume_m3 / analytic, 1, 0.03);
+}
+
+TEST(SurfaceNesting, InferredAndFromTable) {
+  PhantomOptions p;
+  p.nx = 64, p.ny = 64, p.nz = 16;
+  p.spacing_m = {0.8e-3, 0.8e-3, 2e-3};
+  const Volume v = phantom_labels(p);
+  const std::vector<int> inferred = label_parents(v);
+  const std::vector<int> table = label_parents(v, phantom_tissue_table());
+  // skin < background, fat < skin, muscle < fat, bone < muscle, marrow < bone, vessels < muscle
+  const std::vector<int> expect{-1, 0, 1, 2, 3, 4, 3, 3};
+  EXPECT_EQ(table, expect);
+  EXPECT_EQ(inferred, expect);
+  EXPECT_EQ(solid_label_set(v, "skin", table), (std::vector<int>{1, 2, 3, 4, 5, 6, 7}));
+  EXPECT_EQ(solid_label_set(v, "fat", table), (std::vector<int>{2, 3, 4, 5, 6, 7}));
+  EXPECT_EQ(solid_label_set(v, "muscle", table), (std::vector<int>{3, 4, 5, 6, 7}));
+  EXPECT_EQ(solid_label_set(v, "bone", table), (std::vector<int>{4, 5}));
+  EXPECT_EQ(solid_label_set(v, "artery", table), (std::vector<int>{6}));
+  EXPECT_THROW(solid_label_set(v, "tendon", table), Error);
+  EXPECT_THROW(solid_label_set(v, "background", table), Error);
+}
+
+TEST(SurfaceNesting, EnforceNestingKeepsTheInnerSurfaceInside) {
+  // the "inner" ball pokes 1.5 mm out of the "outer" one on +x
+  const double R = 9e-3, r = 6e-3;
+  auto ball = [](const Eigen::Vector3d& c, double rad) {
+    return voxelise(26, 26, 26, {1e-3, 1e-3, 1e-3}, {-12.5e-3, -12.5e-3, -12.5e-3},
+                    [&](const Eigen::Vector3d& p) { return (p - c).norm() < rad ? 1 : 0; });
+  };
+  SurfaceOptions o;
+  o.check_self_intersections = false;
+  const Surface outer = extract_surface(ball({0, 0, 0}, R), {1}, o).surface;
+  Surface inner = extract_surface(ball({4.5e-3, 0, 0}, r), {1}, o).surface;
+  const Surface before = inner;
+  const double clearance = 0.1e-3;
+  const NestingResult n = enforce_nesting(inner, outer, clearance);
+  EXPECT_GT(n.outside, 0);
+  EXPECT_GE(n.moved, n.outside);
+  EXPECT_EQ(n.still_outside, 0);
+  EXPECT_GT(n.max_move_m, 1e-3);
+  EXPECT_LT(n.max_move_m, 2.5e-3);
+  // every vertex now at least ~clearance inside: its distance to the outer
+  // surface is >= clearance (up to the facet approximation) and it is inside
+  // the analytic ball of the outer surface's extraction
+  const VecXd d = distance_to_surface(outer, inner.vertices);
+  for (Eigen::Index i = 0; i < inner.vertices.rows(); ++i) {
+    EXPECT_GT(d(i), 0.5 * clearance) << i;
+    EXPECT_LT(inner.vertices.row(i).norm(), R + 0.2e-3) << i;
+  }
+  // vertices that were well inside did not move
+  for (Eigen::Index i = 0; i < inner.vertices.rows(); ++i)
+    if (before.vertices(i, 0) < 0) EXPECT_EQ(inner.vertices.row(i), before.vertices.row(i)) << i;
+  const SurfaceMetrics m = check_surface(inner, true);
+  EXPECT_TRUE(m.closed && m.manifold && m.outward);
+  // a surface already nested is left alone
+  Surface small = extract_surface(ball({0, 0, 0}, r), {1}, o).surface;
+  EXPECT_EQ(enforce_nesting(small, outer, clearance).moved, 0);
+}
+
+TEST(SurfaceNesting, FillHolesUsesTheLateralBorder) {
+  // a shell open at both z ends: without nesting, fill_holes alone makes the
+  // solid the whole tube (its inside reaches only the first and last slice)
+  Volume v = voxelise(24, 24, 8, {1e-3, 1e-3, 1e-3}, {-11.5e-3, -11.5e-3, 0}, [](const Eigen::Vector3d& p) {
+    const double r = std::hypot(p.x(), p.y());
+    return r < 8e-3 ? (r > 6e-3 ? 1 : 2) : 0;
+  }, {"background", "shell", "core"});
+  SurfaceOptions o;
+  const SurfaceResult filled = extract_surface(v, {1}, o);
+  expect_topology(filled.metrics, 2, "shell filled");
+  EXPECT_GT(filled.metrics.filled_voxels, 0);
+  EXPECT_NEAR(filled.metrics.volume_m3 / (M_PI * 64e-6 * 7e-3), 1, 0.05);
+  o.fill_holes = false;
+  const SurfaceResult tube = extract_surface(v, {1}, o);
+  expect_topology(tube.metrics, 0, "shell as a tube (genus 1)");
+  EXPECT_EQ(tube.metrics.filled_voxels, 0);
+}
+
+TEST(SurfaceCheck, ReportsWhatIsWrong) {
+  // a tetrahedron, outward
+  Surface t;
+  t.vertices.resize(4, 3);
+  t.vertices << 0, 0, 0, 1, 0, 0, 0, 1, 0, 0, 0, 1;
+  t.faces.resize(4, 3);
+  t.faces << 0, 2, 1, 0, 1, 3, 0, 3, 2, 1, 2, 3;
+  SurfaceMetrics m = check_surface(t);
+  EXPECT_TRUE(m.closed && m.manifold && m.outward);
+  EXPECT_EQ(m.euler, 2);
+  EXPECT_EQ(m.components, 1);
+  EXPECT_EQ(m.self_intersections, 0);
+  EXPECT_NEAR(m.volume_m3, 1.0 / 6, 1e-12);
+  // inward
+  Surface in = t;
+  for (Eigen::Index f = 0; f < 4; ++f) std::swap(in.faces(f, 1), in.faces(f, 2));
+  m = check_surface(in);
+  EXPECT_TRUE(m.closed && m.manifold);
+  EXPECT_FALSE(m.outward);
+  // a face missing: open
+  Surface open = t;
+  open.faces.conservativeResize(3, 3);
+  EXPECT_FALSE(check_surface(open).closed);
+  // one face flipped: not consistently oriented
+  Surface flip = t;
+  std::swap(flip.faces(3, 1), flip.faces(3, 2));
+  EXPECT_FALSE(check_surface(flip).closed);
+  // two tetrahedra sharing one vertex: closed, not manifold
+  Surface two;
+  two.vertices.resize(7, 3);
+  two.vertices << 0, 0, 0, 1, 0, 0, 0, 1, 0, 0, 0, 1, -1, 0, 0, 0, -1, 0, 0, 0, -1;
+  two.faces.resize(8, 3);
+  two.faces << 0, 2, 1, 0, 1, 3, 0, 3, 2, 1, 2, 3, 0, 4, 5, 0, 6, 4, 0, 5, 6, 4, 6, 5;
+  m = check_surface(two, false);
+  EXPECT_TRUE(m.closed);
+  EXPECT_FALSE(m.manifold);
+  EXPECT_TRUE(m.outward);
+  EXPECT_EQ(m.components, 1);
+  // an unused vertex: not manifold
+  Surface iso = t;
+  iso.vertices.conservativeResize(5, 3);
+  iso.vertices.row(4) << 5, 5, 5;
+  EXPECT_FALSE(check_surface(iso, false).manifold);
+  // two overlapping tetrahedra: self-intersections
+  Surface both;
+  both.vertices.resize(8, 3);
+  both.vertices.topRows(4) = t.vertices;
+  both.vertices.bottomRows(4) = t.vertices.array() + 0.25;
+  both.faces.resize(8, 3);
+  both.faces.topRows(4) = t.faces;
+  both.faces.bottomRows(4) = t.faces.array() + 4;
+  m = check_surface(both);
+  EXPECT_TRUE(m.closed && m.manifold);
+  EXPECT_EQ(m.components, 2);
+  EXPECT_EQ(m.euler, 4);
+  EXPECT_GT(m.self_intersections, 0);
+}
+
+// ---- the phantom -----------------------------------------------------------------------------------
+
+namespace {
+
+PhantomOptions test_phantom() {
+  PhantomOptions p;
+  p.nx = 128, p.ny = 128, p.nz = 48;
+  p.spacing_m = {0.4e-3, 0.4e-3, 1.0e-3};
+  return p;
+}
+
+struct PhantomCase {
+  PhantomOptions p = test_phantom();
+  Volume v = phantom_labels(p);
+  std::vector<int> parents = label_parents(v, phantom_tissue_table());
+  std::map<std::string, Surface> truth = phantom_surfaces(p);
+};
+
+const PhantomCase& phantom_case() {
+  static const PhantomCase c;
+  return c;
+}
+
+}  // namespace
+
+TEST(SurfacePhantom, TissuesAgainstTheAnalyticInterfaces) {
+  const PhantomCase& c = phantom_case();
+  const double vox = min_spacing(c.v);
+  const std::map<std::string, int> euler{{"skin", 2}, {"fat", 2}, {"muscle", 2}, {"bone", 6}, {"marrow", 6}};
+  for (const std::string tissue : {"skin", "fat", "muscle", "bone", "marrow"}) {
+    for (std::int64_t target : {std::int64_t{0}, std::int64_t{20000}}) {
+      SurfaceOptions o;
+      o.target_faces = target;
+      const auto t0 = std::chrono::steady_clock::now();
+      const SurfaceResult r = extract_surface(c.v, solid_label_set(c.v, tissue, c.parents), o);
+      const double secs = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+      const std::string what = tissue + (target ? " decimated" : "");
+      expect_topology(r.metrics, euler.at(tissue), what);
+      // exact analytic distances on a deterministic subsample of the samples
+      const MatX3d all = surface_samples(r.surface);
+      const Eigen::Index step = std::max<Eigen::Index>(1, all.rows() / 6000);
+      MatX3d sub((all.rows() + step - 1) / step, 3);
+      for (Eigen::Index i = 0; i < sub.rows(); ++i) sub.row(i) = all.row(i * step);
+      const Dist exact = stats(phantom_interface_distances(c.p, tissue, sub));
+      // every sample against the truth mesh, and the truth mesh against ours (two-sided Hausdorff)
+      const Dist mesh = stats(distance_to_surface(c.truth.at(tissue), all));
+      const Dist back = stats(distance_to_surface(r.surface, c.truth.at(tissue).vertices));
+      std::printf("  %-17s faces %7lld  exact mean %.3f max %.3f | mesh mean %.3f max %.3f | truth->ours mean %.3f max %.3f voxel  %.2f s\n",
+                  what.c_str(), static_cast<long long>(r.metrics.faces), exact.mean / vox, exact.max / vox, mesh.mean / vox,
+                  mesh.max / vox, back.mean / vox, back.max / vox, secs);
+      EXPECT_LE(exact.mean, 0.5 * vox) << what;
+      EXPECT_LE(exact.max, 2.0 * vox) << what;
+      EXPECT_LE(mesh.mean, 0.5 * vox) << what;
+      EXPECT_LE(mesh.max, 2.0 * vox) << what;
+      EXPECT_LE(back.max, 2.0 * vox) << what;
+    }
+  }
+}
+
+TEST(SurfacePhantom, VesselsAreClosed) {
+  const PhantomCase& c = phantom_case();
+  for (const std::string tissue : {"artery", "vein"}) {
+    const SurfaceResult r = extract_surface(c.v, solid_label_set(c.v, tissue, c.parents), SurfaceOptions{});
+    expect_topology(r.metrics, 2, tissue);
+  }
+}
+
+TEST(SurfaceDeterminism, SameSurfaceWhateverTheThreadCount) {
+  const PhantomCase& c = phantom_case();
+  const std::vector<int> labels = solid_label_set(c.v, "muscle", c.parents);
+  SurfaceOptions o;
+  o.check_self_intersections = false;
+  const SurfaceResult a = extract_surface(c.v, labels, o);
+  const SurfaceResult b = extract_surface(c.v, labels, o);
+  SurfaceResult one;
+  {
+    tbb::global_control g(tbb::global_control::max_allowed_parallelism, 1);
+    one = extract_surface(c.v, labels, o);
+  }
+  EXPECT_TRUE(a.surface.vertices == b.surface.vertices);
+  EXPECT_TRUE(a.surface.faces == b.surface.faces);
+  EXPECT_TRUE(a.surface.vertices == one.surface.vertices);
+  EXPECT_TRUE(a.surface.faces == one.surface.faces);
+  o.target_faces = 5000;
+  const SurfaceResult d1 = extract_surface(c.v, labels, o), d2 = extract_surface(c.v, labels, o);
+  EXPECT_TRUE(d1.surface.vertices == d2.surface.vertices);
+  EXPECT_TRUE(d1.surface.faces == d2.surface.faces);
+}
+
+TEST(SurfaceOptionsTest, Validate) {
+  SurfaceOptions o;
+  EXPECT_NO_THROW(validate(o));
+  auto bad = [](auto f) {
+    SurfaceOptions o;
+    f(o);
+    EXPECT_THROW(validate(o), Error);
+  };
+  bad([](SurfaceOptions& o) { o.target_faces = -1; });
+  bad([](SurfaceOptions& o) { o.target_faces = 3; });
+  bad([](SurfaceOptions& o) { o.sigma_vox = -0.1; });
+  bad([](SurfaceOptions& o) { o.iso = 1; });
+  bad([](SurfaceOptions& o) { o.taubin_mu = -0.4; });
+  bad([](SurfaceOptions& o) { o.smooth_iterations = -1; });
+  bad([](SurfaceOptions& o) { o.border_offset = 0; });
+  Volume empty = voxelise(8, 8, 8, {1e-3, 1e-3, 1e-3}, {0, 0, 0}, [](const Eigen::Vector3d&) { return 0; });
+  EXPECT_THROW(extract_surface(empty, {1}, SurfaceOptions{}), Error);
+}
+
+// ---- the CLI -----------------------------------------------------------------------------------------
+
+namespace {
+
+struct CliFiles {
+  test::TempDir d{"surface-cli"};
+  CliFiles() {
+    PhantomOptions p;
+    p.nx = 64, p.ny = 64, p.nz = 20;
+    p.spacing_m = {0.8e-3, 0.8e-3, 2e-3};
+    Volume v = phantom_labels(p);
+    {
+      ModelWriter w(d / "labels.h5", ModelWriter::Start::fresh);
+      w.write(v);
+      w.commit();
+    }
+    // nothing segmented
+    Volume z = v;
+    std::fill(z.labels.begin(), z.labels.end(), 0);
+    {
+      ModelWriter w(d / "empty.h5", ModelWriter::Start::fresh);
+      w.write(z);
+      w.commit();
+    }
+    // a tissue without voxels: the vein relabelled muscle
+    Volume nv = v;
+    for (auto& l : nv.labels)
+      if (l == kPhantomVein) l = kPhantomMuscle;
+    {
+      ModelWriter w(d / "novein.h5", ModelWriter::Start::fresh);
+      w.write(nv);
+      w.commit();
+    }
+    test::write_file(d / "text.h5", "not an HDF5 file\n");
+    {
+      h5::File f(d / "plain.h5", h5::File::Mode::create);
+      const double x[3] = {1, 2, 3};
+      f.write<double>("/x", x, {3}, "1");
+    }
+  }
+  std::string operator/(const std::string& r) const { return d / r; }
+};
+
+const CliFiles& cli_files() {
+  static const CliFiles f;
+  return f;
+}
+
+void expect_bad(const std::string& args, const std::string& needle) {
+  const CliFiles& f = cli_files();
+  const std::string out = f / "bad-out";
+  const std::string model = f / "bad-model.h5";
+  fs::remove_all(out);
+  fs::remove(model);
+  const test::RunResult r = test::run_cli("surface --out " + out + " --model " + model + " " + args);
+  EXPECT_EQ(r.code, 2) << args << "\n" << r.err;
+  EXPECT_EQ(test::count_lines(r.err), 1) << args << "\n" << r.err;
+  EXPECT_NE(r.err.find("orthosim surface: error: "), std::string::npos) << r.err;
+  EXPECT_NE(r.err.find(needle), std::string::npos) << args << "\n" << r.err;
+  EXPECT_FALSE(fs::exists(out)) << args;
+  EXPECT_FALSE(fs::exists(model)) << args;
+  int leftovers = 0;
+  for (const auto& e : fs::directory_iterator(f.d.path)) {
+    const std::string n = e.path().filename().string();
+    leftovers += n.find("bad-") != std::string::npos;
+  }
+  EXPECT_EQ(leftovers, 0) << args;
+}
+
+}  // namespace
+
+TEST(SurfaceCli, WritesStlModelAndReport) {
+  const CliFiles& f = cli_files();
+  test::TempDir out("surface-out");
+  const std::string model = out / "model.h5";
+  fs::copy_file(f / "labels.h5", model);
+  const test::RunResult r = test::run_cli("surface --labels " + (f / "labels.h5") + " --out " + (out / "stl") +
+                                          " --model " + model + " --tissues skin,bone --target-faces 3000 --report " +
+                                          (out / "r.json"));
+  ASSERT_EQ(r.code, 0) << r.err;
+  const nlohmann::json rep = nlohmann::json::parse(test::read_file(out / "r.json"));
+  ModelReader m(model);
+  EXPECT_TRUE(m.has("/volume"));
+  EXPECT_TRUE(m.has("/provenance/surface"));
+  for (const std::string t : {"skin", "bone"}) {
+    const Surface stl = read_stl(out / ("stl/" + t + ".stl"));
+    const auto& j = rep["metrics"]["tissues"][t];
+    EXPECT_EQ(stl.faces.rows(), j["faces"].get<std::int64_t>()) << t;
+    EXPECT_LE(stl.faces.rows(), 3000) << t;
+    EXPECT_TRUE(j["closed"].get<bool>() && j["manifold"].get<bool>() && j["outward"].get<bool>()) << t;
+    EXPECT_EQ(j["self_intersections"].get<std::int64_t>(), 0) << t;
+    const SurfaceMetrics back = check_surface(stl, false);  // welded STL is still closed
+    EXPECT_TRUE(back.closed && back.manifold && back.outward) << t;
+    const Surface h5 = m.surface(t);
+    EXPECT_EQ(h5.faces.rows(), stl.faces.rows()) << t;
+  }
+  EXPECT_FALSE(fs::exists(out / "stl/fat.stl"));
+  EXPECT_FALSE(m.has("/surfaces/fat"));
+  for (const std::string ph : {"solid", "field", "extract", "smooth", "decimate", "check", "write"})
+    EXPECT_TRUE(rep["phases_s"].contains(ph)) << ph;
+}
+
+TEST(SurfaceCli, DefaultTissuesAreEveryLabelWithVoxels) {
+  const CliFiles& f = cli_files();
+  test::TempDir out("surface-all");
+  const test::RunResult r = test::run_cli("surface --labels " + (f / "novein.h5") + " --out " + (out / "stl") +
+                                          " --target-faces 2000 --quiet");
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_TRUE(r.out.empty());
+  for (const std::string t : {"skin", "fat", "muscle", "bone", "marrow", "artery"})
+    EXPECT_TRUE(fs::exists(out / ("stl/" + t + ".stl"))) << t;
+  EXPECT_FALSE(fs::exists(out / "stl/vein.stl"));
+  EXPECT_FALSE(fs::exists(out / "stl/background.stl"));
+}
+
+TEST(SurfaceCli, BadInputsExit2WithOneLineAndNoOutput) {
+  const CliFiles& f = cli_files();
+  expect_bad("--labels " + (f / "missing.h5"), "missing.h5");
+  expect_bad("--labels " + (f / "text.h5"), "text.h5");
+  expect_bad("--labels " + (f / "plain.h5"), "not an orthosim model file");
+  expect_bad("--labels " + (f / "labels.h5") + " --tissues skin,tendon", "unknown tissue 'tendon'");
+  expect_bad("--labels " + (f / "novein.h5") + " --tissues skin,vein", "'vein' has no voxels");
+  expect_bad("--labels " + (f / "empty.h5"), "nothing is segmented");
+  expect_bad("--labels " + (f / "labels.h5") + " --target-faces -5", "--target-faces");
+  expect_bad("--labels " + (f / "labels.h5") + " --smooth-iterations -1", "--smooth-iterations");
+  expect_bad("--labels " + (f / "labels.h5") + " --tissue-table " + (f / "text.h5"), "text.h5");
+}
+
+TEST(SurfaceExperiment, DISABLED_Sweep) {
+  for (const auto& [name, a] : {std::pair<std::string, Analytic>{"sphere", sphere()}, {"ellipsoid", ellipsoid()}, {"torus", torus()}}) {
+    for (double sigma : {0.0, 0.5, 0.7, 1.0})
+      for (int it : {0, 10, 20}) {
+        SurfaceOptions o;
+        o.sigma_vox = sigma;
+        o.smooth_iterations = it;
+        o.check_self_intersections = false;
+        for (bool comp : {false, true}) {
+        o.compensate_blur = comp;
+        const SurfaceResult r = extract_surface(a.v, {1}, o);
+        const Dist d = analytic_distance(a, r.surface);
+        std::printf("%s", comp ? "C" : " ");
+        std::printf("  %-10s sigma %.1f Taubin %2d: dV %+.2f %% (voxels %+.2f %%)  mean %.3f  max %.3f voxel\n", name.c_str(), sigma, it,
+                    100 * (r.metrics.volume_m3 / a.volume_m3 - 1), 100 * (r.metrics.solid_voxels * a.v.spacing_m[0] * a.v.spacing_m[1] * a.v.spacing_m[2] / a.volume_m3 - 1), d.mean / min_spacing(a.v), d.max / min_spacing(a.v));
+        }
+      }
+  }
+}
+TEST(SurfaceExperiment, DISABLED_Caps) {
+  const double r = 6e-3;
+  Volume v = voxelise(32, 32, 12, {0.5e-3, 0.5e-3, 1e-3}, {-7.75e-3, -7.75e-3, 0},
+                      [&](const Eigen::Vector3d& p) { return std::hypot(p.x(), p.y()) < r ? 1 : 0; });
+  for (int it : {0, 10})
+    for (bool comp : {false, true}) {
+      SurfaceOptions o;
+      o.smooth_iterations = it;
+      o.compensate_blur = comp;
+      const SurfaceResult res = extract_surface(v, {1}, o);
+      std::map<double, int> zs;
+      for (Eigen::Index i = 0; i < res.surface.vertices.rows(); ++i) zs[res.surface.vertices(i, 2)]++;
+      std::printf("it %d comp %d: zmin %.6g (%d) next %.6g (%d), zmax %.6g self %lld\n", it, comp, zs.begin()->first, zs.begin()->second,
+                  std::next(zs.begin())->first, std::next(zs.begin())->second, zs.rbegin()->first, (long long)res.metrics.self_intersections);
+    }
+}

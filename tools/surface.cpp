@@ -1,0 +1,281 @@
+// orthosim surface --labels labels.h5 --out DIR: one closed, outward triangle
+// surface per tissue from the label volume (/volume), as DIR/<tissue>.stl
+// and, with --model, /surfaces/<tissue> (libmodel/surface/surface.h,
+// docs/surface.md).
+#include "libmodel/provenance.h"
+#include "libmodel/remesh/remesh.h"
+#include "libmodel/surface/surface.h"
+#include "tools/common.h"
+
+#include <tbb/global_control.h>
+
+#include <algorithm>
+#include <filesystem>
+#include <iomanip>
+#include <iostream>
+#include <memory>
+#include <optional>
+#include <sstream>
+
+namespace orthosim::cli {
+
+namespace {
+
+std::vector<std::string> split_commas(const std::string& s) {
+  std::vector<std::string> out;
+  std::stringstream in(s);
+  std::string item;
+  while (std::getline(in, item, ','))
+    if (!item.empty()) out.push_back(item);
+  return out;
+}
+
+}  // namespace
+
+void add_surface_command(CLI::App& app) {
+  auto* sub = app.add_subcommand("surface", "closed triangle surfaces of the tissues of a label volume (STL, /surfaces)");
+  struct Args {
+    std::string labels, out, model, tissues, tissue_table, decimation = "lindstrom-turk";
+    std::int64_t target_faces = 0;
+    int smooth_iterations = 10, threads = 0;
+    double sigma = 0.7, lambda = 0.5, mu = -0.53, nest_clearance = 0.1;
+    bool no_fill_holes = false, no_self_check = false;
+    CommonOptions common;
+  };
+  static Args a;
+  sub->add_option("--labels", a.labels, "model file with the label volume (/volume)")->required();
+  sub->add_option("--out", a.out, "output directory: <tissue>.stl (binary, metres)")->required();
+  sub->add_option("--model", a.model, "also write /surfaces/<tissue> into this model file (created or updated)");
+  sub->add_option("--tissues", a.tissues, "comma-separated tissue names (default: every label with voxels)");
+  sub->add_option("--tissue-table", a.tissue_table,
+                  "tissues.json whose 'inside' gives the nesting (default: inferred from the volume)");
+  sub->add_option("--target-faces", a.target_faces, "decimate each surface to at most N faces (0: no decimation)")
+      ->capture_default_str();
+  sub->add_option("--smooth-iterations", a.smooth_iterations, "Taubin lambda|mu iterations (0: none)")
+      ->capture_default_str();
+  sub->add_option("--sigma", a.sigma, "Gaussian smoothing of the indicator, voxels along each axis (0: none)")
+      ->capture_default_str();
+  sub->add_option("--taubin-lambda", a.lambda, "Taubin lambda, in (0, 1)")->capture_default_str();
+  sub->add_option("--taubin-mu", a.mu, "Taubin mu, in (-1, -lambda)")->capture_default_str();
+  sub->add_option("--decimation", a.decimation, "edge-collapse cost: lindstrom-turk or garland-heckbert")
+      ->capture_default_str();
+  sub->add_option("--nest-clearance", a.nest_clearance,
+                  "keep each nested surface this far inside its parent's, in voxels of the smallest spacing")
+      ->capture_default_str();
+  sub->add_flag("--no-fill-holes", a.no_fill_holes, "keep pockets the tissue encloses out of its solid");
+  sub->add_flag("--no-self-intersection-check", a.no_self_check, "skip the CGAL self-intersection count");
+  sub->add_option("--threads", a.threads, "worker threads (0: all cores)")->capture_default_str();
+  add_common_options(sub, a.common);
+
+  on_run(sub, "surface", [] {
+    // ---- flags -----------------------------------------------------------------------
+    SurfaceOptions o;
+    o.sigma_vox = a.sigma;
+    o.smooth_iterations = a.smooth_iterations;
+    o.taubin_lambda = a.lambda;
+    o.taubin_mu = a.mu;
+    o.target_faces = a.target_faces;
+    o.fill_holes = !a.no_fill_holes;
+    o.check_self_intersections = !a.no_self_check;
+    o.nest_clearance_vox = a.nest_clearance;
+    if (a.decimation == "lindstrom-turk") o.decimation = DecimationCost::lindstrom_turk;
+    else if (a.decimation == "garland-heckbert") o.decimation = DecimationCost::garland_heckbert;
+    else throw UsageError("--decimation: expected lindstrom-turk or garland-heckbert, got '" + a.decimation + "'");
+    try {
+      validate(o);
+    } catch (const Error& e) {
+      throw UsageError("--" + e.message());
+    }
+    if (a.threads < 0) throw UsageError("--threads: must be >= 0");
+    std::unique_ptr<tbb::global_control> threads;
+    if (a.threads > 0)
+      threads = std::make_unique<tbb::global_control>(tbb::global_control::max_allowed_parallelism, a.threads);
+
+    // ---- inputs first: nothing is written unless all of them are good ------------------
+    check_output_dir(a.out);
+    if (!a.model.empty()) {
+      check_output_file(a.model);
+      if (std::filesystem::exists(a.model)) ModelReader check(a.model);  // refuse a file that is not ours
+    }
+    if (!a.common.report.empty()) check_output_file(a.common.report);
+    Report report("surface");
+    Volume v;
+    {
+      Phase p(report, "read");
+      ModelReader in(a.labels);
+      v = in.volume();
+      report.input(a.labels);
+    }
+    std::vector<int> parents;
+    if (!a.tissue_table.empty()) {
+      const TissueTable table = load_tissue_table(a.tissue_table);
+      report.input(a.tissue_table);
+      parents = label_parents(v, table);
+    } else {
+      parents = label_parents(v);
+    }
+    std::vector<std::int64_t> count(256, 0);
+    for (std::uint8_t l : v.labels) ++count[l];
+    if (count[0] == static_cast<std::int64_t>(v.labels.size()))
+      throw Error(a.labels, "nothing is segmented: every voxel of /volume is background");
+    std::vector<std::string> names;
+    if (!a.tissues.empty()) {
+      names = split_commas(a.tissues);
+      if (names.empty()) throw UsageError("--tissues: no tissue names");
+    } else {
+      for (std::size_t l = 1; l < v.label_names.size() && l < 256; ++l)
+        if (!v.label_names[l].empty() && count[l] > 0) names.push_back(v.label_names[l]);
+    }
+    std::vector<std::vector<int>> solids;
+    for (std::size_t i = 0; i < names.size(); ++i) {
+      for (std::size_t j = 0; j < i; ++j)
+        if (names[i] == names[j]) throw UsageError("--tissues: '" + names[i] + "' is listed twice");
+      try {
+        solids.push_back(solid_label_set(v, names[i], parents));
+      } catch (const Error& e) {
+        throw Error(a.labels, e.message());
+      }
+      if (count[static_cast<std::size_t>(v.label_of(names[i]))] == 0)
+        throw Error(a.labels, "tissue '" + names[i] + "' has no voxels");
+    }
+    report.parameters() = nlohmann::json::parse(surface_parameters_json(o));
+    report.parameters()["tissues"] = names;
+    report.parameters()["nesting"] = a.tissue_table.empty() ? "inferred" : "tissue table";
+    report.parameters()["threads"] = a.threads;
+
+    // ---- surfaces ---------------------------------------------------------------------------
+    std::vector<SurfaceResult> results;
+    {
+      Progress bar("surface", static_cast<long>(names.size()), a.common.quiet);
+      for (std::size_t i = 0; i < names.size(); ++i) {
+        try {
+          results.push_back(extract_surface(v, solids[i], o));
+        } catch (const Error& e) {
+          throw Error(a.labels, names[i] + ": " + e.message());
+        }
+        const SurfaceMetrics& m = results.back().metrics;
+        report.phase("solid", m.solid_s);
+        report.phase("field", m.field_s);
+        report.phase("extract", m.extract_s);
+        report.phase("smooth", m.smooth_s);
+        report.phase("decimate", m.decimate_s);
+        report.phase("check", m.check_s);
+        bar.update(static_cast<long>(i + 1));
+      }
+    }
+
+    // ---- nesting: each surface strictly inside its parent's, outermost first ----------------------
+    std::vector<NestingResult> nesting(names.size());
+    {
+      Phase p(report, "nesting");
+      auto depth = [&](int l) {
+        int d = 0;
+        while (l > 0 && d < 256) l = parents[static_cast<std::size_t>(l)], ++d;
+        return d;
+      };
+      std::vector<std::size_t> order(names.size());
+      for (std::size_t i = 0; i < order.size(); ++i) order[i] = i;
+      std::stable_sort(order.begin(), order.end(), [&](std::size_t x, std::size_t y) {
+        return depth(v.label_of(names[x])) < depth(v.label_of(names[y]));
+      });
+      const double clearance = o.nest_clearance_vox * std::min({v.spacing_m[0], v.spacing_m[1], v.spacing_m[2]});
+      for (std::size_t i : order) {
+        // the nearest enclosing label that has a surface here
+        int pl = parents[static_cast<std::size_t>(v.label_of(names[i]))];
+        std::size_t outer = names.size();
+        while (pl > 0 && outer == names.size()) {
+          for (std::size_t j = 0; j < names.size(); ++j)
+            if (v.label_of(names[j]) == pl) outer = j;
+          if (outer == names.size()) pl = parents[static_cast<std::size_t>(pl)];
+        }
+        if (outer == names.size()) continue;
+        nesting[i] = enforce_nesting(results[i].surface, results[outer].surface, clearance);
+        if (nesting[i].moved > 0) {
+          const double secs = results[i].metrics.total_s();
+          SurfaceMetrics m = check_surface(results[i].surface, o.check_self_intersections);
+          m.extracted_faces = results[i].metrics.extracted_faces;
+          m.solid_voxels = results[i].metrics.solid_voxels;
+          m.filled_voxels = results[i].metrics.filled_voxels;
+          m.smooth_volume_change = results[i].metrics.smooth_volume_change;
+          m.solid_s = results[i].metrics.solid_s, m.field_s = results[i].metrics.field_s;
+          m.extract_s = results[i].metrics.extract_s, m.smooth_s = results[i].metrics.smooth_s;
+          m.decimate_s = results[i].metrics.decimate_s, m.check_s = secs - m.solid_s - m.field_s - m.extract_s - m.smooth_s - m.decimate_s;
+          results[i].metrics = m;
+        }
+        if (nesting[i].still_outside > 0)
+          throw Error(a.labels, names[i] + ": " + std::to_string(nesting[i].still_outside) +
+                                    " vertices stay outside the surface of " + names[outer] +
+                                    " (a shell thinner than --nest-clearance?)");
+      }
+    }
+
+    // ---- outputs: the directory, then the model ------------------------------------------------
+    {
+      Phase p(report, "write");
+      AtomicDir dir(a.out);
+      for (std::size_t i = 0; i < names.size(); ++i) write_stl(dir.temp_path(names[i] + ".stl"), results[i].surface);
+      std::optional<ModelWriter> w;
+      if (!a.model.empty()) {
+        w.emplace(a.model, ModelWriter::Start::update);
+        for (std::size_t i = 0; i < names.size(); ++i) w->write(names[i], results[i].surface);
+        double secs = 0;
+        for (const auto& r : results) secs += r.metrics.total_s();
+        w->write("surface", make_provenance(command_line(), report.json()["inputs"].dump(), report.parameters().dump(), 0, secs));
+      }
+      dir.commit();
+      if (w) w->commit();
+    }
+    for (const auto& n : names) report.output(a.out + "/" + n + ".stl");
+    if (!a.model.empty()) report.output(a.model);
+
+    // ---- metrics and summary -------------------------------------------------------------------
+    nlohmann::json& j = report.metrics();
+    j["size"] = {v.nx, v.ny, v.nz};
+    j["spacing_m"] = v.spacing_m;
+    j["tissues"] = nlohmann::json::object();
+    for (std::size_t i = 0; i < names.size(); ++i) {
+      const SurfaceMetrics& m = results[i].metrics;
+      std::vector<std::string> labels;
+      for (int l : solids[i]) labels.push_back(v.label_names[static_cast<std::size_t>(l)]);
+      j["tissues"][names[i]] = {{"solid_labels", labels},
+                                {"solid_voxels", m.solid_voxels},
+                                {"filled_voxels", m.filled_voxels},
+                                {"extracted_faces", m.extracted_faces},
+                                {"faces", m.faces},
+                                {"vertices", m.vertices},
+                                {"volume_m3", m.volume_m3},
+                                {"area_m2", m.area_m2},
+                                {"smooth_volume_change", m.smooth_volume_change},
+                                {"euler", m.euler},
+                                {"components", m.components},
+                                {"closed", m.closed},
+                                {"manifold", m.manifold},
+                                {"outward", m.outward},
+                                {"self_intersections", m.self_intersections},
+                                {"nesting", {{"moved", nesting[i].moved}, {"outside", nesting[i].outside},
+                                             {"max_move_m", nesting[i].max_move_m}}},
+                                {"seconds",
+                                 {{"solid", m.solid_s},
+                                  {"field", m.field_s},
+                                  {"extract", m.extract_s},
+                                  {"smooth", m.smooth_s},
+                                  {"decimate", m.decimate_s},
+                                  {"check", m.check_s}}}};
+    }
+    report.write(a.common.report);
+    if (!a.common.quiet) {
+      std::cout << std::fixed;
+      std::cout << "surface: wrote " << names.size() << " surface" << (names.size() == 1 ? "" : "s") << " to " << a.out
+                << " in " << std::setprecision(2) << report.json()["wall_s"].get<double>() << " s\n";
+      for (std::size_t i = 0; i < names.size(); ++i) {
+        const SurfaceMetrics& m = results[i].metrics;
+        std::cout << "  " << std::left << std::setw(8) << names[i] << std::right << " " << m.faces << " faces (of "
+                  << m.extracted_faces << "), volume " << std::setprecision(2) << m.volume_m3 * 1e6 << " cm^3, euler "
+                  << m.euler << ", self-intersections " << m.self_intersections << ", " << std::setprecision(0)
+                  << m.total_s() * 1e3 << " ms\n";
+      }
+    }
+  });
+}
+
+}  // namespace orthosim::cli
