@@ -253,7 +253,7 @@ void add_surface_command(CLI::App& app) {
                                 {"outward", m.outward},
                                 {"self_intersections", m.self_intersections},
                                 {"nesting", {{"moved", nesting[i].moved}, {"outside", nesting[i].outside},
-                                             {"max_move_m", nesting[i].max_move_m}}},
+                                             {"max_move_m", nesting[i].max_move_m}, {"on_cap", nesting[i].on_cap}}},
                                 {"seconds",
                                  {{"solid", m.solid_s},
                                   {"field", m.field_s},

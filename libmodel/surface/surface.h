@@ -202,12 +202,14 @@ std::int64_t surface_self_intersections(const Surface& s);
 // of nested tissues are extracted, smoothed and decimated separately, so
 // where a shell is about a voxel thin (cortical bone around marrow) they can
 // cross by a fraction of a voxel; the remesh and build stages need strict
-// nesting. Returns the number of vertices moved. Parallel, deterministic.
+// nesting. Vertices on a flat border cap that inner shares with outer (a
+// face of outer in a plane of its bounding box) stay. Parallel, deterministic.
 struct NestingResult {
   std::int64_t moved = 0;          // vertices moved
   std::int64_t outside = 0;        // of those, outside outer before
   double max_move_m = 0;           // the largest move (m)
   std::int64_t still_outside = 0;  // vertices outside outer after (0 unless outer is very thin there)
+  std::int64_t on_cap = 0;         // left on a border cap they share with outer (coplanar flat caps)
 };
 NestingResult enforce_nesting(Surface& inner, const Surface& outer, double clearance_m);
 

@@ -117,18 +117,40 @@ NestingResult enforce_nesting(Surface& inner, const Surface& outer, double clear
   Tree tree(faces(m).first, faces(m).second, m);
   tree.accelerate_distance_queries();
   const CGAL::Side_of_triangle_mesh<Mesh, K> side(tree);
+  // Flat caps where the volume border cuts a tissue: outer's faces that lie
+  // in a plane of its bounding box. A nested tissue cut by the same border
+  // has its cap in the same plane; there it is inside by construction, and
+  // pushing it off the plane would fold the rim.
+  const Eigen::RowVector3d lo = outer.vertices.colwise().minCoeff(), hi = outer.vertices.colwise().maxCoeff();
+  std::vector<std::uint8_t> cap(m.number_of_faces() + m.number_of_removed_faces(), 0);
+  for (auto f : m.faces()) {
+    for (int k = 0; k < 3; ++k) {
+      bool at_lo = true, at_hi = true;
+      for (auto v : CGAL::vertices_around_face(m.halfedge(f), m)) {
+        const double c = m.point(v)[k];
+        at_lo = at_lo && c == lo(k);
+        at_hi = at_hi && c == hi(k);
+      }
+      if (at_lo || at_hi) cap[f.idx()] = 1;
+    }
+  }
   const double c2 = clearance_m * clearance_m;
-  std::vector<std::uint8_t> was_outside(static_cast<std::size_t>(n), 0), moved(static_cast<std::size_t>(n), 0);
+  std::vector<std::uint8_t> was_outside(static_cast<std::size_t>(n), 0), moved(static_cast<std::size_t>(n), 0),
+      on_cap(static_cast<std::size_t>(n), 0);
   std::vector<double> move(static_cast<std::size_t>(n), 0.0);
   auto fix = [&](Eigen::Index i) {
+    const auto u = static_cast<std::size_t>(i);
     const Point p(inner.vertices(i, 0), inner.vertices(i, 1), inner.vertices(i, 2));
     const auto where = side(p);
     const auto [c, f] = tree.closest_point_and_primitive(p);
     const double d2 = CGAL::squared_distance(p, c);
     if (where == CGAL::ON_BOUNDED_SIDE && d2 >= c2) return;
+    if (cap[f.idx()] && where != CGAL::ON_UNBOUNDED_SIDE) {
+      on_cap[u] = 1;  // on or just inside a shared border cap
+      return;
+    }
     const auto nf = CGAL::Polygon_mesh_processing::compute_face_normal(f, m);
     const Eigen::Vector3d q(c.x() - clearance_m * nf.x(), c.y() - clearance_m * nf.y(), c.z() - clearance_m * nf.z());
-    const auto u = static_cast<std::size_t>(i);
     move[u] = (q - inner.vertices.row(i).transpose()).norm();
     inner.vertices.row(i) = q.transpose();
     moved[u] = 1;
@@ -144,9 +166,10 @@ NestingResult enforce_nesting(Surface& inner, const Surface& outer, double clear
     ++res.moved;
     res.outside += was_outside[u];
     res.max_move_m = std::max(res.max_move_m, move[u]);
-    if (side(Point(inner.vertices(i, 0), inner.vertices(i, 1), inner.vertices(i, 2))) != CGAL::ON_BOUNDED_SIDE)
+    if (side(Point(inner.vertices(i, 0), inner.vertices(i, 1), inner.vertices(i, 2))) == CGAL::ON_UNBOUNDED_SIDE)
       ++res.still_outside;
   }
+  for (auto c : on_cap) res.on_cap += c;
   return res;
 }
 
