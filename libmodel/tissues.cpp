@@ -86,7 +86,7 @@ Mechanics parse_mechanics(const json& m, const std::string& path, const std::str
   const std::string model = m["model"];
   const std::string w = where + " mechanics";
   if (model == "biphasic") {
-    check_keys(m, {"model", "k1_kpa", "turning_strain", "k2_kpa", "weights", "note"}, path, w);
+    check_keys(m, {"model", "k1_kpa", "turning_strain", "k2_kpa", "weights", "note", "tuned"}, path, w);
     out.model = Mechanics::Model::biphasic;
     out.k1_pa = number(m, "k1_kpa", path, w) * 1e3;
     out.turning_strain = number(m, "turning_strain", path, w);
@@ -98,7 +98,7 @@ Mechanics parse_mechanics(const json& m, const std::string& path, const std::str
       throw Error(path, w + ": turning_strain must lie in (0, 1)");
     out.weights = {1, 1, 1};
   } else if (model == "linear") {
-    check_keys(m, {"model", "k_kpa", "weights", "note"}, path, w);
+    check_keys(m, {"model", "k_kpa", "weights", "note", "tuned"}, path, w);
     out.model = Mechanics::Model::linear;
     out.k_pa = number(m, "k_kpa", path, w) * 1e3;
     if (!(out.k_pa > 0)) throw Error(path, w + ": k_kpa must be > 0");

@@ -34,6 +34,7 @@ void check(const AnnealOptions& o, const std::vector<double>& x0) {
   if (!(o.min_step > 0 && o.min_step <= o.initial_step)) throw Error("", "anneal: min_step must be in (0, initial_step]");
   if (!(o.restart_heat > 0 && o.restart_heat <= 1)) throw Error("", "anneal: restart_heat must be in (0, 1]");
   if (!(o.t_min > 0 && o.t_min < 1)) throw Error("", "anneal: t_min must be in (0, 1)");
+  if (o.walk_sweeps < 0) throw Error("", "anneal: walk_sweeps must be >= 0");
   if (o.max_evaluations < 0) throw Error("", "anneal: max_evaluations must be >= 0");
   if (!(o.budget_s >= 0)) throw Error("", "anneal: budget_s must be >= 0");
 }
@@ -91,52 +92,65 @@ AnnealResult anneal(const std::function<double(const std::vector<double>&)>& f, 
       T0 = n_up ? -(up / n_up) / std::log(0.8) : 1.0;
       x = r.x, fx = r.f;
     }
-    double T = T0;
-    std::vector<double> v(n, o.initial_step);
-    std::vector<int> accepted(n, 0);
-    double stage_best = r.f;
-    int stalled = 0;
+    // one walk: from x at T0 with fresh steps; stages restart from the walk's
+    // own best point, so that a fresh walk is not pulled back to the old basin
+    const std::int64_t walk_evals = static_cast<std::int64_t>(o.walk_sweeps) * static_cast<std::int64_t>(n);
     for (;;) {
-      for (int a = 0; a < o.adjusts_per_stage; ++a) {
-        std::fill(accepted.begin(), accepted.end(), 0);
-        for (int s = 0; s < o.sweeps_per_adjust; ++s)
-          for (std::size_t j = 0; j < n; ++j) {
-            std::vector<double> y = x;
-            y[j] = reflect(y[j] + (2 * uniform(rng) - 1) * v[j]);
-            const double fy = eval(y);
-            const double u = uniform(rng);  // drawn on every trial: the stream does not depend on the outcome
-            if (fy <= fx || u < std::exp(-(fy - fx) / T)) {
-              x = std::move(y);
-              fx = fy;
-              ++accepted[j];
+      const std::int64_t walk_start = r.evaluations;
+      std::vector<double> wx = x;
+      double wf = fx;
+      double T = T0;
+      std::vector<double> v(n, o.initial_step);
+      std::vector<int> accepted(n, 0);
+      double stage_best = wf;
+      int stalled = 0;
+      while (walk_evals == 0 || r.evaluations - walk_start < walk_evals) {
+        for (int a = 0; a < o.adjusts_per_stage; ++a) {
+          std::fill(accepted.begin(), accepted.end(), 0);
+          for (int s = 0; s < o.sweeps_per_adjust; ++s)
+            for (std::size_t j = 0; j < n; ++j) {
+              std::vector<double> y = x;
+              y[j] = reflect(y[j] + (2 * uniform(rng) - 1) * v[j]);
+              const double fy = eval(y);
+              const double u = uniform(rng);  // drawn on every trial: the stream does not depend on the outcome
+              if (fy < wf) wx = y, wf = fy;
+              if (fy <= fx || u < std::exp(-(fy - fx) / T)) {
+                x = std::move(y);
+                fx = fy;
+                ++accepted[j];
+              }
             }
+          // Corana's step rule
+          for (std::size_t j = 0; j < n; ++j) {
+            const double ratio = static_cast<double>(accepted[j]) / o.sweeps_per_adjust;
+            if (ratio > 0.6) v[j] *= 1 + 2 * (ratio - 0.6) / 0.4;
+            else if (ratio < 0.4) v[j] /= 1 + 2 * (0.4 - ratio) / 0.4;
+            v[j] = std::clamp(v[j], o.min_step, 1.0);
           }
-        // Corana's step rule
-        for (std::size_t j = 0; j < n; ++j) {
-          const double ratio = static_cast<double>(accepted[j]) / o.sweeps_per_adjust;
-          if (ratio > 0.6) v[j] *= 1 + 2 * (ratio - 0.6) / 0.4;
-          else if (ratio < 0.4) v[j] /= 1 + 2 * (0.4 - ratio) / 0.4;
-          v[j] = std::clamp(v[j], o.min_step, 1.0);
+        }
+        // cooling: next stage from the walk's best point
+        ++r.stages;
+        T *= o.cooling;
+        x = wx, fx = wf;
+        if (wf < stage_best - o.stall_tolerance * std::max(1.0, std::abs(stage_best))) {
+          stage_best = wf;
+          stalled = 0;
+        } else {
+          ++stalled;
+        }
+        if (stalled >= o.stall_stages || T < o.t_min * T0) {
+          // restart: reheat and widen the steps again
+          ++r.restarts;
+          T = o.restart_heat * T0;
+          std::fill(v.begin(), v.end(), o.initial_step);
+          stalled = 0;
+          stage_best = wf;
         }
       }
-      // cooling: next stage from the best point
-      ++r.stages;
-      T *= o.cooling;
-      x = r.x, fx = r.f;
-      if (r.f < stage_best - o.stall_tolerance * std::max(1.0, std::abs(stage_best))) {
-        stage_best = r.f;
-        stalled = 0;
-      } else {
-        ++stalled;
-      }
-      if (stalled >= o.stall_stages || T < o.t_min * T0) {
-        // restart: reheat and widen the steps again
-        ++r.restarts;
-        T = o.restart_heat * T0;
-        std::fill(v.begin(), v.end(), o.initial_step);
-        stalled = 0;
-        stage_best = r.f;
-      }
+      // a fresh walk from a random point of the box
+      ++r.walks;
+      for (double& xi : x) xi = uniform(rng);
+      fx = eval(x);
     }
   } catch (const Stop&) {
   }

@@ -11,7 +11,13 @@
 // the best point found. Restarts: when the best value has not improved by
 // more than `stall_tolerance` for `stall_stages` stages, or T fell below
 // `t_min`, the annealer reheats to restart_heat x T0 with fresh steps, from
-// the best point. Stops when `done(best)` says so (the stopping target), after
+// the best point. Fresh walks: after `walk_sweeps` sweeps (walk_sweeps x n
+// evaluations) a walk that has not met the stopping target is abandoned and
+// a new one starts from a uniformly random point of the box at T0 with fresh
+// steps; each walk's stages restart from that walk's own best point, so a
+// walk stuck in a basin (a narrow valley, or a minimum pinned on the box
+// boundary) does not hold the search. The overall best is kept across walks.
+// Stops when `done(best)` says so (the stopping target), after
 // max_evaluations, or after budget_s seconds of wall time.
 //
 // Seeded and reproducible: one std::mt19937_64 from `seed`, uniform numbers
@@ -39,6 +45,7 @@ struct AnnealOptions {
   double stall_tolerance = 1e-6; // an improvement smaller than this does not count
   double t_min = 1e-6;           // restart when T falls below t_min x T0
   double restart_heat = 0.1;     // reheat to restart_heat x T0, (0, 1]
+  int walk_sweeps = 0;           // sweeps per walk before a fresh walk from a random point, >= 0; 0: one walk
   std::int64_t max_evaluations = 0;  // 0: no limit
   double budget_s = 0;           // wall-clock limit; 0: none
 };
@@ -55,7 +62,8 @@ struct AnnealResult {
   double f = 0;                   // its value
   std::int64_t evaluations = 0;
   int stages = 0;
-  int restarts = 0;
+  int restarts = 0;               // reheats within walks
+  int walks = 0;                  // fresh walks started after the first
   double seconds = 0;
   std::string stop;               // "target" | "evaluations" | "budget"
   std::vector<TracePoint> trace;  // every improvement of the best value

@@ -48,6 +48,9 @@ struct Evaluator {
   double tolerance;
   Clock::time_point start = Clock::now();
 
+  Evaluator(msm::Specimen& s, const Grips& g, const Target& q, const ExperimentOptions& e, const Space& sp, double tol)
+      : specimen(s), grips(g), target(q), experiment(e), space(sp), tolerance(tol) {}
+
   std::int64_t evaluations = 0;
   double experiment_seconds = 0;
   double best_psi = std::numeric_limits<double>::infinity();
@@ -184,6 +187,12 @@ std::vector<double> Space::start(const Target&) const {
 }
 
 // ---- options -----------------------------------------------------------------------------
+
+AnnealOptions default_anneal() {
+  AnnealOptions a;
+  a.walk_sweeps = 100;
+  return a;
+}
 
 std::vector<std::string> methods() {
   std::vector<std::string> m = {"sa"};

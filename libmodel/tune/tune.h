@@ -5,8 +5,9 @@
 // the tissue's specimen (experiment.h) are optimised until the virtual
 // experiment's fitted law matches the tissue's data-book values:
 //   biphasic: per class (k1, turning strain, k2), searched as
-//             ln(k1 / K1) in [-ln 10, ln 10], ln(t / T) in [ln 0.5, ln 5],
-//             ln(k2 / K2) in [-ln 10, ln 10]  (K1, T, K2: the targets; k2 >= k1 enforced)
+//             ln(k1 / K1) in [-ln 4, ln 4], ln(t / T) in [ln 0.5, ln 3],
+//             ln(k2 / K2) in [-ln 4, ln 4]  (K1, T, K2: the targets; k2 >= k1 enforced;
+//             wider boxes hold more local minima pinned on their faces, docs/tune.md)
 //   linear:   per class k, as ln(k / K) in [-ln 5, ln 5]
 // k1 and k2 are class moduli that the stiffness rule turns into springs
 // (k = modulus x k_per_pa, msm/lattice.h, msm/tetra.h), so they carry over to
@@ -50,6 +51,10 @@ Space make_space(const Target& target, const std::vector<SpringClass>& classes);
 std::vector<std::string> methods();
 bool is_method(const std::string& name);
 
+// The annealer's settings for tuning: AnnealOptions' defaults with a fresh
+// walk from a random point every 100 sweeps (docs/tune.md).
+AnnealOptions default_anneal();
+
 struct TuneOptions {
   std::string method = "sa";      // methods()
   std::string polish = "bobyqa";  // local polish after an NLopt global method: "bobyqa" | "sbplx" | "none"
@@ -58,7 +63,7 @@ struct TuneOptions {
   double budget_s = 30;           // wall-clock budget per tissue (s), > 0
   std::int64_t max_evaluations = 0;  // 0: no limit (then the run stops on the target or the budget)
   double tolerance = 1e-3;        // stopping target: every weighted parameter within this relative error, (0, 0.5)
-  AnnealOptions anneal;           // seed, max_evaluations and budget_s are taken from here
+  AnnealOptions anneal = default_anneal();  // "sa"; its seed, max_evaluations and budget_s are set from the fields above
 };
 // Throws Error("", ...) for bad options (unknown method, budget <= 0, ...).
 void validate(const TuneOptions& options);

@@ -1,0 +1,194 @@
+// orthosim tune: the tuned tissue table, the plots, the report, tuning a
+// built model (/tuning and the re-set layer springs), and bad input (exit 2,
+// one line naming the problem, no output written).
+#include "libmodel/format/model.h"
+#include "libmodel/provenance.h"
+#include "libmodel/tune/tune.h"
+#include "tests/libmodel/msm_fixtures.h"
+#include "tests/test_util.h"
+
+#include <gtest/gtest.h>
+#include <nlohmann/json.hpp>
+
+#include <cmath>
+#include <filesystem>
+
+using namespace orthosim;
+namespace fs = std::filesystem;
+using nlohmann::json;
+
+namespace {
+
+const std::string kTable = std::string(ORTHOSIM_SOURCE_DIR) + "/data-samples/tissues.json";
+
+bool is_png(const std::string& path) {
+  const std::string s = test::read_file(path);
+  return s.size() > 1000 && s.compare(0, 8, "\x89PNG\r\n\x1a\n") == 0;
+}
+
+// the sample table with one tissue's mechanics replaced
+std::string table_with(const test::TempDir& d, const std::string& tissue, const json& mechanics) {
+  json t = json::parse(test::read_file(kTable));
+  for (json& e : t["tissues"])
+    if (e["name"] == tissue) e["mechanics"] = mechanics;
+  const std::string p = d / ("table_" + tissue + ".json");
+  test::write_file(p, t.dump(2));
+  return p;
+}
+
+void expect_refused(const test::TempDir& d, const std::string& args, const std::string& needle) {
+  const auto r = test::run_cli("tune " + args + " --out " + (d / "bad.json") + " --plot " + (d / "bad_plots") +
+                               " --report " + (d / "bad_report.json") + " --max-evaluations 50");
+  EXPECT_EQ(r.code, 2) << args << "\n" << r.err;
+  EXPECT_EQ(test::count_lines(r.err), 1) << r.err;
+  EXPECT_EQ(r.err.rfind("orthosim tune: error: ", 0), 0u) << r.err;
+  EXPECT_NE(r.err.find(needle), std::string::npos) << "expected '" << needle << "' in: " << r.err;
+  EXPECT_FALSE(fs::exists(d / "bad.json"));
+  EXPECT_FALSE(fs::exists(d / "bad_plots"));
+  EXPECT_FALSE(fs::exists(d / "bad_report.json"));
+}
+
+}  // namespace
+
+TEST(TuneCli, TunesTheSampleTableWithTableReportAndPlots) {
+  test::TempDir d("tune-cli");
+  const auto r = test::run_cli("tune --tissues " + kTable + " --seed 2 --max-evaluations 4000 --out " + (d / "tuned.json") +
+                               " --plot " + (d / "plots") + " --report " + (d / "r.json"));
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_NE(r.out.find("tune: skin"), std::string::npos) << r.out;
+
+  // the tuned table: the input's keys kept, achieved values and spring laws added
+  const json t = json::parse(test::read_file(d / "tuned.json"));
+  const json in = json::parse(test::read_file(kTable));
+  ASSERT_EQ(t["tissues"].size(), in["tissues"].size());
+  int tuned = 0;
+  for (std::size_t i = 0; i < t["tissues"].size(); ++i) {
+    const json& e = t["tissues"][i];
+    const json& src = in["tissues"][i];
+    EXPECT_EQ(e["name"], src["name"]);
+    if (!src.contains("mechanics")) {
+      EXPECT_FALSE(e.contains("mechanics"));
+      continue;
+    }
+    const json& m = e["mechanics"];
+    ASSERT_TRUE(m.contains("tuned")) << e["name"];
+    const json& tu = m["tuned"];
+    for (const auto& [key, value] : src["mechanics"].items()) {
+      EXPECT_EQ(m[key], value) << key;  // the input's keys and values are kept
+      if (key == "model" || key == "weights" || key == "note") continue;
+      const double q = value.get<double>(), p = tu["achieved"][key].get<double>();
+      EXPECT_LE(std::abs(p - q) / q, 0.02) << e["name"] << " " << key;
+    }
+    EXPECT_EQ(tu["method"], "sa");
+    EXPECT_EQ(tu["seed"], 2);
+    EXPECT_FALSE(tu["spring_params"].empty());
+    ++tuned;
+  }
+  EXPECT_EQ(tuned, 3);
+
+  // the report: per tissue name, target and achieved with the table's keys, psi, evaluations, seconds
+  const json rep = json::parse(test::read_file(d / "r.json"));
+  ASSERT_EQ(rep["metrics"]["tissues"].size(), 3u);
+  for (const json& e : rep["metrics"]["tissues"]) {
+    for (const char* k : {"name", "target", "achieved", "psi", "evaluations", "seconds", "reached", "method", "seed"})
+      EXPECT_TRUE(e.contains(k)) << k;
+    if (e["name"] == "skin") {
+      EXPECT_DOUBLE_EQ(e["target"]["k1_kpa"].get<double>(), 0.1);
+      EXPECT_DOUBLE_EQ(e["target"]["turning_strain"].get<double>(), 0.4);
+      EXPECT_DOUBLE_EQ(e["target"]["k2_kpa"].get<double>(), 18.8);
+      EXPECT_TRUE(e["achieved"].contains("k2_kpa"));
+    } else {
+      EXPECT_TRUE(e["target"].contains("k_kpa"));
+    }
+  }
+  for (const char* n : {"skin", "fat", "muscle"}) EXPECT_TRUE(is_png(d / (std::string("plots/") + n + ".png"))) << n;
+}
+
+TEST(TuneCli, SameSeedSameTable) {
+  test::TempDir d("tune-cli-seed");
+  for (const char* o : {"a.json", "b.json"}) {
+    const auto r = test::run_cli("tune --tissues " + kTable + " --tissue skin --seed 4 --max-evaluations 300 "
+                                 "--tolerance 1e-6 --quiet --out " + (d / o));
+    ASSERT_EQ(r.code, 0) << r.err;
+    EXPECT_EQ(r.out, "");
+  }
+  json a = json::parse(test::read_file(d / "a.json")), b = json::parse(test::read_file(d / "b.json"));
+  for (json* j : {&a, &b}) {
+    for (json& e : (*j)["tissues"]) {
+      if (!e.contains("mechanics") || !e["mechanics"].contains("tuned")) continue;
+      e["mechanics"]["tuned"].erase("seconds");  // wall time: the only field that may differ
+      e["mechanics"]["tuned"].erase("seconds_per_experiment");
+    }
+  }
+  EXPECT_EQ(a, b);
+}
+
+TEST(TuneCli, TunesABuiltModel) {
+  test::TempDir d("tune-cli-model");
+  const std::string model = d / "m.h5";
+  {
+    ModelWriter w(model, ModelWriter::Start::fresh);
+    for (const auto& [tissue, q] : test::cylinder_stack(39, 9)) w.write(tissue, q);
+    w.commit();
+  }
+  auto b = test::run_cli("build --model " + model + " --tissues " + kTable + " --quiet");
+  ASSERT_EQ(b.code, 0) << b.err;
+  const Layer before = ModelReader(model).layer("skin");
+  const auto r = test::run_cli("tune --tissues " + kTable + " --tissue skin --model " + model +
+                               " --max-evaluations 4000 --quiet --report " + (d / "r.json"));
+  ASSERT_EQ(r.code, 0) << r.err;
+  ModelReader m(model);
+  ASSERT_TRUE(m.has("/tuning/skin"));
+  EXPECT_FALSE(m.has("/tuning/fat"));
+  EXPECT_TRUE(m.has("/provenance/tune"));
+  const Tuning rec = m.tuning("skin");
+  EXPECT_EQ(rec.method, "sa");
+  ASSERT_EQ(rec.achieved.size(), 3);
+  for (int i = 0; i < 3; ++i) EXPECT_LE(std::abs(rec.achieved(i) - rec.target(i)) / rec.target(i), 0.02) << i;
+  // the layer's springs follow the tuned laws: k1 scaled per class by tuned / rule modulus
+  const tune::SpringParams tuned = tune::params_of(rec);
+  const Layer after = m.layer("skin");
+  ASSERT_EQ(after.k1.size(), before.k1.size());
+  for (Eigen::Index s = 0; s < after.k1.size(); ++s) {
+    const auto& l = tuned[after.spring_class(s)];
+    EXPECT_NEAR(after.k1(s), before.k1(s) * l.k1_pa / 100.0, 1e-9 * after.k1(s));
+    EXPECT_NEAR(after.turning_length(s), after.rest_length(s) * (1 + l.turning_strain), 1e-12);
+  }
+  // the specimen had the layer's cell size
+  const json rep = json::parse(test::read_file(d / "r.json"));
+  EXPECT_GT(rep["parameters"]["tissues"][0]["experiment"]["cell_m"][1].get<double>(), 5e-3);
+  // a second tune starts from the recorded laws
+  const auto r2 = test::run_cli("tune --tissues " + kTable + " --tissue skin --model " + model +
+                                " --max-evaluations 4000 --quiet");
+  ASSERT_EQ(r2.code, 0) << r2.err;
+  const Layer again = ModelReader(model).layer("skin");
+  const tune::SpringParams tuned2 = tune::params_of(ModelReader(model).tuning("skin"));
+  for (Eigen::Index s = 0; s < again.k1.size(); ++s)
+    EXPECT_NEAR(again.k1(s), before.k1(s) * tuned2[again.spring_class(s)].k1_pa / 100.0, 1e-9 * again.k1(s));
+}
+
+TEST(TuneCli, BadInputIsOneLineExit2AndWritesNothing) {
+  test::TempDir d("tune-cli-bad");
+  expect_refused(d, "--tissues " + kTable + " --tissue tendon", "unknown tissue 'tendon'");
+  expect_refused(d, "--tissues " + kTable + " --tissue bone", "no mechanics");
+  expect_refused(d, "--tissues " + kTable + " --budget-s 0", "budget");
+  expect_refused(d, "--tissues " + kTable + " --budget-s -3", "budget");
+  expect_refused(d, "--tissues " + kTable + " --method annealing", "unknown method 'annealing'");
+  expect_refused(d, "--tissues " + kTable + " --polish newton", "unknown polish");
+  expect_refused(d, "--tissues " + kTable + " --tolerance 0", "tolerance");
+  expect_refused(d, "--tissues " + (d / "missing.json"), "missing.json");
+  expect_refused(d,
+                 "--tissues " + table_with(d, "skin", {{"model", "biphasic"}, {"k1_kpa", 0.1}, {"turning_strain", 0.4},
+                                                       {"k2_kpa", 18.8}, {"weights", {0, 0, 0}}}),
+                 "at least one weight must be positive");
+  expect_refused(d,
+                 "--tissues " + table_with(d, "skin", {{"model", "biphasic"}, {"k1_kpa", 0.1}, {"turning_strain", 1.2},
+                                                       {"k2_kpa", 18.8}}),
+                 "turning");
+  expect_refused(d,
+                 "--tissues " + table_with(d, "skin", {{"model", "biphasic"}, {"k1_kpa", 20}, {"turning_strain", 0.4},
+                                                       {"k2_kpa", 18.8}}),
+                 "k2_kpa must not be smaller than k1_kpa");
+  expect_refused(d, "--tissues " + table_with(d, "fat", {{"model", "linear"}, {"k_kpa", -2}}), "fat");
+  expect_refused(d, "--tissues " + kTable + " --model " + (d / "none.h5"), "none.h5");
+}

@@ -1,0 +1,301 @@
+// orthosim tune --tissues tissues.json [--tissue NAME ...] [--model model.h5] [--seed N] [--budget-s T]
+//   [--max-evaluations N] [--method sa|crs2|isres|direct-l|esch|bobyqa|sbplx|...] [--polish bobyqa|sbplx|none]
+//   [--tolerance X] [--out tuned.json] [--plot DIR]
+// Tunes the spring parameters of each tissue with mechanics (paper §4.1,
+// Eq. 1) against its tissue-table values (libmodel/tune/tune.h,
+// docs/tune.md). Without --model the specimen is a 2 x 2 cell block of 1 mm
+// cells of the tissue's layer kind; with --model it has the cell size of the
+// tissue's built layer in /layers, the tuned laws are applied to that layer
+// and /tuning/<tissue> is written into the model. --out writes the tissue
+// table with a "tuned" object in each tuned tissue's mechanics; --plot one
+// stress-strain PNG per tissue.
+#include "libmodel/format/atomic.h"
+#include "libmodel/format/model.h"
+#include "libmodel/provenance.h"
+#include "libmodel/tissues.h"
+#include "libmodel/tune/plot.h"
+#include "libmodel/tune/tune.h"
+#include "tools/common.h"
+
+#include <filesystem>
+#include <fstream>
+#include <iomanip>
+#include <iostream>
+#include <map>
+#include <sstream>
+
+namespace orthosim::cli {
+namespace {
+
+using nlohmann::json;
+
+const char* const kClassNames[tune::kSpringClasses] = {"structural", "shear", "inter_layer", "body"};
+
+// values in the tissue table's units and keys: kPa for moduli, 1 for strains
+json values_json(const tune::Target& q, const std::vector<double>& v) {
+  json j = json::object();
+  const auto keys = q.keys();
+  for (std::size_t i = 0; i < keys.size() && i < v.size(); ++i)
+    j[keys[i]] = keys[i] == "turning_strain" ? v[i] : v[i] * 1e-3;
+  return j;
+}
+
+json params_json(const tune::TuneResult& r) {
+  json j = json::array();
+  for (SpringClass c : r.classes) {
+    const tune::ClassLaw& l = r.params[static_cast<std::size_t>(c)];
+    json e = {{"class", kClassNames[static_cast<int>(c)]}, {"code", static_cast<int>(c)}};
+    if (r.target.biphasic) {
+      e["k1_kpa"] = l.k1_pa * 1e-3;
+      e["turning_strain"] = l.turning_strain;
+      e["k2_kpa"] = l.k2_pa * 1e-3;
+    } else {
+      e["k_kpa"] = l.k1_pa * 1e-3;
+    }
+    j.push_back(e);
+  }
+  return j;
+}
+
+json result_json(const std::string& name, const tune::TuneResult& r) {
+  return {{"name", name},
+          {"target", values_json(r.target, r.target.values())},
+          {"weights", r.target.weights},
+          {"achieved", values_json(r.target, r.measured.p)},
+          {"untuned", values_json(r.target, r.untuned.p)},
+          {"psi", r.psi},
+          {"max_relative_error", r.max_error},
+          {"evaluations", r.evaluations},
+          {"seconds", r.seconds},
+          {"seconds_per_experiment", r.seconds_per_experiment},
+          {"reached", r.reached},
+          {"stop", r.stop},
+          {"method", r.method},
+          {"seed", r.seed},
+          {"spring_params", params_json(r)}};
+}
+
+json experiment_json(const tune::ExperimentOptions& e) {
+  return {{"kind", e.kind},
+          {"cells", e.cells},
+          {"cell_m", e.cell_m},
+          {"axis", e.axis},
+          {"steps_below", e.steps_below},
+          {"stretch", e.stretch},
+          {"linear_steps", e.linear_steps},
+          {"linear_strain", e.linear_strain},
+          {"force_tolerance", e.solver.force_tolerance},
+          {"newton_iterations", e.solver.max_iterations}};
+}
+
+// One tissue to tune: its target, the specimen, and with --model its layer.
+struct Job {
+  std::string tissue;
+  tune::Target target;
+  tune::ExperimentOptions experiment;
+  std::string layer_name;  // with --model
+  Layer layer;
+  tune::SpringParams current{};  // the laws the layer carries now
+  tune::TuneResult result;
+};
+
+// The tissue's built layer and the one below it (its bottom grid).
+void find_layer(const ModelReader& m, Job& job) {
+  std::map<int, std::pair<std::string, Layer>> by_order;
+  for (const auto& name : m.names("/layers")) {
+    if (!m.h5().is_group("/layers/" + name) || name == "sets") continue;
+    Layer l = m.layer_fields(name, {"nodes"});
+    const int order = l.order;
+    by_order[order] = {name, std::move(l)};
+  }
+  for (const auto& [order, named] : by_order) {
+    if (named.second.tissue != job.tissue) continue;
+    if (named.second.kind != "tetra" && named.second.kind != "lattice")
+      throw Error(m.path(), "tissue '" + job.tissue + "' is built as a " + named.second.kind +
+                                " layer: only tetra and lattice layers have springs to tune");
+    const auto below = by_order.find(order + 1);
+    if (below == by_order.end())
+      throw Error(m.path(), "layer '" + named.first + "' has no layer below it to give its thickness");
+    job.layer_name = named.first;
+    job.layer = m.layer(named.first);
+    job.experiment = tune::experiment_for_layer(job.layer, below->second.second, tune::ExperimentOptions{});
+    if (m.has("/tuning/" + job.tissue)) job.current = tune::params_of(m.tuning(job.tissue));
+    else job.current = tune::rule_params(job.target);
+    return;
+  }
+  throw Error(m.path(), "no built layer for tissue '" + job.tissue + "' in /layers: run orthosim build first");
+}
+
+}  // namespace
+
+void add_tune_command(CLI::App& app) {
+  auto* sub = app.add_subcommand("tune", "tune spring parameters against the tissue table (simulated annealing, Eq. 1)");
+  static std::string tissues_path, model, out, plot_dir;
+  static std::vector<std::string> names;
+  static tune::TuneOptions opt;
+  static CommonOptions common;
+  sub->add_option("--tissues", tissues_path, "tissue table (tissues.json)")->required();
+  sub->add_option("--tissue", names, "tissue to tune (repeatable; default: every tissue with mechanics)");
+  sub->add_option("--model", model,
+                  "built model: specimens take its layers' cell sizes; the tuned laws and /tuning/<tissue> are written "
+                  "into it");
+  sub->add_option("--seed", opt.seed, "random seed")->capture_default_str();
+  sub->add_option("--budget-s", opt.budget_s, "wall-clock budget per tissue (s)")->capture_default_str();
+  sub->add_option("--max-evaluations", opt.max_evaluations,
+                  "virtual experiments per tissue (0: no limit); a run bounded by this, not by time, is reproducible")
+      ->capture_default_str();
+  sub->add_option("--method", opt.method, "sa, an NLopt global algorithm (crs2, isres, direct-l, esch) or an NLopt "
+                                          "local one (bobyqa, sbplx, neldermead, cobyla)")
+      ->capture_default_str();
+  sub->add_option("--polish", opt.polish, "local polish after an NLopt global method: bobyqa, sbplx or none")
+      ->capture_default_str();
+  sub->add_option("--tolerance", opt.tolerance, "stop when every weighted parameter is within this relative error")
+      ->capture_default_str();
+  sub->add_option("--out", out, "tuned tissue table (JSON)");
+  sub->add_option("--plot", plot_dir, "directory for one stress-strain PNG per tissue");
+  add_common_options(sub, common);
+  on_run(sub, "tune", [] {
+    Report report("tune");
+    try {
+      tune::validate(opt);
+    } catch (const Error& e) {
+      throw UsageError(e.message());
+    }
+    const TissueTable table = load_tissue_table(tissues_path);
+    report.input(tissues_path);
+
+    // the tissues and their targets, all checked before any work
+    std::vector<Job> jobs;
+    auto add = [&](const Tissue& t) {
+      Job j;
+      j.tissue = t.name;
+      try {
+        j.target = tune::target_of(t);
+        tune::validate(j.target);
+      } catch (const Error& e) {
+        throw Error(tissues_path, "tissue '" + t.name + "': " + e.message());
+      }
+      j.experiment.kind = t.layer == "lattice" ? "lattice" : "tetra";
+      jobs.push_back(std::move(j));
+    };
+    if (names.empty()) {
+      for (const Tissue& t : table.tissues)
+        if (t.mechanics.model != Mechanics::Model::none) add(t);
+      if (jobs.empty()) throw Error(tissues_path, "no tissue has mechanics to tune");
+    } else {
+      for (const auto& n : names) {
+        const Tissue* t = table.find(n);
+        if (!t) throw Error(tissues_path, "unknown tissue '" + n + "'");
+        for (const Job& j : jobs)
+          if (j.tissue == n) throw UsageError("--tissue '" + n + "' given twice");
+        add(*t);
+      }
+    }
+    if (!model.empty()) {
+      ModelReader m(model);
+      if (!m.has("/layers")) throw Error(model, "no /layers in the model: run orthosim build first");
+      report.input(model);
+      for (Job& j : jobs) {
+        try {
+          find_layer(m, j);
+        } catch (const Error& e) {
+          if (!e.file().empty()) throw;
+          throw Error(model, e.message());
+        }
+      }
+    }
+    if (!plot_dir.empty() && std::filesystem::exists(plot_dir) && !std::filesystem::is_directory(plot_dir))
+      throw Error(plot_dir, "--plot must name a directory");
+
+    json params = {{"method", opt.method},         {"polish", opt.polish},       {"polish_share", opt.polish_share},
+                   {"seed", opt.seed},             {"budget_s", opt.budget_s},   {"max_evaluations", opt.max_evaluations},
+                   {"tolerance", opt.tolerance},   {"walk_sweeps", opt.anneal.walk_sweeps},
+                   {"tissues", json::array()}};
+    for (const Job& j : jobs) params["tissues"].push_back({{"name", j.tissue}, {"experiment", experiment_json(j.experiment)}});
+    report.parameters() = params;
+
+    // tune
+    for (Job& j : jobs) {
+      {
+        Phase p(report, "tune." + j.tissue);
+        try {
+          j.result = tune::tune_target(j.target, j.experiment, opt);
+        } catch (const Error& e) {
+          if (!e.file().empty()) throw;
+          throw Error(tissues_path, "tissue '" + j.tissue + "': " + e.message());
+        }
+      }
+      if (!j.layer_name.empty()) tune::apply_to_layer(j.layer, j.current, j.result.params);
+      if (!common.quiet) {
+        const auto& r = j.result;
+        const auto q = r.target.values();
+        const auto keys = r.target.keys();
+        std::cout << "tune: " << j.tissue << " (" << r.method << ", seed " << r.seed << "):";
+        for (std::size_t i = 0; i < keys.size(); ++i) {
+          const double s = keys[i] == "turning_strain" ? 1.0 : 1e-3;
+          std::cout << " " << keys[i] << " " << std::setprecision(5) << (i < r.measured.p.size() ? r.measured.p[i] * s : 0)
+                    << " (target " << q[i] * s << ")";
+        }
+        std::cout << ", max error " << std::setprecision(3) << 100 * r.max_error << " %, psi " << r.psi << ", "
+                  << r.evaluations << " experiments, " << std::setprecision(3) << r.seconds << " s"
+                  << (r.reached ? "" : " (tolerance not reached: " + r.stop + ")") << "\n";
+      }
+    }
+
+    // outputs, each atomic
+    {
+      Phase p(report, "write");
+      if (!model.empty()) {
+        ModelWriter w(model, ModelWriter::Start::update);
+        for (const Job& j : jobs) {
+          w.remove("/layers/" + j.layer_name);
+          w.write_layer(j.layer_name, j.layer);
+          w.remove("/tuning/" + j.tissue);
+          w.write(j.tissue, tune::tuning_record(j.result));
+        }
+        w.write("tune", make_provenance(command_line(), report.json()["inputs"].dump(), params.dump(),
+                                        static_cast<std::int64_t>(opt.seed), 0.0));
+        w.commit();
+        report.output(model);
+      }
+      if (!out.empty()) {
+        std::ifstream in(tissues_path);
+        std::stringstream text;
+        text << in.rdbuf();
+        json t = json::parse(text.str());
+        for (json& e : t["tissues"]) {
+          for (const Job& j : jobs) {
+            if (e.value("name", "") != j.tissue) continue;
+            json tuned = result_json(j.tissue, j.result);
+            tuned.erase("name");
+            tuned.erase("target");
+            e["mechanics"]["tuned"] = tuned;
+          }
+        }
+        AtomicFile f(out);
+        {
+          std::ofstream o(f.temp());
+          o << t.dump(2) << "\n";
+          if (!o) throw Error(out, "could not write the tuned tissue table");
+        }
+        f.commit();
+        report.output(out);
+      }
+      if (!plot_dir.empty()) {
+        AtomicDir d(plot_dir);
+        for (const Job& j : jobs) {
+          tune::PlotOptions po;
+          po.title = j.tissue;
+          tune::write_curve_png((std::filesystem::path(d.temp()) / (j.tissue + ".png")).string(), j.result, po);
+        }
+        d.commit();
+        report.output(plot_dir);
+      }
+    }
+    report.metrics()["tissues"] = json::array();
+    for (const Job& j : jobs) report.metrics()["tissues"].push_back(result_json(j.tissue, j.result));
+    report.write(common.report);
+  });
+}
+
+}  // namespace orthosim::cli
