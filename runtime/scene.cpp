@@ -2,6 +2,7 @@
 
 #include "libmodel/format/atomic.h"
 #include "runtime/loader.h"
+#include "runtime/sph_surface.h"
 
 #include <nlohmann/json.hpp>
 #include <tbb/info.h>
@@ -12,6 +13,7 @@
 #include <cmath>
 #include <filesystem>
 #include <fstream>
+#include <iomanip>
 #include <set>
 #include <sstream>
 
@@ -26,6 +28,7 @@ const char* to_string(ToolType t) {
     case ToolType::pressure: return "pressure";
     case ToolType::hook: return "hook";
     case ToolType::cut: return "cut";
+    case ToolType::drain: return "drain";
   }
   return "?";
 }
@@ -136,7 +139,8 @@ ToolDef parse_tool(const json& j, std::size_t index, const std::string& file) {
   else if (type == "pressure") t.type = ToolType::pressure;
   else if (type == "hook") t.type = ToolType::hook;
   else if (type == "cut") t.type = ToolType::cut;
-  else o.fail("type must be pull, pressure, hook or cut (got '" + type + "')");
+  else if (type == "drain") t.type = ToolType::drain;
+  else o.fail("type must be pull, pressure, hook, cut or drain (got '" + type + "')");
   t.nodes = o.string("nodes", "");
   if (o.has("center") && o.has("center_in_box")) o.fail("give center or center_in_box, not both");
   if (o.has("center") || o.has("center_in_box")) {
@@ -153,7 +157,7 @@ ToolDef parse_tool(const json& j, std::size_t index, const std::string& file) {
     if (!o.has("radius")) o.fail("radius is required with center");
   } else {
     if (o.has("radius")) o.fail("radius needs a center");
-    if (t.nodes.empty() && t.type != ToolType::cut) o.fail("needs a center and radius, or a node set in 'nodes'");
+    if (t.nodes.empty() && t.type != ToolType::cut && t.type != ToolType::drain) o.fail("needs a center and radius, or a node set in 'nodes'");
   }
   if (t.type == ToolType::cut) {
     if (t.has_center) o.fail("a cut takes a polyline, not a center");
@@ -178,8 +182,9 @@ ToolDef parse_tool(const json& j, std::size_t index, const std::string& file) {
   t.start = o.number("start", 0, 0, 1e9);
   t.end = o.number("end", std::numeric_limits<Real>::infinity(), 0, 1e9);
   if (o.has("end") && !(t.end > t.start)) o.fail("end must be after start");
-  if (t.type == ToolType::pull) {
-    t.stiffness = o.number("stiffness", 0, 0, 1e12);
+  if (t.type == ToolType::drain && !t.has_center) o.fail("a drain needs a center (or center_in_box) and a radius");
+  if (t.type == ToolType::pull || t.type == ToolType::drain) {
+    if (t.type == ToolType::pull) t.stiffness = o.number("stiffness", 0, 0, 1e12);
     if (o.has("path")) {
       const json& p = o.at("path");
       if (!p.is_array() || p.empty()) o.fail("path must be a list of [t, dx, dy, dz]");
@@ -228,7 +233,38 @@ SceneDef parse_scene(const std::string& text, const std::string& file) {
   d.layers = o.strings("layers");
   if (d.layers.size() == 1 && d.layers[0] == "all") d.layers.clear();
   d.vessels = o.strings("vessels");
-  if (o.has("fluid")) o.fail("fluid is not supported by this runtime yet (runtime II); remove it or set it to null");
+  if (o.has("fluid")) {
+    Obj f(o.at("fluid"), "fluid: ", file);
+    FluidDef& fd = d.fluid;
+    fd.enabled = f.boolean("enabled", true);
+    FluidParams& p = fd.params;
+    p.spacing = f.number("spacing", p.spacing, 0, 1, true);
+    p.rest_density = f.number("density", p.rest_density, 0, 1e5, true);
+    p.viscosity = f.number("viscosity", p.viscosity, 0, 1e3);
+    p.support_ratio = f.number("support_ratio", p.support_ratio, 1.5, 4);
+    p.max_speed = f.number("max_speed", p.max_speed, 0, 1e3, true);
+    p.sound_speed = f.number("sound_speed", 0, 0, 1e5);
+    p.physx_stiffness = f.number("physx_stiffness", 0, 0, 1e6);
+    p.artificial_viscosity = f.number("artificial_viscosity", p.artificial_viscosity, 0, 1);
+    const std::string eos = f.string("eos", "tait");
+    if (eos == "tait") p.eos = Eos::tait;
+    else if (eos == "linear") p.eos = Eos::linear;
+    else f.fail("eos must be tait or linear (got '" + eos + "')");
+    fd.tissue_wall.restitution = f.number("restitution", fd.tissue_wall.restitution, 0, 1);
+    fd.tissue_wall.friction = f.number("friction", fd.tissue_wall.friction, 0, 1e3);
+    fd.box_wall = fd.tissue_wall;
+    fd.couple = f.boolean("couple", fd.couple);
+    fd.margin = f.number("margin", fd.margin, 0, 10);
+    fd.open_top = f.boolean("open_top", fd.open_top);
+    fd.max_particles = f.integer("max_particles", fd.max_particles, 1, 100000000);
+    fd.bleed_pressure = f.number("bleed_pressure", fd.bleed_pressure, 0, 1e7);
+    fd.bleed_length = f.number("bleed_length", fd.bleed_length, 0, 10, true);
+    fd.bleed_duration = f.number("bleed_duration", fd.bleed_duration, 0, 1e9, true);
+    fd.surface = f.boolean("surface", fd.surface);
+    fd.particles = f.boolean("particles", fd.particles);
+    fd.surface_cell = f.number("surface_cell", fd.surface_cell, 0, 2, true);
+    f.finish();
+  }
   d.fixed = o.strings("fixed");
   d.sets = o.strings("sets");
   d.couple_unloaded = o.boolean("couple_unloaded_layers", true);
@@ -317,7 +353,7 @@ void validate(const SceneDef& d) {
   for (const auto& t : d.tools) {
     if (!names.insert(t.name).second) fail("two tools are named '" + t.name + "'");
     if (t.has_center && !(std::isfinite(t.radius) && t.radius > 0)) fail("tool '" + t.name + "': radius must be > 0");
-    if (!t.has_center && t.nodes.empty() && t.type != ToolType::cut) fail("tool '" + t.name + "' needs a center and radius, or a node set");
+    if (!t.has_center && t.nodes.empty() && t.type != ToolType::cut && t.type != ToolType::drain) fail("tool '" + t.name + "' needs a center and radius, or a node set");
     if (t.type == ToolType::cut && (t.polyline.size() < 6 || t.polyline.size() % 3 || !(t.depth > 0)))
       fail("tool '" + t.name + "': a cut needs a polyline of at least 2 points and a depth > 0");
     if (!(t.end > t.start)) fail("tool '" + t.name + "': end must be after start");
@@ -326,6 +362,19 @@ void validate(const SceneDef& d) {
     if (t.path.p.size() != 3 * t.path.t.size()) fail("tool '" + t.name + "': path points do not match its times");
   }
   if (d.output.enabled && d.output.dir.empty()) fail("output: dir is required");
+  for (const auto& t : d.tools) {
+    if (t.type == ToolType::drain && !d.fluid.enabled) fail("tool '" + t.name + "': a drain needs the scene's fluid");
+    if (t.type == ToolType::drain && !t.has_center) fail("tool '" + t.name + "': a drain needs a center and a radius");
+  }
+  if (d.fluid.enabled) {
+    FluidParams p = d.fluid.params;
+    p.gravity = d.solver.gravity;
+    try {
+      validate(p);
+    } catch (const Error& e) {
+      fail("fluid: " + e.message());
+    }
+  }
 }
 
 // ---- Scene ------------------------------------------------------------------
@@ -349,8 +398,6 @@ Scene::Scene(Model model, const SceneDef& def) : def_(def) {
   init("");
 }
 
-Scene::~Scene() = default;
-
 void Scene::init(const std::string& model_file) {
   const std::string& file = def_.file;
   if (!model_) {
@@ -358,7 +405,7 @@ void Scene::init(const std::string& model_file) {
     LoadRequest req;
     req.layers = def_.layers;
     req.vessels = def_.vessels;
-    req.surface = def_.output.enabled && def_.output.vtk.surface;
+    req.surface = (def_.output.enabled && def_.output.vtk.surface) || def_.fluid.enabled;  // the blood collides with the quads
     req.couple_unloaded = def_.couple_unloaded;
     std::set<std::string> sets(def_.fixed.begin(), def_.fixed.end());
     sets.insert(def_.sets.begin(), def_.sets.end());
@@ -458,7 +505,9 @@ void Scene::init(const std::string& model_file) {
       const auto& f = t.center_fraction;
       run.def.center = {lo.x + f[0] * (hi.x - lo.x), lo.y + f[1] * (hi.y - lo.y), lo.z + f[2] * (hi.z - lo.z)};
     }
-    if (t.has_center) {
+    if (t.type == ToolType::drain) {
+      // a point tool: it takes no node
+    } else if (t.has_center) {
       const Vec3 c{run.def.center[0], run.def.center[1], run.def.center[2]};
       for (auto i : candidates)
         if (norm(load3(m.rest_x.data(), i) - c) <= t.radius) run.nodes.push_back(i);
@@ -490,6 +539,8 @@ void Scene::init(const std::string& model_file) {
     tools_.push_back(std::move(run));
   }
 
+  if (def_.fluid.enabled) init_fluid();
+
   // output directory, after everything else is known to be valid
   if (def_.output.enabled) {
     check_output_dir(def_.output.dir);
@@ -500,6 +551,196 @@ void Scene::init(const std::string& model_file) {
   }
   user_force_.assign(3 * static_cast<std::size_t>(m.n_nodes), 0);
   arena_ = std::make_unique<Arena>(def_.threads);
+}
+
+// ---- blood ---------------------------------------------------------------------
+
+Real bleeding_flow_rate(Real radius, Real pressure, Real viscosity, Real length, Real density) {
+  if (!(radius > 0) || !(pressure > 0)) return 0;
+  const Real area = M_PI * radius * radius;
+  const Real inertial = area * std::sqrt(2 * pressure / density);
+  if (!(viscosity > 0)) return inertial;
+  return std::min(poiseuille_flow_rate(radius, pressure, viscosity, length), inertial);
+}
+
+struct Scene::FluidRun {
+  Fluid fluid;
+  FluidBoundaries bounds;
+  FluidState state = make_fluid_state();
+  std::vector<int> drain_of_tool;  // per tool: index into state.drains, -1 for other tools
+  std::vector<Real> force;         // (n_nodes x 3) N, the blood's wall forces of the last step
+  FluidSummary summary;
+  std::vector<std::pair<Real, std::string>> frames;  // blood surface series
+  bool vessels_written = false;
+};
+
+Scene::~Scene() = default;
+
+const Fluid* Scene::fluid() const { return fluid_ ? &fluid_->fluid : nullptr; }
+const FluidState* Scene::fluid_state() const { return fluid_ ? &fluid_->state : nullptr; }
+const FluidBoundaries* Scene::fluid_boundaries() const { return fluid_ ? &fluid_->bounds : nullptr; }
+
+Scene::FluidSummary Scene::fluid_summary() const {
+  if (!fluid_) return {};
+  FluidSummary r = fluid_->summary;
+  const FluidCounters& c = fluid_->state.counters;
+  r.particles = fluid_->state.size();
+  r.emitted = c.emitted;
+  r.drained = c.drained;
+  r.left_domain = c.left_domain;
+  r.nonfinite = c.nonfinite;
+  r.emitted_volume = c.emitted_volume;
+  r.drained_volume = c.drained_volume;
+  r.emitters = static_cast<int>(fluid_->state.emitters.size());
+  return r;
+}
+
+void Scene::init_fluid() {
+  const Model& m = *model_;
+  const FluidDef& fd = def_.fluid;
+  fluid_ = std::make_unique<FluidRun>();
+  FluidRun& fr = *fluid_;
+  FluidParams p = fd.params;
+  p.gravity = def_.solver.gravity;
+  try {
+    fr.fluid = make_fluid(p);
+  } catch (const Error& e) {
+    throw Error(def_.file, "fluid: " + e.message());
+  }
+  // the domain: the loaded nodes' rest bounding box grown by the margin
+  std::array<Real, 3> lo{HUGE_VAL, HUGE_VAL, HUGE_VAL}, hi{-HUGE_VAL, -HUGE_VAL, -HUGE_VAL};
+  for (std::int32_t i = 0; i < m.n_nodes; ++i)
+    for (int k = 0; k < 3; ++k) {
+      lo[k] = std::min(lo[k], m.rest_x[3 * static_cast<std::size_t>(i) + k]);
+      hi[k] = std::max(hi[k], m.rest_x[3 * static_cast<std::size_t>(i) + k]);
+    }
+  for (int k = 0; k < 3; ++k) lo[k] -= fd.margin, hi[k] += fd.margin;
+  fr.bounds = make_box_boundaries(lo, hi);
+  fr.bounds.box_wall = fd.box_wall;
+  if (fd.open_top) {
+    // the face against gravity's largest component is open
+    int axis = 0;
+    for (int k = 1; k < 3; ++k)
+      if (std::abs(p.gravity[k]) > std::abs(p.gravity[axis])) axis = k;
+    if (p.gravity[axis] != 0) fr.bounds.faces[static_cast<std::size_t>(2 * axis + (p.gravity[axis] < 0 ? 1 : 0))] = Face::open;
+  }
+  try {
+    validate(fr.bounds, fr.fluid);
+  } catch (const Error& e) {
+    throw Error(def_.file, "fluid: " + e.message());
+  }
+  // the tissue surface: every node a vertex, the loaded layers' quads as
+  // two-sided triangles (blood meets the skin outside and the wound inside)
+  FluidSurface surf;
+  surf.two_sided = true;
+  surf.wall = fd.tissue_wall;
+  surf.x = state_.x;
+  fr.state.surfaces.push_back(std::move(surf));
+  update_fluid_surface();
+  fr.force.assign(3 * static_cast<std::size_t>(m.n_nodes), 0);
+  // drains, one per drain tool, enabled while the tool is active
+  fr.drain_of_tool.assign(tools_.size(), -1);
+  for (std::size_t i = 0; i < tools_.size(); ++i) {
+    if (tools_[i].def.type != ToolType::drain) continue;
+    FluidDrain d;
+    const Vec3 c = tools_[i].def.path.at(0);
+    d.center = {c.x, c.y, c.z};
+    d.radius = tools_[i].def.radius;
+    d.enabled = false;
+    fr.drain_of_tool[i] = static_cast<int>(fr.state.drains.size());
+    fr.state.drains.push_back(d);
+  }
+}
+
+void Scene::update_fluid_surface() {
+  const Model& m = *model_;
+  FluidSurface& surf = fluid_->state.surfaces.front();
+  surf.triangles.clear();
+  surf.triangles.reserve(6 * static_cast<std::size_t>(m.n_quads));
+  for (std::int32_t q = 0; q < m.n_quads; ++q) {
+    const std::int32_t* v = m.quads.data() + 4 * static_cast<std::size_t>(q);
+    surf.triangles.insert(surf.triangles.end(), {v[0], v[1], v[2], v[0], v[2], v[3]});
+  }
+}
+
+void Scene::fluid_step_now(Real dt, std::span<const Real> x_start) {
+  FluidRun& fr = *fluid_;
+  const FluidDef& fd = def_.fluid;
+  const auto t0 = std::chrono::steady_clock::now();
+  // the tissue surface through the step: from its start positions at the mean velocity
+  FluidSurface& surf = fr.state.surfaces.front();
+  surf.x.assign(x_start.begin(), x_start.end());
+  surf.v.resize(surf.x.size());
+  for (std::size_t i = 0; i < surf.v.size(); ++i) surf.v[i] = (state_.x[i] - x_start[i]) / dt;
+  // drains follow their tools
+  for (std::size_t i = 0; i < tools_.size(); ++i) {
+    const int di = fr.drain_of_tool[i];
+    if (di < 0) continue;
+    FluidDrain& d = fr.state.drains[static_cast<std::size_t>(di)];
+    d.enabled = tools_[i].active;
+    const Vec3 c = tools_[i].def.path.at(state_.time - dt);
+    d.center = {c.x, c.y, c.z};
+  }
+  // emitters pause while the fluid is full
+  const bool full = fr.state.size() >= fd.max_particles;
+  bool any = false;
+  for (auto& e : fr.state.emitters) {
+    const bool live = state_.time - dt >= e.start && state_.time - dt < e.end;
+    any = any || live;
+    e.enabled = !full;
+  }
+  if (full && any) ++fr.summary.paused_steps;
+  fr.state.time = state_.time - dt;  // the fluid's clock follows the tissue's
+  const FluidStepInfo info = fluid_step(fr.fluid, fr.state, dt, fr.bounds);
+  fr.summary.max_compression = std::max(fr.summary.max_compression, info.max_compression);
+  if (fd.couple && surf.force.size() == fr.force.size()) fr.force = surf.force;
+  fr.summary.wall_s += std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+}
+
+void Scene::write_fluid_frame() {
+  FluidRun& fr = *fluid_;
+  const std::string& dir = def_.output.dir;
+  const std::string& name = def_.output.name;
+  const int k = static_cast<int>(fr.frames.size());
+  if (!fr.vessels_written && !model_->vessels.empty()) {
+    // the loaded vessel centrelines (points with their radius), once
+    std::vector<double> pts, radius;
+    for (const auto& v : model_->vessels) {
+      pts.insert(pts.end(), v.nodes.begin(), v.nodes.end());
+      radius.insert(radius.end(), v.radii.begin(), v.radii.end());
+    }
+    write_vtp(dir + "/" + name + "_vessels.vtp", pts, {}, {VtpArray{"radius", 1, radius}}, def_.output.vtk.binary);
+    fr.vessels_written = true;
+  }
+  const Real t = state_.time;
+  auto pvd = [&](const std::string& series, const std::vector<std::pair<Real, std::string>>& files) {
+    std::ostringstream o;
+    o << std::setprecision(17)
+      << "<?xml version=\"1.0\"?>\n<VTKFile type=\"Collection\" version=\"0.1\" byte_order=\"LittleEndian\">\n<Collection>\n";
+    for (const auto& [time, f] : files) o << "<DataSet timestep=\"" << time << "\" group=\"\" part=\"0\" file=\"" << f << "\"/>\n";
+    o << "</Collection>\n</VTKFile>\n";
+    write_text_file(dir + "/" + name + "_" + series + ".pvd", o.str());
+  };
+  const std::string tag = std::to_string(k);
+  if (def_.fluid.surface) {
+    FluidSurfaceOptions so;
+    so.cell = def_.fluid.surface_cell;
+    const FluidSurfaceMesh mesh = extract_fluid_surface(fr.fluid, fr.state, so);
+    write_fluid_surface_vtp(dir + "/" + name + "_blood_" + tag + ".vtp", mesh, def_.output.vtk.binary, t);
+    fr.summary.surface_triangles = mesh.n_triangles();
+  }
+  if (def_.fluid.particles) write_fluid_particles_vtp(dir + "/" + name + "_particles_" + tag + ".vtp", fr.state, def_.output.vtk.binary);
+  fr.frames.emplace_back(t, tag);
+  std::vector<std::pair<Real, std::string>> files;
+  if (def_.fluid.surface) {
+    for (const auto& [time, f] : fr.frames) files.emplace_back(time, name + "_blood_" + f + ".vtp");
+    pvd("blood", files);
+  }
+  if (def_.fluid.particles) {
+    files.clear();
+    for (const auto& [time, f] : fr.frames) files.emplace_back(time, name + "_particles_" + f + ".vtp");
+    pvd("particles", files);
+  }
 }
 
 void Scene::check_mutable(const char* what) const {
@@ -566,6 +807,25 @@ CutReport Scene::apply_cut(const CutDef& def) {
   if (!rep.detached.empty()) fix_nodes(*model_, state_, rep.detached);
   state_.step_limit = 0;
   if (vtk_) vtk_->set_topology(*model_);
+  if (fluid_) {
+    update_fluid_surface();
+    // each cut vessel bleeds: Poiseuille flow of its radius, out of the wound
+    const FluidDef& fd = def_.fluid;
+    for (const VesselHit& h : rep.vessel_hits) {
+      FluidEmitter e;
+      e.center = {h.point.x, h.point.y, h.point.z};
+      e.direction = {-rep.direction.x, -rep.direction.y, -rep.direction.z};
+      // the jet is at least 1.5 particle spacings wide (a 3 x 3 disc of
+      // particles); the flow rate is the vessel's
+      e.radius = std::max(h.radius, Real(1.5) * fluid_->fluid.params.spacing);
+      e.flow_rate = bleeding_flow_rate(h.radius, fd.bleed_pressure, fluid_->fluid.params.viscosity, fd.bleed_length,
+                                       fluid_->fluid.params.rest_density);
+      e.profile = EmitterProfile::parabolic;
+      e.start = state_.time;
+      e.end = state_.time + fd.bleed_duration;
+      fluid_->state.emitters.push_back(e);
+    }
+  }
   cuts_.push_back(rep);
   return rep;
 }
@@ -594,8 +854,18 @@ void Scene::simulate(Real dt) {
     for (auto i : tr.nodes)
       for (int k = 0; k < 3; ++k) state_.f_ext[3 * static_cast<std::size_t>(i) + k] += each * tr.def.direction[k];
   }
+  if (fluid_ && def_.fluid.couple)
+    for (std::size_t i = 0; i < state_.f_ext.size(); ++i) state_.f_ext[i] += fluid_->force[i];
   in_step_ = true;
-  arena_->arena.execute([&] { last_ = step(*model_, state_, dt, def_.solver); });
+  if (fluid_) {
+    const std::vector<Real> x_start = state_.x;
+    arena_->arena.execute([&] {
+      last_ = step(*model_, state_, dt, def_.solver);
+      fluid_step_now(dt, x_start);
+    });
+  } else {
+    arena_->arena.execute([&] { last_ = step(*model_, state_, dt, def_.solver); });
+  }
   if (user_force_set_) {
     std::fill(user_force_.begin(), user_force_.end(), 0);
     user_force_set_ = false;
@@ -657,6 +927,7 @@ void Scene::release(std::span<const std::int32_t> nodes) {
 
 void Scene::write_frame() {
   if (vtk_) vtk_->write(*model_, state_);
+  if (vtk_ && fluid_) write_fluid_frame();
 }
 
 RunSummary run(Scene& scene, long steps, const std::function<void(long)>& progress) {

@@ -99,6 +99,36 @@ void add_run_command(CLI::App& app) {
                    {"mean_iterations", c.cg_solves ? static_cast<double>(c.cg_iterations) / static_cast<double>(c.cg_solves) : 0.0},
                    {"max_iterations", c.cg_max_iterations},
                    {"unconverged", c.cg_unconverged}};
+    if (const runtime::FluidState* fs = scene->fluid_state()) {
+      const auto f = scene->fluid_summary();
+      const runtime::Fluid& fl = *scene->fluid();
+      met["fluid"] = {{"particles", f.particles},
+                      {"particles_emitted", f.emitted},
+                      {"particles_drained", f.drained},
+                      {"particles_left_domain", f.left_domain},
+                      {"particles_nonfinite", f.nonfinite},
+                      {"emitted_volume_m3", f.emitted_volume},
+                      {"drained_volume_m3", f.drained_volume},
+                      {"bleeding_vessels", f.emitters},
+                      {"emitter_paused_steps", f.paused_steps},
+                      {"max_compression", f.max_compression},
+                      {"substeps", fs->counters.substeps},
+                      {"collisions", fs->counters.collisions},
+                      {"spacing_m", fl.params.spacing},
+                      {"sound_speed_m_s", fl.c0},
+                      {"physx_stiffness", fl.physx_stiffness},
+                      {"wall_s", f.wall_s}};
+      met["particles_emitted"] = f.emitted;
+      met["particles_drained"] = f.drained;
+      if (!common.quiet)
+        std::cerr << "run: blood: " << f.emitters << " vessel(s) bleeding, " << f.emitted << " particles emitted, "
+                  << f.drained << " drained, " << f.left_domain << " left the domain, " << f.particles
+                  << " in the scene; fluid " << f.wall_s << " s of the steps\n";
+    }
+    met["cuts"] = nlohmann::json::array();
+    for (const auto& c : scene->cuts())
+      met["cuts"].push_back({{"springs_cut", c.springs_cut}, {"quads_removed", c.quads_removed},
+                             {"detached_nodes", c.detached.size()}, {"vessel_hits", c.vessel_hits.size()}});
     met["frames"] = r.frames;
     met["kinetic_energy_j"] = scene->state().kinetic_energy;
     met["elastic_energy_j"] = scene->state().spring_energy;

@@ -89,7 +89,7 @@ TEST_F(SceneTest, BadScenesAreOneLineErrorsBeforeAnyStep) {
       {R"({"model": "model.h5", "gravity": [0, "down", 0]})", "gravity must be three finite numbers"},
       {R"({"model": "model.h5", "integrator": "rk4"})", "integrator must be symplectic or implicit"},
       {R"({"model": "model.h5", "dtt": 0.01})", "unknown key 'dtt'"},
-      {R"({"model": "model.h5", "fluid": {"particles": 5000}})", "fluid is not supported"},
+      {R"({"model": "model.h5", "fluid": {"particles": 5000}})", "particles must be true or false"},
       {R"({"model": "model.h5", "tools": [{"type": "pull", "center": [0, 0, 0]}]})", "radius is required"},
       {R"({"model": "model.h5", "tools": [{"type": "pressure", "center": [0, 0, 0], "radius": 0.01, "pressure": 5}]})",
        "direction must be a non-zero"},

@@ -1,0 +1,193 @@
+// Bleeding in a scene (issue 9): the flow law of a cut vessel; a cut tool
+// that crosses a vessel makes an emitter whose emitted volume is Q t;
+// particles are conserved (in the scene + drained + lost = emitted); a drain
+// tool removes blood; the blood pushes on the tissue (two-way coupling);
+// runs are deterministic; scene files with a fluid and drains are checked.
+#include "runtime/scene.h"
+#include "runtime/sph.h"
+#include "runtime/testing/lattice.h"
+#include "runtime_test_util.h"
+
+#include <gtest/gtest.h>
+
+#include <cmath>
+
+using namespace orthosim;
+using namespace orthosim::runtime;
+
+namespace {
+
+// A 4-layer block (skin at y = 0, facing -y) with a vessel along x, 3 mm deep.
+Model block_with_vessel() {
+  const auto b = runtime::testing::make_layered_block(15, 5, 4);
+  Model m = model_from_layers(b.layers, b.sets);
+  Model::Vessel v;
+  v.name = "vein";
+  v.nodes = {0, 3e-3, 0.008, 0.056, 3e-3, 0.008};
+  v.radii = {1.5e-3, 1.5e-3};
+  v.edges = {0, 1};
+  m.vessels.push_back(v);
+  return m;
+}
+
+SceneDef bleeding_def(bool drain, bool couple = true) {
+  SceneDef def = default_scene_def();
+  def.fixed = {"fixed"};
+  def.dt = 1.0 / 60;
+  def.solver.integrator = Integrator::implicit_euler;
+  def.fluid.enabled = true;
+  def.fluid.params.spacing = 1e-3;
+  def.fluid.params.sound_speed = 3;
+  def.fluid.bleed_pressure = 200;
+  def.fluid.bleed_length = 0.05;
+  def.fluid.margin = 0.01;
+  def.fluid.couple = couple;
+  ToolDef cut;
+  cut.name = "scalpel";
+  cut.type = ToolType::cut;
+  cut.polyline = {0.028, 0, -0.01, 0.028, 0, 0.03};
+  cut.snap = false;
+  cut.direction = {0, 1, 0};
+  cut.depth = 4e-3;
+  cut.start = 0.05;
+  def.tools.push_back(cut);
+  if (drain) {
+    ToolDef d;
+    d.name = "suction";
+    d.type = ToolType::drain;
+    d.has_center = true;
+    d.center = {0.028, -0.004, 0.008};
+    d.radius = 0.006;
+    d.start = 0.2;
+    def.tools.push_back(d);
+  }
+  return def;
+}
+
+void run_steps(Scene& s, int n) {
+  for (int i = 0; i < n; ++i) {
+    s.simulate(s.def().dt);
+    s.fetch_results();
+  }
+}
+
+bool fluid_finite(const FluidState& s) {
+  for (int a = 0; a < 3; ++a)
+    for (std::size_t i = 0; i < s.x[a].size(); ++i)
+      if (!std::isfinite(s.x[a][i]) || !std::isfinite(s.v[a][i])) return false;
+  return true;
+}
+
+}  // namespace
+
+TEST(Bleeding, FlowLawIsPoiseuilleCappedByTheOrifice) {
+  const Real mu = 0.003, rho = 1060, dp = 1330, L = 0.05;
+  // a thin vessel: viscous limit
+  const Real r1 = 0.2e-3;
+  EXPECT_DOUBLE_EQ(bleeding_flow_rate(r1, dp, mu, L, rho), M_PI * std::pow(r1, 4) * dp / (8 * mu * L));
+  // a wide one: the orifice, pi r^2 sqrt(2 dp / rho)
+  const Real r2 = 3e-3;
+  EXPECT_DOUBLE_EQ(bleeding_flow_rate(r2, dp, mu, L, rho), M_PI * r2 * r2 * std::sqrt(2 * dp / rho));
+  EXPECT_LT(bleeding_flow_rate(r2, dp, mu, L, rho), M_PI * std::pow(r2, 4) * dp / (8 * mu * L));
+  EXPECT_EQ(bleeding_flow_rate(r2, 0, mu, L, rho), 0);
+  EXPECT_EQ(bleeding_flow_rate(0, dp, mu, L, rho), 0);
+}
+
+TEST(Bleeding, ACutVesselEmitsItsFlowAndParticlesAreConserved) {
+  const SceneDef def = bleeding_def(false);
+  Scene scene(block_with_vessel(), def);
+  run_steps(scene, 30);  // 0.5 s; the cut at the step starting at 0.05 s
+  ASSERT_EQ(scene.cuts().size(), 1u);
+  ASSERT_EQ(scene.cuts()[0].vessel_hits.size(), 1u);
+  const auto f = scene.fluid_summary();
+  EXPECT_EQ(f.emitters, 1);
+  const Real Q = bleeding_flow_rate(1.5e-3, 200, 0.003, 0.05, 1060);
+  const Real t_cut = 3 * def.dt;  // steps start at 0, dt, 2 dt, 3 dt >= 0.05
+  const Real expected = Q * (scene.time() - t_cut);
+  EXPECT_NEAR(f.emitted_volume, expected, 0.05 * expected);
+  EXPECT_GT(f.emitted, 500);
+  EXPECT_EQ(f.emitted, f.particles + f.drained + f.left_domain + f.nonfinite);
+  EXPECT_EQ(f.nonfinite, 0);
+  EXPECT_TRUE(fluid_finite(*scene.fluid_state()));
+  EXPECT_TRUE(test::all_finite(scene.state()));
+  EXPECT_EQ(scene.counters().failed, 0);
+  // the blood leaves the wound downwards (out of the skin, along gravity)
+  const auto& fs = *scene.fluid_state();
+  Real mean_y = 0;
+  for (Real y : fs.x[1]) mean_y += y;
+  mean_y /= static_cast<Real>(fs.x[1].size());
+  EXPECT_LT(mean_y, 0);
+}
+
+TEST(Bleeding, TheDrainRemovesBlood) {
+  Scene without(block_with_vessel(), bleeding_def(false));
+  Scene with(block_with_vessel(), bleeding_def(true));
+  run_steps(without, 40);
+  run_steps(with, 40);
+  const auto a = without.fluid_summary(), b = with.fluid_summary();
+  EXPECT_EQ(a.drained, 0);
+  EXPECT_GT(b.drained, 100);
+  EXPECT_NEAR(b.drained_volume, static_cast<Real>(b.drained) * with.fluid()->volume, 1e-12);
+  EXPECT_LT(b.particles, a.particles);
+  EXPECT_EQ(b.emitted, b.particles + b.drained + b.left_domain + b.nonfinite);
+  // nothing is left inside the drain's sphere after a step
+  const auto& fs = *with.fluid_state();
+  for (std::size_t i = 0; i < fs.x[0].size(); ++i) {
+    const Real dx = fs.x[0][i] - 0.028, dy = fs.x[1][i] + 0.004, dz = fs.x[2][i] - 0.008;
+    EXPECT_GT(dx * dx + dy * dy + dz * dz, 0.0055 * 0.0055) << i;
+  }
+}
+
+TEST(Bleeding, TheBloodPushesOnTheTissue) {
+  // a coupled and an uncoupled run: the tissue differs only through the
+  // blood's wall forces
+  Scene coupled(block_with_vessel(), bleeding_def(false, true));
+  Scene free(block_with_vessel(), bleeding_def(false, false));
+  run_steps(coupled, 40);
+  run_steps(free, 40);
+  EXPECT_GT(test::max_node_distance(coupled.state().x, free.state().x), 0);
+  EXPECT_TRUE(test::all_finite(coupled.state()));
+  const auto& surf = coupled.fluid_state()->surfaces.front();
+  Real total = 0;
+  for (Real v : surf.force) {
+    ASSERT_TRUE(std::isfinite(v));
+    total += std::abs(v);
+  }
+  EXPECT_GT(total, 0);
+}
+
+TEST(Bleeding, Deterministic) {
+  Scene a(block_with_vessel(), bleeding_def(true));
+  Scene b(block_with_vessel(), bleeding_def(true));
+  run_steps(a, 25);
+  run_steps(b, 25);
+  EXPECT_EQ(fluid_state_hash(*a.fluid_state()), fluid_state_hash(*b.fluid_state()));
+  EXPECT_EQ(test::max_abs_diff(a.state().x, b.state().x), 0);
+}
+
+TEST(Bleeding, SceneFileFluidAndDrainErrors) {
+  auto bad = [](const std::string& json, const std::string& needle) {
+    try {
+      parse_scene(json, "scene.json");
+      ADD_FAILURE() << "accepted: " << json;
+    } catch (const Error& e) {
+      EXPECT_NE(std::string(e.what()).find(needle), std::string::npos) << e.what();
+      EXPECT_NE(std::string(e.what()).find("scene.json"), std::string::npos) << e.what();
+    }
+  };
+  bad(R"({"model": "m.h5", "tools": [{"type": "drain", "center": [0, 0, 0], "radius": 0.01}]})", "needs the scene's fluid");
+  bad(R"({"model": "m.h5", "fluid": {"spacing": 0.002}, "tools": [{"type": "drain"}]})", "a drain needs a center");
+  bad(R"({"model": "m.h5", "fluid": {"spacing": -1}})", "spacing");
+  bad(R"({"model": "m.h5", "fluid": {"colour": "red"}})", "unknown key 'colour'");
+  bad(R"({"model": "m.h5", "fluid": {"physx_stiffness": 20, "sound_speed": 3}})", "not both");
+  bad(R"({"model": "m.h5", "fluid": {"eos": "ideal"}})", "eos");
+  const SceneDef d = parse_scene(R"({"model": "m.h5", "fluid": {"physx_stiffness": 20, "max_particles": 500},
+      "tools": [{"name": "s", "type": "drain", "center": [0, 0, 0], "radius": 0.01, "path": [[0, 0, 0, 0], [1, 0.01, 0, 0]]}]})",
+                                 "scene.json");
+  EXPECT_TRUE(d.fluid.enabled);
+  EXPECT_EQ(d.fluid.params.physx_stiffness, 20);
+  EXPECT_EQ(d.fluid.max_particles, 500);
+  ASSERT_EQ(d.tools.size(), 1u);
+  EXPECT_EQ(d.tools[0].type, ToolType::drain);
+  EXPECT_EQ(d.tools[0].path.t.size(), 2u);
+}
