@@ -170,8 +170,12 @@ int run_pipeline(Args a) {
 
   // tissues of the layers (table order is outer to inner) and of the vessels
   std::vector<std::string> layered, vessels;
+  // The stack ends at the first rigid tissue: what lies inside it (marrow in
+  // bone) moves with it and adds no layer.
+  bool floor = false;
   for (const auto& t : table.tissues) {
-    if (t.layer == "tetra" || t.layer == "lattice" || t.layer == "rigid") layered.push_back(t.name);
+    if (!floor && (t.layer == "tetra" || t.layer == "lattice" || t.layer == "rigid")) layered.push_back(t.name);
+    floor = floor || t.layer == "rigid";
     if (t.layer == "vessel") vessels.push_back(t.name);
   }
   if (layered.size() < 2) throw Error(a.tissues, "the pipeline needs at least two layered tissues (tetra, lattice or rigid)");
