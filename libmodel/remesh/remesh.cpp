@@ -301,8 +301,14 @@ struct NormalField {
   double blend[2] = {1, 1};
   double w0(double s) const { return flat[0] ? smoothstep01(1 - s / blend[0]) : 0; }
   double w1(double s) const { return flat[1] ? smoothstep01(1 - (c->length() - s) / blend[1]) : 0; }
+  // a convex blend: where a cap's weight is near 1 the plane is the cap's,
+  // whatever the tangent does there (the section centroids next to a cap
+  // wander, and adding their rotation to the cap normal tilted the first
+  // rings into the cap: every layer's cap is coplanar, so the layers met)
   Vec3 operator()(double s) const {
-    Vec3 v = c->tangent(s) + w0(s) * (n[0] - t[0]) + w1(s) * (n[1] - t[1]);
+    const double a = w0(s), b = w1(s);
+    Vec3 v = (1 - a - b) * c->tangent(s) + a * n[0] + b * n[1];
+    if (!(v.norm() > 1e-9)) v = c->tangent(s);
     return v.normalized();
   }
 };
@@ -657,6 +663,42 @@ TubeSweep find_tube_sweep(const Surface& outer, const RemeshOptions& o, const st
 
 namespace {
 
+// Convex hull of the points of several loops (plane frame), counter-clockwise
+// (Andrew's monotone chain), as a Loop with its area and area centroid.
+Loop convex_hull_loop(const std::vector<Loop>& loops) {
+  std::vector<Vec2> p;
+  for (const auto& l : loops) p.insert(p.end(), l.q.begin(), l.q.end());
+  std::sort(p.begin(), p.end(), [](const Vec2& a, const Vec2& b) { return a.x() < b.x() || (a.x() == b.x() && a.y() < b.y()); });
+  auto cross = [](const Vec2& o, const Vec2& a, const Vec2& b) {
+    return (a.x() - o.x()) * (b.y() - o.y()) - (a.y() - o.y()) * (b.x() - o.x());
+  };
+  std::vector<Vec2> h(2 * p.size() + 1);
+  std::size_t k = 0;
+  for (std::size_t i = 0; i < p.size(); ++i) {
+    while (k >= 2 && cross(h[k - 2], h[k - 1], p[i]) <= 0) --k;
+    h[k++] = p[i];
+  }
+  for (std::size_t i = p.size() - 1, t = k + 1; i-- > 0;) {
+    while (k >= t && cross(h[k - 2], h[k - 1], p[i]) <= 0) --k;
+    h[k++] = p[i];
+  }
+  Loop hull;
+  if (k < 4) return hull;
+  hull.q.assign(h.begin(), h.begin() + static_cast<std::ptrdiff_t>(k - 1));
+  double A = 0;
+  Vec2 c = Vec2::Zero();
+  for (std::size_t i = 0; i < hull.q.size(); ++i) {
+    const Vec2& a = hull.q[i];
+    const Vec2& b = hull.q[(i + 1) % hull.q.size()];
+    const double w = a.x() * b.y() - a.y() * b.x();
+    A += w;
+    c += w * (a + b);
+  }
+  hull.area = 0.5 * A;
+  hull.centroid = A != 0 ? Vec2(c / (3 * A)) : Vec2::Zero();
+  return hull;
+}
+
 QuadSurface make_grid(int nu, int nv, const std::vector<Vec3>& x, const VecXd& stations, double length) {
   QuadSurface q;
   q.nu = nu;
@@ -827,6 +869,15 @@ RemeshResult remesh_layers(const std::vector<NamedSurface>& layers, const Remesh
       for (const auto& l : loops) A += l.area, c += l.area * l.centroid;
       if (loops.empty() || !(std::abs(A) > 0)) continue;
       c /= A;
+      // several loops (the radius and the ulna): rays start at the centroid of
+      // their convex hull, not at the area centroid, which lies inside or at
+      // the edge of the larger bone and would collapse the envelope onto it
+      Loop hull;
+      const bool several = loops.size() > 1;
+      if (several) {
+        hull = convex_hull_loop(loops);
+        if (hull.q.size() >= 3 && hull.area > 0) c = hull.centroid;
+      }
       has[j] = 1;
       origin[j] = c;
       // the enclosing ring in the plane frame, and its angular order around c
@@ -852,11 +903,36 @@ RemeshResult remesh_layers(const std::vector<NamedSurface>& layers, const Remesh
                               " is not star-shaped around the centre of " + name + " at " + mm(res.stations_m(j)) +
                               " along the axis");
       std::vector<double> fr(nu, -1), ang(nu, 0);
+      std::vector<char> bridged_by_hull(nu, 0);
       for (int i = 0; i < nu; ++i) {
         const double Ri = R[i].norm();
         const Vec2 w = R[i] / Ri;
         double t = -1;
-        for (const auto& l : loops) t = std::max(t, remesh_detail::ray_hit(l, c, w));
+        int on = -1;  // the loop of the outermost crossing
+        for (std::size_t li = 0; li < loops.size(); ++li) {
+          const double tl = remesh_detail::ray_hit(loops[li], c, w);
+          if (tl > t) t = tl, on = static_cast<int>(li);
+        }
+        if (several && hull.q.size() >= 3) {
+          // the envelope is the boundary of the union seen from outside: a
+          // crossing of a loop that contains the origin counts only where it
+          // is on the hull; otherwise (and where the ray misses every loop)
+          // the ray is bridged by the hull, the straight sheet between the
+          // components' outer points (the interosseous membrane)
+          const double th = remesh_detail::ray_hit(hull, c, w);
+          const bool hidden = t >= 0 && remesh_detail::winding(loops[static_cast<std::size_t>(on)], c) != 0 &&
+                              t < th * (1 - 1e-6);
+          if ((t < 0 || hidden) && th > 0 && th < Ri * (1 - 1e-12)) {
+            fr[i] = std::min(o.fill_max_depth_fraction, th / Ri);
+            ++res.stats[k].bridged;
+            bridged_by_hull[static_cast<std::size_t>(i)] = 1;
+            t = -2;
+          }
+        }
+        if (t == -2) {
+          if (i) ang[i] = ang[i - 1] + std::atan2(R[i - 1].x() * R[i].y() - R[i - 1].y() * R[i].x(), R[i - 1].dot(R[i]));
+          continue;
+        }
         if (t >= Ri * (1 - 1e-12))
           throw Error(name, "not inside " + layers[k - 1].name + ": it reaches the outer layer at ring " +
                                 std::to_string(j) + " (" + mm(res.stations_m(j)) + " along the axis)");
@@ -873,6 +949,7 @@ RemeshResult remesh_layers(const std::vector<NamedSurface>& layers, const Remesh
       }
       std::vector<char> hit(nu);
       for (int i = 0; i < nu; ++i) hit[i] = fr[i] >= 0;
+      const auto n_hull = std::count(bridged_by_hull.begin(), bridged_by_hull.end(), 1);
       for (int step = 0; step < nu;) {
         const int i = (first_hit + step) % nu;
         if (hit[i]) {
@@ -894,7 +971,7 @@ RemeshResult remesh_layers(const std::vector<NamedSurface>& layers, const Remesh
         }
         step += len;
       }
-      res.stats[k].hit += std::count(hit.begin(), hit.end(), 1);
+      res.stats[k].hit += std::count(hit.begin(), hit.end(), 1) - n_hull;
       std::copy(fr.begin(), fr.end(), frac.begin() + static_cast<std::ptrdiff_t>(j) * nu);
     }
     // rings that miss the surface: interpolate along the axis, hold at the ends

@@ -45,6 +45,7 @@ std::int64_t enforce_order(const LabelInfo& info, const ColourModel& m, const st
   std::vector<std::uint32_t> row_start(static_cast<std::size_t>(ny) + 1);
   SmallUf uf;
   std::vector<std::uint8_t> outside;
+  std::vector<std::int64_t> pocket;
   for (const auto& e : info.enclosers) {
     // spans of the complement of the region, row by row
     spans.clear();
@@ -76,6 +77,19 @@ std::int64_t enforce_order(const LabelInfo& info, const ColourModel& m, const st
     for (int y = 0; y < ny; ++y)
       for (std::uint32_t k = row_start[static_cast<std::size_t>(y)]; k < row_start[static_cast<std::size_t>(y) + 1]; ++k)
         if (y == 0 || y == ny - 1 || spans[k].x0 == 0 || spans[k].x1 == nx) outside[uf.find(k)] = 1;
+    // an enclosed pocket larger than the whole region is a real tissue ringed
+    // by misclassified pixels of the region (muscle ringed by shaded fat taken
+    // for bone), not a misclassified pocket: it is left as it is
+    {
+      std::int64_t region = static_cast<std::int64_t>(nx) * ny;
+      pocket.assign(spans.size(), 0);
+      for (std::uint32_t k = 0; k < spans.size(); ++k) {
+        region -= spans[k].x1 - spans[k].x0;
+        pocket[uf.find(k)] += spans[k].x1 - spans[k].x0;
+      }
+      for (std::uint32_t k = 0; k < spans.size(); ++k)
+        if (uf.find(k) == k && !outside[k] && pocket[k] > region) outside[k] = 1;
+    }
     // what the region encloses is reclassified among the region's tissues
     for (int y = 0; y < ny; ++y)
       for (std::uint32_t k = row_start[static_cast<std::size_t>(y)]; k < row_start[static_cast<std::size_t>(y) + 1]; ++k) {

@@ -2,7 +2,7 @@
 //
 // A folder of 2-D colour slices (PNG, JPEG, TIFF, BMP) is classified voxel by
 // voxel into the tissues of a tissue table and cleaned up in 3-D. The method,
-// in order (docs/segment-surface.md has the details and figures):
+// in order (docs/segment.md has the details and figures):
 //
 //  1. Calibration. A few slices spread over the stack (calibration_slices) are
 //     read first. Their background (the embedding medium, the table's
@@ -15,13 +15,16 @@
 //  2. Per slice: normalisation against the background. A per-channel gain
 //     field (constant or a plane across the slice) maps the slice's background
 //     onto the reference: illumination drift along and across slices goes.
-//     Then nearest refined prototype in CIELAB (a 128^3 lookup table over
-//     8-bit Lab, built once).
+//     Then nearest refined prototype in CIELAB (memoised per 24-bit sRGB
+//     colour in a 16 MiB table filled as colours are met).
 //  3. Per slice: anatomical order. For every tissue U that encloses others
 //     (the table's "inside"), the 2-D region of U and everything nested in it is
 //     filled; what that fill encloses but is neither U nor nested in U (skin
 //     inside the fat, fat inside the muscle, gel inside the limb) is
-//     reclassified by colour among U and its descendants. Vessel tissues are
+//     reclassified by colour among U and its descendants, unless that pocket
+//     is larger than the whole region of U and its descendants in the slice:
+//     then the outline is misplaced pixels (shaded fat taken for bone around
+//     the muscle), not the pocket, and the pocket is kept. Vessel tissues are
 //     never reclassified by this rule (they cross layers).
 //  4. 3-D rank filter (the multi-label analogue of an opening and a closing
 //     with a 3x3x3 element): a voxel with fewer than speck_support of its 26

@@ -196,7 +196,15 @@ TEST(Remesh, BentEllipticTubeFollowsTheArc) {
     const Vec3 c = r.ring_centre.row(j);
     const double f = std::atan2(c.z(), b.rho - c.x());
     EXPECT_NEAR((c - b.centre(f / b.phi)).norm(), 0, 2e-4);
-    EXPECT_GT(Vec3(r.ring_normal.row(j)).dot(Vec3(std::sin(f), 0, std::cos(f))), 1 - 1e-4);
+    // near a cap the plane turns from the cap into the tangent over the blend
+    // length (two radii): it lags the tangent, never more than the cap does;
+    // beyond it, along the tangent
+    const Vec3 tf(std::sin(f), 0, std::cos(f));
+    const double from_cap = std::min(f, b.phi - f) * b.rho;
+    if (from_cap > 2 * b.a)
+      EXPECT_GT(Vec3(r.ring_normal.row(j)).dot(tf), 1 - 1e-4);
+    else
+      EXPECT_GE(Vec3(r.ring_normal.row(j)).dot(tf), std::min(t0.dot(tf), t1.dot(tf)) - 1e-9);
     // rotation-minimising frame of a planar arc stays in the bend plane: u = 0 on the long axis
     EXPECT_NEAR(q.vertices(j * 40, 1), 0, 1e-4);
     EXPECT_NEAR((Vec3(q.vertices.row(j * 40)) - c).norm(), b.a, 1e-3);
@@ -325,6 +333,65 @@ TEST(RemeshLayers, MissingRingsAreFilledAlongTheAxis) {
   EXPECT_EQ(r.stats[1].filled, 4 * 20);
   for (int j = 5; j < 9; ++j)
     for (int i = 0; i < 20; ++i) EXPECT_NEAR(radius_xy(r.layers[1], j * 20 + i), 0.008, 1e-4);
+}
+
+// An oblique limb cut by two slice planes: the axis meets the (coplanar) caps
+// of every layer at 12 degrees. At a fine grid the first rings used to tilt
+// into the cap (the plane normal followed the centreline tangent clamped to
+// the cap normal), so the ring loops ran along the shared cap plane and the
+// fat "reached the skin". Every interior ring must stay strictly between the
+// caps, and rings must not cross.
+TEST(RemeshLayers, ObliqueTubeWithCoplanarCapsAtAFineGrid) {
+  const double L = 0.09, a = 12 * kPi / 180;
+  const Vec3 d(std::sin(a), 0, std::cos(a)), e1(std::cos(a), 0, -std::sin(a)), e2(0, 1, 0);
+  auto oblique = [&](double r) {
+    return test::tube_mesh(
+        [&, r](double t, double th) {
+          const Vec3 b = r * (std::cos(th) * e1 + std::sin(th) * e2);
+          Vec3 x = b + (t * L - b.z()) / d.z() * d;  // on the cylinder, at z = t L
+          x.z() = t * L;                               // exactly: the caps of both layers are coplanar
+          return x;
+        },
+        [&](double t) { return Vec3(t * L * std::tan(a), 0, t * L); }, 160, 90);
+  };
+  const std::vector<NamedSurface> in{{"skin", oblique(0.030)}, {"fat", oblique(0.028)}};
+  for (const auto& g : {grid(100, 25), grid(100, 60)}) {
+    const auto r = remesh_layers(in, g);
+    for (const auto& q : r.layers)
+      for (int j = 1; j + 1 < q.nv; ++j)
+        for (int i = 0; i < q.nu; ++i) {
+          const double z = q.vertices(j * q.nu + i, 2), zp = q.vertices((j - 1) * q.nu + i, 2);
+          EXPECT_GT(z, 1e-4) << "ring " << j;
+          EXPECT_LT(z, L - 1e-4) << "ring " << j;
+          EXPECT_GT(z, zp) << "rings cross at " << j;
+        }
+  }
+}
+
+// Two bones of unequal size: the area centroid of the section lies inside the
+// larger one, near its edge; rays from it used to stop at that edge, so the
+// envelope collapsed onto the larger bone (and inverted the muscle cells over
+// it). The envelope must now span both bones like their convex hull.
+TEST(RemeshLayers, UnequalBonesEnvelopeSpansTheGap) {
+  const double L = 0.12, r1 = 0.006, r2 = 0.0025, x1 = 0.008, x2 = -0.009;
+  const std::vector<NamedSurface> in{
+      {"skin", test::cylinder(0.030, L, 192, 48)},
+      {"muscle", test::cylinder(0.024, L, 160, 48)},
+      {"bone", test::merge(test::cylinder(r1, L, 64, 24, x1, 0), test::cylinder(r2, L, 48, 24, x2, 0))}};
+  const auto r = remesh_layers(in, grid(39, 9));
+  const double D = x1 - x2;
+  // convex hull of the two discs: outer half discs and the trapezoid between
+  const double hull = 0.5 * kPi * (r1 * r1 + r2 * r2) + D * (r1 + r2);
+  const auto& q = r.layers[2];
+  for (int j = 0; j < q.nv; ++j) {
+    double A = 0;
+    for (int i = 0; i < q.nu; ++i) {
+      const Vec3 p = q.vertices.row(j * q.nu + i).transpose(), n = q.vertices.row(j * q.nu + (i + 1) % q.nu).transpose();
+      A += 0.5 * (p.x() * n.y() - p.y() * n.x());
+      EXPECT_GT(std::min(std::hypot(p.x() - x1, p.y()) - r1, std::hypot(p.x() - x2, p.y()) - r2), -2e-5);
+    }
+    EXPECT_GT(A, 0.9 * hull) << "ring " << j;
+  }
 }
 
 // ---- bad input ---------------------------------------------------------------

@@ -8,6 +8,7 @@
 #include <nlohmann/json.hpp>
 #include <opencv2/core.hpp>
 #include <opencv2/imgcodecs.hpp>
+#include <opencv2/imgproc.hpp>
 
 #include <filesystem>
 #include <string>
@@ -154,4 +155,87 @@ TEST(SegmentCli, ExistingOutputIsKeptOnFailure) {
   int temps = 0;
   for (const auto& e : fs::directory_iterator(d.path)) temps += e.path().filename().string().find(".tmp") != std::string::npos;
   EXPECT_EQ(temps, 0);
+}
+
+namespace {
+
+std::string last_slice(const std::string& folder) {
+  std::string best;
+  for (const auto& e : fs::directory_iterator(folder))
+    if (e.path().string() > best) best = e.path().string();
+  return best;
+}
+
+// The size of the phantom's slices (all the same).
+cv::Size slice_size(const std::string& folder) {
+  const cv::Mat m = cv::imread(first_slice(folder), cv::IMREAD_UNCHANGED);
+  return {m.cols, m.rows};
+}
+
+}  // namespace
+
+TEST(SegmentCli, MixedChannelCountsRgba) {
+  test::TempDir d("segcli-rgba");
+  const std::string folder = copy_slices(d);
+  const std::string victim = last_slice(folder);
+  // the same picture with an alpha channel: right size, four channels
+  cv::Mat bgr = cv::imread(victim, cv::IMREAD_COLOR), bgra;
+  cv::cvtColor(bgr, bgra, cv::COLOR_BGR2BGRA);
+  ASSERT_TRUE(cv::imwrite(victim, bgra));
+  expect_refused(test::run_cli(segment_args(folder, d / "o.h5")), d / "o.h5", fs::path(victim).filename().string(),
+                 "has 4 channels");
+}
+
+TEST(SegmentCli, MixedChannelCountsGrey) {
+  test::TempDir d("segcli-mixgrey");
+  const std::string folder = copy_slices(d);
+  const std::string victim = last_slice(folder);
+  cv::Mat grey = cv::imread(victim, cv::IMREAD_GRAYSCALE);
+  ASSERT_EQ(grey.channels(), 1);
+  ASSERT_TRUE(cv::imwrite(victim, grey));
+  expect_refused(test::run_cli(segment_args(folder, d / "o.h5")), d / "o.h5", fs::path(victim).filename().string(),
+                 "has 1 channel");
+}
+
+TEST(SegmentCli, ZeroByteSlice) {
+  test::TempDir d("segcli-zero");
+  const std::string folder = copy_slices(d);
+  const std::string victim = last_slice(folder);
+  test::write_file(victim, "");
+  expect_refused(test::run_cli(segment_args(folder, d / "o.h5")), d / "o.h5", fs::path(victim).filename().string(),
+                 "0 bytes");
+}
+
+// A grey-scale stack is refused at its first slice: the colour prototypes
+// need colour. One channel, and three equal channels (grey stored as RGB).
+TEST(SegmentCli, GreyScaleStack) {
+  for (const bool as_rgb : {false, true}) {
+    test::TempDir d(as_rgb ? "segcli-greyrgb" : "segcli-grey");
+    const std::string folder = copy_slices(d);
+    for (const auto& e : fs::directory_iterator(folder)) {
+      cv::Mat grey = cv::imread(e.path().string(), cv::IMREAD_GRAYSCALE);
+      if (as_rgb) cv::cvtColor(grey, grey, cv::COLOR_GRAY2BGR);
+      ASSERT_TRUE(cv::imwrite(e.path().string(), grey));
+    }
+    expect_refused(test::run_cli(segment_args(folder, d / "o.h5")), d / "o.h5",
+                   fs::path(first_slice(folder)).filename().string(), "grey-scale");
+  }
+}
+
+// Every slice is gel (the table's background colour with noise): nothing to
+// segment, refused naming the stack folder.
+TEST(SegmentCli, NothingSegmented) {
+  test::TempDir d("segcli-nothing");
+  const std::string folder = d / "gel";
+  fs::create_directories(folder);
+  const cv::Size size = slice_size(stack().slices);
+  cv::RNG rng(7);
+  for (int z = 0; z < 6; ++z) {
+    cv::Mat img(size, CV_8UC3, cv::Scalar(138, 96, 72));  // BGR of the background prototype (72, 96, 138)
+    cv::Mat noise(size, CV_8UC3);
+    rng.fill(noise, cv::RNG::UNIFORM, 0, 6);
+    img += noise;
+    ASSERT_TRUE(cv::imwrite(folder + "/gel_" + std::to_string(z) + ".png", img));
+  }
+  expect_refused(test::run_cli(segment_args(folder, d / "o.h5")), d / "o.h5", folder, "nothing segmented");
 }
