@@ -125,6 +125,17 @@ class Obj {
   std::set<std::string> seen_;
 };
 
+// The rest bounding box (lo, hi) of the nodes `ids` of m.
+std::pair<Vec3, Vec3> rest_box(const Model& m, const std::vector<std::int32_t>& ids) {
+  Vec3 lo{HUGE_VAL, HUGE_VAL, HUGE_VAL}, hi{-HUGE_VAL, -HUGE_VAL, -HUGE_VAL};
+  for (auto i : ids) {
+    const Vec3 p = load3(m.rest_x.data(), i);
+    lo = {std::min(lo.x, p.x), std::min(lo.y, p.y), std::min(lo.z, p.z)};
+    hi = {std::max(hi.x, p.x), std::max(hi.y, p.y), std::max(hi.z, p.z)};
+  }
+  return {lo, hi};
+}
+
 std::string resolve(const std::string& base_dir, const std::string& p) {
   if (p.empty() || fs::path(p).is_absolute() || base_dir.empty()) return p;
   return (fs::path(base_dir) / p).lexically_normal().string();
@@ -458,12 +469,7 @@ void Scene::init(const std::string& model_file) {
     }
     if (t.type == ToolType::cut) {
       if (candidates.empty()) throw Error(file, "tool '" + t.name + "' has no candidate node");
-      Vec3 lo{HUGE_VAL, HUGE_VAL, HUGE_VAL}, hi{-HUGE_VAL, -HUGE_VAL, -HUGE_VAL};
-      for (auto i : candidates) {
-        const Vec3 p = load3(m.rest_x.data(), i);
-        lo = {std::min(lo.x, p.x), std::min(lo.y, p.y), std::min(lo.z, p.z)};
-        hi = {std::max(hi.x, p.x), std::max(hi.y, p.y), std::max(hi.z, p.z)};
-      }
+      const auto [lo, hi] = rest_box(m, candidates);
       for (std::size_t k = 0; 3 * k < t.polyline.size(); ++k) {
         Vec3 p = load3(t.polyline.data(), static_cast<std::int64_t>(k));
         if (t.polyline_relative) p = {lo.x + p.x * (hi.x - lo.x), lo.y + p.y * (hi.y - lo.y), lo.z + p.z * (hi.z - lo.z)};
@@ -495,12 +501,7 @@ void Scene::init(const std::string& model_file) {
       continue;
     }
     if (t.has_center && t.center_relative) {
-      Vec3 lo{HUGE_VAL, HUGE_VAL, HUGE_VAL}, hi{-HUGE_VAL, -HUGE_VAL, -HUGE_VAL};
-      for (auto i : candidates) {
-        const Vec3 p = load3(m.rest_x.data(), i);
-        lo = {std::min(lo.x, p.x), std::min(lo.y, p.y), std::min(lo.z, p.z)};
-        hi = {std::max(hi.x, p.x), std::max(hi.y, p.y), std::max(hi.z, p.z)};
-      }
+      const auto [lo, hi] = rest_box(m, candidates);
       if (candidates.empty()) throw Error(file, "tool '" + t.name + "' has no candidate node");
       const auto& f = t.center_fraction;
       run.def.center = {lo.x + f[0] * (hi.x - lo.x), lo.y + f[1] * (hi.y - lo.y), lo.z + f[2] * (hi.z - lo.z)};
@@ -608,14 +609,11 @@ void Scene::init_fluid() {
     throw Error(def_.file, "fluid: " + e.message());
   }
   // the domain: the loaded nodes' rest bounding box grown by the margin
-  std::array<Real, 3> lo{HUGE_VAL, HUGE_VAL, HUGE_VAL}, hi{-HUGE_VAL, -HUGE_VAL, -HUGE_VAL};
-  for (std::int32_t i = 0; i < m.n_nodes; ++i)
-    for (int k = 0; k < 3; ++k) {
-      lo[k] = std::min(lo[k], m.rest_x[3 * static_cast<std::size_t>(i) + k]);
-      hi[k] = std::max(hi[k], m.rest_x[3 * static_cast<std::size_t>(i) + k]);
-    }
-  for (int k = 0; k < 3; ++k) lo[k] -= fd.margin, hi[k] += fd.margin;
-  fr.bounds = make_box_boundaries(lo, hi);
+  std::vector<std::int32_t> all(static_cast<std::size_t>(m.n_nodes));
+  for (std::int32_t i = 0; i < m.n_nodes; ++i) all[static_cast<std::size_t>(i)] = i;
+  const auto [lo, hi] = rest_box(m, all);
+  fr.bounds = make_box_boundaries({lo.x - fd.margin, lo.y - fd.margin, lo.z - fd.margin},
+                                  {hi.x + fd.margin, hi.y + fd.margin, hi.z + fd.margin});
   fr.bounds.box_wall = fd.box_wall;
   if (fd.open_top) {
     // the face against gravity's largest component is open
@@ -714,12 +712,7 @@ void Scene::write_fluid_frame() {
   }
   const Real t = state_.time;
   auto pvd = [&](const std::string& series, const std::vector<std::pair<Real, std::string>>& files) {
-    std::ostringstream o;
-    o << std::setprecision(17)
-      << "<?xml version=\"1.0\"?>\n<VTKFile type=\"Collection\" version=\"0.1\" byte_order=\"LittleEndian\">\n<Collection>\n";
-    for (const auto& [time, f] : files) o << "<DataSet timestep=\"" << time << "\" group=\"\" part=\"0\" file=\"" << f << "\"/>\n";
-    o << "</Collection>\n</VTKFile>\n";
-    write_text_file(dir + "/" + name + "_" + series + ".pvd", o.str());
+    write_pvd(dir + "/" + name + "_" + series + ".pvd", files);
   };
   const std::string tag = std::to_string(k);
   if (def_.fluid.surface) {

@@ -162,12 +162,16 @@ void VtkSeries::write(const Model& m, const State& s) {
   out.commit();
   files_.emplace_back(s.time, file);
 
+  write_pvd(pvd_path(), files_);
+}
+
+void write_pvd(const std::string& path, const std::vector<std::pair<double, std::string>>& files) {
   std::ostringstream pvd;
   pvd << std::setprecision(17);
   pvd << "<?xml version=\"1.0\"?>\n<VTKFile type=\"Collection\" version=\"0.1\" byte_order=\"LittleEndian\">\n<Collection>\n";
-  for (const auto& [t, f] : files_) pvd << "<DataSet timestep=\"" << t << "\" group=\"\" part=\"0\" file=\"" << f << "\"/>\n";
+  for (const auto& [t, f] : files) pvd << "<DataSet timestep=\"" << t << "\" group=\"\" part=\"0\" file=\"" << f << "\"/>\n";
   pvd << "</Collection>\n</VTKFile>\n";
-  write_text_file(pvd_path(), pvd.str());
+  write_text_file(path, pvd.str());
 }
 
 

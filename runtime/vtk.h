@@ -19,6 +19,7 @@
 
 #include <span>
 #include <string>
+#include <utility>
 #include <vector>
 
 namespace orthosim::runtime {
@@ -52,6 +53,9 @@ class VtkSeries {
   std::int64_t bytes_ = 0;
 };
 
+
+// Writes a ParaView collection (.pvd) listing (time, file) pairs, atomically.
+void write_pvd(const std::string& path, const std::vector<std::pair<double, std::string>>& files);
 
 // ---- PolyData (.vtp), added for the fluid (issue 9) --------------------------
 
