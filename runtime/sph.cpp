@@ -7,6 +7,11 @@
 #include <tbb/parallel_for.h>
 #include <tbb/parallel_reduce.h>
 
+#if defined(__x86_64__) && defined(__GNUC__)
+#include <immintrin.h>
+#define ORTHOSIM_SPH_AVX2 1
+#endif
+
 #include <algorithm>
 #include <cmath>
 #include <cstring>
@@ -126,6 +131,14 @@ inline void for_lanes(std::int32_t b, std::int32_t e, std::int32_t n, Body&& bod
     const V mask = (idx >= static_cast<Real>(j)) & (idx < static_cast<Real>(e)) ? one : zero;
     body(s, mask);
   }
+}
+
+// periodic minimum image of a lane of differences
+inline V minimum_image(V d, Real period) {
+  if (period <= 0) return d;
+  V r;
+  for (int k = 0; k < 4; ++k) r[k] = d[k] - period * std::nearbyint(d[k] / period);
+  return r;
 }
 
 // ---- walls ----------------------------------------------------------------------
@@ -354,6 +367,24 @@ struct Walls {
   std::vector<TriangleSource> surfaces;  // moving
   const std::vector<FluidSurface>* surf = nullptr;
   Real H = 0;
+  // Where no wall can be within H: inside [inner_lo, inner_hi] when only box
+  // faces are walls (only_box); see set_inner.
+  bool only_box = false;
+  Real inner_lo[3] = {0, 0, 0}, inner_hi[3] = {0, 0, 0};
+
+  void set_inner() {
+    only_box = b->planes.empty() && meshes.empty() && surfaces.empty();
+    for (int a = 0; a < 3; ++a) {
+      inner_lo[a] = b->faces[2 * a] == Face::wall ? b->lo[a] + H : -HUGE_VAL;
+      inner_hi[a] = b->faces[2 * a + 1] == Face::wall ? b->hi[a] - H : HUGE_VAL;
+    }
+  }
+  // false: certainly no wall within H of p (the common case: a fast test)
+  bool maybe_near(const Vec3& p) const {
+    if (!only_box) return true;
+    return !(p.x > inner_lo[0] && p.x < inner_hi[0] && p.y > inner_lo[1] && p.y < inner_hi[1] && p.z > inner_lo[2] &&
+             p.z < inner_hi[2]);
+  }
 
   // Calls f(const Contact&) for every wall within H of p at time tau.
   template <class F>
@@ -408,57 +439,168 @@ struct Pass {
   const Walls* walls = nullptr;
   std::int32_t n = 0;
   const Real *x = nullptr, *y = nullptr, *z = nullptr, *vx = nullptr, *vy = nullptr, *vz = nullptr;
-  Real *rho = nullptr, *p = nullptr, *P = nullptr, *ir = nullptr, *nb = nullptr, *ksum = nullptr, *psum = nullptr;
+  Real *rho = nullptr, *p = nullptr, *P = nullptr, *ir = nullptr, *nb = nullptr, *ksum = nullptr;
   Real *ax = nullptr, *ay = nullptr, *az = nullptr, *wx = nullptr, *wy = nullptr, *wz = nullptr;
+  Real* pack = nullptr;           // (n x 8) x, y, z, P, vx, vy, vz, 1/rho per particle (the force pass's gathers)
   std::int32_t* list = nullptr;   // (n x kListStride) neighbour lists (self excluded), padded with i
   std::int32_t* count = nullptr;  // (n) list lengths; > kMaxList: overflowed, the force pass scans the cells
   std::array<Real, 3> period{};   // m, > 0 on periodic axes
+  const float *xf = nullptr, *yf = nullptr, *zf = nullptr;  // positions - origin, single precision (search only)
+  std::array<Real, 3> origin{};   // m, the grid origin the float positions are relative to
+  float search_r2 = 0;            // m^2, (1.005 H)^2: the search radius of the lists
   Real tau = 0;  // time since the step's start
 };
 
 // Neighbour lists: at most kMaxList entries per particle (~30 at rest with
 // H = 2 dx); a particle with more (a fluid compressed ~2x) falls back to
-// scanning its cells in the force pass.
-constexpr int kMaxList = 92, kListStride = kMaxList + 4;
+// scanning its cells in both passes. The stride leaves room for the 8 slots
+// the vector search writes past the count.
+constexpr int kMaxList = 92, kListStride = kMaxList + 8;
 
-// Density pass of the particles of one cell, scanning the 27 cells around it
-// in runs of contiguous slots: the kernel sums S_i = sum_j (1 - q)^4 (1 + 4 q)
-// (self included) and the list of the neighbours within H (self excluded).
+// ---- neighbour search in single precision ---------------------------------------
+// The lists are found in float (8 lanes, no square root) with a search radius
+// 1.005 H; every kernel value and sum is then evaluated in double over the
+// list, where pairs beyond H give exactly 0. A float distance errs by about
+// 1e-7 of the coordinates (relative to the grid origin), so no pair within H
+// is missed while the grid is less than ~10^4 H across. Both code paths below
+// compute r^2 = (dx dx + dy dy) + dz dz without fused multiply-adds and list
+// the same slots in ascending order.
+//
+// Appends the slots j in [b, e), j != self, with r^2 < r2max to list[cnt..];
+// returns the new count. The write position is clamped at kMaxList (the count
+// is not: cnt > kMaxList means overflow). The float arrays have 8 readable
+// entries past the last slot.
+using ScanFn = std::int32_t (*)(const float* xf, const float* yf, const float* zf, std::int32_t b, std::int32_t e,
+                                std::int32_t self, float xi, float yi, float zi, float r2max, std::int32_t* list,
+                                std::int32_t cnt);
+
+std::int32_t scan_run_generic(const float* xf, const float* yf, const float* zf, std::int32_t b, std::int32_t e,
+                              std::int32_t self, float xi, float yi, float zi, float r2max, std::int32_t* list,
+                              std::int32_t cnt) {
+  for (std::int32_t j = b; j < e; ++j) {
+    const float dx = xi - xf[j], dy = yi - yf[j], dz = zi - zf[j];
+    const float dx2 = dx * dx, dy2 = dy * dy, dz2 = dz * dz;
+    const float r2 = (dx2 + dy2) + dz2;
+    list[std::min(cnt, kMaxList)] = j;
+    cnt += static_cast<std::int32_t>(r2 < r2max) & static_cast<std::int32_t>(j != self);
+  }
+  return cnt;
+}
+
+#ifdef ORTHOSIM_SPH_AVX2
+// kCompact[m]: the lanes set in the 8-bit mask m, in ascending order, first
+struct CompactTable {
+  alignas(32) std::int32_t lanes[256][8];
+  CompactTable() {
+    for (int m = 0; m < 256; ++m) {
+      int k = 0;
+      for (int l = 0; l < 8; ++l)
+        if (m & (1 << l)) lanes[m][k++] = l;
+      for (; k < 8; ++k) lanes[m][k] = 0;
+    }
+  }
+};
+const CompactTable kCompact;
+
+__attribute__((target("avx2"))) std::int32_t scan_run_avx2(const float* xf, const float* yf, const float* zf,
+                                                           std::int32_t b, std::int32_t e, std::int32_t self, float xi,
+                                                           float yi, float zi, float r2max, std::int32_t* list,
+                                                           std::int32_t cnt) {
+  const __m256 X = _mm256_set1_ps(xi), Y = _mm256_set1_ps(yi), Z = _mm256_set1_ps(zi), R = _mm256_set1_ps(r2max);
+  const __m256i lane = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
+  const __m256i E = _mm256_set1_epi32(e), S = _mm256_set1_epi32(self);
+  for (std::int32_t j = b; j < e; j += 8) {
+    const __m256 dx = _mm256_sub_ps(X, _mm256_loadu_ps(xf + j));
+    const __m256 dy = _mm256_sub_ps(Y, _mm256_loadu_ps(yf + j));
+    const __m256 dz = _mm256_sub_ps(Z, _mm256_loadu_ps(zf + j));
+    const __m256 r2 = _mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(dx, dx), _mm256_mul_ps(dy, dy)), _mm256_mul_ps(dz, dz));
+    const __m256i idx = _mm256_add_epi32(_mm256_set1_epi32(j), lane);
+    const __m256i valid = _mm256_andnot_si256(_mm256_cmpeq_epi32(idx, S), _mm256_cmpgt_epi32(E, idx));
+    const int bits = _mm256_movemask_ps(_mm256_and_ps(_mm256_cmp_ps(r2, R, _CMP_LT_OQ), _mm256_castsi256_ps(valid)));
+    const __m256i perm = _mm256_load_si256(reinterpret_cast<const __m256i*>(kCompact.lanes[bits]));
+    _mm256_storeu_si256(reinterpret_cast<__m256i*>(list + std::min(cnt, kMaxList)), _mm256_permutevar8x32_epi32(idx, perm));
+    cnt += __builtin_popcount(static_cast<unsigned>(bits));
+  }
+  return cnt;
+}
+#endif
+
+ScanFn pick_scan() {
+#ifdef ORTHOSIM_SPH_AVX2
+  __builtin_cpu_init();
+  if (__builtin_cpu_supports("avx2")) return scan_run_avx2;
+#endif
+  return scan_run_generic;
+}
+const ScanFn scan_run = pick_scan();
+
+// Density pass of the particles of one cell: the list of the neighbours
+// within the search radius (self excluded; found in float, see scan_run),
+// then in double over the list the kernel sums S_i = sum_j (1 - q)^4 (1 + 4 q)
+// (self included) and the number of particles within H. A particle whose
+// list overflows is summed by scanning the 27 cells around it in runs of
+// contiguous slots.
 ORTHOSIM_SPH_CLONES
 void density_cell(const Pass& c, std::int32_t cell) {
   NeighbourRun runs[27];
   const int nr = neighbour_runs(*c.g, cell, runs);
   const Real invH = 1 / c.f->H;
-  const V zero = {0, 0, 0, 0};
+  const V zero = {0, 0, 0, 0}, one = {1, 1, 1, 1}, lane = {0, 1, 2, 3};
+  const bool periodic = c.period[0] > 0 || c.period[1] > 0 || c.period[2] > 0;
   for (std::int32_t i = c.g->start[cell]; i < c.g->start[cell + 1]; ++i) {
-    V acc = zero;
     std::int32_t* list = c.list + static_cast<std::int64_t>(i) * kListStride;
     std::int32_t cnt = 0;
     for (int r = 0; r < nr; ++r) {
-      const Real xi = c.x[i] - runs[r].sx, yi = c.y[i] - runs[r].sy, zi = c.z[i] - runs[r].sz;
-      for_lanes(runs[r].begin, runs[r].end, c.n, [&](std::int32_t s, V mask) {
-        const V dx = xi - load4(c.x, s, c.n), dy = yi - load4(c.y, s, c.n), dz = zi - load4(c.z, s, c.n);
+      const auto xi = static_cast<float>(c.x[i] - runs[r].sx - c.origin[0]);
+      const auto yi = static_cast<float>(c.y[i] - runs[r].sy - c.origin[1]);
+      const auto zi = static_cast<float>(c.z[i] - runs[r].sz - c.origin[2]);
+      cnt = scan_run(c.xf, c.yf, c.zf, runs[r].begin, runs[r].end, i, xi, yi, zi, c.search_r2, list, cnt);
+    }
+    V acc = zero, within = zero;
+    const Real xi = c.x[i], yi = c.y[i], zi = c.z[i];
+    if (cnt <= kMaxList) {
+      for (int k = cnt; k < cnt + 4; ++k) list[k] = i;  // padding of the last group of 4
+      for (std::int32_t b = 0; b < cnt; b += 4) {
+        const std::int32_t* j = list + b;
+        auto gather = [&](const Real* a) { return V{a[j[0]], a[j[1]], a[j[2]], a[j[3]]}; };
+        V dx = xi - gather(c.x), dy = yi - gather(c.y), dz = zi - gather(c.z);
+        if (periodic) {
+          dx = minimum_image(dx, c.period[0]);
+          dy = minimum_image(dy, c.period[1]);
+          dz = minimum_image(dz, c.period[2]);
+        }
+        const V mask = (lane + static_cast<Real>(b)) < static_cast<Real>(cnt) ? one : zero;
         const V q = vsqrt(dx * dx + dy * dy + dz * dz) * invH;
         V t = 1 - q;
         t = t > 0 ? t * mask : zero;
         const V t2 = t * t;
         acc += t2 * t2 * (1 + 4 * q);
-        // branch-free compaction: always write, advance on a neighbour
-        for (int k = 0; k < 4; ++k) {
-          list[std::min(cnt, kMaxList)] = s + k;
-          cnt += static_cast<std::int32_t>(t[k] > 0) & static_cast<std::int32_t>(s + k != i);
-        }
-      });
+        within += t > 0 ? one : zero;
+      }
+    } else {
+      // overflow: scan the cells (self included)
+      for (int r = 0; r < nr; ++r) {
+        const Real xs = xi - runs[r].sx, ys = yi - runs[r].sy, zs = zi - runs[r].sz;
+        for_lanes(runs[r].begin, runs[r].end, c.n, [&](std::int32_t s, V mask) {
+          const V dx = xs - load4(c.x, s, c.n), dy = ys - load4(c.y, s, c.n), dz = zs - load4(c.z, s, c.n);
+          const V q = vsqrt(dx * dx + dy * dy + dz * dz) * invH;
+          V t = 1 - q;
+          t = t > 0 ? t * mask : zero;
+          const V t2 = t * t;
+          acc += t2 * t2 * (1 + 4 * q);
+          within += t > 0 ? one : zero;
+        });
+      }
+      acc[0] -= 1;  // the self term, added below
+      within[0] -= 1;
     }
-    c.ksum[i] = hsum(acc);
     c.count[i] = cnt;
-    c.nb[i] = cnt + 1;
-    if (cnt <= kMaxList)
-      for (int k = cnt; k < cnt + 4; ++k) list[k] = i;  // padding of the last group of 4
+    c.ksum[i] = 1 + hsum(acc);
+    c.nb[i] = 1 + hsum(within);
   }
 }
 
-// Pair accelerations (without the mass factor) and the Shepard pressure sum:
+// Pair accelerations (without the mass factor):
 //   a_i = m sum_j g_ij [ (P_i + P_j + Pi_ij) r_ij - 2 mu / (rho_i rho_j) r_ij^2 / (r_ij^2 + eta^2) v_ij ]
 // with grad_i W_ij = -g_ij r_ij (Wendland C2), P = p / rho^2 (Monaghan 1992),
 // the laminar viscosity of Morris, Fox & Zhu (1997) and Monaghan's artificial
@@ -466,7 +608,6 @@ void density_cell(const Pass& c, std::int32_t cell) {
 // for approaching pairs (v_ij . r_ij < 0), eta^2 = 0.01 h^2; the lattice
 // scales are folded into P, Pi and the viscosity. Every pair term is
 // antisymmetric in (i, j): linear momentum is conserved.
-//   psum_i = sum_{j != i} p_j (1 - q)^4 (1 + 4 q), for the walls' Shepard pressure.
 struct PairConstants {
   Real invH, eta2, avc, two_mu;
   explicit PairConstants(const Fluid& f)
@@ -477,19 +618,18 @@ struct PairConstants {
 };
 
 struct PairSums {
-  V ax, ay, az, pw;
+  V ax, ay, az;
 };
 
 // one group of 4 neighbours (positions already relative: d = x_i - x_j)
-inline void pair_terms(const PairConstants& k, V dx, V dy, V dz, V dvx, V dvy, V dvz, V Pj, V irj, V pj, V mask, Real Pi,
+inline void pair_terms(const PairConstants& k, V dx, V dy, V dz, V dvx, V dvy, V dvz, V Pj, V irj, V mask, Real Pi,
                        Real iri, Real kv, PairSums& acc) {
   const V zero = {0, 0, 0, 0};
   const V r2 = dx * dx + dy * dy + dz * dz;
   const V q = vsqrt(r2) * k.invH;
   V t = 1 - q;
   t = t > 0 ? t * mask : zero;
-  const V t2 = t * t;
-  const V gw = t2 * t;
+  const V gw = t * t * t;
   const V vr = dvx * dx + dvy * dy + dvz * dz;
   const V ie = 1 / (r2 + k.eta2);
   const V piv = vr < 0 ? (-k.avc) * vr * ie * (iri + irj) : zero;
@@ -498,14 +638,23 @@ inline void pair_terms(const PairConstants& k, V dx, V dy, V dz, V dvx, V dvy, V
   acc.ax += A * dx - B * dvx;
   acc.ay += A * dy - B * dvy;
   acc.az += A * dz - B * dvz;
-  acc.pw += pj * t2 * t2 * (1 + 4 * q);
 }
 
-inline V minimum_image(V d, Real period) {
-  if (period <= 0) return d;
-  V r;
-  for (int k = 0; k < 4; ++k) r[k] = d[k] - period * std::nearbyint(d[k] / period);
-  return r;
+inline V loadu(const Real* a) {
+  V v;
+  std::memcpy(&v, a, sizeof v);
+  return v;
+}
+
+// 4 x 4 transpose of rows (a0 a1 a2 a3) into columns
+inline void transpose4(V r0, V r1, V r2, V r3, V& c0, V& c1, V& c2, V& c3) {
+  using M = std::int64_t __attribute__((vector_size(32)));
+  const V t0 = __builtin_shuffle(r0, r1, M{0, 4, 2, 6}), t1 = __builtin_shuffle(r0, r1, M{1, 5, 3, 7});
+  const V t2 = __builtin_shuffle(r2, r3, M{0, 4, 2, 6}), t3 = __builtin_shuffle(r2, r3, M{1, 5, 3, 7});
+  c0 = __builtin_shuffle(t0, t2, M{0, 1, 4, 5});
+  c2 = __builtin_shuffle(t0, t2, M{2, 3, 6, 7});
+  c1 = __builtin_shuffle(t1, t3, M{0, 1, 4, 5});
+  c3 = __builtin_shuffle(t1, t3, M{2, 3, 6, 7});
 }
 
 ORTHOSIM_SPH_CLONES
@@ -517,45 +666,89 @@ void force_cell(const Pass& c, std::int32_t cell) {
   NeighbourRun runs[27];
   int nr = -1;
   for (std::int32_t i = c.g->start[cell]; i < c.g->start[cell + 1]; ++i) {
-    PairSums acc{zero, zero, zero, zero};
+    PairSums acc{zero, zero, zero};
     const Real Pi = c.P[i], iri = c.ir[i], kv = k.two_mu * iri;
     const Real xi = c.x[i], yi = c.y[i], zi = c.z[i], vxi = c.vx[i], vyi = c.vy[i], vzi = c.vz[i];
     const std::int32_t cnt = c.count[i];
     if (cnt <= kMaxList) {
-      // gather over the list, 4 at a time
+      // gather over the list, 4 at a time, from the packed records (two 4 x 4 transposes)
       const std::int32_t* list = c.list + static_cast<std::int64_t>(i) * kListStride;
       for (std::int32_t b = 0; b < cnt; b += 4) {
         const std::int32_t* j = list + b;
-        auto gather = [&](const Real* a) { return V{a[j[0]], a[j[1]], a[j[2]], a[j[3]]}; };
-        V dx = xi - gather(c.x), dy = yi - gather(c.y), dz = zi - gather(c.z);
+        const Real *p0 = c.pack + 8 * static_cast<std::int64_t>(j[0]), *p1 = c.pack + 8 * static_cast<std::int64_t>(j[1]);
+        const Real *p2 = c.pack + 8 * static_cast<std::int64_t>(j[2]), *p3 = c.pack + 8 * static_cast<std::int64_t>(j[3]);
+        V X, Y, Z, Pj, VX, VY, VZ, irj;
+        transpose4(loadu(p0), loadu(p1), loadu(p2), loadu(p3), X, Y, Z, Pj);
+        transpose4(loadu(p0 + 4), loadu(p1 + 4), loadu(p2 + 4), loadu(p3 + 4), VX, VY, VZ, irj);
+        V dx = xi - X, dy = yi - Y, dz = zi - Z;
         if (periodic) {
           dx = minimum_image(dx, c.period[0]);
           dy = minimum_image(dy, c.period[1]);
           dz = minimum_image(dz, c.period[2]);
         }
         const V mask = (lane + static_cast<Real>(b)) < static_cast<Real>(cnt) ? V{1, 1, 1, 1} : zero;
-        pair_terms(k, dx, dy, dz, vxi - gather(c.vx), vyi - gather(c.vy), vzi - gather(c.vz), gather(c.P), gather(c.ir),
-                   gather(c.p), mask, Pi, iri, kv, acc);
+        pair_terms(k, dx, dy, dz, vxi - VX, vyi - VY, vzi - VZ, Pj, irj, mask, Pi, iri, kv, acc);
       }
     } else {
-      // overflow: scan the cells (self contributes nothing but to psum: removed below)
+      // overflow: scan the cells (the self term is zero: r_ii = 0, v_ii = 0)
       if (nr < 0) nr = neighbour_runs(*c.g, cell, runs);
       for (int r = 0; r < nr; ++r) {
         const Real xs = xi - runs[r].sx, ys = yi - runs[r].sy, zs = zi - runs[r].sz;
         for_lanes(runs[r].begin, runs[r].end, c.n, [&](std::int32_t s, V mask) {
           pair_terms(k, xs - load4(c.x, s, c.n), ys - load4(c.y, s, c.n), zs - load4(c.z, s, c.n), vxi - load4(c.vx, s, c.n),
-                     vyi - load4(c.vy, s, c.n), vzi - load4(c.vz, s, c.n), load4(c.P, s, c.n), load4(c.ir, s, c.n),
-                     load4(c.p, s, c.n), mask, Pi, iri, kv, acc);
+                     vyi - load4(c.vy, s, c.n), vzi - load4(c.vz, s, c.n), load4(c.P, s, c.n), load4(c.ir, s, c.n), mask, Pi,
+                     iri, kv, acc);
         });
       }
-      acc.pw[0] -= c.p[i];  // the self term, W(0) = 1
     }
     const Real m = f.mass * Real(210) / (kPi * f.H * f.H * f.H * f.H * f.H);
     c.ax[i] = m * hsum(acc.ax);
     c.ay[i] = m * hsum(acc.ay);
     c.az[i] = m * hsum(acc.az);
-    c.psum[i] = hsum(acc.pw);
   }
+}
+
+// psum_i = sum_{j != i} p_j (1 - q)^4 (1 + 4 q), for the walls' Shepard
+// pressure: only particles near a wall need it.
+ORTHOSIM_SPH_CLONES
+Real pressure_sum(const Pass& c, std::int32_t i) {
+  const Real invH = 1 / c.f->H;
+  const V zero = {0, 0, 0, 0}, one = {1, 1, 1, 1}, lane = {0, 1, 2, 3};
+  const bool periodic = c.period[0] > 0 || c.period[1] > 0 || c.period[2] > 0;
+  const Real xi = c.x[i], yi = c.y[i], zi = c.z[i];
+  V acc = zero;
+  auto term = [&](V dx, V dy, V dz, V pj, V mask) {
+    const V q = vsqrt(dx * dx + dy * dy + dz * dz) * invH;
+    V t = 1 - q;
+    t = t > 0 ? t * mask : zero;
+    const V t2 = t * t;
+    acc += pj * t2 * t2 * (1 + 4 * q);
+  };
+  const std::int32_t cnt = c.count[i];
+  if (cnt <= kMaxList) {
+    const std::int32_t* list = c.list + static_cast<std::int64_t>(i) * kListStride;
+    for (std::int32_t b = 0; b < cnt; b += 4) {
+      const std::int32_t* j = list + b;
+      auto gather = [&](const Real* a) { return V{a[j[0]], a[j[1]], a[j[2]], a[j[3]]}; };
+      V dx = xi - gather(c.x), dy = yi - gather(c.y), dz = zi - gather(c.z);
+      if (periodic) {
+        dx = minimum_image(dx, c.period[0]);
+        dy = minimum_image(dy, c.period[1]);
+        dz = minimum_image(dz, c.period[2]);
+      }
+      term(dx, dy, dz, gather(c.p), (lane + static_cast<Real>(b)) < static_cast<Real>(cnt) ? one : zero);
+    }
+    return hsum(acc);
+  }
+  NeighbourRun runs[27];
+  const int nr = neighbour_runs(*c.g, c.g->point_cell[c.g->order[i]], runs);
+  for (int r = 0; r < nr; ++r) {
+    const Real xs = xi - runs[r].sx, ys = yi - runs[r].sy, zs = zi - runs[r].sz;
+    for_lanes(runs[r].begin, runs[r].end, c.n, [&](std::int32_t s, V mask) {
+      term(xs - load4(c.x, s, c.n), ys - load4(c.y, s, c.n), zs - load4(c.z, s, c.n), load4(c.p, s, c.n), mask);
+    });
+  }
+  return hsum(acc) - c.p[i];  // the self term, W(0) = 1
 }
 
 // Wall share of the kernel sum over all contacts, sum_w f0(d_w / H). The
@@ -615,7 +808,7 @@ Vec3 wall_acceleration(const Fluid& f, const Walls& w, const Vec3& p, const Vec3
 // the two passes.
 inline Real shepard_pressure(const Pass& c, std::int32_t i) {
   const Real den = c.ksum[i];
-  return den > 0 ? std::max(Real(0), (c.psum[i] + c.p[i]) / den) : c.p[i];
+  return den > 0 ? std::max(Real(0), (pressure_sum(c, i) + c.p[i]) / den) : c.p[i];
 }
 
 // Projection of a particle out of a wall with restitution and friction.
@@ -672,6 +865,7 @@ struct Stepper {
       if (dt > 0) sf.force.assign(sf.x.size(), 0);  // a step's output; diagnostics leave it
     }
     for (int a = 0; a < 3; ++a) periodic[a] = b.faces[2 * a] == Face::periodic;
+    walls.set_inner();
   }
 
   std::int32_t n() const { return static_cast<std::int32_t>(s.id.size()); }
@@ -699,6 +893,18 @@ struct Stepper {
     tid.resize(np);
     for (std::int32_t k = 0; k < np; ++k) tid[k] = s.id[g.order[k]];
     s.id.swap(tid);
+    // single-precision positions relative to the grid origin, 8 entries of padding far away
+    for (int k = 0; k < 3; ++k) {
+      auto& xf = s.scratch.xf[k];
+      xf.resize(static_cast<std::size_t>(np) + 8);
+      const Real* x = s.x[k].data();
+      const Real o = g.origin[k];
+      float* out = xf.data();
+      tbb::parallel_for(tbb::blocked_range<std::int32_t>(0, np, 8192), [&](const auto& r) {
+        for (std::int32_t i = r.begin(); i < r.end(); ++i) out[i] = static_cast<float>(x[i] - o);
+      });
+      std::fill(xf.begin() + np, xf.end(), 1e30f);
+    }
   }
 
   Pass pass(Real tau) {
@@ -708,7 +914,6 @@ struct Stepper {
     sc.inv_rho.resize(np);
     sc.neighbours.resize(np);
     sc.ksum.resize(np);
-    sc.psum.resize(np);
     sc.count.resize(np);
     if (sc.list.size() < np * kListStride) sc.list.resize(np * kListStride);
     for (int k = 0; k < 3; ++k) {
@@ -723,10 +928,15 @@ struct Stepper {
     c.x = s.x[0].data(), c.y = s.x[1].data(), c.z = s.x[2].data();
     c.vx = s.v[0].data(), c.vy = s.v[1].data(), c.vz = s.v[2].data();
     c.rho = s.rho.data(), c.p = s.p.data(), c.P = sc.P.data(), c.ir = sc.inv_rho.data(), c.nb = sc.neighbours.data();
-    c.ksum = sc.ksum.data(), c.psum = sc.psum.data(), c.list = sc.list.data(), c.count = sc.count.data();
+    sc.pack.resize(8 * np);
+    c.pack = sc.pack.data();
+    c.ksum = sc.ksum.data(), c.list = sc.list.data(), c.count = sc.count.data();
     c.period = sc.grid.period;
     c.ax = sc.a[0].data(), c.ay = sc.a[1].data(), c.az = sc.a[2].data();
     c.wx = sc.aw[0].data(), c.wy = sc.aw[1].data(), c.wz = sc.aw[2].data();
+    c.xf = sc.xf[0].data(), c.yf = sc.xf[1].data(), c.zf = sc.xf[2].data();
+    c.origin = sc.grid.origin;
+    c.search_r2 = static_cast<float>(1.005 * 1.005 * f.H * f.H);
     c.tau = tau;
     return c;
   }
@@ -747,13 +957,16 @@ struct Stepper {
             density_cell(c, cell);
             for (std::int32_t i = c.g->start[cell]; i < c.g->start[cell + 1]; ++i) {
               const Vec3 p{c.x[i], c.y[i], c.z[i]};
-              const Real rho = mk * c.ksum[i] + rho0 * wall_fraction(f, walls, p, c.tau);
+              const Real rho = mk * c.ksum[i] + (walls.maybe_near(p) ? rho0 * wall_fraction(f, walls, p, c.tau) : Real(0));
               Real pr = eos_pressure(f.eos, rho, rho0, f.c0, gamma);
               if (clamp) pr = std::max(Real(0), pr);
               c.rho[i] = rho;
               c.p[i] = pr;
               c.ir[i] = 1 / rho;
               c.P[i] = gs * pr / (rho * rho);
+              Real* pk = c.pack + 8 * static_cast<std::int64_t>(i);
+              pk[0] = c.x[i], pk[1] = c.y[i], pk[2] = c.z[i], pk[3] = c.P[i];
+              pk[4] = c.vx[i], pk[5] = c.vy[i], pk[6] = c.vz[i], pk[7] = c.ir[i];
               best = std::max(best, rho / rho0 - 1);
             }
           }
@@ -778,9 +991,10 @@ struct Stepper {
             for (std::int32_t i = c.g->start[cell]; i < c.g->start[cell + 1]; ++i) {
               const Vec3 p{c.x[i], c.y[i], c.z[i]}, v{c.vx[i], c.vy[i], c.vz[i]};
               const auto pw = [&] { return shepard_pressure(c, i); };
-              const Vec3 aw = wall_acceleration(f, walls, p, v, c.rho[i], c.p[i], pw, c.tau, [&](const Contact& ct, const Vec3& a) {
-                rec->push_back({i, ct.surface, ct.tri, ct.w0, ct.w1, ct.w2, -f.mass * a});
-              });
+              const Vec3 aw = !walls.maybe_near(p) ? Vec3{}
+                              : wall_acceleration(f, walls, p, v, c.rho[i], c.p[i], pw, c.tau, [&](const Contact& ct, const Vec3& a) {
+                                  rec->push_back({i, ct.surface, ct.tri, ct.w0, ct.w1, ct.w2, -f.mass * a});
+                                });
               c.wx[i] = aw.x, c.wy[i] = aw.y, c.wz[i] = aw.z;
               c.ax[i] += aw.x, c.ay[i] += aw.y, c.az[i] += aw.z;
               const Vec3 at{c.ax[i] + g.x, c.ay[i] + g.y, c.az[i] + g.z};

@@ -391,8 +391,11 @@ struct FluidScratch {
   std::vector<Real> P;                  // (n) p / rho^2
   std::vector<Real> inv_rho;            // (n) 1 / rho
   std::vector<Real> neighbours;         // (n) particles within H, self included
-  std::vector<Real> ksum, psum;         // (n) kernel sum and neighbours' pressure sum (walls' Shepard pressure)
-  std::vector<std::int32_t> list;       // (n x 96) neighbour lists of the density pass
+  std::vector<Real> ksum;               // (n) kernel sum (the walls' Shepard pressure sums are taken on demand)
+  std::vector<Real> pack;               // (n x 8) x, y, z, p / rho^2, vx, vy, vz, 1 / rho: the force pass's gathers
+  std::array<std::vector<float>, 3> xf; // (3)(n + 8) m, positions relative to the grid origin in single
+                                        // precision: the neighbour search only (every sum is in double)
+  std::vector<std::int32_t> list;       // (n x 100) neighbour lists of the density pass
   std::vector<std::int32_t> count;      // (n) their lengths
   std::vector<std::uint8_t> dead;       // (n) removal reason, 0 = alive
   std::vector<Real> reactions;          // surface reaction records of the substep
