@@ -7,17 +7,33 @@
 // a second run with nothing changed does no work, and a changed parameter
 // re-runs only the stages downstream of it. With --scene, only what the
 // scene uses is built: no vessel trees for a scene without vessels, and only
-// the tissues of the scene's layers are tuned. docs/pipeline.md.
+// the tissues of the scene's layers are tuned. Independent work runs side by
+// side: the vessel trees (which read only the labels) in a child process
+// alongside surface -> remesh -> build -> tune, the tissues inside surface
+// and tune on TBB's threads; an assemble step then adds the trees to the
+// tuned model. --export copies every stage's outputs (STL surfaces, quad
+// layers and texture, tube meshes, tuned table, plots) into one folder.
+// docs/pipeline.md.
 #include "libmodel/format/atomic.h"
+#include "libmodel/format/model.h"
 #include "libmodel/pipeline/cache.h"
 #include "libmodel/provenance.h"
 #include "libmodel/tissues.h"
 #include "tools/common.h"
 
+#include <spawn.h>
+#include <sys/wait.h>
+#include <unistd.h>
+
+#include <cerrno>
 #include <chrono>
+#include <array>
+#include <cstring>
 #include <filesystem>
 #include <fstream>
 #include <iostream>
+#include <map>
+#include <optional>
 #include <set>
 #include <sstream>
 
@@ -28,7 +44,7 @@ namespace fs = std::filesystem;
 using nlohmann::json;
 
 struct Args {
-  std::string stack, tissues, spacing, origin = "0,0,0", scene, grid = "39x9", work, out;
+  std::string stack, tissues, spacing, origin = "0,0,0", scene, grid = "39x9", work, out, export_dir;
   bool texture = true, tune = true;
   double tune_budget_s = 30;
   std::uint64_t seed = 1;
@@ -41,10 +57,17 @@ std::string join(const std::vector<std::string>& v, const std::string& sep = ","
   return s;
 }
 
-void copy_file(const std::string& from, const std::string& to) {
+// Copies a file or a folder (recursively) to `to`, creating its parent.
+void copy_path(const fs::path& from, const fs::path& to) {
   std::error_code ec;
-  fs::copy_file(from, to, fs::copy_options::overwrite_existing, ec);
-  if (ec) throw Error(to, "cannot copy " + from + ": " + ec.message());
+  if (!to.parent_path().empty()) fs::create_directories(to.parent_path(), ec);
+  if (!ec && fs::is_directory(from, ec)) {
+    fs::create_directories(to, ec);
+    if (!ec) fs::copy(from, to, fs::copy_options::recursive | fs::copy_options::overwrite_existing, ec);
+  } else if (!ec) {
+    fs::copy_file(from, to, fs::copy_options::overwrite_existing, ec);
+  }
+  if (ec) throw Error(to.string(), "cannot copy " + from.string() + ": " + ec.message());
 }
 
 // What a scene file asks of the model (only the keys the pipeline needs).
@@ -81,53 +104,103 @@ SceneNeeds read_scene(const std::string& path) {
   return n;
 }
 
+// Runs another orthosim process with `args` (this executable, found through
+// /proc/self/exe); its stderr is ours. Throws Error when it cannot start.
+pid_t spawn_self(const std::vector<std::string>& args) {
+  std::error_code ec;
+  const std::string self = fs::read_symlink("/proc/self/exe", ec).string();
+  if (ec) throw Error("/proc/self/exe", "cannot find this executable to run a stage in parallel: " + ec.message());
+  std::vector<std::string> argv_s{self};
+  argv_s.insert(argv_s.end(), args.begin(), args.end());
+  std::vector<char*> argv;
+  for (auto& x : argv_s) argv.push_back(x.data());
+  argv.push_back(nullptr);
+  pid_t pid = 0;
+  const int rc = posix_spawn(&pid, self.c_str(), nullptr, nullptr, argv.data(), environ);
+  if (rc != 0) throw Error(self, std::string("cannot start a stage process: ") + std::strerror(rc));
+  return pid;
+}
+
+// Waits for a child; its exit code (1 when it died of a signal).
+int wait_child(pid_t pid) {
+  int status = 0;
+  while (waitpid(pid, &status, 0) < 0)
+    if (errno != EINTR) return 1;
+  return WIFEXITED(status) ? WEXITSTATUS(status) : 1;
+}
+
 class Runner {
  public:
   Runner(const Args& a, Report& report) : a_(a), report_(report) {}
+  ~Runner() {
+    // a stage that failed while a parallel one was running: stop and reap it
+    // (its cache entry has no manifest, so it is never used)
+    for (auto& p : pending_) {
+      if (p.pid <= 0) continue;
+      kill(p.pid, SIGTERM);
+      wait_child(p.pid);
+    }
+  }
 
-  // Runs (or reuses) one stage: `args` are the subcommand's, with paths in
-  // `dir`; `prepare` copies the stage's input model into dir first.
+  struct StageFailed {
+    std::string stage;
+  };
+  // A stage started with start(), finished by finish().
+  struct Pending {
+    pipeline::CacheEntry entry;
+    json rec;
+    std::vector<std::string> outputs;
+    std::chrono::steady_clock::time_point t0;
+    pid_t pid = 0;  // 0: nothing to wait for (a hit)
+  };
+
+  // Runs (or reuses) one stage in this process: `body` fills the entry's
+  // folder and returns an exit code (0: done). `prepare` runs first.
   pipeline::CacheEntry stage(const std::string& name, const std::vector<std::string>& key_parts,
-                             const std::function<std::vector<std::string>(const std::string& dir)>& make_args,
+                             const std::function<int(const std::string& dir)>& body,
                              const std::vector<std::string>& outputs,
                              const std::function<void(const std::string& dir)>& prepare = {}) {
-    std::vector<std::string> parts = key_parts;
-    parts.push_back(version_string());
-    const auto key = pipeline::stage_key(name, parts);
-    auto e = pipeline::open_entry(a_.work, name, key);
-    json rec = {{"stage", name}, {"key", key}, {"dir", e.dir}};
-    const auto t0 = std::chrono::steady_clock::now();
-    if (e.hit) {
-      rec["ran"] = false;
-      rec["why"] = "cached";
-    } else {
-      rec["ran"] = true;
-      rec["why"] = e.reason;
-      if (prepare) prepare(e.dir);
-      auto args = make_args(e.dir);
-      args.push_back("--report");
-      args.push_back(e.dir + "/report.json");
-      args.push_back("--quiet");
-      if (!a_.common.quiet) std::cerr << "pipeline: " << name << " (" << e.reason << ")\n";
+    Pending p = open(name, key_parts, outputs);
+    if (!p.entry.hit) {
+      if (prepare) prepare(p.entry.dir);
+      if (const int code = body(p.entry.dir); code != 0) fail(name, code);
+    }
+    return close(std::move(p));
+  }
+
+  // The arguments of a subcommand stage: `make_args` plus the report in the
+  // entry's folder and --quiet.
+  std::function<int(const std::string&)> command(
+      const std::function<std::vector<std::string>(const std::string& dir)>& make_args) {
+    return [make_args](const std::string& dir) {
+      auto args = with_report(make_args(dir), dir);
       const std::string saved = command_line();
       command_line() = "orthosim " + join(args, " ");
       const int code = run_command(args);
       command_line() = saved;
-      if (code != 0) {
-        // the stage printed its one-line error; the cache entry stays without a manifest
-        failed_code_ = code;
-        throw StageFailed{name};
-      }
-      std::vector<std::string> outs = outputs;
-      outs.push_back("report.json");
-      pipeline::commit_entry(e, outs);
+      return code;  // a failed stage printed its one-line error
+    };
+  }
+
+  // Starts a subcommand stage in a child process, so that it runs alongside
+  // the stages that follow in this one; finish() waits for it.
+  std::size_t start(const std::string& name, const std::vector<std::string>& key_parts,
+                    const std::function<std::vector<std::string>(const std::string& dir)>& make_args,
+                    const std::vector<std::string>& outputs) {
+    Pending p = open(name, key_parts, outputs);
+    p.rec["parallel"] = true;
+    if (!p.entry.hit) p.pid = spawn_self(with_report(make_args(p.entry.dir), p.entry.dir));
+    pending_.push_back(std::move(p));
+    return pending_.size() - 1;
+  }
+  pipeline::CacheEntry finish(std::size_t i) {
+    Pending& p = pending_.at(i);
+    if (p.pid > 0) {
+      const int code = wait_child(p.pid);
+      p.pid = 0;
+      if (code != 0) fail(p.entry.stage, code);
     }
-    const double s = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
-    rec["seconds"] = s;
-    report_.phase(name, s);
-    report_.json()["stages"].push_back(rec);
-    if (!a_.common.quiet && e.hit) std::cerr << "pipeline: " << name << " (cached)\n";
-    return e;
+    return close(std::move(p));
   }
 
   void skip(const std::string& name, const std::string& why) {
@@ -135,15 +208,47 @@ class Runner {
     if (!a_.common.quiet) std::cerr << "pipeline: " << name << " skipped: " << why << "\n";
   }
 
-  struct StageFailed {
-    std::string stage;
-  };
   int failed_code() const { return failed_code_; }
 
  private:
+  static std::vector<std::string> with_report(std::vector<std::string> args, const std::string& dir) {
+    args.insert(args.end(), {"--report", dir + "/report.json", "--quiet"});
+    return args;
+  }
+
+  Pending open(const std::string& name, const std::vector<std::string>& key_parts, const std::vector<std::string>& outputs) {
+    std::vector<std::string> parts = key_parts;
+    parts.push_back(version_string());
+    Pending p;
+    p.entry = pipeline::open_entry(a_.work, name, pipeline::stage_key(name, parts));
+    p.rec = {{"stage", name}, {"key", p.entry.key}, {"dir", p.entry.dir}, {"ran", !p.entry.hit},
+             {"why", p.entry.hit ? "cached" : p.entry.reason}};
+    p.outputs = outputs;
+    p.outputs.push_back("report.json");
+    p.t0 = std::chrono::steady_clock::now();
+    if (!a_.common.quiet) std::cerr << "pipeline: " << name << " (" << (p.entry.hit ? "cached" : p.entry.reason) << ")\n";
+    return p;
+  }
+
+  pipeline::CacheEntry close(Pending&& p) {
+    if (!p.entry.hit) pipeline::commit_entry(p.entry, p.outputs);
+    const double s = std::chrono::duration<double>(std::chrono::steady_clock::now() - p.t0).count();
+    p.rec["seconds"] = s;
+    report_.phase(p.entry.stage, s);
+    report_.json()["stages"].push_back(p.rec);
+    return p.entry;
+  }
+
+  [[noreturn]] void fail(const std::string& name, int code) {
+    // the stage printed its one-line error; its cache entry stays without a manifest
+    failed_code_ = code;
+    throw StageFailed{name};
+  }
+
   const Args& a_;
   Report& report_;
   int failed_code_ = 0;
+  std::vector<Pending> pending_;
 };
 
 // Returns 0, or the exit code of the stage that failed (it printed its error).
@@ -159,6 +264,8 @@ int run_pipeline(Args a) {
   std::error_code ec;
   if (!fs::is_directory(a.stack, ec)) throw Error(a.stack, "not a folder of slices");
   if (fs::is_directory(a.out, ec)) throw Error(a.out, "is a folder; --out names a model file");
+  check_output_file(a.out);
+  if (!a.export_dir.empty()) check_output_dir(a.export_dir);
   const TissueTable table = load_tissue_table(a.tissues);
   const SceneNeeds scene = read_scene(a.scene);
   report.input(a.stack);
@@ -166,7 +273,7 @@ int run_pipeline(Args a) {
   if (!a.scene.empty()) report.input(a.scene);
   report.parameters() = {{"grid", a.grid}, {"spacing_mm", a.spacing}, {"origin_mm", a.origin},
                          {"work", a.work}, {"texture", a.texture}, {"tune", a.tune},
-                         {"tune_budget_s", a.tune_budget_s}, {"seed", a.seed}};
+                         {"tune_budget_s", a.tune_budget_s}, {"seed", a.seed}, {"export", a.export_dir}};
 
   // tissues of the layers (table order is outer to inner) and of the vessels
   std::vector<std::string> layered, vessels;
@@ -191,30 +298,52 @@ int run_pipeline(Args a) {
   try {
     // 1. segment
     const auto seg = run.stage(
-        "segment", {stack_hash, table_hash, a.spacing, a.origin},
-        [&](const std::string& d) {
+        "segment", {stack_hash, table_hash, a.spacing, a.origin}, run.command([&](const std::string& d) {
           return std::vector<std::string>{"segment", "--stack", a.stack, "--tissues", a.tissues, "--spacing",
-                                          a.spacing, "--origin", a.origin, "--out", d + "/labels.h5"};
-        },
-        {"labels.h5"});
+                                          a.spacing, "--origin", a.origin, "--out", d + "/labels.h5",
+                                          "--nrrd", d + "/labels.nrrd"};
+        }),
+        {"labels.h5", "labels.nrrd"});
     const std::string labels = seg.dir + "/labels.h5";
 
-    // 2. surface: the layered tissues
+    // 2. vessels: they read only the labels, so they run in a child process
+    // alongside surface -> remesh -> build -> tune (only the trees the scene
+    // uses; all vessel tissues without a scene)
+    std::optional<std::size_t> vessel_job;
+#ifdef ORTHOSIM_HAVE_VESSELS
+    const std::vector<std::string> want = scene.given ? scene.vessels : vessels;
+    if (want.empty()) {
+      run.skip("vessels", scene.given ? "the scene uses no vessels" : "the tissue table has no vessel tissue");
+    } else {
+      vessel_job = run.start(
+          "vessels", {seg.key, join(want)},
+          [&](const std::string& d) {
+            std::vector<std::string> args{"vessels", "--labels", labels, "--model", d + "/vessels.h5", "--out",
+                                          d + "/meshes"};
+            for (const auto& v : want) args.insert(args.end(), {"--tissue", v});
+            return args;
+          },
+          {"vessels.h5", "meshes"});
+    }
+#else
+    run.skip("vessels", "this build has no vessels stage");
+#endif
+
+    // 3. surface: the layered tissues
     const auto surf = run.stage(
-        "surface", {seg.key, join(layered)},
-        [&](const std::string& d) {
+        "surface", {seg.key, join(layered)}, run.command([&](const std::string& d) {
           return std::vector<std::string>{"surface", "--labels", labels, "--out", d, "--tissues", join(layered)};
-        },
+        }),
         [&] {
           std::vector<std::string> o;
           for (const auto& t : layered) o.push_back(t + ".stl");
           return o;
         }());
 
-    // 3. remesh: corresponding quad layers (+ the skin's texture)
+    // 4. remesh: corresponding quad layers (+ the skin's texture)
     const auto rem = run.stage(
         "remesh", {surf.key, seg.key, a.grid, a.texture ? stack_hash : "no-texture"},
-        [&](const std::string& d) {
+        run.command([&](const std::string& d) {
           std::vector<std::string> inner;
           for (std::size_t i = 1; i < layered.size(); ++i) inner.push_back(surf.dir + "/" + layered[i] + ".stl");
           std::vector<std::string> args{"remesh", "--surface", surf.dir + "/" + layered[0] + ".stl", "--inner",
@@ -222,20 +351,19 @@ int run_pipeline(Args a) {
                                         d + "/model.h5"};
           if (a.texture) args.insert(args.end(), {"--stack", a.stack, "--texture"});
           return args;
-        },
-        {"model.h5", "quads"}, [&](const std::string& d) { copy_file(labels, d + "/model.h5"); });
+        }),
+        {"model.h5", "quads"}, [&](const std::string& d) { copy_path(labels, d + "/model.h5"); });
 
-    // 4. build: the multilayer mass-spring model
+    // 5. build: the multilayer mass-spring model
     const auto bld = run.stage(
-        "build", {rem.key, table_hash},
-        [&](const std::string& d) {
+        "build", {rem.key, table_hash}, run.command([&](const std::string& d) {
           return std::vector<std::string>{"build", "--model", d + "/model.h5", "--tissues", a.tissues};
-        },
-        {"model.h5"}, [&](const std::string& d) { copy_file(rem.dir + "/model.h5", d + "/model.h5"); });
+        }),
+        {"model.h5"}, [&](const std::string& d) { copy_path(rem.dir + "/model.h5", d + "/model.h5"); });
     std::string last = bld.dir + "/model.h5";
     std::string last_key = bld.key;
 
-    // 5. tune: the tissues the scene loads (all without a scene)
+    // 6. tune: the tissues the scene loads (all without a scene), side by side
 #ifdef ORTHOSIM_HAVE_TUNE
     if (a.tune) {
       std::vector<std::string> tuned;
@@ -251,14 +379,14 @@ int run_pipeline(Args a) {
         const std::string from = last;
         const auto tun = run.stage(
             "tune", {last_key, table_hash, join(tuned), std::to_string(a.seed), std::to_string(a.tune_budget_s)},
-            [&](const std::string& d) {
+            run.command([&](const std::string& d) {
               std::vector<std::string> args{"tune",     "--tissues", a.tissues, "--model", d + "/model.h5", "--seed",
                                             std::to_string(a.seed), "--budget-s", std::to_string(a.tune_budget_s),
-                                            "--out", d + "/tuned_tissues.json"};
+                                            "--out", d + "/tuned_tissues.json", "--plot", d + "/plots"};
               for (const auto& t : tuned) args.insert(args.end(), {"--tissue", t});
               return args;
-            },
-            {"model.h5", "tuned_tissues.json"}, [&](const std::string& d) { copy_file(from, d + "/model.h5"); });
+            }),
+            {"model.h5", "tuned_tissues.json", "plots"}, [&](const std::string& d) { copy_path(from, d + "/model.h5"); });
         last = tun.dir + "/model.h5";
         last_key = tun.key;
       }
@@ -269,37 +397,58 @@ int run_pipeline(Args a) {
     run.skip("tune", "this build has no tune stage");
 #endif
 
-    // 6. vessels: only when the scene uses them (all vessel tissues without a scene)
-#ifdef ORTHOSIM_HAVE_VESSELS
-    const std::vector<std::string> want = scene.given ? scene.vessels : vessels;
-    if (want.empty()) {
-      run.skip("vessels", scene.given ? "the scene uses no vessels" : "the tissue table has no vessel tissue");
-    } else {
+    // 7. assemble: the vessel trees join the tuned model
+    if (vessel_job) {
+      const auto ves = run.finish(*vessel_job);
       const std::string from = last;
-      const auto ves = run.stage(
-          "vessels", {last_key, seg.key, join(want)},
+      const auto asm_entry = run.stage(
+          "assemble", {last_key, ves.key},
           [&](const std::string& d) {
-            std::vector<std::string> args{"vessels", "--labels", labels, "--model", d + "/model.h5"};
-            for (const auto& v : want) args.insert(args.end(), {"--tissue", v});
-            return args;
+            ModelReader trees(ves.dir + "/vessels.h5");
+            ModelWriter w(d + "/model.h5", ModelWriter::Start::update);
+            for (const auto& t : trees.names("/vessels")) w.write(t, trees.vessels(t));
+            for (const auto& [stage, prov] : trees.provenance())
+              if (stage == "vessels") w.write(stage, prov);
+            w.commit();
+            write_text_file(d + "/report.json", json{{"command", "assemble"}, {"vessels", ves.dir + "/vessels.h5"}}.dump(2) + "\n");
+            return 0;
           },
-          {"model.h5"}, [&](const std::string& d) { copy_file(from, d + "/model.h5"); });
-      last = ves.dir + "/model.h5";
+          {"model.h5"}, [&](const std::string& d) { copy_path(from, d + "/model.h5"); });
+      last = asm_entry.dir + "/model.h5";
     }
-#else
-    run.skip("vessels", "this build has no vessels stage");
-#endif
 
     // the model, atomically
     {
       AtomicFile f(a.out);
-      copy_file(last, f.temp());
+      copy_path(last, f.temp());
       f.commit();
     }
     report.output(a.out);
+
+    // every stage's outputs in one folder, for people and viewers
+    if (!a.export_dir.empty()) {
+      AtomicDir out(a.export_dir);
+      const fs::path t = out.temp();
+      std::map<std::string, std::string> dirs;
+      for (const auto& st : report.json()["stages"])
+        if (st.contains("dir")) dirs[st["stage"].get<std::string>()] = st["dir"].get<std::string>();
+      const std::vector<std::array<std::string, 3>> items = {
+          {"segment", "labels.h5", "labels.h5"},          {"segment", "labels.nrrd", "labels.nrrd"},
+          {"remesh", "quads", "quads"},
+          {"vessels", "meshes", "vessels"},               {"tune", "tuned_tissues.json", "tuned_tissues.json"},
+          {"tune", "plots", "tune"}};
+      for (const auto& [stage, from, to] : items)
+        if (dirs.count(stage)) copy_path(fs::path(dirs[stage]) / from, t / to);
+      if (dirs.count("surface"))
+        for (const auto& tissue : layered) copy_path(fs::path(dirs["surface"]) / (tissue + ".stl"), t / "surfaces" / (tissue + ".stl"));
+      for (const auto& [stage, dir] : dirs) copy_path(fs::path(dir) / "report.json", t / "reports" / (stage + ".json"));
+      out.commit();
+      report.output(a.export_dir);
+    }
   } catch (const Runner::StageFailed& f) {
     // the stage printed its one-line error; the previous --out and the cache stay intact
     report.json()["failed_stage"] = f.stage;
+    report.write(a.common.report);
     return run.failed_code();
   }
   int ran = 0;
@@ -325,6 +474,9 @@ void add_pipeline_command(CLI::App& app) {
   sub->add_option("--grid", a.grid, "quad grid NUxNV")->capture_default_str();
   sub->add_option("--work", a.work, "cache folder (default: <out>.work)");
   sub->add_option("--out", a.out, "model file to write")->required();
+  sub->add_option("--export", a.export_dir,
+                  "also copy every stage's outputs (labels, STL surfaces, quad layers and texture, vessel meshes, "
+                  "tuned table and plots, stage reports) into this folder");
   sub->add_flag("!--no-texture", a.texture, "skip the skin texture");
   sub->add_flag("!--no-tune", a.tune, "skip spring tuning");
   sub->add_option("--tune-budget-s", a.tune_budget_s, "wall-clock budget per tuned tissue (s)")->capture_default_str();

@@ -8,12 +8,15 @@
 #include "tools/common.h"
 
 #include <tbb/global_control.h>
+#include <tbb/parallel_for.h>
 
 #include <algorithm>
+#include <atomic>
 #include <filesystem>
 #include <iomanip>
 #include <iostream>
 #include <memory>
+#include <mutex>
 #include <optional>
 #include <sstream>
 
@@ -144,23 +147,36 @@ void add_surface_command(CLI::App& app) {
     report.parameters()["threads"] = a.threads;
 
     // ---- surfaces ---------------------------------------------------------------------------
-    std::vector<SurfaceResult> results;
+    // The tissues are independent until nesting: they are extracted side by
+    // side (each extraction is parallel inside too; TBB shares the threads),
+    // every result in its own slot, so the output does not depend on the
+    // order they finish in. The first failing tissue in --tissues order is
+    // the one reported.
+    std::vector<SurfaceResult> results(names.size());
     {
       Progress bar("surface", static_cast<long>(names.size()), a.common.quiet);
-      for (std::size_t i = 0; i < names.size(); ++i) {
+      std::vector<std::string> failed(names.size());
+      std::atomic<long> done{0};
+      std::mutex bar_mutex;
+      tbb::parallel_for(std::size_t{0}, names.size(), [&](std::size_t i) {
         try {
-          results.push_back(extract_surface(v, solids[i], o));
+          results[i] = extract_surface(v, solids[i], o);
         } catch (const Error& e) {
-          throw Error(a.labels, names[i] + ": " + e.message());
+          failed[i] = names[i] + ": " + e.message();
         }
-        const SurfaceMetrics& m = results.back().metrics;
+        const std::lock_guard<std::mutex> lock(bar_mutex);
+        bar.update(++done);
+      });
+      for (const auto& f : failed)
+        if (!f.empty()) throw Error(a.labels, f);
+      for (const auto& r : results) {
+        const SurfaceMetrics& m = r.metrics;
         report.phase("solid", m.solid_s);
         report.phase("field", m.field_s);
         report.phase("extract", m.extract_s);
         report.phase("smooth", m.smooth_s);
         report.phase("decimate", m.decimate_s);
         report.phase("check", m.check_s);
-        bar.update(static_cast<long>(i + 1));
       }
     }
 

@@ -17,6 +17,10 @@
 #include "libmodel/tune/tune.h"
 #include "tools/common.h"
 
+#include <tbb/parallel_for.h>
+
+#include <chrono>
+#include <exception>
 #include <filesystem>
 #include <fstream>
 #include <iomanip>
@@ -58,7 +62,7 @@ json params_json(const tune::TuneResult& r) {
 }
 
 json result_json(const std::string& name, const tune::TuneResult& r) {
-  return {{"name", name},
+  json j = {{"name", name},
           {"target", values_json(r.target, r.target.values())},
           {"weights", r.target.weights},
           {"achieved", values_json(r.target, r.measured.p)},
@@ -73,6 +77,9 @@ json result_json(const std::string& name, const tune::TuneResult& r) {
           {"method", r.method},
           {"seed", r.seed},
           {"spring_params", params_json(r)}};
+  // no experiment measured anything: say why (the untuned one's reason)
+  if (r.measured.p.empty()) j["failure"] = r.untuned.failure.empty() ? "no experiment converged" : r.untuned.failure;
+  return j;
 }
 
 json experiment_json(const tune::ExperimentOptions& e) {
@@ -214,17 +221,33 @@ void add_tune_command(CLI::App& app) {
     for (const Job& j : jobs) params["tissues"].push_back({{"name", j.tissue}, {"experiment", experiment_json(j.experiment)}});
     report.parameters() = params;
 
-    // tune
-    for (Job& j : jobs) {
-      {
-        Phase p(report, "tune." + j.tissue);
-        try {
-          j.result = tune::tune_target(j.target, j.experiment, opt);
-        } catch (const Error& e) {
-          if (!e.file().empty()) throw;
-          throw Error(tissues_path, "tissue '" + j.tissue + "': " + e.message());
-        }
+    // tune: the tissues are independent, so they are tuned side by side,
+    // each with its own annealer seeded by --seed (a tissue's result does not
+    // depend on the others or on the order they finish in). The first failing
+    // tissue in table order is the one reported.
+    std::vector<std::exception_ptr> failed(jobs.size());
+    std::vector<double> seconds(jobs.size(), 0.0);
+    tbb::parallel_for(std::size_t{0}, jobs.size(), [&](std::size_t i) {
+      const auto t0 = std::chrono::steady_clock::now();
+      try {
+        jobs[i].result = tune::tune_target(jobs[i].target, jobs[i].experiment, opt);
+      } catch (...) {
+        failed[i] = std::current_exception();
       }
+      seconds[i] = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+    });
+    for (std::size_t i = 0; i < jobs.size(); ++i) {
+      if (!failed[i]) continue;
+      try {
+        std::rethrow_exception(failed[i]);
+      } catch (const Error& e) {
+        if (!e.file().empty()) throw;
+        throw Error(tissues_path, "tissue '" + jobs[i].tissue + "': " + e.message());
+      }
+    }
+    for (std::size_t i = 0; i < jobs.size(); ++i) {
+      Job& j = jobs[i];
+      report.phase("tune." + j.tissue, seconds[i]);
       if (!j.layer_name.empty()) tune::apply_to_layer(j.layer, j.current, j.result.params);
       if (!common.quiet) {
         const auto& r = j.result;
@@ -284,6 +307,11 @@ void add_tune_command(CLI::App& app) {
       if (!plot_dir.empty()) {
         AtomicDir d(plot_dir);
         for (const Job& j : jobs) {
+          if (j.result.measured.curve.strain.empty()) {
+            // nothing measured to draw (the report says why); the other tissues' plots are still written
+            if (!common.quiet) std::cerr << "tune: " << j.tissue << ": no plot, no experiment measured a curve\n";
+            continue;
+          }
           tune::PlotOptions po;
           po.title = j.tissue;
           tune::write_curve_png((std::filesystem::path(d.temp()) / (j.tissue + ".png")).string(), j.result, po);

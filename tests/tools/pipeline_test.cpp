@@ -80,6 +80,34 @@ TEST(Pipeline, ColdWarmAndIncremental) {
     EXPECT_TRUE(m.h5().is_group("/quads"));
     EXPECT_TRUE(m.h5().is_group("/layers"));
   }
+  // the vessel trees ran in a child process beside surface..tune, and the
+  // assembled model holds exactly the trees `orthosim vessels` writes alone
+  for (const char* st : {"vessels", "tune", "assemble"}) EXPECT_TRUE(cold.count(st)) << st;
+  {
+    const nlohmann::json rep = s.report();
+    for (const auto& st : rep["stages"])
+      if (st["stage"] == "vessels") EXPECT_TRUE(st.value("parallel", false));
+    std::string seg_dir;
+    for (const auto& st : rep["stages"])
+      if (st["stage"] == "segment") seg_dir = st["dir"];
+    ASSERT_FALSE(seg_dir.empty());
+    const auto alone = test::run_cli("vessels --labels " + seg_dir + "/labels.h5 --tissue artery --tissue vein --model " +
+                                     (s.dir / "alone.h5") + " --quiet");
+    ASSERT_EQ(alone.code, 0) << alone.err;
+    ModelReader a(s.dir / "alone.h5"), m(s.dir / "model.h5");
+    ASSERT_EQ(m.names("/vessels"), a.names("/vessels"));
+    for (const auto& t : a.names("/vessels")) {
+      const VesselTree x = a.vessels(t), y = m.vessels(t);
+      EXPECT_GT(x.nodes.rows(), 0) << t;
+      EXPECT_TRUE(x.nodes == y.nodes) << t;
+      EXPECT_TRUE(x.radii == y.radii) << t;
+      EXPECT_TRUE(x.tube_vertices == y.tube_vertices) << t;
+      EXPECT_TRUE(x.tube_quads == y.tube_quads) << t;
+    }
+    EXPECT_TRUE(m.provenance().count("vessels"));
+    EXPECT_TRUE(m.provenance().count("tune"));
+    EXPECT_TRUE(m.h5().is_group("/tuning"));
+  }
   const std::string model_hash = test::read_file(s.dir / "model.h5");
   // warm: nothing runs, the same model comes out
   r = test::run_cli(s.args(""));
@@ -94,6 +122,9 @@ TEST(Pipeline, ColdWarmAndIncremental) {
   EXPECT_FALSE(ran.count("surface"));
   EXPECT_TRUE(ran.count("remesh"));
   EXPECT_TRUE(ran.count("build"));
+  // the trees read only the labels: cached, and only re-assembled
+  EXPECT_FALSE(ran.count("vessels"));
+  EXPECT_TRUE(ran.count("assemble"));
   // a corrupt cache entry is rebuilt, never used
   const auto stages = s.report()["stages"];
   std::string build_dir;
@@ -110,6 +141,29 @@ TEST(Pipeline, ColdWarmAndIncremental) {
   ran = s.ran();
   EXPECT_TRUE(ran.count("build"));
   EXPECT_FALSE(ran.count("remesh"));
+}
+
+TEST(Pipeline, ExportGathersEveryStagesOutputs) {
+  const Sample& s = sample();
+  const std::string out = s.dir / "export";
+  const auto r = test::run_cli(s.args("--export " + out));
+  ASSERT_EQ(r.code, 0) << r.err;
+  for (const char* f : {"labels.h5", "surfaces/skin.stl", "surfaces/bone.stl", "quads/skin_quads.obj",
+                        "vessels/artery_tube.stl", "vessels/vein_centreline.obj", "tuned_tissues.json", "tune/skin.png",
+                        "reports/segment.json", "reports/surface.json", "reports/remesh.json", "reports/build.json",
+                        "reports/tune.json", "reports/vessels.json"})
+    EXPECT_TRUE(fs::is_regular_file(fs::path(out) / f)) << f;
+  // the exported labels are the cached ones, byte for byte
+  std::string seg_dir;
+  const nlohmann::json rep = s.report();
+  for (const auto& st : rep["stages"])
+    if (st["stage"] == "segment") seg_dir = st["dir"];
+  EXPECT_EQ(test::read_file(out + "/labels.h5"), test::read_file(seg_dir + "/labels.h5"));
+  // an --export that names a file is refused before any work
+  test::write_file(s.dir / "afile", "x");
+  const auto bad = test::run_cli(s.args("--export " + (s.dir / "afile")));
+  EXPECT_EQ(bad.code, 2);
+  EXPECT_EQ(test::count_lines(bad.err), 1) << bad.err;
 }
 
 TEST(Pipeline, SceneWithoutVesselsSkipsThem) {
