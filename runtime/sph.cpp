@@ -312,22 +312,65 @@ std::pair<std::int32_t, std::int32_t> grid_candidates(const TriangleGrid& g, con
   return {g.start[c], g.start[c + 1]};
 }
 
+// The triangles of a source at one time tau: their vertices (x + tau v, as
+// TriangleSource::vertex) and bounding spheres about the centroid, computed
+// once per substep instead of per query.
+struct TriFrame {
+  Real tau = -HUGE_VAL;
+  bool valid = false;
+  std::vector<std::array<Real, 16>> tri;  // (n_triangles) a, b, c, centroid (3 each), radius, unit normal
+  void build(const TriangleSource& src, Real t) {
+    tau = t;
+    valid = true;
+    tri.resize(static_cast<std::size_t>(src.n_triangles));
+    for (std::int32_t k = 0; k < src.n_triangles; ++k) {
+      auto& T = tri[static_cast<std::size_t>(k)];
+      if (!src.valid(k)) {
+        T.fill(0);
+        continue;
+      }
+      const Vec3 a = src.vertex(k, 0, t), b = src.vertex(k, 1, t), c = src.vertex(k, 2, t);
+      const Vec3 m = (Real(1) / 3) * (a + b + c);
+      const Real r = std::sqrt(std::max({dot(a - m, a - m), dot(b - m, b - m), dot(c - m, c - m)}));
+      Vec3 nrm = cross(b - a, c - a);
+      const Real ln = norm(nrm);
+      nrm = ln > 0 ? (1 / ln) * nrm : Vec3{};
+      T = {a.x, a.y, a.z, b.x, b.y, b.z, c.x, c.y, c.z, m.x, m.y, m.z, r * (1 + 1e-9) + 1e-15, nrm.x, nrm.y, nrm.z};
+    }
+  }
+};
+
 // Closest triangle within H of p at time tau; fills a contact and returns
 // true. One-sided: fluid on the face normal's side, a particle behind gets
 // d = 0 and n = the face normal. Two-sided: the side the particle is on.
+// With a frame at tau, candidates whose bounding sphere lies farther than the
+// best distance so far are skipped (exact: they cannot be closer).
 bool triangle_contact(const TriangleSource& src, const TriangleGrid& g, const Vec3& p, Real tau, Real H,
-                      const WallParams& wall, bool two_sided, Contact& out) {
+                      const WallParams& wall, bool two_sided, Contact& out, const TriFrame* frame = nullptr) {
   const auto [b, e] = grid_candidates(g, p);
-  Real best = H * H;
+  Real best = H * H, best_d = H;
   std::int32_t best_t = -1;
   ClosestPoint best_c{};
+  if (frame && !(frame->valid && (frame->tau == tau || src.v == nullptr))) frame = nullptr;
   for (std::int32_t k = b; k < e; ++k) {
     const std::int32_t t = g.items[k];
-    const ClosestPoint c = closest_on_triangle(p, src.vertex(t, 0, tau), src.vertex(t, 1, tau), src.vertex(t, 2, tau));
+    ClosestPoint c;
+    if (frame) {
+      const auto& T = frame->tri[static_cast<std::size_t>(t)];
+      const Vec3 dm{p.x - T[9], p.y - T[10], p.z - T[11]};
+      const Real lim = best_d + T[12];
+      if (dot(dm, dm) > lim * lim) continue;  // the bounding sphere is farther than the best
+      // the plane is farther than the best (the margin covers the rounding of the normal)
+      if (std::abs(dm.x * T[13] + dm.y * T[14] + dm.z * T[15]) > best_d * (1 + 1e-9) + 1e-12 * T[12]) continue;
+      c = closest_on_triangle(p, {T[0], T[1], T[2]}, {T[3], T[4], T[5]}, {T[6], T[7], T[8]});
+    } else {
+      c = closest_on_triangle(p, src.vertex(t, 0, tau), src.vertex(t, 1, tau), src.vertex(t, 2, tau));
+    }
     const Vec3 dd = p - c.p;
     const Real d2 = dot(dd, dd);
     if (d2 < best) {
       best = d2;
+      best_d = std::sqrt(d2);
       best_t = t;
       best_c = c;
     }
@@ -387,8 +430,10 @@ struct Walls {
   }
 
   // Calls f(const Contact&) for every wall within H of p at time tau.
+  // cache: (n_triangle_walls) the particle's triangle contacts at this tau;
+  // cached: read them from it, else query and store them.
   template <class F>
-  void contacts(const Vec3& p, Real tau, F&& f) const {
+  void contacts(const Vec3& p, Real tau, F&& f, Contact* cache = nullptr, bool cached = false) const {
     const Real q[3] = {p.x, p.y, p.z};
     for (int a = 0; a < 3; ++a) {
       for (int side = 0; side < 2; ++side) {
@@ -416,19 +461,41 @@ struct Walls {
       c.wall = &pl.wall;
       f(c);
     }
+    // triangle walls: from the cache when given and filled, else queried (and
+    // stored in the cache when given)
     for (std::size_t m = 0; m < meshes.size(); ++m) {
       Contact c;
-      if (triangle_contact(meshes[m], b->meshes[m].grid, p, 0, H, b->meshes[m].wall, b->meshes[m].two_sided, c)) f(c);
+      if (cache && cached) c = cache[m];
+      else if (!triangle_contact(meshes[m], b->meshes[m].grid, p, 0, H, b->meshes[m].wall, b->meshes[m].two_sided, c,
+                                 &mesh_frames[m]))
+        c = Contact{};
+      if (cache && !cached) cache[m] = c;
+      if (c.wall) f(c);
     }
     for (std::size_t k = 0; k < surfaces.size(); ++k) {
       const FluidSurface& sf = (*surf)[k];
       Contact c;
-      if (triangle_contact(surfaces[k], sf.grid, p, tau, H, sf.wall, sf.two_sided, c)) {
+      if (cache && cached) c = cache[meshes.size() + k];
+      else if (triangle_contact(surfaces[k], sf.grid, p, tau, H, sf.wall, sf.two_sided, c, &surface_frames[k]))
         c.surface = static_cast<int>(k);
-        f(c);
-      }
+      else
+        c = Contact{};
+      if (cache && !cached) cache[meshes.size() + k] = c;
+      if (c.wall) f(c);
     }
   }
+
+  // triangle frames: the static meshes once, the moving surfaces at tau
+  std::vector<TriFrame> mesh_frames, surface_frames;
+  void frames_at(Real tau) {
+    mesh_frames.resize(meshes.size());
+    for (std::size_t m = 0; m < meshes.size(); ++m)
+      if (!mesh_frames[m].valid) mesh_frames[m].build(meshes[m], 0);
+    surface_frames.resize(surfaces.size());
+    for (std::size_t k = 0; k < surfaces.size(); ++k)
+      if (surface_frames[k].tau != tau) surface_frames[k].build(surfaces[k], tau);
+  }
+  std::size_t n_triangle_walls() const { return meshes.size() + surfaces.size(); }
 };
 
 // ---- the passes -----------------------------------------------------------------
@@ -755,9 +822,9 @@ Real pressure_sum(const Pass& c, std::int32_t i) {
 // plain sum counts the sites beyond two walls twice; on the rest lattice in
 // a right-angled corner that overlap is ~2 % of the kernel sum, far less than
 // the product rule 1 - prod(1 - f0) removes (~9 %).
-Real wall_fraction(const Fluid& f, const Walls& w, const Vec3& p, Real tau) {
+Real wall_fraction(const Fluid& f, const Walls& w, const Vec3& p, Real tau, Contact* cache) {
   Real sum = 0;
-  w.contacts(p, tau, [&](const Contact& c) { sum += WallTables::at(f.walls.f0, f.walls.n, c.d / f.H); });
+  w.contacts(p, tau, [&](const Contact& c) { sum += WallTables::at(f.walls.f0, f.walls.n, c.d / f.H); }, cache, false);
   return sum;
 }
 
@@ -780,7 +847,7 @@ struct Reaction {
 //     a = 2 mu / rho_i vm / H^2 (v_i - u)
 template <class Pw, class Sink>
 Vec3 wall_acceleration(const Fluid& f, const Walls& w, const Vec3& p, const Vec3& v, Real rho, Real pr, Pw&& pw_fn, Real tau,
-                       Sink&& reaction) {
+                       Sink&& reaction, Contact* cache) {
   Vec3 total;
   Real pw = -1;
   const Vec3 g = vec(f.params.gravity);
@@ -799,7 +866,7 @@ Vec3 wall_acceleration(const Fluid& f, const Walls& w, const Vec3& p, const Vec3
       a += (2 * f.params.viscosity / rho * WallTables::at(f.walls.vm, f.walls.n, q) / (f.H * f.H)) * (v - c.u);
     total += a;
     if (c.surface >= 0) reaction(c, a);
-  });
+  }, cache, cache != nullptr);
   return total;
 }
 
@@ -867,6 +934,8 @@ struct Stepper {
     for (int a = 0; a < 3; ++a) periodic[a] = b.faces[2 * a] == Face::periodic;
     walls.set_inner();
   }
+
+  std::vector<Contact> contact_cache;  // (n x n_triangle_walls) of the density pass, reused by the force pass
 
   std::int32_t n() const { return static_cast<std::int32_t>(s.id.size()); }
 
@@ -938,6 +1007,7 @@ struct Stepper {
     c.origin = sc.grid.origin;
     c.search_r2 = static_cast<float>(1.005 * 1.005 * f.H * f.H);
     c.tau = tau;
+    walls.frames_at(tau);
     return c;
   }
 
@@ -948,6 +1018,8 @@ struct Stepper {
     const Real rho0 = f.params.rest_density;
     const int gamma = f.params.tait_gamma;
     const bool clamp = f.params.clamp_negative_pressure;
+    const std::size_t ntw = walls.n_triangle_walls();  // the triangle contacts are cached for the force pass
+    contact_cache.resize(ntw * static_cast<std::size_t>(c.n));
     const Real gs = f.gradient_scale;
     return tbb::parallel_reduce(
         tbb::blocked_range<std::size_t>(0, occ.size(), 16), Real(-HUGE_VAL),
@@ -957,7 +1029,8 @@ struct Stepper {
             density_cell(c, cell);
             for (std::int32_t i = c.g->start[cell]; i < c.g->start[cell + 1]; ++i) {
               const Vec3 p{c.x[i], c.y[i], c.z[i]};
-              const Real rho = mk * c.ksum[i] + (walls.maybe_near(p) ? rho0 * wall_fraction(f, walls, p, c.tau) : Real(0));
+              Contact* cache = ntw > 0 ? contact_cache.data() + static_cast<std::size_t>(i) * ntw : nullptr;
+              const Real rho = mk * c.ksum[i] + (walls.maybe_near(p) ? rho0 * wall_fraction(f, walls, p, c.tau, cache) : Real(0));
               Real pr = eos_pressure(f.eos, rho, rho0, f.c0, gamma);
               if (clamp) pr = std::max(Real(0), pr);
               c.rho[i] = rho;
@@ -981,6 +1054,7 @@ struct Stepper {
     tbb::enumerable_thread_specific<std::vector<Reaction>> local;
     const Vec3 g = vec(f.params.gravity);
     const bool any_surface = !walls.surfaces.empty();
+    const std::size_t ntw = walls.n_triangle_walls();
     auto res = tbb::parallel_reduce(
         tbb::blocked_range<std::size_t>(0, occ.size(), 16), std::array<Real, 2>{0, 0},
         [&](const tbb::blocked_range<std::size_t>& r, std::array<Real, 2> best) {
@@ -994,7 +1068,7 @@ struct Stepper {
               const Vec3 aw = !walls.maybe_near(p) ? Vec3{}
                               : wall_acceleration(f, walls, p, v, c.rho[i], c.p[i], pw, c.tau, [&](const Contact& ct, const Vec3& a) {
                                   rec->push_back({i, ct.surface, ct.tri, ct.w0, ct.w1, ct.w2, -f.mass * a});
-                                });
+                                }, ntw > 0 ? contact_cache.data() + static_cast<std::size_t>(i) * ntw : nullptr);
               c.wx[i] = aw.x, c.wy[i] = aw.y, c.wz[i] = aw.z;
               c.ax[i] += aw.x, c.ay[i] += aw.y, c.az[i] += aw.z;
               const Vec3 at{c.ax[i] + g.x, c.ay[i] + g.y, c.az[i] + g.z};
@@ -1043,6 +1117,7 @@ struct Stepper {
     const std::int32_t np = n();
     FluidScratch& sc = s.scratch;
     sc.dead.assign(np, kAlive);
+    walls.frames_at(tau + h);
     const Vec3 g = vec(f.params.gravity);
     const Real damp = 1 / (1 + f.params.damping * h);
     const Real dmin = f.params.collision_distance * f.params.spacing;
@@ -1087,9 +1162,9 @@ struct Stepper {
             // triangle walls: the closest triangle at the new time; a two-sided
             // wall keeps the particle on the side it started the substep on
             auto mesh_collide = [&](const TriangleSource& src, const TriangleGrid& grid, const WallParams& wall,
-                                    bool two_sided, int surface) {
+                                    bool two_sided, int surface, const TriFrame* frame) {
               Contact ct;
-              if (!triangle_contact(src, grid, x, tau + h, f.H, wall, two_sided, ct)) return;
+              if (!triangle_contact(src, grid, x, tau + h, f.H, wall, two_sided, ct, frame)) return;
               Vec3 face = ct.face;
               Real sd;
               if (two_sided) {
@@ -1117,11 +1192,11 @@ struct Stepper {
               }
             };
             for (std::size_t m = 0; m < walls.meshes.size(); ++m)
-              mesh_collide(walls.meshes[m], b.meshes[m].grid, b.meshes[m].wall, b.meshes[m].two_sided, -1);
+              mesh_collide(walls.meshes[m], b.meshes[m].grid, b.meshes[m].wall, b.meshes[m].two_sided, -1, &walls.mesh_frames[m]);
             if (any_surface)
               for (std::size_t k = 0; k < walls.surfaces.size(); ++k)
                 mesh_collide(walls.surfaces[k], s.surfaces[k].grid, s.surfaces[k].wall, s.surfaces[k].two_sided,
-                             static_cast<int>(k));
+                             static_cast<int>(k), &walls.surface_frames[k]);
             // domain
             bool out = false;
             const Real q2[3] = {x.x, x.y, x.z};
