@@ -12,6 +12,7 @@
 // sample's skin and on all four layers.
 #include "libmodel/remesh/remesh.h"
 #include "tests/libmodel/remesh_shapes.h"
+#include "tests/bench/bench_results.h"
 #ifdef ORTHOSIM_HAVE_PHANTOM_LIB
 #include "libmodel/phantom/phantom.h"
 #endif
@@ -153,9 +154,58 @@ void BM_RemeshBentTube(benchmark::State& st) {
 }
 BENCHMARK(BM_RemeshBentTube)->Args({39, 9})->Args({400, 100})->Unit(benchmark::kMillisecond);
 
+// ---- harness rows (orthosim bench; tests/bench/bench_results.h) -------------------------
+//   remesh_bench --results=FILE.json [--quick]
+// The bent tube (meshed 2048 x 256; quick 512 x 128) remeshed at 15x5 ... 400x100 (quick:
+// 15x5, 39x9, 100x25): time of remesh_layers (median of 3 after a warm-up; quick one run),
+// error = Hausdorff distance of the quad surface to the input in mm, goal <= a quarter of the
+// mean quad edge (a bilinear patch's chord error h^2 / (8 R) with the tube's smallest
+// curvature radius, 13.3 mm, stays under h / 4 for h <= 27 mm); then the fitted order of
+// convergence of the Hausdorff distance over the grids (goal >= 1.5; O(h^2) is 2).
+void results(const std::string& path, bool quick) {
+  namespace ob = orthosim::bench;
+  ob::Results out("remesh", "remesh_bench", quick);
+  std::vector<std::pair<int, int>> grids = {{15, 5}, {39, 9}, {100, 25}};
+  if (!quick) grids = kGrids;
+  const std::vector<NamedSurface> coarse = quick ? std::vector<NamedSurface>{{"tube", test::BentTube{}.mesh(512, 128)}}
+                                                 : std::vector<NamedSurface>{};
+  const auto& in = quick ? coarse : bent_tube();
+  std::vector<double> h, haus, all_s;
+  for (auto [nu, nv] : grids) {
+    RemeshResult r;
+    ob::Row row;
+    row.workload = std::string("bent elliptic tube 30x20 mm (") + (quick ? "512x128" : "2048x256") +
+                   " input), Hausdorff against grid";
+    row.setting = std::to_string(nu) + "x" + std::to_string(nv);
+    row.seconds = ob::time_runs(quick ? 1 : 3, [&] { r = remesh_layers(in, grid(nu, nv)); }, quick ? 0 : 1);
+    const RemeshEvaluation e = evaluate_remesh(r, in, 2);
+    const auto& q = e.quality[0];
+    const auto& d = e.distance[0];
+    row.error("Hausdorff distance (mm)", d.hausdorff_m * 1e3, "<=", 0.25 * q.mean_edge_m * 1e3);
+    row.x = static_cast<double>(nu) * nv;
+    row.extra = {{"nu", nu}, {"nv", nv}, {"h_mean_mm", q.mean_edge_m * 1e3}, {"mean_distance_mm", d.mean_m * 1e3},
+                 {"min_angle_deg", q.min_angle_deg}, {"max_angle_deg", q.max_angle_deg}, {"flipped", q.flipped},
+                 {"degenerate", q.degenerate}};
+    out.add(row);
+    h.push_back(q.mean_edge_m), haus.push_back(d.hausdorff_m), all_s.push_back(ob::median(row.seconds));
+  }
+  ob::Row row;
+  row.workload = "bent elliptic tube: order of convergence";
+  row.setting = std::to_string(grids.front().first) + "x" + std::to_string(grids.front().second) + " ... " +
+                std::to_string(grids.back().first) + "x" + std::to_string(grids.back().second);
+  row.error("fitted order of the Hausdorff distance", order(h, haus), ">=", 1.5);
+  row.extra = {{"grids", grids.size()}, {"order_hausdorff", order(h, haus)}};
+  out.add(row);
+  out.write(path);
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
+  if (const auto common = orthosim::bench::parse_common(argc, argv); !common.results.empty()) {
+    results(common.results, common.quick);
+    return 0;
+  }
   bool run_table = true;
   std::string table_json;
   std::vector<char*> rest;

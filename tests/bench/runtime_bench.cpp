@@ -4,11 +4,24 @@
 //   runtime_bench --tables=DIR [--quick]           write DIR/runtime_tables.md: the run-time
 //                                                  against error table, the stress sweep, the Bullet
 //                                                  comparison (when built with ORTHOSIM_WITH_BULLET_PEER)
+//   runtime_bench --results=FILE.json [--quick]    the harness rows (orthosim bench, tests/bench/bench_results.h):
+//     - integrator error against dt: 13x5x4 block pulled for 0.05 s, error = max position error / max
+//       motion against symplectic Euler at 2e-6 s (full: 1e-7 s); goal <= 0.2 for symplectic with
+//       automatic substeps and implicit Euler (first-order error at dt <= 1/30 s); a single symplectic
+//       substep is informational (it is meant to fail beyond its limit)
+//     - the paper's Fig. 3(a): time per step against grid (15x5 ... 400x100, 4 layers; quick up to
+//       100x25): one symplectic substep and one implicit Euler step at 1/60 s, 2 threads; error =
+//       stability events (goal 0)
+//     - the stability matrix: stable / recovered / failed runs per integrator x dt x K2/K1 (9 runs per
+//       cell: mass ratio x degenerate springs); error = runs with a non-finite state (goal 0)
+//     - static sag of the 39x9x4 lattice against Newton, ours (implicit, 1/60 s) and Bullet btSoftBody
+//       (10 iterations) timed in alternation; error = relative sag error (goal <= 1e-3 for ours)
 // Timings are medians of repetitions when run with --benchmark_repetitions.
 #include "runtime/solver.h"
 #include "runtime/testing/lattice.h"
 #include "runtime/testing/newton.h"
 #include "runtime/testing/stress.h"
+#include "tests/bench/bench_results.h"
 
 #include <benchmark/benchmark.h>
 #include <tbb/blocked_range.h>
@@ -419,16 +432,233 @@ std::string stress_table(bool quick) {
   return out.str();
 }
 
+// ---- harness rows (orthosim bench) -----------------------------------------------------
+
+namespace ob = orthosim::bench;
+
+void integrator_rows(ob::Results& out, bool quick) {
+  rt::testing::LayeredBlockOptions bo;
+  bo.nu = 13, bo.nv = 5;
+  const auto b = rt::testing::make_layered_block(bo);
+  rt::Model m = rt::model_from_layers(b.layers, b.sets);
+  rt::State s0 = rt::make_state(m);
+  rt::fix_nodes(m, s0, m.set("fixed"));
+  rt::Attachment a;
+  const auto& skin = m.set("skin");
+  a.nodes = {skin[skin.size() / 2]};
+  a.offset = {0, 0, 0};
+  const rt::Vec3 p = rt::load3(m.rest_x.data(), a.nodes[0]);
+  a.path.t = {0, 0.05};
+  a.path.p = {p.x, p.y, p.z, p.x, p.y - 0.004, p.z};
+  rt::attach(m, s0, a);
+  const Real T = 0.05;
+  tbb::task_arena arena(1);
+  auto simulate = [&](const rt::SolverOptions& o, Real dt, rt::Counters* c) {
+    rt::State s = s0;
+    const long n = std::lround(T / dt);
+    arena.execute([&] {
+      for (long k = 0; k < n; ++k) rt::step(m, s, dt, o);
+    });
+    if (c) *c = s.counters;
+    return s.x;
+  };
+  rt::SolverOptions ro;
+  ro.substeps = 1;
+  const Real href = quick ? 2e-6 : 1e-7;
+  const auto ref = simulate(ro, href, nullptr);
+  Real motion = 0;
+  for (std::int32_t i = 0; i < m.n_nodes; ++i) motion = std::max(motion, rt::norm(rt::load3(ref.data(), i) - rt::load3(s0.x.data(), i)));
+  struct Mode {
+    const char* name;
+    rt::Integrator integ;
+    int substeps;
+    bool goal;
+  };
+  const std::vector<Real> dts = quick ? std::vector<Real>{1e-4, 1e-3, 1e-2, 1.0 / 30} : std::vector<Real>{1e-5, 1e-4, 1e-3, 1e-2, 1.0 / 30};
+  for (const Mode& md : {Mode{"symplectic, 1 substep", rt::Integrator::symplectic_euler, 1, false},
+                         Mode{"symplectic, auto substeps", rt::Integrator::symplectic_euler, 0, true},
+                         Mode{"implicit Euler, 1 Newton step", rt::Integrator::implicit_euler, 0, true}}) {
+    for (Real dt : dts) {
+      if (quick && md.substeps == 1 && dt < 1e-3) continue;
+      rt::SolverOptions o;
+      o.integrator = md.integ;
+      o.substeps = md.substeps;
+      o.cg_tolerance = 1e-6;
+      rt::Counters c;
+      std::vector<Real> x;
+      ob::Row row;
+      row.workload = std::string("integrator error against dt (13x5x4 block, pull, 0.05 s): ") + md.name;
+      char set[32];
+      std::snprintf(set, sizeof set, "dt=%.3g", dt);
+      row.setting = set;
+      row.seconds = ob::time_runs(quick ? 1 : 3, [&] { x = simulate(o, dt, &c); }, 0);
+      Real err = 0;
+      bool finite = true;
+      for (std::int32_t i = 0; i < m.n_nodes; ++i) {
+        const Real e = rt::norm(rt::load3(x.data(), i) - rt::load3(ref.data(), i));
+        finite = finite && std::isfinite(e);
+        err = std::max(err, e);
+      }
+      const double rel = finite ? err / motion : INFINITY;
+      if (md.goal) row.error("max position error / max motion", rel, "<=", 0.2);
+      else row.error("max position error / max motion", rel);
+      row.x = dt;
+      row.extra = {{"integrator", md.name}, {"dt_s", dt}, {"wall_s_per_simulated_s", ob::median(row.seconds) / T},
+                   {"substeps_per_step", static_cast<double>(c.substeps) / std::max<double>(1, static_cast<double>(c.steps))},
+                   {"events", c.events}, {"failed_steps", c.failed}, {"reference_dt_s", href}, {"nodes", m.n_nodes}};
+      out.add(row);
+    }
+  }
+}
+
+// the paper's Fig. 3(a): time per step against grid size, 4 layers
+void grid_rows(ob::Results& out, bool quick) {
+  std::vector<std::pair<int, int>> grids = {{15, 5}, {18, 5}, {39, 9}, {60, 15}, {100, 25}};
+  if (!quick) grids.insert(grids.end(), {{200, 50}, {400, 100}});
+  tbb::task_arena arena(2);
+  const double batch_s = quick ? 0.03 : 0.2;
+  for (auto [nu, nv] : grids) {
+    const Lattice& L = lattice(nu, nv, 4);
+    for (bool implicit : {false, true}) {
+      rt::State s = L.rest;
+      rt::SolverOptions o;
+      Real dt = 1.0 / 60;
+      if (implicit) {
+        o.integrator = rt::Integrator::implicit_euler;
+        o.cg_tolerance = 1e-4;
+        o.mass_damping = 1;
+      } else {
+        o.substeps = 1;
+        dt = o.safety * rt::symplectic_step_limit(L.model, s, o);
+      }
+      auto one = [&] { arena.execute([&] { rt::step(L.model, s, dt, o); }); };
+      for (int k = 0; k < 3; ++k) one();  // warm start
+      long n = 1;
+      for (double t = 0; (t = ob::now_s(), one(), ob::now_s() - t) * static_cast<double>(n) < batch_s && n < 100000;) n *= 2;
+      ob::Row row;
+      row.workload = implicit ? "time per step against grid (Fig. 3a), implicit Euler dt 1/60 s, 2 threads"
+                              : "time per step against grid (Fig. 3a), symplectic substep, 2 threads";
+      row.setting = std::to_string(nu) + "x" + std::to_string(nv);
+      const auto c0 = s.counters;
+      for (int r = 0; r < (quick ? 3 : 5); ++r) {
+        const double t0 = ob::now_s();
+        for (long k = 0; k < n; ++k) one();
+        row.seconds.push_back((ob::now_s() - t0) / static_cast<double>(n));
+      }
+      row.error("stability events", static_cast<double>(s.counters.events - c0.events), "<=", 0);
+      row.x = L.model.n_nodes;
+      row.extra = {{"nu", nu}, {"nv", nv}, {"layers", 4}, {"nodes", L.model.n_nodes}, {"springs", L.model.n_springs},
+                   {"dt_s", dt}, {"steps_per_batch", n}, {"integrator", implicit ? "implicit" : "symplectic"},
+                   {"steps_per_s", 1 / ob::median(row.seconds)}};
+      if (implicit)
+        row.extra["sim_s_per_wall_s"] = dt / ob::median(row.seconds);
+      out.add(row);
+    }
+  }
+}
+
+void stability_rows(ob::Results& out, bool quick) {
+  using namespace rt::testing;
+  StressSize size;
+  size.nu = quick ? 4 : 8, size.nv = quick ? 3 : 5, size.layers = 4;
+  size.steps = quick ? 6 : 12;
+  size.max_substeps = quick ? 1 << 14 : 1 << 16;
+  const std::vector<Real> dts{1e-5, 1e-4, 1e-3, 1e-2, 1.0 / 30};
+  const std::vector<Real> krs{1, 10, 1e2, 1e3, 1e4};
+  const std::vector<Real> mrs{1, 1e2, 1e4};
+  for (StressMode mode : {StressMode::symplectic_auto, StressMode::symplectic_fixed, StressMode::implicit})
+    for (Real dt : dts)
+      for (Real kr : krs) {
+        int st = 0, rc = 0, fl = 0, nan = 0, unbounded = 0;
+        double wall = 0;
+        for (Real mr : mrs)
+          for (Degenerate d : {Degenerate::none, Degenerate::zero, Degenerate::near_zero}) {
+            const auto r = run_stress_case(StressCase{dt, kr, mr, d, mode}, size);
+            wall += r.wall_s;
+            nan += r.nan_seen;
+            unbounded += !r.bounded;
+            const auto v = r.verdict();
+            (v == "stable" ? st : v == "recovered" ? rc : fl)++;
+          }
+        ob::Row row;
+        row.workload = std::string("stability matrix: ") + to_string(mode);
+        char set[64];
+        std::snprintf(set, sizeof set, "dt=%.3g K2/K1=%g", dt, kr);
+        row.setting = set;
+        row.seconds = {wall};
+        row.error("runs with a non-finite state", nan, "<=", 0);
+        row.x = dt;
+        row.extra = {{"integrator", to_string(mode)}, {"dt_s", dt}, {"stiffness_ratio", kr}, {"stable", st},
+                     {"recovered", rc}, {"failed", fl}, {"runs", st + rc + fl}, {"unbounded", unbounded},
+                     {"block", std::to_string(size.nu) + "x" + std::to_string(size.nv) + "x4"}, {"steps", size.steps}};
+        out.add(row);
+      }
+}
+
+void sag_rows(ob::Results& out, bool quick) {
+  const Lattice& L = lattice(39, 9, 4);
+  const Real ref = newton_sag(L);
+  const Real dt = 1.0 / 60;
+  const int steps = static_cast<int>(2.0 / dt);
+  tbb::task_arena arena(2);
+  Real ours_sag = 0;
+  auto ours = [&] {
+    rt::SolverOptions o;
+    o.integrator = rt::Integrator::implicit_euler;
+    o.mass_damping = 20;
+    o.cg_tolerance = 1e-4;
+    rt::State s = L.rest;
+    arena.execute([&] {
+      for (int k = 0; k < steps; ++k) rt::step(L.model, s, dt, o);
+    });
+    ours_sag = skin_sag(L.model, s.x);
+  };
+  ob::Row row;
+  row.workload = "static sag of the 39x9x4 lattice under gravity, 2 s of 1/60 s steps, against Newton";
+  row.setting = "implicit, 120 steps";
+  row.x = L.model.n_nodes;
+#ifdef ORTHOSIM_HAVE_BULLET
+  Real bullet_sag = 0;
+  auto peer = [&] {
+    BulletLattice b(L, 10, 1.0);
+    for (int k = 0; k < steps; ++k) b.world->stepSimulation(btScalar(dt), 0);
+    bullet_sag = skin_sag(L.model, b.positions());
+  };
+  ob::time_alternating(quick ? 1 : 3, ours, peer, &row.seconds, &row.peer_seconds);
+  row.peer = "Bullet btSoftBody, 10 iterations";
+  row.peer_error = std::abs(bullet_sag - ref) / ref;
+#else
+  row.seconds = ob::time_runs(quick ? 1 : 3, ours);
+  out.note("Bullet btSoftBody peer not built (configure with -DORTHOSIM_WITH_BULLET_PEER=ON)");
+#endif
+  row.error("relative sag error", std::abs(ours_sag - ref) / ref, "<=", 1e-3);
+  row.extra = {{"newton_sag_m", ref}, {"nodes", L.model.n_nodes}, {"springs", L.model.n_springs}};
+  out.add(row);
+}
+
+void results(const std::string& path, bool quick) {
+  ob::Results out("runtime", "runtime_bench", quick);
+  integrator_rows(out, quick);
+  grid_rows(out, quick);
+  sag_rows(out, quick);
+  stability_rows(out, quick);
+  out.write(path);
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
+  ob::CommonArgs common = ob::parse_common(argc, argv);
+  if (!common.results.empty()) {
+    results(common.results, common.quick);
+    return 0;
+  }
   std::string tables;
-  bool quick = false;
+  const bool quick = common.quick;
   std::vector<char*> args;
-  for (int i = 0; i < argc; ++i) {
-    if (std::strncmp(argv[i], "--tables=", 9) == 0) tables = argv[i] + 9;
-    else if (std::strcmp(argv[i], "--quick") == 0) quick = true;
-    else args.push_back(argv[i]);
+  for (char* arg : common.rest) {
+    if (std::strncmp(arg, "--tables=", 9) == 0) tables = arg + 9;
+    else args.push_back(arg);
   }
   if (!tables.empty()) {
     std::ostringstream md;

@@ -21,9 +21,16 @@
 //     peak resident memory, time, scratch bytes, Dice on every 8th slice.
 //     With the run-length scratch kept in memory (default, up to 256 MiB)
 //     and forced to the scratch file.
+//
+//   segment_bench --results=FILE.json [--quick]   the harness rows (orthosim bench; 2 threads):
+//     the phantom 1024x1024x32 (quick 256x256x16) from memory, PNG and JPEG (quick: memory and
+//     JPEG), then the JPEG stack at a few clean-up settings (full only); 3 runs after a warm-up;
+//     voxels/s in extra; error = the smallest Dice over tissues divided by its goal (0.97, and
+//     0.90 for the vessels: issue 3), goal >= 1; every Dice in extra.
 #include "libmodel/phantom/phantom.h"
 #include "libmodel/segment/detail.h"
 #include "libmodel/segment/segment.h"
+#include "tests/bench/bench_results.h"
 
 #include <benchmark/benchmark.h>
 #include <nlohmann/json.hpp>
@@ -517,9 +524,58 @@ std::vector<int> parse_ints(const std::string& s) {
   return v;
 }
 
+// ---- harness rows (orthosim bench; tests/bench/bench_results.h) -------------------------
+
+void results(const std::string& path, bool quick) {
+  namespace ob = orthosim::bench;
+  if (quick) g_size = 256, g_slices = 16;
+  tbb::global_control gc(tbb::global_control::max_allowed_parallelism, static_cast<std::size_t>(g_threads));
+  ob::Results out("segment", "segment_bench", quick);
+  const Data& d = data();
+  struct Setting {
+    std::string source, name;
+    std::function<void(SegmentOptions&)> set;
+  };
+  std::vector<Setting> settings = {{"memory", "defaults", [](SegmentOptions&) {}}};
+  if (!quick) settings.push_back({"png", "defaults", [](SegmentOptions&) {}});
+  settings.push_back({"jpeg", "defaults", [](SegmentOptions&) {}});
+  if (!quick) {
+    settings.push_back({"jpeg", "no rank filter", [](SegmentOptions& o) { o.speck_support = 0; }});
+    settings.push_back({"jpeg", "no anatomical order", [](SegmentOptions& o) { o.enforce_order = false; }});
+    settings.push_back({"jpeg", "no clean-up", [](SegmentOptions& o) { o.cleanup = false; }});
+  }
+  for (const Setting& st : settings) {
+    SegmentOptions o = options_for(d.p);
+    st.set(o);
+    Run x;
+    ob::Row row;
+    row.workload = "phantom " + std::to_string(d.p.nx) + "x" + std::to_string(d.p.ny) + "x" + std::to_string(d.p.nz) + ", " +
+                   std::to_string(g_threads) + " threads: Dice against voxels/s";
+    row.setting = st.source + ", " + st.name;
+    row.seconds = ob::time_runs(3, [&] {
+      const SliceSource src = source(st.source);
+      const Volume v = segment_volume(src, phantom_tissue_table(), o, &x.m);
+      x.dice = dice_per_tissue(v, d.truth, &x.truth_voxels);
+    });
+    double worst = INFINITY;
+    for (const auto& [t, v] : x.dice) worst = std::min(worst, v / (t == "artery" || t == "vein" ? 0.90 : 0.97));
+    row.error("min Dice / goal (0.97 tissues, 0.90 vessels)", worst, ">=", 1);
+    const double voxels = static_cast<double>(d.p.nx) * d.p.ny * d.p.nz;
+    row.x = voxels / ob::median(row.seconds);
+    row.extra = {{"source", st.source}, {"voxels_per_s", voxels / ob::median(row.seconds)}, {"dice", x.dice},
+                 {"min_dice", x.min_dice()}, {"error_1_minus_min_dice", 1 - x.min_dice()}, {"phases", phases(x.m)}};
+    out.add(row);
+  }
+  out.write(path);
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
+  if (const auto common = orthosim::bench::parse_common(argc, argv); !common.results.empty()) {
+    results(common.results, common.quick);
+    return 0;
+  }
   bool run_table = true, spill = false;
   int child_nz = 0;
   std::string table_json;

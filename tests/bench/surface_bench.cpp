@@ -7,8 +7,15 @@
 //
 //   build/tests/surface_bench [--benchmark_filter=...]
 // Threads: all cores (set ORTHOSIM_BENCH_THREADS=n to limit, e.g. 2).
+//   surface_bench --results=FILE.json [--quick]   the harness rows (orthosim bench; 2 threads):
+//     phantom 256^3 (quick 128^3 at twice the spacing); per tissue (skin, muscle, bone) the binary
+//     extraction (whole extract_surface call) and VTK vtkFlyingEdges3D on the same 0/1 image timed in
+//     alternation; the skin at the other settings (Gaussian 0.7, defaults with Taubin; full: decimated
+//     to 50 000 faces). Error = Hausdorff distance to the analytic interface in voxels of the smallest
+//     spacing (goal <= 2, issue 3; from 20 000 surface samples, quick 4 000), the mean and faces in extra.
 #include "libmodel/phantom/phantom.h"
 #include "libmodel/surface/surface.h"
+#include "tests/bench/bench_results.h"
 
 #include <benchmark/benchmark.h>
 #include <tbb/global_control.h>
@@ -33,13 +40,16 @@ using namespace orthosim;
 
 namespace {
 
+int g_size = 256;         // the phantom's voxels per side (--results --quick: 128)
+long g_samples = 20000;   // surface samples for the distance (--results --quick: 4000)
+
 struct Fixture {
   PhantomOptions p;
   Volume v;
   std::vector<int> parents;
   Fixture() {
-    p.nx = p.ny = p.nz = 256;
-    p.spacing_m = {0.3e-3, 0.3e-3, 0.5e-3};
+    p.nx = p.ny = p.nz = g_size;
+    p.spacing_m = {0.3e-3 * 256 / g_size, 0.3e-3 * 256 / g_size, 0.5e-3 * 256 / g_size};
     const auto t0 = std::chrono::steady_clock::now();
     v = phantom_labels(p);
     parents = label_parents(v, phantom_tissue_table());
@@ -61,16 +71,20 @@ std::unique_ptr<tbb::global_control> thread_limit() {
 
 // mean and max distance (voxels of the smallest spacing) from a subsample of
 // the surface's vertices, face centroids and edge midpoints to the analytic interface
-void error_counters(benchmark::State& state, const Surface& s, const std::string& tissue) {
+std::pair<double, double> surface_error(const Surface& s, const std::string& tissue) {
   const Fixture& f = fixture();
   const MatX3d all = surface_samples(s);
-  const Eigen::Index step = std::max<Eigen::Index>(1, all.rows() / 20000);
+  const Eigen::Index step = std::max<Eigen::Index>(1, all.rows() / g_samples);
   MatX3d sub((all.rows() + step - 1) / step, 3);
   for (Eigen::Index i = 0; i < sub.rows(); ++i) sub.row(i) = all.row(i * step);
   const VecXd d = phantom_interface_distances(f.p, tissue, sub);
   const double vox = *std::min_element(f.v.spacing_m.begin(), f.v.spacing_m.end());
-  state.counters["mean_vox"] = d.mean() / vox;
-  state.counters["hausdorff_vox"] = d.maxCoeff() / vox;
+  return {d.mean() / vox, d.maxCoeff() / vox};
+}
+void error_counters(benchmark::State& state, const Surface& s, const std::string& tissue) {
+  const auto [mean, haus] = surface_error(s, tissue);
+  state.counters["mean_vox"] = mean;
+  state.counters["hausdorff_vox"] = haus;
 }
 
 // args: tissue index, sigma x 10, Taubin iterations, target faces
@@ -215,6 +229,88 @@ void BM_VTK_FlyingEdges(benchmark::State& state) {
 BENCHMARK(BM_VTK_FlyingEdges)->Arg(0)->Arg(1)->Arg(2)->Unit(benchmark::kMillisecond);
 #endif
 
+// ---- harness rows (orthosim bench; tests/bench/bench_results.h) -------------------------
+
+void results(const std::string& path, bool quick) {
+  namespace ob = orthosim::bench;
+  if (quick) g_size = 128, g_samples = 4000;
+  tbb::global_control limit(tbb::global_control::max_allowed_parallelism, 2);
+  ob::Results out("surface", "surface_bench", quick);
+  const Fixture& f = fixture();
+  const char* size = quick ? "phantom 128^3 (0.6 x 0.6 x 1.0 mm)" : "phantom 256^3 (0.3 x 0.3 x 0.5 mm)";
+  auto fill = [&](ob::Row& row, const SurfaceResult& r, const std::string& tissue) {
+    const auto [mean, haus] = surface_error(r.surface, tissue);
+    row.error("Hausdorff to the analytic interface (voxels)", haus, "<=", 2);
+    row.x = static_cast<double>(r.metrics.faces);
+    row.extra = {{"tissue", tissue}, {"faces", r.metrics.faces}, {"mean_vox", mean}, {"extract_s", r.metrics.extract_s},
+                 {"solid_s", r.metrics.solid_s}, {"smooth_s", r.metrics.smooth_s}, {"decimate_s", r.metrics.decimate_s}};
+  };
+  for (const char* tissue : kTissues) {
+    const std::vector<int> labels = solid_label_set(f.v, tissue, f.parents);
+    SurfaceOptions o;
+    o.sigma_vox = 0, o.smooth_iterations = 0, o.check_self_intersections = false;
+    SurfaceResult r;
+    ob::Row row;
+    row.workload = std::string(size) + ", binary extraction (no Gaussian, no Taubin) against VTK flying edges";
+    row.setting = tissue;
+    auto ours = [&] { r = extract_surface(f.v, labels, o); };
+#ifdef ORTHOSIM_HAVE_VTK_PEER
+    auto im = image(true, labels);
+    vtkNew<vtkFlyingEdges3D> fe;
+    fe->SetInputData(im);
+    fe->SetValue(0, 0.5);
+    fe->ComputeNormalsOff();
+    fe->ComputeGradientsOff();
+    fe->ComputeScalarsOff();
+    ob::time_alternating(quick ? 3 : 5, ours, [&] { fe->Modified(); fe->Update(); }, &row.seconds, &row.peer_seconds);
+    row.peer = "VTK vtkFlyingEdges3D";
+    row.peer_error = surface_error(to_surface(fe->GetOutput()), tissue).second;
+    fill(row, r, tissue);
+    row.extra["peer_faces"] = fe->GetOutput()->GetNumberOfPolys();
+#else
+    row.seconds = ob::time_runs(quick ? 3 : 5, ours);
+    fill(row, r, tissue);
+#endif
+    out.add(row);
+  }
+#ifndef ORTHOSIM_HAVE_VTK_PEER
+  out.note("VTK flying-edges peer not built (configure with -DORTHOSIM_WITH_VTK_PEER=ON)");
+#endif
+  struct Setting {
+    const char* name;
+    double sigma;
+    int taubin;
+    std::int64_t faces;
+  };
+  std::vector<Setting> settings = {{"Gaussian 0.7", 0.7, 0, 0}, {"defaults (Gaussian 0.7, Taubin 10)", 0.7, 10, 0}};
+  if (!quick) settings.push_back({"defaults, decimated to 50 000 faces", 0.7, 10, 50000});
+  const std::vector<int> labels = solid_label_set(f.v, "skin", f.parents);
+  for (const Setting& st : settings) {
+    SurfaceOptions o;
+    o.sigma_vox = st.sigma, o.smooth_iterations = st.taubin, o.target_faces = st.faces, o.check_self_intersections = false;
+    SurfaceResult r;
+    ob::Row row;
+    row.workload = std::string(size) + ", skin: time and faces against error by setting";
+    row.setting = st.name;
+    row.seconds = ob::time_runs(st.faces ? 1 : (quick ? 3 : 5), [&] { r = extract_surface(f.v, labels, o); }, st.faces ? 0 : 1);
+    fill(row, r, "skin");
+    out.add(row);
+  }
+  out.write(path);
+}
+
 }  // namespace
 
-BENCHMARK_MAIN();
+int main(int argc, char** argv) {
+  orthosim::bench::CommonArgs common = orthosim::bench::parse_common(argc, argv);
+  if (!common.results.empty()) {
+    results(common.results, common.quick);
+    return 0;
+  }
+  int n = static_cast<int>(common.rest.size());
+  benchmark::Initialize(&n, common.rest.data());
+  if (benchmark::ReportUnrecognizedArguments(n, common.rest.data())) return 1;
+  benchmark::RunSpecifiedBenchmarks();
+  benchmark::Shutdown();
+  return 0;
+}

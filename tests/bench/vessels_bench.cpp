@@ -28,6 +28,7 @@
 #include "libmodel/phantom/phantom.h"
 #include "libmodel/vessels/vessels.h"
 #include "tests/libmodel/vessels_shapes.h"
+#include "tests/bench/bench_results.h"
 
 #include <benchmark/benchmark.h>
 #include <nlohmann/json.hpp>
@@ -258,9 +259,50 @@ void BM_PhantomBothTrees(benchmark::State& st) {
 }
 BENCHMARK(BM_PhantomBothTrees)->Unit(benchmark::kMillisecond)->UseRealTime();
 
+// ---- harness rows (orthosim bench; tests/bench/bench_results.h) -------------------------
+//   vessels_bench --results=FILE.json [--quick]
+// Per case (quick: the analytic Y only; full: phantom artery, vein, analytic Y): ours
+// (extract_vessels, default options, all checks) and the CGAL MCF skeleton on the label's
+// surface (made once, not timed) timed in alternation, 2 (quick) or 5 runs after a warm-up;
+// error = mean centreline error in voxels of the smallest spacing (goal <= 0.5, issue 6),
+// the max and topology in extra.
+void results(const std::string& path, bool quick) {
+  namespace ob = orthosim::bench;
+  ob::Results out("vessels", "vessels_bench", quick);
+  for (const Case& c : cases()) {
+    if (quick && c.name != "analytic Y") continue;
+    const double voxel = std::min({c.volume->spacing_m[0], c.volume->spacing_m[1], c.volume->spacing_m[2]});
+    const Surface surf = label_surface(*c.volume, c.volume->label_of(c.tissue), 1.0);
+    VesselResult ours;
+    SkeletonGraph peer;
+    ob::Row row;
+    row.workload = "centreline error against time, ours vs CGAL MCF skeleton";
+    row.setting = c.name;
+    ob::time_alternating(quick ? 2 : 5, [&] { ours = extract_vessels(*c.volume, c.tissue, VesselOptions{}); },
+                         [&] { peer = cgal_mcf_skeleton(surf); }, &row.seconds, &row.peer_seconds);
+    const CentrelineError e = compare_centrelines(ours.tree, c.truth);
+    const CentrelineError pe = compare_centrelines(peer.nodes, peer.edges, c.truth);
+    row.error("mean centreline error (voxels)", e.mean_m / voxel, "<=", 0.5);
+    row.peer = "CGAL MCF skeleton";
+    row.peer_error = pe.mean_m / voxel;
+    row.x = static_cast<double>(c.volume->nx) * c.volume->ny * c.volume->nz;
+    row.extra = {{"voxel_mm", voxel * 1e3}, {"mean_mm", e.mean_m * 1e3}, {"max_mm", e.max_m * 1e3},
+                 {"peer_mean_mm", pe.mean_m * 1e3}, {"peer_max_mm", pe.max_m * 1e3},
+                 {"topology_ok", sorted_parents(ours.tree) == sorted_parents(c.truth) && ours.metrics.trees == 1},
+                 {"branches", ours.metrics.branches}, {"peer_branches", peer.branches},
+                 {"truth_branches", c.truth.branch_parent.size()}, {"peer_surface_triangles", surf.faces.rows()}};
+    out.add(row);
+  }
+  out.write(path);
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
+  if (const auto common = orthosim::bench::parse_common(argc, argv); !common.results.empty()) {
+    results(common.results, common.quick);
+    return 0;
+  }
   bool run_table = true, with_cgal = true;
   int repeats = 5;
   std::string table_json;
