@@ -13,8 +13,8 @@
 #include "runtime/scene.h"
 #include "runtime/sph.h"
 #include "runtime/sph_surface.h"
-#include "tests/bench/bench_results.h"
 #include "runtime/testing/lattice.h"
+#include "tests/bench/bench_results.h"
 
 #include <benchmark/benchmark.h>
 #include <tbb/task_arena.h>
