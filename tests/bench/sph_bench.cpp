@@ -314,6 +314,8 @@ BENCHMARK(BM_FluidSurface)->Arg(5000)->Arg(20000)->Unit(benchmark::kMillisecond)
 // - the dam break against Martin & Moyce (1952) by resolution (per a = 8 ... 32; quick 8 and 16);
 //   error = max front error after the gate lead for 1.3 <= Z <= 3 (issue 9's goal: 5 %, checked
 //   from per a = 16, the resolution of tests/runtime/sph_test.cpp; coarser is informational)
+// - the integrated paper scene (--scene) at dt 1 ms (full: also 0.5 ms), 1 000 particles and 20
+//   steps (full: 5 000 and 200): time per scene step, steps/s and simulated s per wall s in extra
 void results(const std::string& path, bool quick) {
   namespace ob = orthosim::bench;
   ob::Results out("sph", "sph_bench", quick);
@@ -368,6 +370,23 @@ void results(const std::string& path, bool quick) {
     row.x = static_cast<double>(r.particles);
     row.extra = {{"particles", r.particles}, {"per_a", per_a}, {"speed_ratio", r.speed_ratio}, {"lead_T", r.lead_T},
                  {"max_error_raw", r.max_error}};
+    out.add(row);
+  }
+  // the integrated paper scene (paper_scene above), 2 threads: time per scene step
+  for (double dt : quick ? std::vector<double>{1e-3} : std::vector<double>{1e-3, 0.5e-3}) {
+    const std::int64_t particles = quick ? 1000 : 5000;
+    const PaperScene r = paper_scene(dt, particles, quick ? 20 : 200, 2);
+    ob::Row row;
+    row.workload = "integrated paper scene (39x9x4 implicit tissue, PhysX blood, bleeding cut vein), 2 threads";
+    char set[64];
+    std::snprintf(set, sizeof set, "dt=%g ms, %lld particles", 1e3 * dt, static_cast<long long>(particles));
+    row.setting = set;
+    row.seconds = {1 / r.steps_per_s};
+    row.error("max density deviation (PhysX stiffness 20: soft by design)", r.compression);
+    row.x = r.particles1;
+    row.extra = {{"steps_per_s", r.steps_per_s}, {"sim_s_per_wall_s", r.steps_per_s * r.dt}, {"fluid_share", r.fluid_share},
+                 {"fluid_substeps_per_step", r.substeps}, {"particles_start", r.particles0}, {"particles_end", r.particles1},
+                 {"warmup_s", r.warmup_s}};
     out.add(row);
   }
   out.write(path);
