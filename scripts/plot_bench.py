@@ -60,7 +60,8 @@ def time_vs_error(res, stage, rows, out):
         ys = [r["time_median_s"] for r in ws]
         lo = [max(0, r["time_median_s"] - (r["time_min_s"] or r["time_median_s"])) for r in ws]
         hi = [max(0, (r["time_max_s"] or r["time_median_s"]) - r["time_median_s"]) for r in ws]
-        label = w if len(w) < 70 else w[:67] + "..."
+        label = w.rsplit(": ", 1)[-1] if len(w) > 60 and ": " in w else w
+        label = label if len(label) < 70 else label[:67] + "..."
         ax.errorbar(xs, ys, yerr=[lo, hi], fmt="o", color=c, label=label, capsize=2)
         for r in ws:
             ax.annotate(r["setting"], (r["error_value"], r["time_median_s"]), fontsize=6, xytext=(3, 3),

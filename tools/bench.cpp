@@ -344,6 +344,20 @@ std::string time_cell(const json& r, const char* med, const char* mn, const char
   return b;
 }
 
+// a few figures of `extra` worth a glance (rates, sizes)
+std::string highlights(const json& extra) {
+  static const std::vector<std::pair<const char*, const char*>> keys = {
+      {"voxels_per_s", "voxels/s"}, {"steps_per_s", "steps/s"}, {"sim_s_per_wall_s", "sim s / wall s"},
+      {"simulated_s_per_wall_s", "sim s / wall s"}, {"nodes", "nodes"}, {"particles", "particles"},
+      {"particles_end", "particles"}, {"faces", "faces"}, {"peer_faces", "peer faces"}, {"evaluations", "evaluations"},
+      {"peer_evaluations", "peer evaluations"}, {"stable", "stable"}, {"recovered", "recovered"}, {"failed", "failed"}};
+  std::string out;
+  if (!extra.is_object()) return out;
+  for (const auto& [k, label] : keys)
+    if (extra.contains(k) && extra[k].is_number()) out += (out.empty() ? "" : ", ") + fmt(extra[k]) + " " + label;
+  return out;
+}
+
 std::string summary(const json& j) {
   std::ostringstream o;
   const json& m = j["machine"];
@@ -369,15 +383,15 @@ std::string summary(const json& j) {
       if (!any || r["workload"] != workload) {
         workload = r["workload"];
         o << (any ? "\n" : "") << "**" << workload << "**\n\n"
-          << "| setting | time | error metric | value | goal | met | peer | peer time | peer error | ratio |\n"
-          << "|---|---|---|---|---|---|---|---|---|---|\n";
+          << "| setting | time | error metric | value | goal | met | peer | peer time | peer error | ratio | also |\n"
+          << "|---|---|---|---|---|---|---|---|---|---|---|\n";
         any = true;
       }
       o << "| " << fmt(r["setting"]) << " | " << time_cell(r, "time_median_s", "time_min_s", "time_max_s") << " | "
         << fmt(r["error_metric"]) << " | " << fmt(r["error_value"]) << " | " << fmt(r["goal"]) << " | "
         << fmt(r["goal_met"]) << " | " << fmt(r["peer"]) << " | "
         << time_cell(r, "peer_time_median_s", "peer_time_min_s", "peer_time_max_s") << " | " << fmt(r["peer_error_value"])
-        << " | " << (r["ratio"].is_null() ? "" : fmt(r["ratio"], "%.2fx")) << " |\n";
+        << " | " << (r["ratio"].is_null() ? "" : fmt(r["ratio"], "%.2fx")) << " | " << highlights(r["extra"]) << " |\n";
     }
     if (any) o << "\n";
     for (const json& n : st.value("notes", json::array())) o << "- " << n.get<std::string>() << "\n";
