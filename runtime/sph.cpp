@@ -944,36 +944,43 @@ struct Stepper {
     const std::int32_t np = n();
     NeighbourGrid& g = s.scratch.grid;
     build_neighbour_grid(s.x[0].data(), s.x[1].data(), s.x[2].data(), np, f.H, b.lo, b.hi, periodic, g);
-    auto& tmp = s.scratch.tmp;
-    tmp.resize(np);
-    auto permute = [&](std::vector<Real>& a) {
-      tbb::parallel_for(tbb::blocked_range<std::int32_t>(0, np, 4096), [&](const auto& r) {
-        for (std::int32_t k = r.begin(); k < r.end(); ++k) tmp[k] = a[g.order[k]];
-      });
-      a.swap(tmp);
-    };
+    // one pass permutes positions, velocities and ids into cell order and
+    // makes the single-precision positions (relative to the grid origin, 8
+    // entries of padding far away); rho and p are not permuted: the density
+    // pass overwrites them for every particle before anything reads them
+    FluidScratch& sc = s.scratch;
+    const std::size_t nz = static_cast<std::size_t>(np);
+    Real* src[6];
+    Real* dst[6];
+    float* xf[3];
     for (int k = 0; k < 3; ++k) {
-      permute(s.x[k]);
-      permute(s.v[k]);
+      sc.perm[k].resize(nz);
+      sc.perm[3 + k].resize(nz);
+      src[k] = s.x[k].data(), src[3 + k] = s.v[k].data();
+      dst[k] = sc.perm[k].data(), dst[3 + k] = sc.perm[3 + k].data();
+      sc.xf[k].resize(nz + 8);
+      std::fill(sc.xf[k].begin() + np, sc.xf[k].end(), 1e30f);
+      xf[k] = sc.xf[k].data();
     }
-    permute(s.rho);
-    permute(s.p);
-    auto& tid = s.scratch.tmp_id;
-    tid.resize(np);
-    for (std::int32_t k = 0; k < np; ++k) tid[k] = s.id[g.order[k]];
+    auto& tid = sc.tmp_id;
+    tid.resize(nz);
+    const std::int32_t* order = g.order.data();
+    const std::array<Real, 3> o = g.origin;
+    tbb::parallel_for(tbb::blocked_range<std::int32_t>(0, np, 2048), [&](const auto& r) {
+      for (std::int32_t k = r.begin(); k < r.end(); ++k) {
+        const std::int32_t j = order[k];
+        for (int a = 0; a < 6; ++a) dst[a][k] = src[a][j];
+        for (int a = 0; a < 3; ++a) xf[a][k] = static_cast<float>(src[a][j] - o[a]);
+        tid[k] = s.id[j];
+      }
+    });
+    for (int k = 0; k < 3; ++k) {
+      s.x[k].swap(sc.perm[k]);
+      s.v[k].swap(sc.perm[3 + k]);
+    }
     s.id.swap(tid);
-    // single-precision positions relative to the grid origin, 8 entries of padding far away
-    for (int k = 0; k < 3; ++k) {
-      auto& xf = s.scratch.xf[k];
-      xf.resize(static_cast<std::size_t>(np) + 8);
-      const Real* x = s.x[k].data();
-      const Real o = g.origin[k];
-      float* out = xf.data();
-      tbb::parallel_for(tbb::blocked_range<std::int32_t>(0, np, 8192), [&](const auto& r) {
-        for (std::int32_t i = r.begin(); i < r.end(); ++i) out[i] = static_cast<float>(x[i] - o);
-      });
-      std::fill(xf.begin() + np, xf.end(), 1e30f);
-    }
+    s.rho.resize(nz);
+    s.p.resize(nz);
   }
 
   Pass pass(Real tau) {

@@ -384,7 +384,7 @@ struct FluidStepInfo {
 // Per-substep scratch (never read across steps).
 struct FluidScratch {
   NeighbourGrid grid;                   // of the last sort; particles are in its sorted order
-  std::vector<Real> tmp;                // (n) permutation buffer
+  std::array<std::vector<Real>, 6> perm; // (6)(n) permutation buffers of x and v
   std::vector<std::int64_t> tmp_id;     // (n)
   std::array<std::vector<Real>, 3> a;   // (3)(n) m/s^2, particle forces / mass
   std::array<std::vector<Real>, 3> aw;  // (3)(n) m/s^2, of which from walls

@@ -268,13 +268,13 @@ PaperScene paper_scene(double dt, std::int64_t particles, int steps, int threads
   return r;
 }
 
-void print_paper_scene(int threads) {
+void print_paper_scene(int threads, std::int64_t particles) {
   std::printf("Integrated paper scene: 39x9x4 lattice (implicit), PhysX blood (stiffness 20, dx = 2 mm), a cut vein emitting,\n"
               "two-way coupled layer quads; one step = tissue step + fluid advanced by dt\n");
   std::printf("%9s %7s %12s %10s %14s %14s %12s %10s %12s %11s\n", "dt ms", "threads", "particles", "steps/s",
               "sim s/wall s", "fluid substeps", "fluid share", "neighbours", "max drho %", "warm-up s");
   for (double dt : {1e-3, 0.5e-3}) {
-    const PaperScene r = paper_scene(dt, 5000, 200, threads);
+    const PaperScene r = paper_scene(dt, particles, 200, threads);
     std::printf("%9.2f %7d %5.0f-%-6.0f %10.1f %14.3f %14.2f %11.0f%% %10.1f %12.1f %11.1f\n", 1e3 * r.dt, threads,
                 r.particles0, r.particles1, r.steps_per_s, r.steps_per_s * r.dt, r.substeps, 100 * r.fluid_share,
                 r.neighbours, 100 * r.compression, r.warmup_s);
@@ -401,13 +401,14 @@ int main(int argc, char** argv) {
   }
   std::vector<std::int64_t> sizes{1000, 5000, 20000, 100000};
   std::vector<int> threads{1, 2};
-  bool dam = false, full = false, gbench = false, scene = false;
+  bool dam = false, full = false, gbench = false, scene = false, sizes_given = false;
   double min_seconds = 2;
   std::vector<char*> rest{argv[0]};
   for (int i = 1; i < argc; ++i) {
     const char* a = argv[i];
     if (std::strncmp(a, "--sizes=", 8) == 0) {
       sizes.clear();
+      sizes_given = true;
       std::stringstream ss(a + 8);
       for (std::string t; std::getline(ss, t, ',');) sizes.push_back(std::stoll(t));
     } else if (std::strncmp(a, "--threads=", 10) == 0) {
@@ -431,7 +432,7 @@ int main(int argc, char** argv) {
     benchmark::RunSpecifiedBenchmarks();
     return 0;
   }
-  if (scene) print_paper_scene(threads.size() == 1 ? threads[0] : 2);
+  if (scene) print_paper_scene(threads.size() == 1 ? threads[0] : 2, sizes_given ? sizes[0] : 5000);
   else if (dam) print_dam_break(full);
   else print_table(sizes, threads, min_seconds);
   return 0;
