@@ -332,13 +332,15 @@ int run_pipeline(Args a) {
     // 3. surface: the layered tissues
     const auto surf = run.stage(
         "surface", {seg.key, join(layered)}, run.command([&](const std::string& d) {
-          return std::vector<std::string>{"surface", "--labels", labels, "--out", d, "--tissues", join(layered)};
+          return std::vector<std::string>{"surface", "--labels", labels, "--out",     d,
+                                          "--tissues", join(layered), "--model", d + "/model.h5"};
         }),
         [&] {
-          std::vector<std::string> o;
+          std::vector<std::string> o{"model.h5"};
           for (const auto& t : layered) o.push_back(t + ".stl");
           return o;
-        }());
+        }(),
+        [&](const std::string& d) { copy_path(labels, d + "/model.h5"); });
 
     // 4. remesh: corresponding quad layers (+ the skin's texture)
     const auto rem = run.stage(
@@ -352,7 +354,7 @@ int run_pipeline(Args a) {
           if (a.texture) args.insert(args.end(), {"--stack", a.stack, "--texture"});
           return args;
         }),
-        {"model.h5", "quads"}, [&](const std::string& d) { copy_path(labels, d + "/model.h5"); });
+        {"model.h5", "quads"}, [&](const std::string& d) { copy_path(surf.dir + "/model.h5", d + "/model.h5"); });
 
     // 5. build: the multilayer mass-spring model
     const auto bld = run.stage(

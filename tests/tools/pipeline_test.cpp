@@ -104,8 +104,10 @@ TEST(Pipeline, ColdWarmAndIncremental) {
       EXPECT_TRUE(x.tube_vertices == y.tube_vertices) << t;
       EXPECT_TRUE(x.tube_quads == y.tube_quads) << t;
     }
-    EXPECT_TRUE(m.provenance().count("vessels"));
-    EXPECT_TRUE(m.provenance().count("tune"));
+    // the provenance of every stage that wrote into the model
+    for (const char* st : {"segment", "surface", "remesh", "build", "tune", "vessels"})
+      EXPECT_TRUE(m.provenance().count(st)) << st;
+    EXPECT_TRUE(m.h5().is_group("/surfaces"));
     EXPECT_TRUE(m.h5().is_group("/tuning"));
   }
   const std::string model_hash = test::read_file(s.dir / "model.h5");
