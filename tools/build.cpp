@@ -99,6 +99,10 @@ void add_build_command(CLI::App& app) {
   sub->add_option("--through-cells", opt.through_cells, "lattice cells through each lattice layer (1..64)")
       ->capture_default_str();
   sub->add_flag("--body-diagonals", opt.body_diagonals, "add lattice body diagonals (off: docs/msm.md)");
+  sub->add_option("--lattice-min-weight", opt.lattice_min_weight,
+                  "lattice rule floor: edge and face-diagonal weights at least this times their cube values, in [0, 1) "
+                  "(0 lets the fit drop a family, which can leave a mechanism)")
+      ->capture_default_str();
   sub->add_option("--damping-ratio", opt.damping_ratio, "damping ratio of each spring with its end masses")
       ->capture_default_str();
   sub->add_option("--min-thickness-mm", min_thickness_mm, "thinner layers are an error (mm)")->capture_default_str();

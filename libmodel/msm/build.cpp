@@ -89,6 +89,7 @@ SpringLaw law_of(const Tissue& t) {
 
 void validate_options(const BuildOptions& o) {
   if (o.through_cells < 1 || o.through_cells > 64) throw Error("", "through_cells must be in 1..64");
+  if (!(o.lattice_min_weight >= 0 && o.lattice_min_weight < 1)) throw Error("", "lattice_min_weight must be in [0, 1)");
   if (!(o.damping_ratio >= 0 && o.damping_ratio <= 10)) throw Error("", "damping_ratio must be in [0, 10]");
   if (!(o.min_thickness_m >= 0)) throw Error("", "min_thickness_m must be >= 0");
   if (!(o.max_spring_ratio > 1)) throw Error("", "max_spring_ratio must be > 1");
@@ -310,6 +311,7 @@ BuiltModel build_layers(const std::vector<std::pair<std::string, QuadSurface>>& 
       LatticeOptions lo;
       lo.through_cells = o.through_cells;
       lo.body_diagonals = o.body_diagonals;
+      lo.min_weight = o.lattice_min_weight;
       lo.inverted_ratio = o.inverted_ratio;
       cells[l] = lattice_cells(top, bot, quads, blocks[l], lo);
     }
@@ -550,6 +552,7 @@ std::string build_parameters_json(const BuildOptions& o, const Stack& st) {
   nlohmann::json j;
   j["through_cells"] = o.through_cells;
   j["body_diagonals"] = o.body_diagonals;
+  j["lattice_min_weight"] = o.lattice_min_weight;
   j["damping_ratio"] = o.damping_ratio;
   j["min_thickness_m"] = o.min_thickness_m;
   j["max_distance_factor"] = o.projection.max_distance_factor;

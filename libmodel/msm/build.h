@@ -65,6 +65,7 @@ Stack resolve_stack(const std::vector<LayerSpec>& requested, const std::vector<s
 struct BuildOptions {
   int through_cells = 1;          // lattice cells through each lattice layer's thickness, 1..64
   bool body_diagonals = false;    // lattice body diagonals (docs/msm.md shows they do not help; off)
+  double lattice_min_weight = 0.01;  // lattice rule: edge/face weights >= this x their cube values (msm/lattice.h), [0, 1)
   double damping_ratio = 0.1;     // zeta of each spring with its end masses, [0, 10]
   double min_thickness_m = 1e-5;  // a layer thinner than this at any grid vertex is an error (m), >= 0
   ProjectionOptions projection;   // centroid rays of tetra layers

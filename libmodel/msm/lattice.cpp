@@ -100,8 +100,10 @@ Vec7 nnls(const Mat67& A, const Vec6& b, int n) {
 
 }  // namespace
 
-CellRule cell_rule(double a, double b, double c, bool body_diagonals) {
+CellRule cell_rule(double a, double b, double c, bool body_diagonals, double min_weight) {
   if (!(a > 0 && b > 0 && c > 0)) throw Error("", "lattice cell with a non-positive edge length");
+  if (!(min_weight >= 0 && min_weight < 1)) throw Error("", "lattice min_weight must be in [0, 1)");
+  const double edge_min = 0.1 * min_weight, face_min = 0.4 * min_weight;  // the cube's weights times the floor
   CellRule r;
   const double a2 = a * a, b2 = b * b, c2 = c * c;
   if (!body_diagonals) {
@@ -112,15 +114,19 @@ CellRule cell_rule(double a, double b, double c, bool body_diagonals) {
     r.edge[0] = 0.1 * (3 - a2 / b2 - a2 / c2);
     r.edge[1] = 0.1 * (3 - b2 / a2 - b2 / c2);
     r.edge[2] = 0.1 * (3 - c2 / a2 - c2 / b2);
-    if (r.edge[0] >= 0 && r.edge[1] >= 0 && r.edge[2] >= 0) return r;
+    // (face weights are >= 2/5 >= face_min for any box)
+    if (r.edge[0] >= edge_min && r.edge[1] >= edge_min && r.edge[2] >= edge_min) return r;
   }
-  // no exact non-negative solution (or body diagonals): relative NNLS fit
+  // no exact solution above the floor (or body diagonals): relative least
+  // squares with x >= x_min, i.e. NNLS in y = x - x_min
   const int n = body_diagonals ? 7 : 6;
   const Vec6 t = target();
   Mat67 A = group_matrix(a, b, c);
   if (!body_diagonals) A.col(6).setZero();
   for (int i = 0; i < 6; ++i) A.row(i) /= t(i);
-  const Vec7 x = nnls(A, Vec6::Ones(), n);
+  Vec7 x_min = Vec7::Zero();
+  x_min << edge_min, edge_min, edge_min, face_min, face_min, face_min, 0.0;
+  const Vec7 x = x_min + nnls(A, Vec6::Ones() - A * x_min, n);
   for (int k = 0; k < 3; ++k) r.edge[static_cast<std::size_t>(k)] = x(k);
   for (int k = 0; k < 3; ++k) r.face[static_cast<std::size_t>(k)] = x(3 + k);
   r.body = body_diagonals ? x(6) : 0;
@@ -226,7 +232,7 @@ LayerCells lattice_cells(const MatX3d& top, const MatX3d& bottom, const MatX4i& 
       const bool valid = a > 0 && bl > 0 && c > 0 && V > 0;  // else: counted as inverted below, springs get k = 0
       CellRule r;
       if (valid) {
-        r = cell_rule(a, bl, c, o.body_diagonals);
+        r = cell_rule(a, bl, c, o.body_diagonals, o.min_weight);
         rules[static_cast<std::size_t>(cell)] = r;
         moduli[static_cast<std::size_t>(cell)] = axis_moduli(box_stiffness(a, bl, c, r));
         ruled[static_cast<std::size_t>(cell)] = 1;

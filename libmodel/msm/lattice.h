@@ -20,8 +20,13 @@
 // k_f = E a / 5 per cell, the reference's per-element assembly
 // (../shared/reference/lattice-elasticity.md), E = 5 k / (2 a) in the bulk.
 // Elongated cells (a^2/b^2 + a^2/c^2 > 3 for some axis) cannot be isotropic:
-// the betas are then the non-negative least-squares fit of the six
-// orthotropic constants, each relative to its target, and RuleStats reports
+// the betas are then the least-squares fit of the six orthotropic constants,
+// each relative to its target, with every edge and face-diagonal weight at
+// least min_weight times its cube value (1/10, 2/5). Without that floor the
+// fit can drop whole families and leave a mechanism: a 2.4 : 5.7 : 1 cell
+// (the phantom's fat at a 15 x 5 grid) loses its v edges and vw diagonals,
+// and its vw faces shear freely. Any positive floor makes every cell rigid;
+// 1 % costs at most a few per cent of misfit. RuleStats reports
 // the residual and the moduli the cell will actually have.
 #pragma once
 
@@ -42,8 +47,9 @@ struct CellRule {
   bool exact = true;
 };
 
-// Weights for a box cell a x b x c (m, each > 0).
-CellRule cell_rule(double a, double b, double c, bool body_diagonals);
+// Weights for a box cell a x b x c (m, each > 0). Edge and face-diagonal
+// weights are at least min_weight (in [0, 1)) times their cube values.
+CellRule cell_rule(double a, double b, double c, bool body_diagonals, double min_weight = 0.01);
 
 // The Cauchy-Born stiffness per unit E (Voigt 6x6, order 11 22 33 23 13 12)
 // of an infinite lattice of a x b x c boxes with these weights.
@@ -55,6 +61,7 @@ std::array<double, 3> axis_moduli(const Eigen::Matrix<double, 6, 6>& C);
 struct LatticeOptions {
   int through_cells = 1;        // cells through the layer's thickness, [1, 64]; interior grids interpolate linearly
   bool body_diagonals = false;  // add the 4 body diagonals of each cell (docs/msm.md: they do not help)
+  double min_weight = 0.01;     // floor of edge/face weights, times their cube values: no cell is a mechanism
   double inverted_ratio = 1e-9; // a sub-tetrahedron below this fraction of the mean volume counts as inverted
 };
 
