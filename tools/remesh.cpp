@@ -234,13 +234,15 @@ void add_remesh_command(CLI::App& app) {
                              {"hit", r.stats[l].hit},
                              {"bridged", r.stats[l].bridged},
                              {"filled", r.stats[l].filled},
+                             {"normal_blend", r.stats[l].normal_blend},
                              {"quality", quality_json(ev.quality[l])},
                              {"distance", distance_json(ev.distance[l])}});
     m["alignment"] = json::array();
     for (const auto& al : ev.alignment)
       m["alignment"].push_back({{"outer", al.outer},
                                 {"inner", al.inner},
-                                {"max_ray_angle_deg", al.max_ray_angle_deg},
+                                {"max_normal_angle_deg", al.max_normal_angle_deg},
+                                {"mean_normal_angle_deg", al.mean_normal_angle_deg},
                                 {"max_lateral_m", al.max_lateral_m},
                                 {"max_lateral_rel", al.max_lateral_rel},
                                 {"ray_in_quad", al.ray_in_quad},
@@ -265,7 +267,8 @@ void add_remesh_command(CLI::App& app) {
       }
       for (const auto& al : ev.alignment)
         std::cout << "  " << al.outer << " -> " << al.inner << ": lateral offset <= " << al.max_lateral_m * 1e3
-                  << " mm (" << al.max_lateral_rel << " of a quad), normal rays in quad (i,j) "
+                  << " mm (" << al.max_lateral_rel << " of a quad), off the normal <= " << std::setprecision(1)
+                  << al.max_normal_angle_deg << " deg, normal rays in quad (i,j) "
                   << std::setprecision(1) << 100 * al.ray_in_quad << " %" << std::setprecision(3) << "\n";
     }
     report.write(a.common.report);

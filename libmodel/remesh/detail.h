@@ -77,4 +77,27 @@ const Loop& tube_loop(const std::vector<Loop>& loops, const std::string& name, d
 void sample_loop(const Loop& l, const SweepPlane& pl, RingSampling mode, const std::vector<double>& u,
                  std::vector<Eigen::Vector3d>& out, std::vector<Eigen::Vector3d>* inward, const std::string& name);
 
+// Correspondence between a ring and the section of the layer below it, both
+// closed counter-clockwise polygons in one plane. normal_hits: the arc-length
+// parameter on T (from T[0]) of the first crossing of the inward normal of P
+// at P[i] (normal of the chord P[i-1] P[i+1]) with T, or of the closest point
+// of T where the normal misses; unwrapped so that it goes once around T
+// (x[i] may exceed the perimeter: take it modulo).
+std::vector<double> normal_hits(const std::vector<Eigen::Vector2d>& P, const std::vector<Eigen::Vector2d>& T);
+// radial_hits: the same for the rays from c (inside T) through P[i], outermost
+// crossing: ordered wherever T is star-shaped around c (rays from one point do
+// not cross).
+std::vector<double> radial_hits(const std::vector<Eigen::Vector2d>& P, const std::vector<Eigen::Vector2d>& T,
+                                const Eigen::Vector2d& c);
+// The blend base_i + alpha (x_i - base_i) of the normal hits x and the radial
+// hits base, made strictly increasing around the ring with spacing >=
+// min_spacing_fraction per / n (isotonic regression; a no-op when the blend is
+// ordered already).
+std::vector<double> ordered_blend(const std::vector<double>& x, const std::vector<double>& base, double per,
+                                  double alpha, double min_spacing_fraction);
+// The largest alpha in {1, (steps-1)/steps, ..., 0} whose blend is ordered
+// with that spacing without the isotonic fix (0 if none).
+double max_ordered_blend(const std::vector<double>& x, const std::vector<double>& base, double per,
+                         double min_spacing_fraction, int steps);
+
 }  // namespace orthosim::remesh_detail

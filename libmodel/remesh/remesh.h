@@ -75,6 +75,15 @@ struct RemeshOptions {
   // kept at most this fraction of the way from the ray origin to the
   // enclosing layer.
   double fill_max_depth_fraction = 0.98;  // in (0, 1)
+  // Inner layers follow the outer layer's in-plane normals; where normals
+  // cross (a concave or thick stretch) the order is restored with corresponding
+  // inner vertices at least this fraction of the mean inner spacing apart.
+  double min_ring_spacing_fraction = 0.2;  // in (0, 1)
+  // Ring planes must not cross inside the tube: R_max |dn/ds| (the largest
+  // section radius times the turning rate of the plane normal) is kept below
+  // this, so rings at the surface are at least (1 - max_plane_turn) of their
+  // axial spacing apart; the centreline tangent is averaged until it holds.
+  double max_plane_turn = 0.5;  // in (0, 1)
 };
 
 // Throws Error("", "...") naming the bad option (e.g. "grid: nu must be in 3..10000, got 0").
@@ -94,6 +103,8 @@ struct TubeSweep {
   std::array<bool, 2> flat_cap{false, false};       // start, end: closed by a flat cap
   std::array<double, 2> uncovered_m2{0, 0};        // start, end: surface area beyond the end rings
   Eigen::Vector3d axis_direction{0, 0, 1};         // principal axis used to start (unit)
+  double plane_turn = 0;      // max over the sweep of R_max |dn/ds| (< 1: planes do not cross inside the tube)
+  double normal_window_m = 0; // length of the window the tangent was averaged over (0: none needed)
 };
 
 // Plane of the sweep at arc length s (clamped to [0, length_m]).
@@ -124,6 +135,7 @@ struct LayerStats {
   std::int64_t hit = 0;        // vertices exactly on the input surface
   std::int64_t bridged = 0;    // inner: interpolated across angular gaps of a ring
   std::int64_t filled = 0;     // inner: interpolated along the axis (ring misses the surface)
+  double normal_blend = 1;     // inner: 1 = on the normals of the layer above, 0 = equal spacing (see remesh_layers)
 };
 
 struct RemeshResult {
@@ -183,7 +195,8 @@ SurfaceDistance quad_surface_distance(const QuadSurface& q, const Surface& input
 
 struct LayerAlignment {
   std::string outer, inner;        // consecutive layers
-  double max_ray_angle_deg = 0;    // angle between (inner - origin) and (outer - origin) (evaluate_remesh only)
+  double max_normal_angle_deg = 0; // angle between (inner - outer) and the outer layer's inward vertex normal
+  double mean_normal_angle_deg = 0;
   double max_lateral_m = 0;        // inner vertex offset across the outer normal
   double max_lateral_rel = 0;      // ... relative to the local quad size
   double ray_in_quad = 0;          // fraction of quads whose inward normal ray from the centroid lands in quad (i,j) below

@@ -153,16 +153,6 @@ RemeshEvaluation evaluate_remesh(const RemeshResult& res, const std::vector<Name
   }
   for (std::size_t l = 1; l < res.layers.size(); ++l) {
     LayerAlignment a = layer_alignment(res.layers[l - 1], res.layers[l], inputs[l - 1].name, inputs[l].name);
-    const QuadSurface &A = res.layers[l - 1], &B = res.layers[l];
-    for (int j = 0; j < A.nv; ++j) {
-      const Vec3 o = res.ray_origin[l].row(j);
-      for (int i = 0; i < A.nu; ++i) {
-        const Eigen::Index r = static_cast<Eigen::Index>(j) * A.nu + i;
-        const Vec3 u = A.vertices.row(r).transpose() - o, v = B.vertices.row(r).transpose() - o;
-        if (u.norm() > 0 && v.norm() > 0)
-          a.max_ray_angle_deg = std::max(a.max_ray_angle_deg, std::atan2(u.cross(v).norm(), u.dot(v)) * 180 / M_PI);
-      }
-    }
     e.worst_lateral_m = std::max(e.worst_lateral_m, a.max_lateral_m);
     e.worst_lateral_rel = std::max(e.worst_lateral_rel, a.max_lateral_rel);
     e.worst_ray_miss_m = std::max(e.worst_ray_miss_m, a.max_ray_miss_m);

@@ -28,6 +28,10 @@ struct Files {
     write_stl(d / "open.stl", open);
     write_stl(d / "two.stl", test::merge(test::cylinder(0.01, L, 32, 8), test::cylinder(0.01, L, 32, 8, 0.05, 0)));
     write_stl(d / "torus.stl", test::torus(0.05, 0.01));
+    Surface dup = test::cylinder(0.03, L, 32, 8);  // a face repeated: its edges have three faces
+    dup.faces.conservativeResize(dup.faces.rows() + 1, 3);
+    dup.faces.row(dup.faces.rows() - 1) = dup.faces.row(0);
+    write_stl(d / "nonmanifold.stl", dup);
     test::write_file(d / "empty.stl", "");
   }
   std::string operator/(const std::string& r) const { return d / r; }
@@ -104,6 +108,9 @@ TEST(RemeshCli, BadInputExitsTwoWithoutOutput) {
   expect_usage_error(test::run_cli("remesh" + skin + " --grid 39x10001 --out " + out), "2..10000", out);
   expect_usage_error(test::run_cli("remesh --surface " + f / "open.stl" + " --out " + out), "open surface", out);
   expect_usage_error(test::run_cli("remesh --surface " + f / "empty.stl" + " --out " + out), "empty", out);
+  expect_usage_error(test::run_cli("remesh --surface " + f / "nonmanifold.stl" + " --out " + out), "non-manifold", out);
+  expect_usage_error(test::run_cli("remesh" + skin + " --inner " + f / "nonmanifold.stl" + " --out " + out),
+                     "nonmanifold.stl: non-manifold", out);
   expect_usage_error(test::run_cli("remesh --surface " + f / "two.stl" + " --out " + out), "2 components", out);
   expect_usage_error(test::run_cli("remesh --surface " + f / "torus.stl" + " --out " + out), "not tube-like", out);
   expect_usage_error(test::run_cli("remesh" + skin + " --inner " + f / "big.stl" + " --out " + out),
@@ -114,4 +121,39 @@ TEST(RemeshCli, BadInputExitsTwoWithoutOutput) {
   expect_usage_error(test::run_cli("remesh" + skin + " --inner " + f / "big.stl" + " --out " + out + " --model " + model),
                      "not inside", out);
   EXPECT_FALSE(fs::exists(model));
+}
+
+// The segmented sample (data-samples/phantom: colour slices -> labels ->
+// surfaces, the chain of scripts/demo) remeshed at fine grids must build with
+// no inverted cell: the inner layers follow the outer normals (before, the
+// muscle -> bone rays from the bone's centre inverted muscle cells at 40x10,
+// the skin's centroid projection at 100x25; wobbling ring planes crossed
+// inside the limb at 200x50). 200x50 still fails in build (about 18 skin
+// tetrahedra, docs/remesh.md), so it is not asserted here.
+TEST(RemeshCli, SegmentedSampleBuildsAtFineGrids) {
+  test::TempDir d{"remesh-sample"};
+  const std::string sample = std::string(ORTHOSIM_SOURCE_DIR) + "/data-samples/phantom";
+  const std::string labels = d / "labels.h5", surf = d / "surfaces";
+  auto r = test::run_cli("segment -q --stack " + sample + "/slices --tissues " + sample +
+                         "/tissues.json --spacing 0.45,0.45,1.5 --out " + labels);
+  ASSERT_EQ(r.code, 0) << r.err;
+  r = test::run_cli("surface -q --labels " + labels + " --out " + surf + " --tissues skin,fat,muscle,bone");
+  ASSERT_EQ(r.code, 0) << r.err;
+  for (const char* g : {"40x10", "100x25"}) {  // 15x5 and 39x9: tests/tools/pipeline_test.cpp, scripts/demo
+    const std::string model = d / (std::string("m") + g + ".h5");
+    fs::copy_file(labels, model);
+    r = test::run_cli("remesh -q --surface " + surf + "/skin.stl --inner " + surf + "/fat.stl," + surf + "/muscle.stl," +
+                      surf + "/bone.stl --grid " + g + " --out " + (d / "q") + " --model " + model + " --report " +
+                      (d / "r.json"));
+    ASSERT_EQ(r.code, 0) << g << ": " << r.err;
+    const auto j = nlohmann::json::parse(test::read_file(d / "r.json"));
+    for (const auto& l : j["metrics"]["layers"]) {
+      EXPECT_EQ(l["quality"]["flipped"], 0) << g << " " << l["name"];
+      EXPECT_EQ(l["quality"]["degenerate"], 0) << g << " " << l["name"];
+    }
+    r = test::run_cli("build -q --model " + model + " --tissues " + sample + "/tissues.json --report " + (d / "b.json"));
+    ASSERT_EQ(r.code, 0) << g << ": " << r.err;
+    const auto b = nlohmann::json::parse(test::read_file(d / "b.json"));
+    EXPECT_EQ(b["metrics"]["inverted_tets"], 0) << g;
+  }
 }

@@ -7,7 +7,10 @@
 #include <nlohmann/json.hpp>
 #include <opencv2/imgcodecs.hpp>
 
+#include <algorithm>
+#include <array>
 #include <cmath>
+#include <limits>
 #include <cstring>
 #include <filesystem>
 
@@ -312,10 +315,9 @@ TEST(RemeshLayers, CorrespondRadially) {
   }
   const auto e = evaluate_remesh(r, in);
   ASSERT_EQ(e.alignment.size(), 3u);
-  for (const auto& a : e.alignment) {
-    EXPECT_LT(a.max_ray_angle_deg, 1e-6) << a.inner;
-    EXPECT_EQ(e.quality[0].flipped, 0);
-  }
+  // concentric: the skin's and fat's normals are radial, so fat and muscle
+  // vertices lie exactly under the vertices above them
+  for (int a : {0, 1}) EXPECT_LT(e.alignment[static_cast<std::size_t>(a)].max_normal_angle_deg, 1e-6) << a;
   EXPECT_DOUBLE_EQ(e.alignment[0].ray_in_quad, 1.0);  // skin -> fat
   EXPECT_DOUBLE_EQ(e.alignment[1].ray_in_quad, 1.0);  // fat -> muscle
   EXPECT_LT(e.alignment[0].max_lateral_m, 1e-6);
@@ -391,6 +393,80 @@ TEST(RemeshLayers, UnequalBonesEnvelopeSpansTheGap) {
       EXPECT_GT(std::min(std::hypot(p.x() - x1, p.y()) - r1, std::hypot(p.x() - x2, p.y()) - r2), -2e-5);
     }
     EXPECT_GT(A, 0.9 * hull) << "ring " << j;
+  }
+}
+
+// Smallest sub-tetrahedron volume of the hexahedral cells between corresponding
+// quads of two layers, over the mean: the split and orientation of the
+// builder's lattice cells (libmodel/msm/lattice.cpp). <= 0: a cell inverts.
+double min_cell_tet_ratio(const QuadSurface& top, const QuadSurface& bot) {
+  auto vol = [](const Vec3& a, const Vec3& b, const Vec3& c, const Vec3& d) { return (b - a).dot((c - a).cross(d - a)) / 6; };
+  double mn = std::numeric_limits<double>::infinity(), sum = 0;
+  int n = 0;
+  for (Eigen::Index q = 0; q < top.quads.rows(); ++q) {
+    const Eigen::Vector4i v = top.quads.row(q).transpose();
+    Vec3 T[4], B[4];
+    for (int i = 0; i < 4; ++i) T[i] = top.vertices.row(v[i]).transpose(), B[i] = bot.vertices.row(v[i]).transpose();
+    for (const auto& tri : {std::array<int, 3>{0, 1, 2}, std::array<int, 3>{0, 2, 3}}) {
+      std::array<int, 3> s = tri;
+      std::sort(s.begin(), s.end(), [&](int x, int y) { return v[x] < v[y]; });
+      const bool ccw = (s[0] == tri[0] && s[1] == tri[1]) || (s[0] == tri[1] && s[1] == tri[2]) ||
+                       (s[0] == tri[2] && s[1] == tri[0]);
+      const Vec3 &a = T[s[0]], &bb = T[s[1]], &c = T[s[2]], &a_ = B[s[0]], &b_ = B[s[1]], &c_ = B[s[2]];
+      const double tv[3] = {ccw ? vol(a, b_, a_, c_) : vol(a, a_, b_, c_), ccw ? vol(a, bb, b_, c_) : vol(a, b_, bb, c_),
+                            ccw ? vol(a, c, bb, c_) : vol(a, bb, c, c_)};
+      for (double x : tv) mn = std::min(mn, x), sum += x, ++n;
+    }
+  }
+  return mn / (sum / n);
+}
+
+// A flat limb (elliptic section 46 x 16 mm) with a thin skin and fat and a
+// thick muscle over two unequal bones: the muscle's inward normals near the
+// ends of the long axis cross long before they reach the bones (centre of
+// curvature b^2/a = 4 mm below the surface, bones 20+ mm deep). Inner layers
+// follow the normals of the layer above, in order: every cell between two
+// layers is positive (the builder's split), the thin layers lie under their
+// quads, and no inner ring folds.
+TEST(RemeshLayers, FlatLimbFollowsTheNormalsWithoutCrossing) {
+  const double L = 0.12;
+  auto ellipse = [&](double a, double b) {
+    return test::tube_mesh([=](double t, double th) { return Vec3(a * std::cos(th), b * std::sin(th), t * L); },
+                           [=](double t) { return Vec3(0, 0, t * L); }, 256, 24);
+  };
+  const std::vector<NamedSurface> in{
+      {"skin", ellipse(0.046, 0.016)},
+      {"fat", ellipse(0.044, 0.0145)},
+      {"muscle", ellipse(0.041, 0.0125)},
+      {"bone", test::merge(test::cylinder(0.005, L, 64, 24, 0.012, 0), test::cylinder(0.0035, L, 48, 24, -0.011, 0.001))}};
+  for (const auto& g : {grid(39, 9), grid(200, 25)}) {
+    const auto r = remesh_layers(in, g);
+    const auto e = evaluate_remesh(r, in, 2);
+    for (std::size_t k = 0; k < 4; ++k) {
+      EXPECT_EQ(e.quality[k].flipped, 0) << in[k].name << " " << g.nu;
+      EXPECT_EQ(e.quality[k].degenerate, 0) << in[k].name << " " << g.nu;
+    }
+    for (std::size_t k = 0; k + 1 < 4; ++k)
+      EXPECT_GT(min_cell_tet_ratio(r.layers[k], r.layers[k + 1]), 0.0) << in[k].name << " -> " << in[k + 1].name << " " << g.nu;
+    EXPECT_GT(e.alignment[0].ray_in_quad, 0.99) << g.nu;  // skin -> fat
+    EXPECT_GT(e.alignment[1].ray_in_quad, 0.99) << g.nu;  // fat -> muscle
+    std::cerr << g.nu << " normal angle " << e.alignment[0].max_normal_angle_deg << " " << e.alignment[1].max_normal_angle_deg
+              << " " << e.alignment[2].max_normal_angle_deg << " in quad " << e.alignment[2].ray_in_quad << " lat "
+              << e.alignment[2].max_lateral_rel << " minratio " << min_cell_tet_ratio(r.layers[2], r.layers[3]) << "\n";
+    // every inner ring turns once around its centre, counter-clockwise, without folding back
+    for (std::size_t k = 1; k < 4; ++k)
+      for (int j = 0; j < g.nv; ++j) {
+        const Vec3 c = r.ray_origin[k].row(j).transpose();
+        double turn = 0;
+        for (int i = 0; i < g.nu; ++i) {
+          const Vec3 p = r.layers[k].vertices.row(j * g.nu + i).transpose() - c,
+                     q = r.layers[k].vertices.row(j * g.nu + (i + 1) % g.nu).transpose() - c;
+          const double d = std::atan2(p.x() * q.y() - p.y() * q.x(), p.x() * q.x() + p.y() * q.y());
+          EXPECT_GT(d, 0) << in[k].name << " ring " << j << " vertex " << i;
+          turn += d;
+        }
+        EXPECT_NEAR(turn, 2 * kPi, 1e-9) << in[k].name << " ring " << j;
+      }
   }
 }
 
