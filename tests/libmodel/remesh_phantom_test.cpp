@@ -2,6 +2,7 @@
 // humerus proximally, radius and ulna distally).
 #include "libmodel/phantom/phantom.h"
 #include "libmodel/remesh/remesh.h"
+#include "tests/libmodel/remesh_shapes.h"
 
 #include <gtest/gtest.h>
 
@@ -68,9 +69,12 @@ TEST(RemeshPhantom, LayeredGridsOnTheTruthSurfaces) {
   // skin -> fat -> muscle: the builder's centroid rays land in the quad below
   EXPECT_GT(e.alignment[0].ray_in_quad, 0.99);
   EXPECT_GT(e.alignment[1].ray_in_quad, 0.99);
-  for (const auto& a : e.alignment)
-    std::cerr << a.outer << "->" << a.inner << " in quad " << a.ray_in_quad << " normal angle " << a.max_normal_angle_deg
-              << " lateral " << a.max_lateral_rel << "\n";
+  // thin layers: corresponding vertices under each other to a tenth of a quad
+  EXPECT_LT(e.alignment[0].max_lateral_rel, 0.1);
+  EXPECT_LT(e.alignment[1].max_lateral_rel, 0.1);
+  // and every cell between two layers is positive (the builder's lattice split)
+  for (std::size_t k = 0; k + 1 < 4; ++k)
+    EXPECT_GT(test::min_cell_tet_ratio(r.layers[k], r.layers[k + 1]), 0.0) << in[k].name;
 }
 
 TEST(RemeshPhantom, SkinErrorFallsWithTheGrid) {

@@ -7,7 +7,10 @@
 
 #include <Eigen/Geometry>
 
+#include <algorithm>
+#include <array>
 #include <cmath>
+#include <limits>
 #include <functional>
 
 namespace orthosim::test {
@@ -132,6 +135,31 @@ inline Surface merge(const Surface& a, const Surface& b) {
   s.faces.topRows(a.faces.rows()) = a.faces;
   s.faces.bottomRows(b.faces.rows()) = b.faces.array() + static_cast<int>(a.vertices.rows());
   return s;
+}
+
+// Smallest sub-tetrahedron volume of the hexahedral cells between corresponding
+// quads of two layers, over the mean: the split and orientation of the
+// builder's lattice cells (libmodel/msm/lattice.cpp). <= 0: a cell inverts.
+inline double min_cell_tet_ratio(const QuadSurface& top, const QuadSurface& bot) {
+  auto vol = [](const Eigen::Vector3d& a, const Eigen::Vector3d& b, const Eigen::Vector3d& c, const Eigen::Vector3d& d) { return (b - a).dot((c - a).cross(d - a)) / 6; };
+  double mn = std::numeric_limits<double>::infinity(), sum = 0;
+  int n = 0;
+  for (Eigen::Index q = 0; q < top.quads.rows(); ++q) {
+    const Eigen::Vector4i v = top.quads.row(q).transpose();
+    Eigen::Vector3d T[4], B[4];
+    for (int i = 0; i < 4; ++i) T[i] = top.vertices.row(v[i]).transpose(), B[i] = bot.vertices.row(v[i]).transpose();
+    for (const auto& tri : {std::array<int, 3>{0, 1, 2}, std::array<int, 3>{0, 2, 3}}) {
+      std::array<int, 3> s = tri;
+      std::sort(s.begin(), s.end(), [&](int x, int y) { return v[x] < v[y]; });
+      const bool ccw = (s[0] == tri[0] && s[1] == tri[1]) || (s[0] == tri[1] && s[1] == tri[2]) ||
+                       (s[0] == tri[2] && s[1] == tri[0]);
+      const Eigen::Vector3d &a = T[s[0]], &bb = T[s[1]], &c = T[s[2]], &a_ = B[s[0]], &b_ = B[s[1]], &c_ = B[s[2]];
+      const double tv[3] = {ccw ? vol(a, b_, a_, c_) : vol(a, a_, b_, c_), ccw ? vol(a, bb, b_, c_) : vol(a, b_, bb, c_),
+                            ccw ? vol(a, c, bb, c_) : vol(a, bb, c, c_)};
+      for (double x : tv) mn = std::min(mn, x), sum += x, ++n;
+    }
+  }
+  return mn / (sum / n);
 }
 
 }  // namespace orthosim::test

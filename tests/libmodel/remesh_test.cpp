@@ -396,31 +396,6 @@ TEST(RemeshLayers, UnequalBonesEnvelopeSpansTheGap) {
   }
 }
 
-// Smallest sub-tetrahedron volume of the hexahedral cells between corresponding
-// quads of two layers, over the mean: the split and orientation of the
-// builder's lattice cells (libmodel/msm/lattice.cpp). <= 0: a cell inverts.
-double min_cell_tet_ratio(const QuadSurface& top, const QuadSurface& bot) {
-  auto vol = [](const Vec3& a, const Vec3& b, const Vec3& c, const Vec3& d) { return (b - a).dot((c - a).cross(d - a)) / 6; };
-  double mn = std::numeric_limits<double>::infinity(), sum = 0;
-  int n = 0;
-  for (Eigen::Index q = 0; q < top.quads.rows(); ++q) {
-    const Eigen::Vector4i v = top.quads.row(q).transpose();
-    Vec3 T[4], B[4];
-    for (int i = 0; i < 4; ++i) T[i] = top.vertices.row(v[i]).transpose(), B[i] = bot.vertices.row(v[i]).transpose();
-    for (const auto& tri : {std::array<int, 3>{0, 1, 2}, std::array<int, 3>{0, 2, 3}}) {
-      std::array<int, 3> s = tri;
-      std::sort(s.begin(), s.end(), [&](int x, int y) { return v[x] < v[y]; });
-      const bool ccw = (s[0] == tri[0] && s[1] == tri[1]) || (s[0] == tri[1] && s[1] == tri[2]) ||
-                       (s[0] == tri[2] && s[1] == tri[0]);
-      const Vec3 &a = T[s[0]], &bb = T[s[1]], &c = T[s[2]], &a_ = B[s[0]], &b_ = B[s[1]], &c_ = B[s[2]];
-      const double tv[3] = {ccw ? vol(a, b_, a_, c_) : vol(a, a_, b_, c_), ccw ? vol(a, bb, b_, c_) : vol(a, b_, bb, c_),
-                            ccw ? vol(a, c, bb, c_) : vol(a, bb, c, c_)};
-      for (double x : tv) mn = std::min(mn, x), sum += x, ++n;
-    }
-  }
-  return mn / (sum / n);
-}
-
 // A flat limb (elliptic section 46 x 16 mm) with a thin skin and fat and a
 // thick muscle over two unequal bones: the muscle's inward normals near the
 // ends of the long axis cross long before they reach the bones (centre of
@@ -447,12 +422,9 @@ TEST(RemeshLayers, FlatLimbFollowsTheNormalsWithoutCrossing) {
       EXPECT_EQ(e.quality[k].degenerate, 0) << in[k].name << " " << g.nu;
     }
     for (std::size_t k = 0; k + 1 < 4; ++k)
-      EXPECT_GT(min_cell_tet_ratio(r.layers[k], r.layers[k + 1]), 0.0) << in[k].name << " -> " << in[k + 1].name << " " << g.nu;
+      EXPECT_GT(test::min_cell_tet_ratio(r.layers[k], r.layers[k + 1]), 0.0) << in[k].name << " -> " << in[k + 1].name << " " << g.nu;
     EXPECT_GT(e.alignment[0].ray_in_quad, 0.99) << g.nu;  // skin -> fat
     EXPECT_GT(e.alignment[1].ray_in_quad, 0.99) << g.nu;  // fat -> muscle
-    std::cerr << g.nu << " normal angle " << e.alignment[0].max_normal_angle_deg << " " << e.alignment[1].max_normal_angle_deg
-              << " " << e.alignment[2].max_normal_angle_deg << " in quad " << e.alignment[2].ray_in_quad << " lat "
-              << e.alignment[2].max_lateral_rel << " minratio " << min_cell_tet_ratio(r.layers[2], r.layers[3]) << "\n";
     // every inner ring turns once around its centre, counter-clockwise, without folding back
     for (std::size_t k = 1; k < 4; ++k)
       for (int j = 0; j < g.nv; ++j) {
