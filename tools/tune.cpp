@@ -77,8 +77,6 @@ json result_json(const std::string& name, const tune::TuneResult& r) {
           {"method", r.method},
           {"seed", r.seed},
           {"spring_params", params_json(r)}};
-  // no experiment measured anything: say why (the untuned one's reason)
-  if (r.measured.p.empty()) j["failure"] = r.untuned.failure.empty() ? "no experiment converged" : r.untuned.failure;
   return j;
 }
 
@@ -245,6 +243,13 @@ void add_tune_command(CLI::App& app) {
         throw Error(tissues_path, "tissue '" + jobs[i].tissue + "': " + e.message());
       }
     }
+    // a tissue none of whose experiments could be measured has no tuned laws:
+    // an error, not a model left silently untuned
+    for (const Job& j : jobs)
+      if (j.result.measured.p.empty())
+        throw Error(model.empty() ? tissues_path : model,
+                    "tissue '" + j.tissue + "': no virtual experiment could be measured (" +
+                        (j.result.untuned.failure.empty() ? "none converged" : j.result.untuned.failure) + ")");
     for (std::size_t i = 0; i < jobs.size(); ++i) {
       Job& j = jobs[i];
       report.phase("tune." + j.tissue, seconds[i]);
@@ -307,11 +312,6 @@ void add_tune_command(CLI::App& app) {
       if (!plot_dir.empty()) {
         AtomicDir d(plot_dir);
         for (const Job& j : jobs) {
-          if (j.result.measured.curve.strain.empty()) {
-            // nothing measured to draw (the report says why); the other tissues' plots are still written
-            if (!common.quiet) std::cerr << "tune: " << j.tissue << ": no plot, no experiment measured a curve\n";
-            continue;
-          }
           tune::PlotOptions po;
           po.title = j.tissue;
           tune::write_curve_png((std::filesystem::path(d.temp()) / (j.tissue + ".png")).string(), j.result, po);
