@@ -116,33 +116,35 @@ TEST(TuneFit, LeastSquaresOnNoisyCurveAndLinearFit) {
 
 // ---- the virtual experiment against analytic lattices ------------------------------
 
+// The linear modulus a lattice specimen of `cells` box cells of `cell_m`
+// measures along `axis` at a small strain, with the rule's springs for q.
+namespace {
+Measurement small_strain_lattice(std::array<int, 3> cells, std::array<double, 3> cell_m, int axis, const Target& q) {
+  ExperimentOptions o;
+  o.kind = "lattice";
+  o.cells = cells;
+  o.cell_m = cell_m;
+  o.axis = axis;
+  o.linear_strain = 1e-6;
+  o.linear_steps = 2;
+  msm::Specimen s = make_tissue_specimen(o);
+  apply_params(s, rule_params(q));
+  return measure(s, sliding_grips(s, axis), q, o);
+}
+}  // namespace
+
 // A cubic lattice (edges + face diagonals, per-cell k_e = E a / 10, k_f = E a / 5)
 // is isotropic with modulus E exactly (Cauchy-Born); at a small strain the
 // measured modulus is E to O(strain).
 TEST(TuneExperiment, LinearLatticeModulusIsTheAnalyticValue) {
   const Target q = linear(2300);
   for (int axis : {0, 1, 2}) {
-    ExperimentOptions o;
-    o.kind = "lattice";
-    o.cells = {3, 2, 2};
-    o.axis = axis;
-    o.linear_strain = 1e-6;
-    o.linear_steps = 2;
-    msm::Specimen s = make_tissue_specimen(o);
-    apply_params(s, rule_params(q));
-    const Measurement m = measure(s, sliding_grips(s, axis), q, o);
+    const Measurement m = small_strain_lattice({3, 2, 2}, {1e-3, 1e-3, 1e-3}, axis, q);
     ASSERT_EQ(m.p.size(), 1u) << m.failure;
     EXPECT_NEAR(m.p[0], 2300, 2300 * 1e-5) << "axis " << axis;
   }
 }
 
-// shared/reference/lattice-elasticity.md, "An exactly bilinear case": a 2-D
-// triangular lattice of bilinear springs pulled along a bond axis is exactly
-// bilinear with E1 = 2 k1 / (sqrt(3) t), E2 = 2 k2 / (sqrt(3) t) and the
-// springs' turning strain, at any strain (the +-60 degree bonds keep their
-// length). msm::make_specimen builds only the model's cubic lattice and tetra
-// prism cells, so the network is made here and run through the same
-// experiment (tension_test on the target's strain schedule, then the fit).
 // The cells of a coarse grid's layer are far from cubic (the phantom's fat at
 // 15 x 5: 9.6 x 23.4 x 4.1 mm), where the unconstrained rule dropped whole
 // spring families and left a mechanism. With the rule's floor the specimen is
@@ -154,21 +156,19 @@ TEST(TuneExperiment, FlatLatticeCellsAreRigidAndHaveTheRulesModuli) {
   const msm::CellRule rule = msm::cell_rule(cell[0], cell[1], cell[2], false);
   const auto E = msm::axis_moduli(msm::box_stiffness(cell[0], cell[1], cell[2], rule));
   for (int axis : {0, 1, 2}) {
-    ExperimentOptions o;
-    o.kind = "lattice";
-    o.cells = {2, 2, 1};
-    o.cell_m = cell;
-    o.axis = axis;
-    o.linear_strain = 1e-6;
-    o.linear_steps = 2;
-    msm::Specimen s = make_tissue_specimen(o);
-    apply_params(s, rule_params(q));
-    const Measurement m = measure(s, sliding_grips(s, axis), q, o);
+    const Measurement m = small_strain_lattice({2, 2, 1}, cell, axis, q);
     ASSERT_EQ(m.p.size(), 1u) << "axis " << axis << ": " << m.failure;
     EXPECT_NEAR(m.p[0] / (2300 * E[static_cast<std::size_t>(axis)]), 1.0, 1e-4) << "axis " << axis;
   }
 }
 
+// shared/reference/lattice-elasticity.md, "An exactly bilinear case": a 2-D
+// triangular lattice of bilinear springs pulled along a bond axis is exactly
+// bilinear with E1 = 2 k1 / (sqrt(3) t), E2 = 2 k2 / (sqrt(3) t) and the
+// springs' turning strain, at any strain (the +-60 degree bonds keep their
+// length). msm::make_specimen builds only the model's cubic lattice and tetra
+// prism cells, so the network is made here and run through the same
+// experiment (tension_test on the target's strain schedule, then the fit).
 TEST(TuneExperiment, TriangularLatticeIsExactlyBilinear) {
   const int nx = 6, ny = 5;  // bonds per row, rows of nodes
   const double a = 1e-3, t = 0.5e-3, k1 = 0.2, k2 = 30, eps_t = 0.3;
