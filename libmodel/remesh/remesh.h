@@ -151,17 +151,20 @@ struct RemeshResult {
 
 // Remeshes `layers[0]` (the outer surface, one component) into an exact
 // o.nu x o.nv grid and samples every inner surface layers[1..] at the same
-// stations, on rays in the same ring planes: vertex (i, j) of layer k lies on
-// the ray from the centre of layer k's section in ring j through vertex (i, j)
-// of layer k-1, at the outermost crossing with layer k. Inner surfaces may
-// have several components (the bones of the forearm): the layer is then their
-// radial envelope, with angular gaps bridged and missing rings interpolated
-// along the axis (counted in LayerStats). Quads are (i,j) (i+1,j) (i+1,j+1)
-// (i,j+1), outward; uv = (i / nu, s_j / length). Validates every input first
-// and throws Error(name, ...) on bad input: an invalid surface (see
+// stations, in the same ring planes: vertex (i, j) of layer k lies on layer
+// k's section in ring j where the in-plane inward normal of layer k-1's ring
+// at vertex i meets it, blended per layer toward the ray from the section's
+// centre (LayerStats::normal_blend) just enough that every ring stays in
+// order (thick layers, where normals cross), then made strictly ordered.
+// Inner surfaces may have several components (the bones of the forearm): a
+// section with several loops is enveloped by their convex hull, and rings
+// that miss the layer are interpolated along the axis (counted in
+// LayerStats). Quads are (i,j) (i+1,j) (i+1,j+1) (i,j+1), outward; uv =
+// (i / nu, s_j / length). Validates every input first and throws
+// Error(name, ...) on bad input: an invalid surface (see
 // check_closed_surface), several components in the outer surface, a surface
 // that is not tube-like, or an inner surface not strictly inside the one
-// before it. Deterministic.
+// before it. Deterministic. docs/remesh.md.
 RemeshResult remesh_layers(const std::vector<NamedSurface>& layers, const RemeshOptions& o);
 
 // ---- evaluation ------------------------------------------------------------
