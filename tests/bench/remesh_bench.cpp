@@ -157,7 +157,7 @@ BENCHMARK(BM_RemeshBentTube)->Args({39, 9})->Args({400, 100})->Unit(benchmark::k
 // ---- harness rows (orthosim bench; tests/bench/bench_results.h) -------------------------
 //   remesh_bench --results=FILE.json [--quick]
 // The bent tube (meshed 2048 x 256; quick 512 x 128) remeshed at 15x5 ... 400x100 (quick:
-// 15x5, 39x9, 100x25): time of remesh_layers (median of 3 after a warm-up; quick one run),
+// 15x5, 39x9, 100x25): time of remesh_layers (median of 3 runs; quick one run),
 // error = Hausdorff distance of the quad surface to the input in mm, goal <= a quarter of the
 // mean quad edge (a bilinear patch's chord error h^2 / (8 R) with the tube's smallest
 // curvature radius, 13.3 mm, stays under h / 4 for h <= 27 mm); then the fitted order of
@@ -177,7 +177,7 @@ void results(const std::string& path, bool quick) {
     row.workload = std::string("bent elliptic tube 30x20 mm (") + (quick ? "512x128" : "2048x256") +
                    " input), Hausdorff against grid";
     row.setting = std::to_string(nu) + "x" + std::to_string(nv);
-    row.seconds = ob::time_runs(quick ? 1 : 3, [&] { r = remesh_layers(in, grid(nu, nv)); }, quick ? 0 : 1);
+    row.seconds = ob::time_runs(quick ? 1 : 3, [&] { r = remesh_layers(in, grid(nu, nv)); }, 0);
     const RemeshEvaluation e = evaluate_remesh(r, in, 2);
     const auto& q = e.quality[0];
     const auto& d = e.distance[0];

@@ -4,7 +4,7 @@
 //                                                 wall time for SA and NLopt (+ polish) on Table 1 dermis
 //   tune_bench --results=FILE.json [--quick]      the harness rows (orthosim bench): SA against each NLopt
 //       method (crs2+bobyqa, bobyqa; full: also isres, direct-l, esch, sbplx), per seed SA then each
-//       method in turn (quick 1 seed, full 5), stop at 0.1 % or 4000 experiments; error = max relative
+//       method in turn (quick 1 seed, full 3), stop at 0.1 % or 4000 experiments; error = max relative
 //       parameter error (median over seeds, goal <= 1 %: issue 7), psi and evaluations in extra
 // Every tuning run is bounded by evaluations (and a generous wall-clock budget).
 #include "libmodel/tune/tune.h"
@@ -171,7 +171,7 @@ void results(const std::string& path, bool quick) {
   ob::Results out("tune", "tune_bench", quick);
   std::vector<std::string> methods = {"sa", "crs2", "bobyqa"};
   if (!quick) methods = {"sa", "crs2", "isres", "direct-l", "esch", "sbplx", "bobyqa"};
-  const int seeds = quick ? 1 : 5;
+  const int seeds = quick ? 1 : 3;
   // per seed: SA, then each NLopt method in turn (interleaved: all see the same load)
   std::vector<std::vector<TuneResult>> runs(methods.size());
   for (int seed = 1; seed <= seeds; ++seed)
