@@ -226,6 +226,8 @@ void add_remesh_command(CLI::App& app) {
     m["sweep"] = {{"length_m", r.sweep.length_m},
                   {"flat_cap", {r.sweep.flat_cap[0], r.sweep.flat_cap[1]}},
                   {"uncovered_m2", {r.sweep.uncovered_m2[0], r.sweep.uncovered_m2[1]}},
+                  {"plane_turn", r.sweep.plane_turn},
+                  {"normal_window_m", r.sweep.normal_window_m},
                   {"stations_m", std::vector<double>(r.stations_m.data(), r.stations_m.data() + r.stations_m.size())}};
     m["layers"] = json::array();
     for (std::size_t l = 0; l < r.layers.size(); ++l)

@@ -442,6 +442,32 @@ TEST(RemeshLayers, FlatLimbFollowsTheNormalsWithoutCrossing) {
   }
 }
 
+// A limb whose section centres wander (a segmented stack's staircase): the
+// centre moves 1.5 mm sideways with a 24 mm period on a 30 mm radius. The
+// centreline's tangent turns fast enough that planes normal to it would cross
+// inside the limb (R |dn/ds| = 30 * 1.5 * (2 pi / 24)^2 ~ 3); the sweep keeps
+// R_max |dn/ds| <= max_plane_turn, so rings at a fine grid never cross: every
+// vertex of ring j + 1 lies on the far side of ring j's plane.
+TEST(RemeshLayers, WanderingCentreRingsDoNotCross) {
+  const double L = 0.12, R = 0.03, A = 0.0015, lambda = 0.024;
+  auto centre = [&](double t) { return Vec3(A * std::sin(2 * kPi * t * L / lambda), 0, t * L); };
+  const Surface s = test::tube_mesh(
+      [&](double t, double th) { return Vec3(centre(t) + Vec3(R * std::cos(th), R * std::sin(th), 0)); }, centre, 128, 240);
+  RemeshOptions o = grid(100, 60);
+  const auto r = remesh_layers({{"skin", s}}, o);
+  EXPECT_LE(r.sweep.plane_turn, o.max_plane_turn);
+  EXPECT_GT(r.sweep.normal_window_m, 0);  // the centreline alone turns too fast: the tangent was averaged
+  const auto& q = r.layers[0];
+  for (int j = 0; j + 1 < q.nv; ++j) {
+    const Vec3 c = r.ring_centre.row(j).transpose(), n = r.ring_normal.row(j).transpose();
+    const double spacing = r.stations_m(j + 1) - r.stations_m(j);
+    for (int i = 0; i < q.nu; ++i) {
+      const double d = (q.vertices.row((j + 1) * q.nu + i).transpose() - c).dot(n);
+      EXPECT_GT(d, (1 - o.max_plane_turn) * 0.5 * spacing) << "ring " << j + 1 << " vertex " << i;
+    }
+  }
+}
+
 // ---- bad input ---------------------------------------------------------------
 
 TEST(RemeshErrors, OneLineMessages) {
