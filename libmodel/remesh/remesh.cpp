@@ -673,6 +673,7 @@ TubeSweep sweep_impl(const Surface& s, const Topology& topo, const Slicer& sl, c
   // on tapering, non-circular sections near flat caps) is undone and the
   // refinement stops there.
   std::vector<double> sec_s, sec_a;
+  double rmax = 0;  // largest distance from the axis to the surface over all these sections
   Curve prev_curve = curve;
   std::vector<double> prev_s, prev_a;
   double prev_total = std::numeric_limits<double>::infinity();
@@ -692,6 +693,7 @@ TubeSweep sweep_impl(const Surface& s, const Topology& topo, const Slicer& sl, c
         }
       if (!l) continue;
       next.push_back(pl.centre + l->centroid.x() * pl.e1 + l->centroid.y() * pl.e2);
+      for (const Vec2& q : l->q) rmax = std::max(rmax, q.norm());
       sec_s.push_back(sk);
       sec_a.push_back(std::abs(l->area));
     }
@@ -772,17 +774,10 @@ TubeSweep sweep_impl(const Surface& s, const Topology& topo, const Slicer& sl, c
   // (a segmented limb's staircase, taper), the smoothed centreline still turns
   // too fast for the limb's radius, so the tangent part of the normal field is
   // averaged over a growing window (doubling) until R_max |dn/ds| <=
-  // o.max_plane_turn everywhere, R_max the largest section radius. The cap
+  // o.max_plane_turn everywhere, R_max the largest distance from the axis to
+  // the surface on the refinement's sections. The cap
   // blend is kept, so end planes stay the caps.
   {
-    double rmax = 0;
-    for (int k = 0; k < K; ++k) {
-      const int i = static_cast<int>((k + 0.5) / K * (kTable - 1));
-      const Vec3 n = sw.normal.row(i);
-      const SweepPlane pl = make_plane(sw.centre.row(i).transpose(), n, reference_perpendicular(n));
-      for (const auto& l : sl.slice(pl))
-        for (const Vec2& q : l.q) rmax = std::max(rmax, q.norm());
-    }
     auto turn = [&]() {
       double worst = 0;
       for (int i = 0; i + 1 < kTable; ++i) {
@@ -1193,7 +1188,7 @@ RemeshResult remesh_layers(const std::vector<NamedSurface>& layers, const Remesh
     // one blend of the normal hits with the radial ones for the whole layer:
     // the largest that keeps every ring in order (blends that differ between
     // rings shear the cells between them: on the sample at 200x50, a per-ring
-    // blend inverted 163 skin tetrahedra, one per layer 18)
+    // blend inverted 163 skin tetrahedra, one per layer 18; docs/remesh.md)
     double alpha = 1;
     for (int j = 0; j < nv; ++j)
       if (has[j]) {

@@ -128,7 +128,7 @@ TEST(RemeshCli, BadInputExitsTwoWithoutOutput) {
 // no inverted cell: the inner layers follow the outer normals (before, the
 // muscle -> bone rays from the bone's centre inverted muscle cells at 40x10,
 // the skin's centroid projection at 100x25; wobbling ring planes crossed
-// inside the limb at 200x50). 200x50 still fails in build (about 18 skin
+// inside the limb at 200x50). 200x50 still fails in build (a few skin
 // tetrahedra, docs/remesh.md), so it is not asserted here.
 TEST(RemeshCli, SegmentedSampleBuildsAtFineGrids) {
   test::TempDir d{"remesh-sample"};
