@@ -9,9 +9,11 @@
 
 #include <tbb/global_control.h>
 #include <tbb/parallel_for.h>
+#include <tbb/task_group.h>
 
 #include <algorithm>
 #include <atomic>
+#include <chrono>
 #include <filesystem>
 #include <iomanip>
 #include <iostream>
@@ -147,11 +149,25 @@ void add_surface_command(CLI::App& app) {
     report.parameters()["threads"] = a.threads;
 
     // ---- surfaces ---------------------------------------------------------------------------
+    // The surface each tissue must stay inside: the nearest enclosing label
+    // that has a surface here (none: names.size()).
+    const std::size_t none = names.size();
+    std::vector<std::size_t> outer(names.size(), none);
+    for (std::size_t i = 0; i < names.size(); ++i) {
+      int pl = parents[static_cast<std::size_t>(v.label_of(names[i]))];
+      while (pl > 0 && outer[i] == none) {
+        for (std::size_t j = 0; j < names.size(); ++j)
+          if (v.label_of(names[j]) == pl) outer[i] = j;
+        if (outer[i] == none) pl = parents[static_cast<std::size_t>(pl)];
+      }
+    }
+
     // The tissues are independent until nesting: they are extracted side by
     // side (each extraction is parallel inside too; TBB shares the threads),
     // every result in its own slot, so the output does not depend on the
     // order they finish in. The first failing tissue in --tissues order is
-    // the one reported.
+    // the one reported. A nested surface is checked for self-intersections
+    // once, after nesting has moved it (not also before).
     std::vector<SurfaceResult> results(names.size());
     {
       Progress bar("surface", static_cast<long>(names.size()), a.common.quiet);
@@ -159,8 +175,10 @@ void add_surface_command(CLI::App& app) {
       std::atomic<long> done{0};
       std::mutex bar_mutex;
       tbb::parallel_for(std::size_t{0}, names.size(), [&](std::size_t i) {
+        SurfaceOptions oi = o;
+        if (outer[i] != none) oi.check_self_intersections = false;
         try {
-          results[i] = extract_surface(v, solids[i], o);
+          results[i] = extract_surface(v, solids[i], oi);
         } catch (const Error& e) {
           failed[i] = names[i] + ": " + e.message();
         }
@@ -181,6 +199,14 @@ void add_surface_command(CLI::App& app) {
     }
 
     // ---- nesting: each surface strictly inside its parent's, outermost first ----------------------
+    // Nesting is a chain (muscle inside the final fat, fat inside the final
+    // skin), but a surface that nesting does not move is final as extracted.
+    // So every tissue is first nested, side by side, against its parent as
+    // extracted; then, outermost first, a result stands when the parent did
+    // not move and is recomputed against the moved parent otherwise: the same
+    // surfaces as the plain chain, in one parallel round when nothing moves.
+    // A tissue's surface is final once nested, so its checks run in a task
+    // while the tissues inside it are settled (both only read it).
     std::vector<NestingResult> nesting(names.size());
     {
       Phase p(report, "nesting");
@@ -195,34 +221,44 @@ void add_surface_command(CLI::App& app) {
         return depth(v.label_of(names[x])) < depth(v.label_of(names[y]));
       });
       const double clearance = o.nest_clearance_vox * std::min({v.spacing_m[0], v.spacing_m[1], v.spacing_m[2]});
-      for (std::size_t i : order) {
-        // the nearest enclosing label that has a surface here
-        int pl = parents[static_cast<std::size_t>(v.label_of(names[i]))];
-        std::size_t outer = names.size();
-        while (pl > 0 && outer == names.size()) {
-          for (std::size_t j = 0; j < names.size(); ++j)
-            if (v.label_of(names[j]) == pl) outer = j;
-          if (outer == names.size()) pl = parents[static_cast<std::size_t>(pl)];
+      tbb::task_group checks;
+      auto check = [&](std::size_t i) {
+        const auto t0 = std::chrono::steady_clock::now();
+        const SurfaceMetrics before = results[i].metrics;
+        SurfaceMetrics m = check_surface(results[i].surface, o.check_self_intersections);
+        m.extracted_faces = before.extracted_faces;
+        m.solid_voxels = before.solid_voxels;
+        m.filled_voxels = before.filled_voxels;
+        m.smooth_volume_change = before.smooth_volume_change;
+        m.solid_s = before.solid_s, m.field_s = before.field_s, m.extract_s = before.extract_s;
+        m.smooth_s = before.smooth_s, m.decimate_s = before.decimate_s;
+        m.check_s = before.check_s + std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+        results[i].metrics = m;
+      };
+      std::vector<Surface> nested(names.size());
+      tbb::parallel_for(std::size_t{0}, names.size(), [&](std::size_t i) {
+        if (outer[i] == none) return;
+        nested[i] = results[i].surface;
+        nesting[i] = enforce_nesting(nested[i], results[outer[i]].surface, clearance);
+      });
+      try {
+        for (std::size_t i : order) {
+          if (outer[i] == none) continue;
+          if (nesting[outer[i]].moved > 0)  // the parent moved: nest against its final surface
+            nesting[i] = enforce_nesting(results[i].surface, results[outer[i]].surface, clearance);
+          else
+            results[i].surface = std::move(nested[i]);
+          if (nesting[i].still_outside > 0)
+            throw Error(a.labels, names[i] + ": " + std::to_string(nesting[i].still_outside) +
+                                      " vertices stay outside the surface of " + names[outer[i]] +
+                                      " (a shell thinner than --nest-clearance?)");
+          checks.run([&check, i] { check(i); });
         }
-        if (outer == names.size()) continue;
-        nesting[i] = enforce_nesting(results[i].surface, results[outer].surface, clearance);
-        if (nesting[i].moved > 0) {
-          const double secs = results[i].metrics.total_s();
-          SurfaceMetrics m = check_surface(results[i].surface, o.check_self_intersections);
-          m.extracted_faces = results[i].metrics.extracted_faces;
-          m.solid_voxels = results[i].metrics.solid_voxels;
-          m.filled_voxels = results[i].metrics.filled_voxels;
-          m.smooth_volume_change = results[i].metrics.smooth_volume_change;
-          m.solid_s = results[i].metrics.solid_s, m.field_s = results[i].metrics.field_s;
-          m.extract_s = results[i].metrics.extract_s, m.smooth_s = results[i].metrics.smooth_s;
-          m.decimate_s = results[i].metrics.decimate_s, m.check_s = secs - m.solid_s - m.field_s - m.extract_s - m.smooth_s - m.decimate_s;
-          results[i].metrics = m;
-        }
-        if (nesting[i].still_outside > 0)
-          throw Error(a.labels, names[i] + ": " + std::to_string(nesting[i].still_outside) +
-                                    " vertices stay outside the surface of " + names[outer] +
-                                    " (a shell thinner than --nest-clearance?)");
+      } catch (...) {
+        checks.wait();  // a task group is waited for before it goes
+        throw;
       }
+      checks.wait();
     }
 
     // ---- outputs: the directory, then the model ------------------------------------------------
