@@ -131,7 +131,10 @@ int wait_child(pid_t pid) {
 
 class Runner {
  public:
-  Runner(const Args& a, Report& report) : a_(a), report_(report) {}
+  // The tool is an input of every stage: its version and the content hash of
+  // this executable, so a rebuilt orthosim never reuses an older one's entries.
+  Runner(const Args& a, Report& report)
+      : a_(a), report_(report), tool_(version_string() + " " + hash_path("/proc/self/exe")) {}
   ~Runner() {
     // a stage that failed while a parallel one was running: stop and reap it
     // (its cache entry has no manifest, so it is never used)
@@ -218,7 +221,7 @@ class Runner {
 
   Pending open(const std::string& name, const std::vector<std::string>& key_parts, const std::vector<std::string>& outputs) {
     std::vector<std::string> parts = key_parts;
-    parts.push_back(version_string());
+    parts.push_back(tool_);
     Pending p;
     p.entry = pipeline::open_entry(a_.work, name, pipeline::stage_key(name, parts));
     p.rec = {{"stage", name}, {"key", p.entry.key}, {"dir", p.entry.dir}, {"ran", !p.entry.hit},
@@ -247,6 +250,7 @@ class Runner {
 
   const Args& a_;
   Report& report_;
+  const std::string tool_;
   int failed_code_ = 0;
   std::vector<Pending> pending_;
 };

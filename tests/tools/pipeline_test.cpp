@@ -210,3 +210,20 @@ TEST(Pipeline, BadFlags) {
   EXPECT_EQ(r.code, 2);
   EXPECT_FALSE(fs::exists(s.dir / "x.h5"));
 }
+
+// The tool is an input of every stage: a different orthosim executable (here
+// the same one with a byte appended, which still runs) reuses no entry.
+TEST(Pipeline, ADifferentToolReusesNoEntry) {
+  const Sample& s = sample();
+  ASSERT_EQ(test::run_cli(s.args("--no-tune")).code, 0);
+  EXPECT_FALSE(s.ran().count("segment"));  // warm with this tool
+  const std::string other = s.dir / "orthosim-other";
+  fs::copy_file(ORTHOSIM_BINARY, other, fs::copy_options::overwrite_existing);
+  {
+    std::ofstream f(other, std::ios::binary | std::ios::app);
+    f << '\n';
+  }
+  fs::permissions(other, fs::perms::owner_all);
+  ASSERT_EQ(std::system((other + " " + s.args("--no-tune") + " 2>/dev/null").c_str()), 0);
+  for (const char* st : {"segment", "surface", "remesh", "build"}) EXPECT_TRUE(s.ran().count(st)) << st;
+}
