@@ -376,22 +376,25 @@ std::string summary(const json& j) {
     if (!st["seconds"].is_null()) o << ", " << fmt(st["seconds"], "%.1f") << " s";
     o << ")\n\n";
     if (!st["note"].is_null()) o << "Note: " << fmt(st["note"]) << "\n\n";
-    bool any = false;
-    std::string workload;
-    for (const json& r : j["rows"]) {
-      if (r["stage"] != name) continue;
-      if (!any || r["workload"] != workload) {
-        workload = r["workload"];
-        o << (any ? "\n" : "") << "**" << workload << "**\n\n"
-          << "| setting | time | error metric | value | goal | met | peer | peer time | peer error | ratio | also |\n"
-          << "|---|---|---|---|---|---|---|---|---|---|---|\n";
-        any = true;
+    // one table per workload, in the order the workloads first appear (a
+    // program may interleave them, e.g. Fig. 3(a)'s two integrators per grid)
+    std::vector<std::string> workloads;
+    for (const json& r : j["rows"])
+      if (r["stage"] == name && std::find(workloads.begin(), workloads.end(), r["workload"]) == workloads.end())
+        workloads.push_back(r["workload"]);
+    const bool any = !workloads.empty();
+    for (std::size_t w = 0; w < workloads.size(); ++w) {
+      o << (w ? "\n" : "") << "**" << workloads[w] << "**\n\n"
+        << "| setting | time | error metric | value | goal | met | peer | peer time | peer error | ratio | also |\n"
+        << "|---|---|---|---|---|---|---|---|---|---|---|\n";
+      for (const json& r : j["rows"]) {
+        if (r["stage"] != name || r["workload"] != workloads[w]) continue;
+        o << "| " << fmt(r["setting"]) << " | " << time_cell(r, "time_median_s", "time_min_s", "time_max_s") << " | "
+          << fmt(r["error_metric"]) << " | " << fmt(r["error_value"]) << " | " << fmt(r["goal"]) << " | "
+          << fmt(r["goal_met"]) << " | " << fmt(r["peer"]) << " | "
+          << time_cell(r, "peer_time_median_s", "peer_time_min_s", "peer_time_max_s") << " | " << fmt(r["peer_error_value"])
+          << " | " << (r["ratio"].is_null() ? "" : fmt(r["ratio"], "%.2fx")) << " | " << highlights(r["extra"]) << " |\n";
       }
-      o << "| " << fmt(r["setting"]) << " | " << time_cell(r, "time_median_s", "time_min_s", "time_max_s") << " | "
-        << fmt(r["error_metric"]) << " | " << fmt(r["error_value"]) << " | " << fmt(r["goal"]) << " | "
-        << fmt(r["goal_met"]) << " | " << fmt(r["peer"]) << " | "
-        << time_cell(r, "peer_time_median_s", "peer_time_min_s", "peer_time_max_s") << " | " << fmt(r["peer_error_value"])
-        << " | " << (r["ratio"].is_null() ? "" : fmt(r["ratio"], "%.2fx")) << " | " << highlights(r["extra"]) << " |\n";
     }
     if (any) o << "\n";
     for (const json& n : st.value("notes", json::array())) o << "- " << n.get<std::string>() << "\n";
@@ -417,6 +420,7 @@ void add_bench_command(CLI::App& app) {
     std::string plot_script;
     bool no_plots = false;
     double limit_s = 0;
+    std::string render;
     CommonOptions common;
   };
   static Args a;
@@ -427,6 +431,9 @@ void add_bench_command(CLI::App& app) {
   sub->add_option("--plot-script", a.plot_script, "plot script (default: scripts/plot_bench.py of the source tree)");
   sub->add_flag("--no-plots", a.no_plots, "do not call the plot script");
   sub->add_option("--limit", a.limit_s, "seconds allowed per program (default 300 with --quick, 1200 without)");
+  sub->add_option("--render", a.render,
+                  "run nothing: write results.csv and summary.md into --out from an earlier run's results.json "
+                  "(plots: scripts/plot_bench.py RESULTS.json DIR)");
   add_common_options(sub, a.common);
 
   // like on_run, but a run with a failed program or a missed goal exits 1
@@ -434,6 +441,22 @@ void add_bench_command(CLI::App& app) {
   sub->callback([] {
     bench_failed = false;
     const int rc = guarded("bench", [] {
+    if (!a.render.empty()) {
+      json j;
+      try {
+        j = json::parse(read_text(a.render));
+        if (!j.contains("rows") || !j.contains("stages") || !j.contains("goals") || !j.contains("machine"))
+          throw Error(a.render, "not the results.json of an orthosim bench run");
+      } catch (const json::exception& e) {
+        throw Error(a.render, std::string("invalid JSON: ") + e.what());
+      }
+      AtomicDir out(a.out);
+      write_text_file(out.temp_path("results.json"), j.dump(1) + "\n");
+      write_text_file(out.temp_path("results.csv"), to_csv(j["rows"]));
+      write_text_file(out.temp_path("summary.md"), summary(j));
+      out.commit();
+      return;
+    }
     std::vector<const Stage*> stages;
     if (a.only.empty()) {
       for (const Stage& s : kStages) stages.push_back(&s);

@@ -420,14 +420,24 @@ void sample_loop(const Loop& l, const SweepPlane& pl, RingSampling mode, const s
   }
 }
 
+// Cumulative arc length of the closed polygon T at each vertex, and its
+// perimeter last (T.size() + 1 entries).
+namespace {
+std::vector<double> closed_arc_lengths(const std::vector<Vec2>& T) {
+  const std::size_t m = T.size();
+  std::vector<double> cum(m + 1, 0);
+  for (std::size_t s = 0; s < m; ++s) cum[s + 1] = cum[s] + (T[(s + 1) % m] - T[s]).norm();
+  return cum;
+}
+}  // namespace
+
 // Arc-length parameters on T where the inward normals of the ring P first
 // meet T, unwrapped (see detail.h).
 std::vector<double> normal_hits(const std::vector<Vec2>& P, const std::vector<Vec2>& T) {
   const int n = static_cast<int>(P.size());
   const std::size_t m = T.size();
   std::vector<double> sig(static_cast<std::size_t>(n), 0);
-  std::vector<double> cum(m + 1, 0);
-  for (std::size_t s = 0; s < m; ++s) cum[s + 1] = cum[s] + (T[(s + 1) % m] - T[s]).norm();
+  const std::vector<double> cum = closed_arc_lengths(T);
   const double per = cum[m];
   if (n == 0 || m < 3 || !(per > 0)) return sig;
   // closest point of T to x, as an arc-length parameter
@@ -480,8 +490,7 @@ std::vector<double> radial_hits(const std::vector<Vec2>& P, const std::vector<Ve
   const int n = static_cast<int>(P.size());
   const std::size_t m = T.size();
   std::vector<double> sig(static_cast<std::size_t>(n), 0);
-  std::vector<double> cum(m + 1, 0);
-  for (std::size_t s = 0; s < m; ++s) cum[s + 1] = cum[s] + (T[(s + 1) % m] - T[s]).norm();
+  const std::vector<double> cum = closed_arc_lengths(T);
   const double per = cum[m];
   if (n == 0 || m < 3 || !(per > 0)) return sig;
   for (int i = 0; i < n; ++i) {

@@ -309,25 +309,39 @@ BENCHMARK(BM_Paper_SagBullet)->Arg(1)->Arg(10)->UseRealTime()->Unit(benchmark::k
 
 // ---- tables ----------------------------------------------------------------------------
 
+// The run-time-against-error workload: a 13 x 5 x 4 block, bone fixed, the
+// middle skin node pulled 4 mm down over T = 0.05 s, under gravity.
+struct PullBlock {
+  rt::Model m;
+  rt::State s0;
+  Real T = 0.05;
+};
+PullBlock pull_block() {
+  rt::testing::LayeredBlockOptions bo;
+  bo.nu = 13, bo.nv = 5;
+  const auto b = rt::testing::make_layered_block(bo);
+  PullBlock w{rt::model_from_layers(b.layers, b.sets), {}, 0.05};
+  w.s0 = rt::make_state(w.m);
+  rt::fix_nodes(w.m, w.s0, w.m.set("fixed"));
+  rt::Attachment a;
+  const auto& skin = w.m.set("skin");
+  a.nodes = {skin[skin.size() / 2]};
+  a.offset = {0, 0, 0};
+  const rt::Vec3 p = rt::load3(w.m.rest_x.data(), a.nodes[0]);
+  a.path.t = {0, w.T};
+  a.path.p = {p.x, p.y, p.z, p.x, p.y - 0.004, p.z};
+  rt::attach(w.m, w.s0, a);
+  return w;
+}
+
 // Run-time against error: a 13 x 5 x 4 block, gravity and a pull, T = 0.05 s,
 // against symplectic Euler at 1e-7 s (converged to the RK4 solution within
 // the first-order error of that step).
 std::string error_table(bool quick) {
-  rt::testing::LayeredBlockOptions bo;
-  bo.nu = 13, bo.nv = 5;
-  const auto b = rt::testing::make_layered_block(bo);
-  rt::Model m = rt::model_from_layers(b.layers, b.sets);
-  rt::State s0 = rt::make_state(m);
-  rt::fix_nodes(m, s0, m.set("fixed"));
-  rt::Attachment a;
-  const auto& skin = m.set("skin");
-  a.nodes = {skin[skin.size() / 2]};
-  a.offset = {0, 0, 0};
-  const rt::Vec3 p = rt::load3(m.rest_x.data(), a.nodes[0]);
-  a.path.t = {0, 0.05};
-  a.path.p = {p.x, p.y, p.z, p.x, p.y - 0.004, p.z};
-  rt::attach(m, s0, a);
-  const Real T = 0.05;
+  PullBlock w = pull_block();
+  rt::Model& m = w.m;
+  const rt::State& s0 = w.s0;
+  const Real T = w.T;
   auto simulate = [&](rt::SolverOptions o, Real dt, double* wall, rt::Counters* c) {
     rt::State s = s0;
     tbb::task_arena arena(1);
@@ -437,21 +451,10 @@ std::string stress_table(bool quick) {
 namespace ob = orthosim::bench;
 
 void integrator_rows(ob::Results& out, bool quick) {
-  rt::testing::LayeredBlockOptions bo;
-  bo.nu = 13, bo.nv = 5;
-  const auto b = rt::testing::make_layered_block(bo);
-  rt::Model m = rt::model_from_layers(b.layers, b.sets);
-  rt::State s0 = rt::make_state(m);
-  rt::fix_nodes(m, s0, m.set("fixed"));
-  rt::Attachment a;
-  const auto& skin = m.set("skin");
-  a.nodes = {skin[skin.size() / 2]};
-  a.offset = {0, 0, 0};
-  const rt::Vec3 p = rt::load3(m.rest_x.data(), a.nodes[0]);
-  a.path.t = {0, 0.05};
-  a.path.p = {p.x, p.y, p.z, p.x, p.y - 0.004, p.z};
-  rt::attach(m, s0, a);
-  const Real T = 0.05;
+  PullBlock w = pull_block();
+  rt::Model& m = w.m;
+  const rt::State& s0 = w.s0;
+  const Real T = w.T;
   tbb::task_arena arena(1);
   auto simulate = [&](const rt::SolverOptions& o, Real dt, rt::Counters* c) {
     rt::State s = s0;

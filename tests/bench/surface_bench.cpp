@@ -160,6 +160,18 @@ vtkSmartPointer<vtkImageData> image(bool binary, const std::vector<int>& labels)
   return im;
 }
 
+// VTK flying edges at the 0.5 level of a 0/1 image, surface only (no
+// normals, gradients or scalars), as both workloads run it.
+vtkSmartPointer<vtkFlyingEdges3D> flying_edges(vtkImageData* im) {
+  auto fe = vtkSmartPointer<vtkFlyingEdges3D>::New();
+  fe->SetInputData(im);
+  fe->SetValue(0, 0.5);
+  fe->ComputeNormalsOff();
+  fe->ComputeGradientsOff();
+  fe->ComputeScalarsOff();
+  return fe;
+}
+
 Surface to_surface(vtkPolyData* pd) {
   Surface s;
   s.vertices.resize(pd->GetNumberOfPoints(), 3);
@@ -211,12 +223,7 @@ void BM_VTK_FlyingEdges(benchmark::State& state) {
   const Fixture& f = fixture();
   const std::string tissue = kTissues[state.range(0)];
   auto im = image(true, solid_label_set(f.v, tissue, f.parents));
-  vtkNew<vtkFlyingEdges3D> fe;
-  fe->SetInputData(im);
-  fe->SetValue(0, 0.5);
-  fe->ComputeNormalsOff();
-  fe->ComputeGradientsOff();
-  fe->ComputeScalarsOff();
+  auto fe = flying_edges(im);
   for (auto _ : state) {
     fe->Modified();
     fe->Update();
@@ -256,12 +263,7 @@ void results(const std::string& path, bool quick) {
     auto ours = [&] { r = extract_surface(f.v, labels, o); };
 #ifdef ORTHOSIM_HAVE_VTK_PEER
     auto im = image(true, labels);
-    vtkNew<vtkFlyingEdges3D> fe;
-    fe->SetInputData(im);
-    fe->SetValue(0, 0.5);
-    fe->ComputeNormalsOff();
-    fe->ComputeGradientsOff();
-    fe->ComputeScalarsOff();
+    auto fe = flying_edges(im);
     ob::time_alternating(quick ? 3 : 5, ours, [&] { fe->Modified(); fe->Update(); }, &row.seconds, &row.peer_seconds);
     row.peer = "VTK vtkFlyingEdges3D";
     row.peer_error = surface_error(to_surface(fe->GetOutput()), tissue).second;

@@ -100,6 +100,19 @@ TEST(Bench, QuickBuildStageWritesResultsCsvAndSummary) {
   int entries = 0;
   for (const auto& e : fs::directory_iterator(dir.path)) ++entries, (void)e;
   EXPECT_EQ(entries, 1);
+
+  // --render rewrites the same summary and CSV from the results alone
+  const std::string again = dir / "again";
+  const auto rr = test::run_cli("bench --render " + out + "/results.json --out " + again);
+  ASSERT_EQ(rr.code, 0) << rr.err;
+  EXPECT_EQ(test::read_file(again + "/summary.md"), md);
+  EXPECT_EQ(test::read_file(again + "/results.csv"), test::read_file(out + "/results.csv"));
+  // ... and refuses a file that is not a bench run's results, writing nothing
+  test::write_file(dir / "not.json", "{\"rows\": []}");
+  const auto bad = test::run_cli("bench --render " + (dir / "not.json") + " --out " + (dir / "bad"));
+  EXPECT_EQ(bad.code, 2);
+  EXPECT_EQ(test::count_lines(bad.err), 1) << bad.err;
+  EXPECT_FALSE(fs::exists(dir / "bad"));
 }
 #endif
 
