@@ -26,6 +26,7 @@
 #include <iomanip>
 #include <iostream>
 #include <map>
+#include <numeric>
 #include <sstream>
 
 namespace orthosim::cli {
@@ -282,7 +283,8 @@ void add_tune_command(CLI::App& app) {
           w.write(j.tissue, tune::tuning_record(j.result));
         }
         w.write("tune", make_provenance(command_line(), report.json()["inputs"].dump(), params.dump(),
-                                        static_cast<std::int64_t>(opt.seed), 0.0));
+                                        static_cast<std::int64_t>(opt.seed),
+                                        std::accumulate(seconds.begin(), seconds.end(), 0.0)));
         w.commit();
         report.output(model);
       }
