@@ -397,15 +397,27 @@ std::string error_table(bool quick) {
   return out.str();
 }
 
+// The stability sweep's workload, one definition for the table and the
+// harness rows: block size and steps, dt x K2/K1 x mass ratio.
+struct StressGrid {
+  rt::testing::StressSize size;
+  std::vector<Real> dts{1e-5, 1e-4, 1e-3, 1e-2, 1.0 / 30};
+  std::vector<Real> krs{1, 10, 1e2, 1e3, 1e4};
+  std::vector<Real> mrs{1, 1e2, 1e4};
+};
+StressGrid stress_grid(bool quick) {
+  StressGrid g;
+  g.size.nu = quick ? 4 : 8, g.size.nv = quick ? 3 : 5, g.size.layers = 4;
+  g.size.steps = quick ? 6 : 12;
+  g.size.max_substeps = quick ? 1 << 14 : 1 << 16;
+  return g;
+}
+
 std::string stress_table(bool quick) {
   using namespace rt::testing;
-  StressSize size;
-  size.nu = quick ? 4 : 8, size.nv = quick ? 3 : 5, size.layers = 4;
-  size.steps = quick ? 6 : 12;
-  size.max_substeps = quick ? 1 << 14 : 1 << 16;
-  const std::vector<Real> dts{1e-5, 1e-4, 1e-3, 1e-2, 1.0 / 30};
-  const std::vector<Real> krs{1, 10, 1e2, 1e3, 1e4};
-  const std::vector<Real> mrs{1, 1e2, 1e4};
+  const StressGrid g = stress_grid(quick);
+  const StressSize& size = g.size;
+  const std::vector<Real>&dts = g.dts, &krs = g.krs, &mrs = g.mrs;
   std::ostringstream out;
   out << "Cells: dt x K2/K1; each cell counts stable/recovered/failed over mass ratio {1, 1e2, 1e4} x degenerate springs {none, zero, near-zero} (9 runs).\n\n";
   long nan_runs = 0, runs = 0, unbounded_implicit = 0;
@@ -562,13 +574,9 @@ void grid_rows(ob::Results& out, bool quick) {
 
 void stability_rows(ob::Results& out, bool quick) {
   using namespace rt::testing;
-  StressSize size;
-  size.nu = quick ? 4 : 8, size.nv = quick ? 3 : 5, size.layers = 4;
-  size.steps = quick ? 6 : 12;
-  size.max_substeps = quick ? 1 << 14 : 1 << 16;
-  const std::vector<Real> dts{1e-5, 1e-4, 1e-3, 1e-2, 1.0 / 30};
-  const std::vector<Real> krs{1, 10, 1e2, 1e3, 1e4};
-  const std::vector<Real> mrs{1, 1e2, 1e4};
+  const StressGrid g = stress_grid(quick);
+  const StressSize& size = g.size;
+  const std::vector<Real>&dts = g.dts, &krs = g.krs, &mrs = g.mrs;
   for (StressMode mode : {StressMode::symplectic_auto, StressMode::symplectic_fixed, StressMode::implicit})
     for (Real dt : dts)
       for (Real kr : krs) {
