@@ -56,6 +56,7 @@ void add_remesh_command(CLI::App& app) {
     std::string surface, inner, names, grid = "39x9", out, model, stack, spacing, origin, around = "arc";
     bool texture = false, uniform = false;
     double texel_mm = 0, depth_mm = -1;
+    int arc_window = RemeshOptions{}.arc_window;
     CommonOptions common;
   };
   static Args a;
@@ -68,6 +69,9 @@ void add_remesh_command(CLI::App& app) {
       ->required();
   sub->add_option("--model", a.model, "model file to write /quads/<tissue> into (replaces /quads)");
   sub->add_option("--around", a.around, "ring sampling: arc (equal arc length) or angle (equal angles)")
+      ->capture_default_str();
+  sub->add_option("--arc-window", a.arc_window,
+                  "arc sampling: measure each section's length smoothed over 2N+1 of its vertices (0..64; 0: raw)")
       ->capture_default_str();
   sub->add_flag("--uniform", a.uniform, "rings at equal arc length (default: more where the surface bends along the axis)");
   sub->add_option("--stack", a.stack, "colour slice directory (DIR/slices/*.png or DIR/*.png) for --texture");
@@ -91,6 +95,7 @@ void add_remesh_command(CLI::App& app) {
       o.nu = g[0], o.nv = g[1];
     }
     o.adaptive = !a.uniform;
+    o.arc_window = a.arc_window;
     if (a.around == "arc")
       o.around = RingSampling::arc_length;
     else if (a.around == "angle")
@@ -123,6 +128,7 @@ void add_remesh_command(CLI::App& app) {
     Report report("remesh");
     report.parameters() = {{"grid", {o.nu, o.nv}},
                            {"around", a.around},
+                           {"arc_window", o.arc_window},
                            {"adaptive", o.adaptive},
                            {"max_spacing_ratio", o.max_spacing_ratio},
                            {"axis_sections", o.axis_sections},
@@ -188,7 +194,7 @@ void add_remesh_command(CLI::App& app) {
       TextureOptions to;
       to.texel_m = a.texel_mm * 1e-3;
       to.depth_m = a.depth_mm < 0 ? -1 : a.depth_mm * 1e-3;
-      tex = bake_texture(in[0].surface, r.sweep, o.around, st, to, names[0]);
+      tex = bake_texture(in[0].surface, r.sweep, o.around, o.arc_window, st, to, names[0]);
       report.metrics()["texture"] = {{"width", tex.width}, {"height", tex.height}, {"outside", tex.outside}};
     }
 

@@ -318,8 +318,15 @@ BuiltModel build_layers(const std::vector<std::pair<std::string, QuadSurface>>& 
     casters[l].reset();
     if (cells[l].inverted > 0)
       throw Error("", "inverted cells in layer '" + specs[l].tissue + "': " + std::to_string(cells[l].inverted) + " of " +
-                          std::to_string(cells[l].sub_tets) + " tetrahedra have volume <= 0 (smallest " +
-                          fmt(cells[l].min_tet_volume_m3) + " m^3); are the layers out of order or intersecting?");
+                          (specs[l].kind == "tetra"
+                               ? std::to_string(cells[l].sub_tets) + " tetrahedra have volume <= 0 (smallest " +
+                                     fmt(cells[l].min_tet_volume_m3) + " m^3)"
+                               : std::to_string(cells[l].cells) + " hexahedra have a Jacobian <= 0 (smallest " +
+                                     fmt(cells[l].min_jacobian_m3) + " m^3)") +
+                          ", the first under quad (i, j) = (" +
+                          std::to_string(cells[l].first_inverted_quad % nu) + ", " +
+                          std::to_string(cells[l].first_inverted_quad / nu) +
+                          "); are the layers out of order or intersecting?");
   }
   phase("cells");
 

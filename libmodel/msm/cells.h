@@ -64,7 +64,10 @@ struct LayerCells {
   double volume_m3 = 0;                        // sum of the cell volumes
   std::int64_t cells = 0;                      // prisms (tetra) or hexahedra (lattice)
   std::int64_t sub_tets = 0;                   // tetrahedra the cells were cut into for volumes and checks
-  std::int64_t inverted = 0;                   // sub-tetrahedra with volume <= min_volume
+  std::int64_t inverted = 0;                   // tetra: sub-tetrahedra with volume <= min_volume; lattice:
+                                               // hexahedra with a Jacobian <= min_volume at a corner or the centre
+  std::int64_t first_inverted_quad = -1;       // the quad over the first of them (-1: none)
+  double min_jacobian_m3 = 0;                  // lattice: smallest hexahedron Jacobian (corners, centre)
   double min_tet_volume_m3 = 0;                // smallest sub-tetrahedron volume
   double mean_tet_volume_m3 = 0;
   ProjectionCounts projection;                 // tetra layers

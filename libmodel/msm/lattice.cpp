@@ -153,6 +153,25 @@ std::array<double, 3> axis_moduli(const Eigen::Matrix<double, 6, 6>& C) {
   return {1 / S(0, 0), 1 / S(1, 1), 1 / S(2, 2)};
 }
 
+double hex_min_jacobian(const Vec3 T[4], const Vec3 B[4]) {
+  // trilinear map from the unit cube: xi along q0 -> q1, eta along q0 -> q3,
+  // zeta from the top (outer) quad to the bottom one; the quads are
+  // counter-clockwise seen from outside, so det[x_xi, x_eta, x_zeta] < 0 on
+  // a valid cell and J = -det
+  auto J = [](const Vec3& xi, const Vec3& eta, const Vec3& zeta) { return -xi.cross(eta).dot(zeta); };
+  double m = std::numeric_limits<double>::infinity();
+  for (const Vec3* Q : {T, B})
+    for (int i = 0; i < 4; ++i) {
+      const Vec3 xi = (i == 0 || i == 1) ? Vec3(Q[1] - Q[0]) : Vec3(Q[2] - Q[3]);
+      const Vec3 eta = (i == 0 || i == 3) ? Vec3(Q[3] - Q[0]) : Vec3(Q[2] - Q[1]);
+      m = std::min(m, J(xi, eta, B[i] - T[i]));
+    }
+  const Vec3 xi = 0.25 * (T[1] - T[0] + T[2] - T[3] + B[1] - B[0] + B[2] - B[3]);
+  const Vec3 eta = 0.25 * (T[3] - T[0] + T[2] - T[1] + B[3] - B[0] + B[2] - B[1]);
+  const Vec3 zeta = 0.25 * (B[0] - T[0] + B[1] - T[1] + B[2] - T[2] + B[3] - T[3]);
+  return std::min(m, J(xi, eta, zeta));
+}
+
 LayerCells lattice_cells(const MatX3d& top, const MatX3d& bottom, const MatX4i& quads, const NodeBlocks& blocks,
                          const LatticeOptions& o) {
   if (o.through_cells < 1 || o.through_cells > 64) throw Error("", "through_cells must be in 1..64");
@@ -183,7 +202,8 @@ LayerCells lattice_cells(const MatX3d& top, const MatX3d& bottom, const MatX4i& 
   const Eigen::Index nq = quads.rows(), ncell = nq * nw;
   const int per = o.body_diagonals ? 28 : 24;
   out.terms.assign(static_cast<std::size_t>(ncell) * per, SpringTerm{});
-  std::vector<double> cell_v(static_cast<std::size_t>(ncell)), sub_v(static_cast<std::size_t>(ncell) * 6);
+  std::vector<double> cell_v(static_cast<std::size_t>(ncell)), sub_v(static_cast<std::size_t>(ncell) * 6),
+      cell_j(static_cast<std::size_t>(ncell));
   std::vector<CellRule> rules(static_cast<std::size_t>(ncell));
   std::vector<std::array<double, 3>> moduli(static_cast<std::size_t>(ncell), {0, 0, 0});
   std::vector<char> ruled(static_cast<std::size_t>(ncell), 0);
@@ -224,12 +244,13 @@ LayerCells lattice_cells(const MatX3d& top, const MatX3d& bottom, const MatX4i& 
         }
       }
       cell_v[static_cast<std::size_t>(cell)] = V;
+      cell_j[static_cast<std::size_t>(cell)] = hex_min_jacobian(T, B);
       // equivalent box: mean edge lengths along u (q0q1, q3q2), v (q1q2, q0q3), w
       const double a = 0.25 * ((T[1] - T[0]).norm() + (T[2] - T[3]).norm() + (B[1] - B[0]).norm() + (B[2] - B[3]).norm());
       const double bl = 0.25 * ((T[2] - T[1]).norm() + (T[3] - T[0]).norm() + (B[2] - B[1]).norm() + (B[3] - B[0]).norm());
       double c = 0;
       for (int i = 0; i < 4; ++i) c += 0.25 * (B[i] - T[i]).norm();
-      const bool valid = a > 0 && bl > 0 && c > 0 && V > 0;  // else: counted as inverted below, springs get k = 0
+      const bool valid = a > 0 && bl > 0 && c > 0 && V > 0 && cell_j[static_cast<std::size_t>(cell)] > 0;  // else: inverted, k = 0
       CellRule r;
       if (valid) {
         r = cell_rule(a, bl, c, o.body_diagonals, o.min_weight);
@@ -295,9 +316,13 @@ LayerCells lattice_cells(const MatX3d& top, const MatX3d& bottom, const MatX4i& 
   out.sub_tets = static_cast<std::int64_t>(sub_volumes.size());
   out.mean_tet_volume_m3 = sub_volumes.empty() ? 0 : sum_v / static_cast<double>(sub_volumes.size());
   out.min_tet_volume_m3 = sub_volumes.empty() ? 0 : min_v;
-  const double floor = o.inverted_ratio * std::abs(out.mean_tet_volume_m3);
-  for (double tv : sub_volumes)
-    if (!(tv > floor)) ++out.inverted;
+  // a hexahedron is inverted where its Jacobian is not positive at a corner
+  // or the centre (the sub-tetrahedra above are a volume quadrature, not
+  // elements: a sheared but valid cell may have one of negative volume)
+  const double floor = o.inverted_ratio * std::abs(ncell ? sum_v / static_cast<double>(ncell) : 0.0);
+  out.min_jacobian_m3 = cell_j.empty() ? 0 : *std::min_element(cell_j.begin(), cell_j.end());
+  for (std::size_t i = 0; i < cell_j.size(); ++i)
+    if (!(cell_j[i] > floor) && out.inverted++ == 0) out.first_inverted_quad = static_cast<std::int64_t>(i) % nq;
   if (out.rule.cells > 0)
     for (int i = 0; i < 3; ++i)
       out.rule.mean_modulus_ratio[static_cast<std::size_t>(i)] = ratio_sum[i] / static_cast<double>(out.rule.cells),

@@ -62,15 +62,24 @@ struct LatticeOptions {
   int through_cells = 1;        // cells through the layer's thickness, [1, 64]; interior grids interpolate linearly
   bool body_diagonals = false;  // add the 4 body diagonals of each cell (docs/msm.md: they do not help)
   double min_weight = 0.01;     // floor of edge/face weights, times their cube values: no cell is a mechanism
-  double inverted_ratio = 1e-9; // a sub-tetrahedron below this fraction of the mean volume counts as inverted
+  double inverted_ratio = 1e-9; // a cell whose Jacobian falls below this fraction of the mean cell volume is inverted
 };
+
+// Smallest Jacobian of the trilinear map of the hexahedron from the unit cube
+// (volume units, = its volume for a box) over its 8 corners and its centre,
+// the hexahedron "Jacobian" of the Verdict library (Knupp 2000; VTK's
+// vtkMeshQuality). T = the top (outer) quad q0..q3, counter-clockwise seen
+// from outside; B = the quad below it. <= 0: the cell is inverted there.
+double hex_min_jacobian(const Eigen::Vector3d T[4], const Eigen::Vector3d B[4]);
 
 // The cells of a lattice layer between `top` and `bottom` grids (same rows,
 // same `quads`, outward counter-clockwise). Interior grids (through_cells-1 of
 // them) are created at blocks.created + (k-1)*n_grid. Each hexahedron is cut
 // into 6 tetrahedra (two prisms over the triangles q0q1q2, q0q2q3, side
-// faces cut from the smaller id) for its volume and the inversion check;
-// lumped volume V/8 per corner.
+// faces cut from the smaller id) for its volume, lumped V/8 per corner; it is
+// inverted where hex_min_jacobian <= inverted_ratio x the mean cell volume (a
+// sheared but valid hexahedron may have a sub-tetrahedron of negative volume:
+// the split is a quadrature, the cell is the element).
 LayerCells lattice_cells(const MatX3d& top, const MatX3d& bottom, const MatX4i& quads, const NodeBlocks& blocks,
                          const LatticeOptions& options);
 

@@ -169,8 +169,8 @@ LayerCells tetra_cells(const MatX3d& top, const MatX3d& bottom, const MatX4i& qu
   out.mean_tet_volume_m3 = volumes.empty() ? 0 : sum / static_cast<double>(volumes.size());
   out.min_tet_volume_m3 = volumes.empty() ? 0 : mn;
   const double floor = o.inverted_ratio * std::abs(out.mean_tet_volume_m3);
-  for (double v : volumes)
-    if (!(v > floor)) ++out.inverted;
+  for (std::size_t i = 0; i < volumes.size(); ++i)
+    if (!(volumes[i] > floor) && out.inverted++ == 0) out.first_inverted_quad = static_cast<std::int64_t>(i / kTets / 2);
   return out;
 }
 

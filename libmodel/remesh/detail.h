@@ -72,9 +72,10 @@ const Loop& tube_loop(const std::vector<Loop>& loops, const std::string& name, d
 
 // Points of a ring at fractions u (sorted, in [0, 1)): equal arc length from
 // the phase point (the outermost crossing of the ray from the centre along
-// e1), or rays at angles 2 pi u from e1. inward (optional): unit in-plane
+// e1), arc length measured on the section smoothed over 2 arc_window + 1
+// vertices (RemeshOptions::arc_window), or rays at angles 2 pi u from e1. inward (optional): unit in-plane
 // normals pointing inside. Throws Error(name, ...) when a ray misses.
-void sample_loop(const Loop& l, const SweepPlane& pl, RingSampling mode, const std::vector<double>& u,
+void sample_loop(const Loop& l, const SweepPlane& pl, RingSampling mode, int arc_window, const std::vector<double>& u,
                  std::vector<Eigen::Vector3d>& out, std::vector<Eigen::Vector3d>* inward, const std::string& name);
 
 // Correspondence between a ring and the section of the layer below it, both
@@ -83,7 +84,8 @@ void sample_loop(const Loop& l, const SweepPlane& pl, RingSampling mode, const s
 // at P[i] (normal of the chord P[i-1] P[i+1]) with T, or of the closest point
 // of T where the normal misses; unwrapped so that it goes once around T
 // (x[i] may exceed the perimeter: take it modulo).
-std::vector<double> normal_hits(const std::vector<Eigen::Vector2d>& P, const std::vector<Eigen::Vector2d>& T);
+std::vector<double> normal_hits(const std::vector<Eigen::Vector2d>& P, const std::vector<Eigen::Vector2d>& T,
+                                const std::vector<double>* halfwidth = nullptr);
 // radial_hits: the same for the rays from c (inside T) through P[i], outermost
 // crossing: ordered wherever T is star-shaped around c (rays from one point do
 // not cross).

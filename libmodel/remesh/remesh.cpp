@@ -357,7 +357,7 @@ const Loop& tube_loop(const std::vector<Loop>& loops, const std::string& name, d
 // Points of a ring at fractions u (sorted, in [0, 1)): equal arc length from
 // the phase point (the outermost crossing of the ray along e1), or rays at
 // angles 2 pi u. inward (optional): unit in-plane normals pointing inside.
-void sample_loop(const Loop& l, const SweepPlane& pl, RingSampling mode, const std::vector<double>& u,
+void sample_loop(const Loop& l, const SweepPlane& pl, RingSampling mode, int window, const std::vector<double>& u,
                  std::vector<Vec3>& out, std::vector<Vec3>* inward, const std::string& name) {
   const std::size_t m = l.q.size(), n = u.size();
   out.resize(n);
@@ -402,7 +402,35 @@ void sample_loop(const Loop& l, const SweepPlane& pl, RingSampling mode, const s
   if (best < 0) throw Error(name, "a ring does not surround its centre");
   std::vector<double> len(m);
   double P = 0;
-  for (std::size_t i = 0; i < m; ++i) P += len[i] = (l.q[(i + 1) % m] - l.q[i]).norm();
+  // arc length of the section smoothed by a moving average over an arc of
+  // half-width window x its mean vertex spacing: a staircase at the input's
+  // resolution adds length that is not the limb's (RemeshOptions::arc_window).
+  // The average is the integral of the polyline over the arc, so the vertex
+  // distribution does not bias it (a circle stays a circle, scaled). The
+  // points stay on the section.
+  if (window > 0 && m >= 3) {
+    std::vector<double> cs(m + 1, 0);
+    for (std::size_t i = 0; i < m; ++i) cs[i + 1] = cs[i] + (l.q[(i + 1) % m] - l.q[i]).norm();
+    const double per = cs[m];
+    // F(x) = integral of the polyline from 0 to x, periodic extension
+    std::vector<Vec2> F(m + 1, Vec2::Zero());
+    for (std::size_t i = 0; i < m; ++i) F[i + 1] = F[i] + 0.5 * (cs[i + 1] - cs[i]) * (l.q[i] + l.q[(i + 1) % m]);
+    auto integral = [&](double x) {
+      const double turns = std::floor(x / per);
+      double r = x - turns * per;
+      std::size_t i = static_cast<std::size_t>(std::upper_bound(cs.begin(), cs.end(), r) - cs.begin());
+      i = std::clamp<std::size_t>(i, 1, m) - 1;
+      const double d = r - cs[i], li = cs[i + 1] - cs[i];
+      const Vec2 a = l.q[i], b = l.q[(i + 1) % m];
+      const Vec2 part = li > 0 ? Vec2(d * a + 0.5 * d * d / li * (b - a)) : Vec2::Zero();
+      return Vec2(turns * F[m] + F[i] + part);
+    };
+    const double h = std::min(static_cast<double>(window) * per / static_cast<double>(m), 0.25 * per);
+    std::vector<Vec2> sm(m);
+    for (std::size_t i = 0; i < m; ++i) sm[i] = (integral(cs[i] + h) - integral(cs[i] - h)) / (2 * h);
+    for (std::size_t i = 0; i < m; ++i) P += len[i] = (sm[(i + 1) % m] - sm[i]).norm();  } else {
+    for (std::size_t i = 0; i < m; ++i) P += len[i] = (l.q[(i + 1) % m] - l.q[i]).norm();
+  }
   // walk from the phase point
   std::size_t i = bi;
   double start = blam * len[bi];  // distance already covered inside segment i
@@ -433,7 +461,7 @@ std::vector<double> closed_arc_lengths(const std::vector<Vec2>& T) {
 
 // Arc-length parameters on T where the inward normals of the ring P first
 // meet T, unwrapped (see detail.h).
-std::vector<double> normal_hits(const std::vector<Vec2>& P, const std::vector<Vec2>& T) {
+std::vector<double> normal_hits(const std::vector<Vec2>& P, const std::vector<Vec2>& T, const std::vector<double>* halfwidth) {
   const int n = static_cast<int>(P.size());
   const std::size_t m = T.size();
   std::vector<double> sig(static_cast<std::size_t>(n), 0);
@@ -452,9 +480,28 @@ std::vector<double> normal_hits(const std::vector<Vec2>& P, const std::vector<Ve
     }
     return at;
   };
+  // the ring P as a closed polyline with arc length, for the windowed chords
+  const std::vector<double> pcum = halfwidth ? closed_arc_lengths(P) : std::vector<double>{};
+  auto p_at = [&](double x) {  // point of P at arc length x (any real, taken around)
+    const double pp = pcum.back();
+    x = std::fmod(x, pp);
+    if (x < 0) x += pp;
+    std::size_t s = static_cast<std::size_t>(std::upper_bound(pcum.begin(), pcum.end(), x) - pcum.begin());
+    s = std::clamp<std::size_t>(s, 1, static_cast<std::size_t>(n)) - 1;
+    const double len = pcum[s + 1] - pcum[s];
+    const double f = len > 0 ? std::clamp((x - pcum[s]) / len, 0.0, 1.0) : 0;
+    return Vec2(P[s] + f * (P[(s + 1) % static_cast<std::size_t>(n)] - P[s]));
+  };
   // first crossing of the inward normal ray (counter-clockwise ring: inward is the left normal)
   for (int i = 0; i < n; ++i) {
-    const Vec2 tan = P[static_cast<std::size_t>((i + 1) % n)] - P[static_cast<std::size_t>((i - 1 + n) % n)];
+    Vec2 tan = P[static_cast<std::size_t>((i + 1) % n)] - P[static_cast<std::size_t>((i - 1 + n) % n)];
+    if (halfwidth && pcum.back() > 0) {
+      const double h = std::min((*halfwidth)[static_cast<std::size_t>(i)], 0.125 * pcum.back());
+      const Vec2& pi = P[static_cast<std::size_t>(i)];
+      const double step = 0.5 * ((P[static_cast<std::size_t>((i + 1) % n)] - pi).norm() +
+                                 (pi - P[static_cast<std::size_t>((i - 1 + n) % n)]).norm());
+      if (h > step) tan = p_at(pcum[static_cast<std::size_t>(i)] + h) - p_at(pcum[static_cast<std::size_t>(i)] - h);
+    }
     Vec2 w(-tan.y(), tan.x());
     double best = -1, at = 0;
     if (w.norm() > 0) {
@@ -845,6 +892,7 @@ void validate(const RemeshOptions& o) {
   if (!(o.max_spacing_ratio >= 1) || !std::isfinite(o.max_spacing_ratio)) bad("max_spacing_ratio must be >= 1");
   if (o.axis_sections < 8 || o.axis_sections > 4096) bad("axis_sections must be in 8..4096");
   if (o.axis_iterations < 0 || o.axis_iterations > 20) bad("axis_iterations must be in 0..20");
+  if (o.arc_window < 0 || o.arc_window > 64) bad("arc_window must be in 0..64");
   if (!(o.end_area_fraction > 0 && o.end_area_fraction < 1)) bad("end_area_fraction must be in (0, 1)");
   if (!(o.cap_angle_deg > 0 && o.cap_angle_deg < 45)) bad("cap_angle_deg must be in (0, 45)");
   if (!(o.fill_max_depth_fraction > 0 && o.fill_max_depth_fraction < 1))
@@ -960,7 +1008,7 @@ VecXd place_stations(const TubeSweep& sw, const Slicer& sl, const RemeshOptions&
   for (int k = 0; k < K; ++k) {
     const SweepPlane pl = sweep_plane(sw, k * ds);
     const auto loops = sl.slice(pl);
-    sample_loop(tube_loop(loops, name, k * ds, L), pl, o.around, u, ring[k], nullptr, name);
+    sample_loop(tube_loop(loops, name, k * ds, L), pl, o.around, o.arc_window, u, ring[k], nullptr, name);
   }
   std::vector<double> g(K, 0);
   for (int k = 1; k + 1 < K; ++k) {
@@ -1069,7 +1117,7 @@ RemeshResult remesh_layers(const std::vector<NamedSurface>& layers, const Remesh
     res.ring_normal.row(j) = planes[j].normal;
     res.ray_origin[0].row(j) = planes[j].centre;
     const auto loops = slicers[0].slice(planes[j]);
-    sample_loop(tube_loop(loops, layers[0].name, res.stations_m(j), L), planes[j], o.around, u, ring, nullptr,
+    sample_loop(tube_loop(loops, layers[0].name, res.stations_m(j), L), planes[j], o.around, o.arc_window, u, ring, nullptr,
                 layers[0].name);
     std::copy(ring.begin(), ring.end(), pts[0].begin() + static_cast<std::ptrdiff_t>(j) * nu);
   }
@@ -1104,7 +1152,39 @@ RemeshResult remesh_layers(const std::vector<NamedSurface>& layers, const Remesh
     std::vector<RingTarget> rings(static_cast<std::size_t>(nv));
     for (int j = 0; j < nv; ++j) {
       const SweepPlane& pl = planes[j];
-      const auto loops = slicers[k].slice(pl);
+      std::vector<Loop> loops = slicers[k].slice(pl);
+      if (topo[k].check.components > 1) {
+        // Several parts (the bones): the envelope is taken over the slab
+        // between the midpoints to the neighbouring rings, its sections
+        // projected onto this ring's plane. A plane near the end of one part
+        // cuts only its tip, a tiny loop (on the sample at 40x10 a bone tip
+        // 1 mm round took a whole ring; at the joint the envelope jumped by
+        // 6 mm between rings 3.4 mm apart and inverted muscle cells); the
+        // slab sees the part as it is around the ring.
+        const double lo = j > 0 ? 0.5 * (res.stations_m(j - 1) + res.stations_m(j)) : res.stations_m(j);
+        const double hi = j + 1 < nv ? 0.5 * (res.stations_m(j) + res.stations_m(j + 1)) : res.stations_m(j);
+        for (double f : {0.0, 0.25, 0.75, 1.0}) {
+          const double sj = lo + f * (hi - lo);
+          if (sj == res.stations_m(j)) continue;
+          const SweepPlane ps = sweep_plane(sw, sj);
+          for (Loop l : slicers[k].slice(ps)) {
+            double a2 = 0, cx = 0, cy = 0;
+            for (std::size_t v = 0; v < l.p.size(); ++v) {
+              const Vec3 r = l.p[v] - pl.centre;
+              l.q[v] = Vec2(r.dot(pl.e1), r.dot(pl.e2));
+            }
+            for (std::size_t v = 0; v < l.q.size(); ++v) {
+              const Vec2& a = l.q[v];
+              const Vec2& b = l.q[(v + 1) % l.q.size()];
+              const double w = a.x() * b.y() - a.y() * b.x();
+              a2 += w, cx += w * (a.x() + b.x()), cy += w * (a.y() + b.y());
+            }
+            l.area = 0.5 * a2;
+            l.centroid = a2 != 0 ? Vec2(cx / (3 * a2), cy / (3 * a2)) : Vec2::Zero();
+            loops.push_back(std::move(l));
+          }
+        }
+      }
       double A = 0;
       Vec2 c = Vec2::Zero();
       for (const auto& l : loops) A += l.area, c += l.area * l.centroid;
@@ -1186,6 +1266,26 @@ RemeshResult remesh_layers(const std::vector<NamedSurface>& layers, const Remesh
       origin[j] = c;
       RingTarget& rt = rings[static_cast<std::size_t>(j)];
       rt.x = remesh_detail::normal_hits(P, T);
+      {
+        // A ray of length d turns an error e in the normal into d e across:
+        // the normals are taken over arcs of half-width d (chords), so that
+        // bumps of the ring at the input's voxel scale, whose slopes are large
+        // but whose extent is small, move the hits by about their height, not
+        // by d times their slope.
+        const std::size_t mT = T.size();
+        const std::vector<double> cumT = remesh_detail::closed_arc_lengths(T);
+        std::vector<double> depth(static_cast<std::size_t>(nu));
+        for (int i = 0; i < nu; ++i) {
+          double x = std::fmod(rt.x[static_cast<std::size_t>(i)], cumT[mT]);
+          if (x < 0) x += cumT[mT];
+          std::size_t s = static_cast<std::size_t>(std::upper_bound(cumT.begin(), cumT.end(), x) - cumT.begin());
+          s = std::clamp<std::size_t>(s, 1, mT) - 1;
+          const double len = cumT[s + 1] - cumT[s];
+          const double f = len > 0 ? std::clamp((x - cumT[s]) / len, 0.0, 1.0) : 0;
+          depth[static_cast<std::size_t>(i)] = (T[s] + f * (T[(s + 1) % mT] - T[s]) - P[static_cast<std::size_t>(i)]).norm();
+        }
+        rt.x = remesh_detail::normal_hits(P, T, &depth);
+      }
       rt.base = remesh_detail::radial_hits(P, T, c);
       rt.per = 0;
       for (std::size_t s = 0; s < T.size(); ++s) rt.per += (T[(s + 1) % T.size()] - T[s]).norm();

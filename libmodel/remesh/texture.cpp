@@ -78,7 +78,7 @@ class SliceCache {
 
 }  // namespace
 
-TextureImage bake_texture(const Surface& outer, const TubeSweep& sweep, RingSampling around, const ColourStack& stack,
+TextureImage bake_texture(const Surface& outer, const TubeSweep& sweep, RingSampling around, int arc_window, const ColourStack& stack,
                           const TextureOptions& o, const std::string& name) {
   if (o.max_size < 16 || o.max_size > 16384) throw Error("", "texture max_size must be in 16..16384");
   const remesh_detail::Topology topo = remesh_detail::build_topology(outer, name, true);
@@ -104,7 +104,7 @@ TextureImage bake_texture(const Surface& outer, const TubeSweep& sweep, RingSamp
     const double s = (b + 0.5) / t.height * sweep.length_m;
     const SweepPlane pl = sweep_plane(sweep, s);
     const auto loops = sl.slice(pl);
-    remesh_detail::sample_loop(remesh_detail::tube_loop(loops, name, s, sweep.length_m), pl, around, u, pts, &inward,
+    remesh_detail::sample_loop(remesh_detail::tube_loop(loops, name, s, sweep.length_m), pl, around, arc_window, u, pts, &inward,
                                name);
     for (int a = 0; a < t.width; ++a) {
       const Vec3 p = pts[a] + depth * inward[a];

@@ -44,9 +44,10 @@ struct TextureImage {
 // Texel (a, b) holds the stack colour (trilinear) at the surface point at arc
 // fraction u = (a + 0.5) / width around the ring at s = (b + 0.5) / height *
 // length, moved depth_m inside: the same (u, v = s / length) as the uv of the
-// grid vertices, so the texture is exact whatever the grid size. Throws
+// grid vertices (with the remesh's `around` and `arc_window`), so the texture
+// is exact whatever the grid size. Throws
 // Error(slice file, ...) when a slice cannot be read or has another size.
-TextureImage bake_texture(const Surface& outer, const TubeSweep& sweep, RingSampling around, const ColourStack& stack,
+TextureImage bake_texture(const Surface& outer, const TubeSweep& sweep, RingSampling around, int arc_window, const ColourStack& stack,
                           const TextureOptions& o, const std::string& name);
 
 // Writes a PNG (atomically).

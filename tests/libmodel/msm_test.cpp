@@ -465,3 +465,36 @@ TEST(MsmBuild, BadInputIsOneLineError) {
     EXPECT_NE(build(s).find("faces inward"), std::string::npos);
   }
 }
+
+// The hexahedron Jacobian (corners and centre): a box's is its volume; a
+// sheared or twisted cell stays positive; a folded, flat or inside-out cell
+// is not.
+TEST(MsmLattice, HexJacobianSeparatesValidFromInvertedCells) {
+  using V = Eigen::Vector3d;
+  auto cell = [](double a, double b, double c, const V& shift, double turn) {
+    std::array<V, 4> T = {V(0, 0, c), V(a, 0, c), V(a, b, c), V(0, b, c)};  // counter-clockwise from +z (outside)
+    std::array<V, 4> B;
+    const V mid(0.5 * a, 0.5 * b, 0);
+    for (int i = 0; i < 4; ++i) {
+      const V d = V(T[static_cast<std::size_t>(i)].x(), T[static_cast<std::size_t>(i)].y(), 0) - mid;
+      B[static_cast<std::size_t>(i)] =
+          mid + V(std::cos(turn) * d.x() - std::sin(turn) * d.y(), std::sin(turn) * d.x() + std::cos(turn) * d.y(), 0) + shift;
+    }
+    return std::pair{T, B};
+  };
+  auto J = [](const std::pair<std::array<V, 4>, std::array<V, 4>>& c) { return msm::hex_min_jacobian(c.first.data(), c.second.data()); };
+  EXPECT_NEAR(J(cell(2, 3, 5, V::Zero(), 0)), 30, 1e-12);
+  EXPECT_NEAR(J(cell(2, 3, 5, V(4, -1, 0), 0)), 30, 1e-12);  // a pure shear keeps the volume form
+  EXPECT_GT(J(cell(2, 3, 5, V::Zero(), 2.0)), 0);            // twisted (every level a turned rectangle)
+  auto folded = cell(2, 3, 5, V::Zero(), 0);
+  std::swap(folded.second[1], folded.second[3]);  // the bottom quad clockwise: mirrored under the top
+  EXPECT_LT(J(folded), 0);
+  auto kinked = cell(2, 3, 5, V::Zero(), 0);
+  kinked.second[2] = V(-1, -1, 0);  // one bottom corner pulled across the cell: a fold at that corner
+  EXPECT_LT(J(kinked), 0);
+  auto flat = cell(2, 3, 5, V::Zero(), 0);
+  flat.second = flat.first;  // bottom on the top: no volume
+  EXPECT_LE(J(flat), 0);
+  auto inside_out = cell(2, 3, 5, V(0, 0, 10), 0);  // the bottom quad above the top one
+  EXPECT_LT(J(inside_out), 0);
+}
