@@ -78,6 +78,10 @@ const Loop& tube_loop(const std::vector<Loop>& loops, const std::string& name, d
 void sample_loop(const Loop& l, const SweepPlane& pl, RingSampling mode, int arc_window, const std::vector<double>& u,
                  std::vector<Eigen::Vector3d>& out, std::vector<Eigen::Vector3d>* inward, const std::string& name);
 
+// Cumulative arc length of the closed polygon T at each vertex, its perimeter
+// last (T.size() + 1 entries).
+std::vector<double> closed_arc_lengths(const std::vector<Eigen::Vector2d>& T);
+
 // Correspondence between a ring and the section of the layer below it, both
 // closed counter-clockwise polygons in one plane. normal_hits: the arc-length
 // parameter on T (from T[0]) of the first crossing of the inward normal of P

@@ -408,27 +408,40 @@ void sample_loop(const Loop& l, const SweepPlane& pl, RingSampling mode, int win
   // The average is the integral of the polyline over the arc, so the vertex
   // distribution does not bias it (a circle stays a circle, scaled). The
   // points stay on the section.
-  if (window > 0 && m >= 3) {
-    std::vector<double> cs(m + 1, 0);
-    for (std::size_t i = 0; i < m; ++i) cs[i + 1] = cs[i] + (l.q[(i + 1) % m] - l.q[i]).norm();
-    const double per = cs[m];
+  std::vector<double> cs(m + 1, 0);
+  for (std::size_t i = 0; i < m; ++i) cs[i + 1] = cs[i] + (l.q[(i + 1) % m] - l.q[i]).norm();
+  const double per = cs[m];
+  if (window > 0 && m >= 3 && per > 0) {
     // F(x) = integral of the polyline from 0 to x, periodic extension
     std::vector<Vec2> F(m + 1, Vec2::Zero());
     for (std::size_t i = 0; i < m; ++i) F[i + 1] = F[i] + 0.5 * (cs[i + 1] - cs[i]) * (l.q[i] + l.q[(i + 1) % m]);
-    auto integral = [&](double x) {
+    // F at x through a cursor that only moves forward (the window's ends
+    // advance with i): one pass instead of a search per end
+    struct Cursor {
+      double turns;
+      std::size_t seg;
+    };
+    auto cursor_at = [&](double x) {
       const double turns = std::floor(x / per);
-      double r = x - turns * per;
-      std::size_t i = static_cast<std::size_t>(std::upper_bound(cs.begin(), cs.end(), r) - cs.begin());
-      i = std::clamp<std::size_t>(i, 1, m) - 1;
-      const double d = r - cs[i], li = cs[i + 1] - cs[i];
+      std::size_t i = static_cast<std::size_t>(std::upper_bound(cs.begin(), cs.end(), x - turns * per) - cs.begin());
+      return Cursor{turns, std::clamp<std::size_t>(i, 1, m) - 1};
+    };
+    auto integral = [&](Cursor& c, double x) {
+      while (x >= c.turns * per + cs[c.seg + 1]) {
+        if (++c.seg == m) c.seg = 0, c.turns += 1;
+      }
+      const std::size_t i = c.seg;
+      const double d = x - c.turns * per - cs[i], li = cs[i + 1] - cs[i];
       const Vec2 a = l.q[i], b = l.q[(i + 1) % m];
       const Vec2 part = li > 0 ? Vec2(d * a + 0.5 * d * d / li * (b - a)) : Vec2::Zero();
-      return Vec2(turns * F[m] + F[i] + part);
+      return Vec2(c.turns * F[m] + F[i] + part);
     };
     const double h = std::min(static_cast<double>(window) * per / static_cast<double>(m), 0.25 * per);
     std::vector<Vec2> sm(m);
-    for (std::size_t i = 0; i < m; ++i) sm[i] = (integral(cs[i] + h) - integral(cs[i] - h)) / (2 * h);
-    for (std::size_t i = 0; i < m; ++i) P += len[i] = (sm[(i + 1) % m] - sm[i]).norm();  } else {
+    Cursor lo_end = cursor_at(-h), hi_end = cursor_at(h);
+    for (std::size_t i = 0; i < m; ++i) sm[i] = (integral(hi_end, cs[i] + h) - integral(lo_end, cs[i] - h)) / (2 * h);
+    for (std::size_t i = 0; i < m; ++i) P += len[i] = (sm[(i + 1) % m] - sm[i]).norm();
+  } else {
     for (std::size_t i = 0; i < m; ++i) P += len[i] = (l.q[(i + 1) % m] - l.q[i]).norm();
   }
   // walk from the phase point
@@ -450,14 +463,96 @@ void sample_loop(const Loop& l, const SweepPlane& pl, RingSampling mode, int win
 
 // Cumulative arc length of the closed polygon T at each vertex, and its
 // perimeter last (T.size() + 1 entries).
-namespace {
 std::vector<double> closed_arc_lengths(const std::vector<Vec2>& T) {
   const std::size_t m = T.size();
   std::vector<double> cum(m + 1, 0);
   for (std::size_t s = 0; s < m; ++s) cum[s + 1] = cum[s] + (T[(s + 1) % m] - T[s]).norm();
   return cum;
 }
-}  // namespace
+
+// A uniform grid over the segments of a closed polygon, walked along a ray
+// (Amanatides & Woo 1987): the ray casts of the layer correspondence test
+// only the segments near the ray instead of all of them.
+class SegmentGrid {
+ public:
+  explicit SegmentGrid(const std::vector<Vec2>& T) {
+    const std::size_t m = T.size();
+    lo_ = hi_ = T[0];
+    double len = 0;
+    for (std::size_t s = 0; s < m; ++s) {
+      lo_ = lo_.cwiseMin(T[s]), hi_ = hi_.cwiseMax(T[s]);
+      len += (T[(s + 1) % m] - T[s]).norm();
+    }
+    const Vec2 ext = hi_ - lo_;
+    h_ = std::max({2 * len / static_cast<double>(m), ext.maxCoeff() / 256, 1e-300});
+    lo_ -= Vec2::Constant(1e-9 * h_), hi_ += Vec2::Constant(1e-9 * h_);
+    nx_ = std::max(1, static_cast<int>(std::ceil((hi_.x() - lo_.x()) / h_)));
+    ny_ = std::max(1, static_cast<int>(std::ceil((hi_.y() - lo_.y()) / h_)));
+    // counting sort of (cell, segment) pairs
+    std::vector<std::pair<int, int>> pairs;
+    for (std::size_t s = 0; s < m; ++s) {
+      const Vec2 a = T[s].cwiseMin(T[(s + 1) % m]), b = T[s].cwiseMax(T[(s + 1) % m]);
+      const int x0 = cx(a.x()), x1 = cx(b.x()), y0 = cy(a.y()), y1 = cy(b.y());
+      for (int y = y0; y <= y1; ++y)
+        for (int x = x0; x <= x1; ++x) pairs.emplace_back(y * nx_ + x, static_cast<int>(s));
+    }
+    start_.assign(static_cast<std::size_t>(nx_) * ny_ + 1, 0);
+    for (const auto& pr : pairs) ++start_[static_cast<std::size_t>(pr.first) + 1];
+    for (std::size_t c = 0; c + 1 < start_.size(); ++c) start_[c + 1] += start_[c];
+    seg_.resize(pairs.size());
+    std::vector<int> fill(start_.begin(), start_.end() - 1);
+    for (const auto& pr : pairs) seg_[static_cast<std::size_t>(fill[static_cast<std::size_t>(pr.first)]++)] = pr.second;
+  }
+  // Visits the cells the ray o + t w (t >= 0) passes, in order: visit(segments
+  // begin, end, t at which the ray leaves the cell) returns true to stop.
+  template <class Visit>
+  void walk(const Vec2& o, const Vec2& w, Visit&& visit) const {
+    double t0 = 0, t1 = std::numeric_limits<double>::infinity();
+    for (int d = 0; d < 2; ++d) {  // clip to the grid's box
+      if (w(d) != 0) {
+        double a = (lo_(d) - o(d)) / w(d), b = (hi_(d) - o(d)) / w(d);
+        if (a > b) std::swap(a, b);
+        t0 = std::max(t0, a), t1 = std::min(t1, b);
+      } else if (o(d) < lo_(d) || o(d) > hi_(d)) {
+        return;
+      }
+    }
+    if (!(t0 <= t1)) return;
+    const Vec2 p = o + t0 * w;
+    int x = cx(p.x()), y = cy(p.y());
+    const int sx = w.x() > 0 ? 1 : -1, sy = w.y() > 0 ? 1 : -1;
+    const double inf = std::numeric_limits<double>::infinity();
+    auto next = [&](int c, int sgn, int d) {  // t where the ray crosses the next cell boundary along d
+      if (w(d) == 0) return inf;
+      const double edge = lo_(d) + (c + (sgn > 0 ? 1 : 0)) * h_;
+      return (edge - o(d)) / w(d);
+    };
+    double tx = next(x, sx, 0), ty = next(y, sy, 1);
+    for (;;) {
+      const double exit = std::min({tx, ty, t1});
+      const std::size_t c = static_cast<std::size_t>(y) * nx_ + x;
+      if (visit(seg_.data() + start_[c], seg_.data() + start_[c + 1], exit)) return;
+      if (exit >= t1) return;
+      if (tx <= ty) {
+        x += sx;
+        if (x < 0 || x >= nx_) return;
+        tx = next(x, sx, 0);
+      } else {
+        y += sy;
+        if (y < 0 || y >= ny_) return;
+        ty = next(y, sy, 1);
+      }
+    }
+  }
+
+ private:
+  int cx(double v) const { return std::clamp(static_cast<int>(std::floor((v - lo_.x()) / h_)), 0, nx_ - 1); }
+  int cy(double v) const { return std::clamp(static_cast<int>(std::floor((v - lo_.y()) / h_)), 0, ny_ - 1); }
+  Vec2 lo_, hi_;
+  double h_ = 1;
+  int nx_ = 1, ny_ = 1;
+  std::vector<int> start_, seg_;
+};
 
 // Arc-length parameters on T where the inward normals of the ring P first
 // meet T, unwrapped (see detail.h).
@@ -493,6 +588,7 @@ std::vector<double> normal_hits(const std::vector<Vec2>& P, const std::vector<Ve
     return Vec2(P[s] + f * (P[(s + 1) % static_cast<std::size_t>(n)] - P[s]));
   };
   // first crossing of the inward normal ray (counter-clockwise ring: inward is the left normal)
+  const SegmentGrid grid(T);
   for (int i = 0; i < n; ++i) {
     Vec2 tan = P[static_cast<std::size_t>((i + 1) % n)] - P[static_cast<std::size_t>((i - 1 + n) % n)];
     if (halfwidth && pcum.back() > 0) {
@@ -506,15 +602,22 @@ std::vector<double> normal_hits(const std::vector<Vec2>& P, const std::vector<Ve
     double best = -1, at = 0;
     if (w.norm() > 0) {
       w.normalize();
-      for (std::size_t s = 0; s < m; ++s) {
-        const Vec2 a = T[s] - P[static_cast<std::size_t>(i)];
-        const Vec2 d = T[(s + 1) % m] - T[s];
-        const double den = w.x() * d.y() - w.y() * d.x();
-        if (den == 0) continue;
-        const double t = (a.x() * d.y() - a.y() * d.x()) / den;
-        const double lam = (a.x() * w.y() - a.y() * w.x()) / den;
-        if (lam >= 0 && lam <= 1 && t > 0 && (best < 0 || t < best)) best = t, at = cum[s] + lam * (cum[s + 1] - cum[s]);
-      }
+      std::size_t bs = m;
+      grid.walk(P[static_cast<std::size_t>(i)], w, [&](const int* b, const int* e, double exit) {
+        for (; b != e; ++b) {
+          const std::size_t s = static_cast<std::size_t>(*b);
+          const Vec2 a = T[s] - P[static_cast<std::size_t>(i)];
+          const Vec2 d = T[(s + 1) % m] - T[s];
+          const double den = w.x() * d.y() - w.y() * d.x();
+          if (den == 0) continue;
+          const double t = (a.x() * d.y() - a.y() * d.x()) / den;
+          const double lam = (a.x() * w.y() - a.y() * w.x()) / den;
+          // the first crossing; among equal ones the lowest segment (as a scan of all would)
+          if (lam >= 0 && lam <= 1 && t > 0 && (best < 0 || t < best || (t == best && s < bs)))
+            best = t, bs = s, at = cum[s] + lam * (cum[s + 1] - cum[s]);
+        }
+        return best > 0 && best <= exit;
+      });
     }
     sig[static_cast<std::size_t>(i)] = best > 0 ? at : closest(P[static_cast<std::size_t>(i)]);
   }
@@ -540,19 +643,28 @@ std::vector<double> radial_hits(const std::vector<Vec2>& P, const std::vector<Ve
   const std::vector<double> cum = closed_arc_lengths(T);
   const double per = cum[m];
   if (n == 0 || m < 3 || !(per > 0)) return sig;
+  const SegmentGrid grid(T);
   for (int i = 0; i < n; ++i) {
     Vec2 w = P[static_cast<std::size_t>(i)] - c;
     if (w.norm() > 0) w.normalize();
     double best = -1, at = 0;
-    for (std::size_t s = 0; s < m; ++s) {
-      const Vec2 a = T[s] - c;
-      const Vec2 d = T[(s + 1) % m] - T[s];
-      const double den = w.x() * d.y() - w.y() * d.x();
-      if (den == 0) continue;
-      const double t = (a.x() * d.y() - a.y() * d.x()) / den;
-      const double lam = (a.x() * w.y() - a.y() * w.x()) / den;
-      if (lam >= 0 && lam <= 1 && t > best) best = t, at = cum[s] + lam * (cum[s + 1] - cum[s]);
-    }
+    std::size_t bs = m;
+    // the outermost crossing (t >= 0; the whole ray is walked); among equal
+    // ones the lowest segment (as a scan of all would)
+    grid.walk(c, w, [&](const int* b, const int* e, double) {
+      for (; b != e; ++b) {
+        const std::size_t s = static_cast<std::size_t>(*b);
+        const Vec2 a = T[s] - c;
+        const Vec2 d = T[(s + 1) % m] - T[s];
+        const double den = w.x() * d.y() - w.y() * d.x();
+        if (den == 0) continue;
+        const double t = (a.x() * d.y() - a.y() * d.x()) / den;
+        const double lam = (a.x() * w.y() - a.y() * w.x()) / den;
+        if (lam >= 0 && lam <= 1 && t >= 0 && (t > best || (t == best && s < bs)))
+          best = t, bs = s, at = cum[s] + lam * (cum[s + 1] - cum[s]);
+      }
+      return false;
+    });
     sig[static_cast<std::size_t>(i)] = best >= 0 ? at : (i ? sig[static_cast<std::size_t>(i - 1)] : 0.0);
   }
   auto wrap = [&](double d) { return d - per * std::floor(d / per + 0.5); };
@@ -1265,18 +1377,18 @@ RemeshResult remesh_layers(const std::vector<NamedSurface>& layers, const Remesh
       has[j] = 1;
       origin[j] = c;
       RingTarget& rt = rings[static_cast<std::size_t>(j)];
-      rt.x = remesh_detail::normal_hits(P, T);
+      rt.base = remesh_detail::radial_hits(P, T, c);
       {
         // A ray of length d turns an error e in the normal into d e across:
         // the normals are taken over arcs of half-width d (chords), so that
         // bumps of the ring at the input's voxel scale, whose slopes are large
         // but whose extent is small, move the hits by about their height, not
-        // by d times their slope.
+        // by d times their slope. d: the distance to the radial hit.
         const std::size_t mT = T.size();
         const std::vector<double> cumT = remesh_detail::closed_arc_lengths(T);
         std::vector<double> depth(static_cast<std::size_t>(nu));
         for (int i = 0; i < nu; ++i) {
-          double x = std::fmod(rt.x[static_cast<std::size_t>(i)], cumT[mT]);
+          double x = std::fmod(rt.base[static_cast<std::size_t>(i)], cumT[mT]);
           if (x < 0) x += cumT[mT];
           std::size_t s = static_cast<std::size_t>(std::upper_bound(cumT.begin(), cumT.end(), x) - cumT.begin());
           s = std::clamp<std::size_t>(s, 1, mT) - 1;
@@ -1286,7 +1398,6 @@ RemeshResult remesh_layers(const std::vector<NamedSurface>& layers, const Remesh
         }
         rt.x = remesh_detail::normal_hits(P, T, &depth);
       }
-      rt.base = remesh_detail::radial_hits(P, T, c);
       rt.per = 0;
       for (std::size_t s = 0; s < T.size(); ++s) rt.per += (T[(s + 1) % T.size()] - T[s]).norm();
       rt.T = std::move(T);

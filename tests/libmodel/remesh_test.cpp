@@ -12,6 +12,7 @@
 #include <array>
 #include <cmath>
 #include <limits>
+#include <random>
 #include <cstring>
 #include <filesystem>
 
@@ -618,4 +619,61 @@ TEST(RemeshRing, ArcWindowIgnoresAStaircase) {
   remesh_detail::sample_loop(c, pl, RingSampling::arc_length, 0, u, p0, nullptr, "circle");
   remesh_detail::sample_loop(c, pl, RingSampling::arc_length, 4, u, p4, nullptr, "circle");
   for (int i = 0; i < n; ++i) EXPECT_LT((p0[static_cast<std::size_t>(i)] - p4[static_cast<std::size_t>(i)]).norm(), 1e-9);
+}
+
+// The ray casts of the layer correspondence walk a grid over the section's
+// segments; they must find what a scan of every segment finds: the first
+// crossing of each inward normal, the outermost crossing of each ray from
+// the centre (bumpy star-shaped sections, random rings around them).
+TEST(RemeshRing, GridRayCastsMatchAScanOfEverySegment) {
+  using Vec2 = Eigen::Vector2d;
+  std::mt19937 rng(7);
+  std::uniform_real_distribution<double> U(0, 1);
+  for (int trial = 0; trial < 20; ++trial) {
+    const int m = 50 + trial * 37, n = 39 + trial * 11;
+    std::vector<Vec2> T(static_cast<std::size_t>(m)), P(static_cast<std::size_t>(n));
+    const double phase = 2 * kPi * U(rng);
+    for (int k = 0; k < m; ++k) {
+      const double t = 2 * kPi * k / m;
+      const double r = 0.02 * (1 + 0.2 * std::sin(3 * t + phase) + 0.03 * (U(rng) - 0.5));
+      T[static_cast<std::size_t>(k)] = Vec2(r * std::cos(t), 0.7 * r * std::sin(t));
+    }
+    for (int i = 0; i < n; ++i) {
+      const double t = 2 * kPi * i / n;
+      const double r = 0.03 * (1 + 0.1 * std::cos(2 * t));
+      P[static_cast<std::size_t>(i)] = Vec2(r * std::cos(t) + 0.001, 0.8 * r * std::sin(t));
+    }
+    const Vec2 c(0.0005, -0.0003);
+    const std::vector<double> cum = remesh_detail::closed_arc_lengths(T);
+    // the scans
+    std::vector<double> xn(static_cast<std::size_t>(n)), xr(static_cast<std::size_t>(n));
+    for (int i = 0; i < n; ++i) {
+      const Vec2 p = P[static_cast<std::size_t>(i)];
+      const Vec2 tan = P[static_cast<std::size_t>((i + 1) % n)] - P[static_cast<std::size_t>((i + n - 1) % n)];
+      const Vec2 wn = Vec2(-tan.y(), tan.x()).normalized(), wr = (p - c).normalized();
+      double bn = -1, an = 0, br = -1, ar = 0;
+      for (int s = 0; s < m; ++s) {
+        const Vec2 d = T[static_cast<std::size_t>((s + 1) % m)] - T[static_cast<std::size_t>(s)];
+        for (int ray = 0; ray < 2; ++ray) {
+          const Vec2 w = ray ? wr : wn, a = T[static_cast<std::size_t>(s)] - (ray ? c : p);
+          const double den = w.x() * d.y() - w.y() * d.x();
+          if (den == 0) continue;
+          const double t = (a.x() * d.y() - a.y() * d.x()) / den, lam = (a.x() * w.y() - a.y() * w.x()) / den;
+          if (!(lam >= 0 && lam <= 1)) continue;
+          const double at = cum[static_cast<std::size_t>(s)] + lam * (cum[static_cast<std::size_t>(s) + 1] - cum[static_cast<std::size_t>(s)]);
+          if (!ray && t > 0 && (bn < 0 || t < bn)) bn = t, an = at;
+          if (ray && t >= 0 && t > br) br = t, ar = at;
+        }
+      }
+      ASSERT_GT(bn, 0);
+      ASSERT_GE(br, 0);
+      xn[static_cast<std::size_t>(i)] = an, xr[static_cast<std::size_t>(i)] = ar;
+    }
+    const std::vector<double> gn = remesh_detail::normal_hits(P, T), gr = remesh_detail::radial_hits(P, T, c);
+    const double per = cum.back();
+    for (int i = 0; i < n; ++i) {
+      EXPECT_NEAR(std::remainder(gn[static_cast<std::size_t>(i)] - xn[static_cast<std::size_t>(i)], per), 0, 1e-15) << trial << " " << i;
+      EXPECT_NEAR(std::remainder(gr[static_cast<std::size_t>(i)] - xr[static_cast<std::size_t>(i)], per), 0, 1e-15) << trial << " " << i;
+    }
+  }
 }
