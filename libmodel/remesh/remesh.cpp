@@ -7,7 +7,10 @@
 #include <Eigen/Geometry>
 #include <Eigen/Sparse>
 
+#include <tbb/parallel_for.h>
+
 #include <algorithm>
+#include <exception>
 #include <limits>
 #include <chrono>
 #include <cmath>
@@ -1169,14 +1172,29 @@ RemeshResult remesh_layers(const std::vector<NamedSurface>& layers, const Remesh
   auto t0 = std::chrono::steady_clock::now();
   RemeshResult res;
   const int nl = static_cast<int>(layers.size());
-  std::vector<Topology> topo;
-  topo.reserve(nl);
-  for (int k = 0; k < nl; ++k) topo.push_back(remesh_detail::build_topology(layers[k].surface, layers[k].name, k == 0));
+  // the layers' checks are independent: side by side, errors reported in
+  // layer order (the first bad layer, as a sequential run would)
+  auto each_layer = [&](int from, auto&& f) {
+    std::vector<std::exception_ptr> err(static_cast<std::size_t>(nl));
+    tbb::parallel_for(from, nl, [&](int k) {
+      try {
+        f(k);
+      } catch (...) {
+        err[static_cast<std::size_t>(k)] = std::current_exception();
+      }
+    });
+    for (const auto& e : err)
+      if (e) std::rethrow_exception(e);
+  };
+  std::vector<Topology> topo(static_cast<std::size_t>(nl));
+  each_layer(0, [&](int k) {
+    topo[static_cast<std::size_t>(k)] = remesh_detail::build_topology(layers[k].surface, layers[k].name, k == 0);
+  });
   if (topo[0].check.euler != 2)
     throw Error(layers[0].name, "not tube-like: the surface has " + std::to_string((2 - topo[0].check.euler) / 2) +
                                     " handle(s) (Euler characteristic " + std::to_string(topo[0].check.euler) +
                                     "); remesh needs a tube closed at both ends");
-  for (int k = 1; k < nl; ++k) {
+  each_layer(1, [&](int k) {
     const std::int64_t bad = first_point_outside(layers[k - 1].surface, layers[k].surface.vertices);
     if (bad >= 0) {
       const Vec3 p = layers[k].surface.vertices.row(bad);
@@ -1186,7 +1204,7 @@ RemeshResult remesh_layers(const std::vector<NamedSurface>& layers, const Remesh
         << ", " << p.z() * 1e3 << ") mm lies outside it";
       throw Error(layers[k].name, m.str());
     }
-  }
+  });
   res.check_s = seconds_since(t0);
   t0 = std::chrono::steady_clock::now();
 
