@@ -57,6 +57,7 @@ void add_remesh_command(CLI::App& app) {
     bool texture = false, uniform = false;
     double texel_mm = 0, depth_mm = -1;
     int arc_window = RemeshOptions{}.arc_window;
+    std::string ends = "crease";
     CommonOptions common;
   };
   static Args a;
@@ -72,6 +73,9 @@ void add_remesh_command(CLI::App& app) {
       ->capture_default_str();
   sub->add_option("--arc-window", a.arc_window,
                   "arc sampling: measure each section's length smoothed over 2N+1 of its vertices (0..64; 0: raw)")
+      ->capture_default_str();
+  sub->add_option("--ends", a.ends,
+                  "end rings of flat caps: crease (past the wall faces touching the cap) or rim (on the cap's rim)")
       ->capture_default_str();
   sub->add_flag("--uniform", a.uniform, "rings at equal arc length (default: more where the surface bends along the axis)");
   sub->add_option("--stack", a.stack, "colour slice directory (DIR/slices/*.png or DIR/*.png) for --texture");
@@ -96,6 +100,12 @@ void add_remesh_command(CLI::App& app) {
     }
     o.adaptive = !a.uniform;
     o.arc_window = a.arc_window;
+    if (a.ends == "crease")
+      o.ends = EndRings::crease;
+    else if (a.ends == "rim")
+      o.ends = EndRings::rim;
+    else
+      throw UsageError("--ends: expected crease or rim, got '" + a.ends + "'");
     if (a.around == "arc")
       o.around = RingSampling::arc_length;
     else if (a.around == "angle")
@@ -129,6 +139,7 @@ void add_remesh_command(CLI::App& app) {
     report.parameters() = {{"grid", {o.nu, o.nv}},
                            {"around", a.around},
                            {"arc_window", o.arc_window},
+                           {"ends", a.ends},
                            {"adaptive", o.adaptive},
                            {"max_spacing_ratio", o.max_spacing_ratio},
                            {"axis_sections", o.axis_sections},
@@ -232,6 +243,7 @@ void add_remesh_command(CLI::App& app) {
     m["sweep"] = {{"length_m", r.sweep.length_m},
                   {"flat_cap", {r.sweep.flat_cap[0], r.sweep.flat_cap[1]}},
                   {"uncovered_m2", {r.sweep.uncovered_m2[0], r.sweep.uncovered_m2[1]}},
+                  {"cap_inset_m", {r.sweep.cap_inset_m[0], r.sweep.cap_inset_m[1]}},
                   {"plane_turn", r.sweep.plane_turn},
                   {"normal_window_m", r.sweep.normal_window_m},
                   {"stations_m", std::vector<double>(r.stations_m.data(), r.stations_m.data() + r.stations_m.size())}};

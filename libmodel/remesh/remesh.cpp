@@ -30,6 +30,7 @@ namespace {
 
 constexpr double kPi = 3.14159265358979323846;
 constexpr int kTable = 2049;         // entries of the sweep table
+constexpr double kMaxCreaseInset = 0.05;  // an end ring moves at most this fraction of the length past a crease
 constexpr double kCapInset = 1e-5;   // end rings sit this fraction of the length inside a flat cap
 
 double seconds_since(std::chrono::steady_clock::time_point t0) {
@@ -99,6 +100,7 @@ struct Cap {
   Vec3 q = Vec3::Zero();  // area centroid of the cap faces
   Vec3 n = Vec3::Zero();  // unit normal pointing into the tube (towards increasing s)
   double area = 0;
+  double crease = 0;      // how far into the tube the wall faces touching the cap reach (along n)
   std::vector<int> faces;
 };
 
@@ -148,6 +150,19 @@ Cap detect_cap(const Surface& s, const Topology& t, const Vec3& dir, double angl
   }
   cap.q = qsum / cap.area;
   cap.n = -nsum.normalized();
+  // The crease: the wall faces that share a vertex with the cap join it to
+  // the wall; on a voxel surface they are the staircase that closes the
+  // volume at its boundary. The end rings sit beyond them.
+  std::vector<char> on_cap(static_cast<std::size_t>(s.vertices.rows()), 0);
+  for (int f : cap.faces)
+    for (int k = 0; k < 3; ++k) on_cap[static_cast<std::size_t>(s.faces(f, k))] = 1;
+  for (int f = 0; f < nf; ++f) {
+    if (in[f]) continue;
+    const int v[3] = {s.faces(f, 0), s.faces(f, 1), s.faces(f, 2)};
+    if (!on_cap[static_cast<std::size_t>(v[0])] && !on_cap[static_cast<std::size_t>(v[1])] && !on_cap[static_cast<std::size_t>(v[2])])
+      continue;
+    for (int k = 0; k < 3; ++k) cap.crease = std::max(cap.crease, (s.vertices.row(v[k]).transpose() - cap.q).dot(cap.n));
+  }
   return cap;
 }
 
@@ -914,14 +929,17 @@ TubeSweep sweep_impl(const Surface& s, const Topology& topo, const Slicer& sl, c
   // the table: centres (moved so that flat-cap end planes sit kCapInset*L
   // inside the caps), blended normals, rotation-minimising frames
   const NormalField nfield = normal_field(curve, caps, radius);
-  const double inset = kCapInset * L;
+  double inset[2];
+  for (int e = 0; e < 2; ++e)
+    inset[e] = o.ends == EndRings::crease ? std::clamp(caps[e].crease, kCapInset * L, kMaxCreaseInset * L) : kCapInset * L;
   double delta[2] = {0, 0};
-  if (caps[0].flat) delta[0] = (curve.point(0) - caps[0].q).dot(nfield.n[0]) - inset;
-  if (caps[1].flat) delta[1] = (curve.point(L) - caps[1].q).dot(nfield.n[1]) + inset;
+  if (caps[0].flat) delta[0] = (curve.point(0) - caps[0].q).dot(nfield.n[0]) - inset[0];
+  if (caps[1].flat) delta[1] = (curve.point(L) - caps[1].q).dot(nfield.n[1]) + inset[1];
   TubeSweep sw;
   sw.length_m = sb - sa;
   sw.axis_direction = ax.d;
   sw.flat_cap = {caps[0].flat, caps[1].flat};
+  sw.cap_inset_m = {caps[0].flat ? inset[0] : 0.0, caps[1].flat ? inset[1] : 0.0};
   sw.s.resize(kTable);
   sw.centre.resize(kTable, 3);
   sw.normal.resize(kTable, 3);
@@ -1291,10 +1309,24 @@ RemeshResult remesh_layers(const std::vector<NamedSurface>& layers, const Remesh
         // 1 mm round took a whole ring; at the joint the envelope jumped by
         // 6 mm between rings 3.4 mm apart and inverted muscle cells); the
         // slab sees the part as it is around the ring.
-        const double lo = j > 0 ? 0.5 * (res.stations_m(j - 1) + res.stations_m(j)) : res.stations_m(j);
-        const double hi = j + 1 < nv ? 0.5 * (res.stations_m(j) + res.stations_m(j + 1)) : res.stations_m(j);
-        for (double f : {0.0, 0.25, 0.75, 1.0}) {
-          const double sj = lo + f * (hi - lo);
+        const double sp = 0.5 * ((j > 0 ? res.stations_m(j) - res.stations_m(j - 1) : 0) +
+                                 (j + 1 < nv ? res.stations_m(j + 1) - res.stations_m(j) : 0));
+        double w = 0.5 * sp;
+        {
+          // depth of the cells above: equivalent radii of the ring above and of these sections
+          double ap = 0, as = 0;
+          for (int i = 0; i < nu; ++i) {
+            const Vec3 r0 = pts[k - 1][static_cast<std::size_t>(j) * nu + i] - pl.centre;
+            const Vec3 r1 = pts[k - 1][static_cast<std::size_t>(j) * nu + (i + 1) % nu] - pl.centre;
+            ap += 0.5 * (r0.dot(pl.e1) * r1.dot(pl.e2) - r0.dot(pl.e2) * r1.dot(pl.e1));
+          }
+          for (const auto& l : loops) as += std::abs(l.area);
+          w = std::max(w, std::sqrt(std::abs(ap) / kPi) - std::sqrt(as / kPi));
+        }
+        const double lo = std::max(0.0, res.stations_m(j) - w), hi = std::min(L, res.stations_m(j) + w);
+        const int nplanes = std::clamp(static_cast<int>(std::ceil((hi - lo) / std::max(0.5 * sp, 1e-12))), 4, 16);
+        for (int q = 0; q <= nplanes; ++q) {
+          const double sj = lo + (hi - lo) * q / nplanes;
           if (sj == res.stations_m(j)) continue;
           const SweepPlane ps = sweep_plane(sw, sj);
           for (Loop l : slicers[k].slice(ps)) {

@@ -106,6 +106,7 @@ TEST(RemeshCli, BadInputExitsTwoWithoutOutput) {
   expect_usage_error(test::run_cli("remesh" + skin + " --grid 0x9 --out " + out), "--grid", out);
   expect_usage_error(test::run_cli("remesh" + skin + " --grid 10001x9 --out " + out), "3..10000", out);
   expect_usage_error(test::run_cli("remesh" + skin + " --grid 39x10001 --out " + out), "2..10000", out);
+  expect_usage_error(test::run_cli("remesh" + skin + " --ends middle --out " + out), "--ends", out);
   expect_usage_error(test::run_cli("remesh --surface " + f / "open.stl" + " --out " + out), "open surface", out);
   expect_usage_error(test::run_cli("remesh --surface " + f / "empty.stl" + " --out " + out), "empty", out);
   expect_usage_error(test::run_cli("remesh --surface " + f / "nonmanifold.stl" + " --out " + out), "non-manifold", out);
@@ -130,7 +131,8 @@ TEST(RemeshCli, BadInputExitsTwoWithoutOutput) {
 // the skin's centroid projection at 100x25; wobbling ring planes crossed
 // inside the limb at 200x50; at 200x50 the jagged crease at the caps sheared
 // the end quads and bumps tilted the skin's normals, inverting skin cells).
-// 400x100 builds with --through-cells 4 (docs/remesh.md), not run here.
+// 400x100 needs the end rings past the caps' crease (the default) and
+// --through-cells 4 (docs/remesh.md).
 TEST(RemeshCli, SegmentedSampleBuildsAtFineGrids) {
   test::TempDir d{"remesh-sample"};
   const std::string sample = std::string(ORTHOSIM_SOURCE_DIR) + "/data-samples/phantom";
@@ -140,7 +142,7 @@ TEST(RemeshCli, SegmentedSampleBuildsAtFineGrids) {
   ASSERT_EQ(r.code, 0) << r.err;
   r = test::run_cli("surface -q --labels " + labels + " --out " + surf + " --tissues skin,fat,muscle,bone");
   ASSERT_EQ(r.code, 0) << r.err;
-  for (const char* g : {"40x10", "100x25", "200x50"}) {  // 15x5 and 39x9: tests/tools/pipeline_test.cpp, scripts/demo
+  for (const char* g : {"40x10", "100x25", "200x50", "400x100"}) {  // 15x5 and 39x9: tests/tools/pipeline_test.cpp, scripts/demo
     const std::string model = d / (std::string("m") + g + ".h5");
     fs::copy_file(labels, model);
     r = test::run_cli("remesh -q --surface " + surf + "/skin.stl --inner " + surf + "/fat.stl," + surf + "/muscle.stl," +
@@ -152,7 +154,8 @@ TEST(RemeshCli, SegmentedSampleBuildsAtFineGrids) {
       EXPECT_EQ(l["quality"]["flipped"], 0) << g << " " << l["name"];
       EXPECT_EQ(l["quality"]["degenerate"], 0) << g << " " << l["name"];
     }
-    r = test::run_cli("build -q --model " + model + " --tissues " + sample + "/tissues.json --report " + (d / "b.json"));
+    r = test::run_cli("build -q --model " + model + " --tissues " + sample + "/tissues.json --report " + (d / "b.json") +
+                      (std::string(g) == "400x100" ? " --through-cells 4" : ""));
     ASSERT_EQ(r.code, 0) << g << ": " << r.err;
     const auto b = nlohmann::json::parse(test::read_file(d / "b.json"));
     EXPECT_EQ(b["metrics"]["inverted_tets"], 0) << g;

@@ -46,10 +46,19 @@ TEST(RemeshPhantom, LayeredGridsOnTheTruthSurfaces) {
   EXPECT_TRUE(r.sweep.flat_cap[0] && r.sweep.flat_cap[1]);
   const PhantomOptions o = small();
   const double L = (o.nz - 1) * o.spacing_m[2];
-  // the end rings are the rims of the caps at z = 0 and z = L
+  // the end rings sit past the crease: the row of wall faces touching the
+  // caps at z = 0 and z = L, one slice deep on this surface
   for (int i = 0; i < 39; ++i) {
-    EXPECT_NEAR(r.layers[0].vertices(i, 2), 0, 1e-5);
-    EXPECT_NEAR(r.layers[0].vertices(8 * 39 + i, 2), L, 1e-5);
+    EXPECT_NEAR(r.layers[0].vertices(i, 2), o.spacing_m[2], 1e-5);
+    EXPECT_NEAR(r.layers[0].vertices(8 * 39 + i, 2), L - o.spacing_m[2], 1e-5);
+  }
+  // on the rims with EndRings::rim
+  RemeshOptions rim = grid(39, 9);
+  rim.ends = EndRings::rim;
+  const auto rr = remesh_layers(in, rim);
+  for (int i = 0; i < 39; ++i) {
+    EXPECT_NEAR(rr.layers[0].vertices(i, 2), 0, 1e-5);
+    EXPECT_NEAR(rr.layers[0].vertices(8 * 39 + i, 2), L, 1e-5);
   }
   // vertices that hit a surface lie on the analytic interface
   for (int k = 0; k < 3; ++k) {

@@ -137,7 +137,9 @@ TEST(RemeshOptionsTest, GridLimits) {
 TEST(Remesh, Cylinder39x9) {
   const double R = 0.03, L = 0.12;
   const Surface s = test::cylinder(R, L, 256, 64);
-  const auto r = remesh_layers({{"skin", s}}, grid(39, 9));
+  RemeshOptions o = grid(39, 9);
+  o.ends = EndRings::rim;
+  const auto r = remesh_layers({{"skin", s}}, o);
   const QuadSurface& q = r.layers[0];
   ASSERT_EQ(q.nu, 39);
   ASSERT_EQ(q.nv, 9);
@@ -172,6 +174,13 @@ TEST(Remesh, Cylinder39x9) {
   EXPECT_NEAR(e.distance[0].hausdorff_m, sag, 0.1 * sag);
   EXPECT_LT(e.distance[0].mean_m, sag);
   EXPECT_NEAR(e.distance[0].compared_input_area_m2, 2 * kPi * R * L, 0.01 * 2 * kPi * R * L);
+  // the default end rings sit past the crease, the row of wall faces that
+  // touch each cap: one of the input's 64 rows in
+  const auto c = remesh_layers({{"skin", s}}, grid(39, 9));
+  for (int i = 0; i < 39; ++i) {
+    EXPECT_NEAR(c.layers[0].vertices(i, 2), L / 64, 1e-9);
+    EXPECT_NEAR(c.layers[0].vertices(8 * 39 + i, 2), L - L / 64, 1e-9);
+  }
 }
 
 TEST(Remesh, AngleSamplingOnCylinder) {
@@ -225,7 +234,9 @@ TEST(Remesh, BentEllipticTubeFollowsTheArc) {
 TEST(Remesh, TaperingCone) {
   const double r0 = 0.035, r1 = 0.02, L = 0.12;
   const Surface s = test::cone(r0, r1, L, 256, 64);
-  const auto r = remesh_layers({{"skin", s}}, grid(30, 10));
+  RemeshOptions o = grid(30, 10);
+  o.ends = EndRings::rim;  // the rims are where the radii are r0, r1
+  const auto r = remesh_layers({{"skin", s}}, o);
   const QuadSurface& q = r.layers[0];
   for (int i = 0; i < 30; ++i) {
     EXPECT_NEAR(radius_xy(q, i), r0, 1e-4);
