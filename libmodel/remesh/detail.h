@@ -81,6 +81,10 @@ void sample_loop(const Loop& l, const SweepPlane& pl, RingSampling mode, int arc
 // Cumulative arc length of the closed polygon T at each vertex, its perimeter
 // last (T.size() + 1 entries).
 std::vector<double> closed_arc_lengths(const std::vector<Eigen::Vector2d>& T);
+// The point at arc length x (taken around) of the closed polygon T (cum:
+// closed_arc_lengths(T)); its segment in *segment when given.
+Eigen::Vector2d point_at_arc(const std::vector<Eigen::Vector2d>& T, const std::vector<double>& cum, double x,
+                             std::size_t* segment = nullptr);
 
 // Correspondence between a ring and the section of the layer below it, both
 // closed counter-clockwise polygons in one plane. normal_hits: the arc-length

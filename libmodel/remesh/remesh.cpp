@@ -488,6 +488,18 @@ std::vector<double> closed_arc_lengths(const std::vector<Vec2>& T) {
   return cum;
 }
 
+Vec2 point_at_arc(const std::vector<Vec2>& T, const std::vector<double>& cum, double x, std::size_t* segment) {
+  const std::size_t m = T.size();
+  x = std::fmod(x, cum[m]);
+  if (x < 0) x += cum[m];
+  std::size_t s = static_cast<std::size_t>(std::upper_bound(cum.begin(), cum.end(), x) - cum.begin());
+  s = std::clamp<std::size_t>(s, 1, m) - 1;
+  const double len = cum[s + 1] - cum[s];
+  const double f = len > 0 ? std::clamp((x - cum[s]) / len, 0.0, 1.0) : 0;
+  if (segment) *segment = s;
+  return T[s] + f * (T[(s + 1) % m] - T[s]);
+}
+
 // A uniform grid over the segments of a closed polygon, walked along a ray
 // (Amanatides & Woo 1987): the ray casts of the layer correspondence test
 // only the segments near the ray instead of all of them.
@@ -1434,18 +1446,11 @@ RemeshResult remesh_layers(const std::vector<NamedSurface>& layers, const Remesh
         // bumps of the ring at the input's voxel scale, whose slopes are large
         // but whose extent is small, move the hits by about their height, not
         // by d times their slope. d: the distance to the radial hit.
-        const std::size_t mT = T.size();
         const std::vector<double> cumT = remesh_detail::closed_arc_lengths(T);
         std::vector<double> depth(static_cast<std::size_t>(nu));
-        for (int i = 0; i < nu; ++i) {
-          double x = std::fmod(rt.base[static_cast<std::size_t>(i)], cumT[mT]);
-          if (x < 0) x += cumT[mT];
-          std::size_t s = static_cast<std::size_t>(std::upper_bound(cumT.begin(), cumT.end(), x) - cumT.begin());
-          s = std::clamp<std::size_t>(s, 1, mT) - 1;
-          const double len = cumT[s + 1] - cumT[s];
-          const double f = len > 0 ? std::clamp((x - cumT[s]) / len, 0.0, 1.0) : 0;
-          depth[static_cast<std::size_t>(i)] = (T[s] + f * (T[(s + 1) % mT] - T[s]) - P[static_cast<std::size_t>(i)]).norm();
-        }
+        for (int i = 0; i < nu; ++i)
+          depth[static_cast<std::size_t>(i)] =
+              (remesh_detail::point_at_arc(T, cumT, rt.base[static_cast<std::size_t>(i)]) - P[static_cast<std::size_t>(i)]).norm();
         rt.x = remesh_detail::normal_hits(P, T, &depth);
       }
       rt.per = 0;
@@ -1472,17 +1477,10 @@ RemeshResult remesh_layers(const std::vector<NamedSurface>& layers, const Remesh
       const std::vector<Vec2>& T = rt.T;
       const std::vector<double> sig = remesh_detail::ordered_blend(rt.x, rt.base, rt.per, alpha, o.min_ring_spacing_fraction);
       // points at the parameters; on a stretch of one loop, exactly on it
-      const std::size_t mT = T.size();
-      std::vector<double> cum(mT + 1, 0);
-      for (std::size_t s = 0; s < mT; ++s) cum[s + 1] = cum[s] + (T[(s + 1) % mT] - T[s]).norm();
+      const std::vector<double> cum = remesh_detail::closed_arc_lengths(T);
       for (int i = 0; i < nu; ++i) {
-        double x = std::fmod(sig[static_cast<std::size_t>(i)], cum[mT]);
-        if (x < 0) x += cum[mT];
-        std::size_t s = static_cast<std::size_t>(std::upper_bound(cum.begin(), cum.end(), x) - cum.begin());
-        s = std::clamp<std::size_t>(s, 1, mT) - 1;
-        const double len = cum[s + 1] - cum[s];
-        const double f = len > 0 ? std::clamp((x - cum[s]) / len, 0.0, 1.0) : 0;
-        const Vec2 q = T[s] + f * (T[(s + 1) % mT] - T[s]);
+        std::size_t s = 0;
+        const Vec2 q = remesh_detail::point_at_arc(T, cum, sig[static_cast<std::size_t>(i)], &s);
         if (!rt.several || rt.on[s] >= 0)
           ++res.stats[k].hit;
         else
