@@ -99,6 +99,8 @@ void add_remesh_command(CLI::App& app) {
       o.nu = g[0], o.nv = g[1];
     }
     o.adaptive = !a.uniform;
+    if (a.arc_window < 0 || a.arc_window > 64)
+      throw UsageError("--arc-window: expected 0..64 section vertices, got " + std::to_string(a.arc_window));
     o.arc_window = a.arc_window;
     if (a.ends == "crease")
       o.ends = EndRings::crease;

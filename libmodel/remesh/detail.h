@@ -60,6 +60,11 @@ class Slicer {
   mutable std::vector<int> fexit_;  // per face: exit edge (- to + in face order)
 };
 
+// Signed area and area centroid of the loop's plane-frame points q.
+void set_area_centroid(Loop& l);
+// q of the loop's points p in the frame of plane pl, then its area and centroid.
+void to_plane_frame(Loop& l, const SweepPlane& pl);
+
 // Winding number of the loop around point x (plane frame).
 int winding(const Loop& l, const Eigen::Vector2d& x);
 

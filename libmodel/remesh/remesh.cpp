@@ -584,6 +584,31 @@ class SegmentGrid {
   std::vector<int> start_, seg_;
 };
 
+namespace {
+// Where the ray o + t w crosses segment s of the closed polygon T: true with
+// t and the fraction lam along the segment when the ray's line meets it.
+bool ray_segment(const Vec2& o, const Vec2& w, const std::vector<Vec2>& T, std::size_t s, double& t, double& lam) {
+  const Vec2 a = T[s] - o;
+  const Vec2 d = T[(s + 1) % T.size()] - T[s];
+  const double den = w.x() * d.y() - w.y() * d.x();
+  if (den == 0) return false;
+  t = (a.x() * d.y() - a.y() * d.x()) / den;
+  lam = (a.x() * w.y() - a.y() * w.x()) / den;
+  return lam >= 0 && lam <= 1;
+}
+
+// Unwraps arc-length parameters around a closed curve of perimeter per so
+// that consecutive ones differ by less than half a turn; true when they go
+// once around.
+bool unwrap_once(std::vector<double>& s, double per) {
+  const std::size_t n = s.size();
+  auto wrap = [&](double d) { return d - per * std::floor(d / per + 0.5); };
+  for (std::size_t i = 1; i < n; ++i) s[i] = s[i - 1] + wrap(s[i] - s[i - 1]);
+  const double turn = s[n - 1] + wrap(s[0] - s[n - 1]) - s[0];
+  return std::abs(turn - per) < 0.5 * per;
+}
+}  // namespace
+
 // Arc-length parameters on T where the inward normals of the ring P first
 // meet T, unwrapped (see detail.h).
 std::vector<double> normal_hits(const std::vector<Vec2>& P, const std::vector<Vec2>& T, const std::vector<double>* halfwidth) {
@@ -607,16 +632,7 @@ std::vector<double> normal_hits(const std::vector<Vec2>& P, const std::vector<Ve
   };
   // the ring P as a closed polyline with arc length, for the windowed chords
   const std::vector<double> pcum = halfwidth ? closed_arc_lengths(P) : std::vector<double>{};
-  auto p_at = [&](double x) {  // point of P at arc length x (any real, taken around)
-    const double pp = pcum.back();
-    x = std::fmod(x, pp);
-    if (x < 0) x += pp;
-    std::size_t s = static_cast<std::size_t>(std::upper_bound(pcum.begin(), pcum.end(), x) - pcum.begin());
-    s = std::clamp<std::size_t>(s, 1, static_cast<std::size_t>(n)) - 1;
-    const double len = pcum[s + 1] - pcum[s];
-    const double f = len > 0 ? std::clamp((x - pcum[s]) / len, 0.0, 1.0) : 0;
-    return Vec2(P[s] + f * (P[(s + 1) % static_cast<std::size_t>(n)] - P[s]));
-  };
+  auto p_at = [&](double x) { return point_at_arc(P, pcum, x); };
   // first crossing of the inward normal ray (counter-clockwise ring: inward is the left normal)
   const SegmentGrid grid(T);
   for (int i = 0; i < n; ++i) {
@@ -636,14 +652,10 @@ std::vector<double> normal_hits(const std::vector<Vec2>& P, const std::vector<Ve
       grid.walk(P[static_cast<std::size_t>(i)], w, [&](const int* b, const int* e, double exit) {
         for (; b != e; ++b) {
           const std::size_t s = static_cast<std::size_t>(*b);
-          const Vec2 a = T[s] - P[static_cast<std::size_t>(i)];
-          const Vec2 d = T[(s + 1) % m] - T[s];
-          const double den = w.x() * d.y() - w.y() * d.x();
-          if (den == 0) continue;
-          const double t = (a.x() * d.y() - a.y() * d.x()) / den;
-          const double lam = (a.x() * w.y() - a.y() * w.x()) / den;
+          double t, lam;
           // the first crossing; among equal ones the lowest segment (as a scan of all would)
-          if (lam >= 0 && lam <= 1 && t > 0 && (best < 0 || t < best || (t == best && s < bs)))
+          if (ray_segment(P[static_cast<std::size_t>(i)], w, T, s, t, lam) && t > 0 &&
+              (best < 0 || t < best || (t == best && s < bs)))
             best = t, bs = s, at = cum[s] + lam * (cum[s + 1] - cum[s]);
         }
         return best > 0 && best <= exit;
@@ -652,16 +664,9 @@ std::vector<double> normal_hits(const std::vector<Vec2>& P, const std::vector<Ve
     sig[static_cast<std::size_t>(i)] = best > 0 ? at : closest(P[static_cast<std::size_t>(i)]);
   }
   // unwrap around the ring; the parameters must go once around T
-  auto wrap = [&](double d) { return d - per * std::floor(d / per + 0.5); };
-  auto unwrap_once = [&](std::vector<double>& s) {
-    for (int i = 1; i < n; ++i)
-      s[static_cast<std::size_t>(i)] = s[static_cast<std::size_t>(i - 1)] + wrap(s[static_cast<std::size_t>(i)] - s[static_cast<std::size_t>(i - 1)]);
-    const double turn = s[static_cast<std::size_t>(n - 1)] + wrap(s[0] - s[static_cast<std::size_t>(n - 1)]) - s[0];
-    return std::abs(turn - per) < 0.5 * per;
-  };
-  if (unwrap_once(sig)) return sig;
+  if (unwrap_once(sig, per)) return sig;
   for (int i = 0; i < n; ++i) sig[static_cast<std::size_t>(i)] = closest(P[static_cast<std::size_t>(i)]);
-  if (unwrap_once(sig)) return sig;
+  if (unwrap_once(sig, per)) return sig;
   for (int i = 1; i < n; ++i) sig[static_cast<std::size_t>(i)] = sig[0] + per * i / n;
   return sig;
 }
@@ -684,24 +689,15 @@ std::vector<double> radial_hits(const std::vector<Vec2>& P, const std::vector<Ve
     grid.walk(c, w, [&](const int* b, const int* e, double) {
       for (; b != e; ++b) {
         const std::size_t s = static_cast<std::size_t>(*b);
-        const Vec2 a = T[s] - c;
-        const Vec2 d = T[(s + 1) % m] - T[s];
-        const double den = w.x() * d.y() - w.y() * d.x();
-        if (den == 0) continue;
-        const double t = (a.x() * d.y() - a.y() * d.x()) / den;
-        const double lam = (a.x() * w.y() - a.y() * w.x()) / den;
-        if (lam >= 0 && lam <= 1 && t >= 0 && (t > best || (t == best && s < bs)))
+        double t, lam;
+        if (ray_segment(c, w, T, s, t, lam) && t >= 0 && (t > best || (t == best && s < bs)))
           best = t, bs = s, at = cum[s] + lam * (cum[s + 1] - cum[s]);
       }
       return false;
     });
     sig[static_cast<std::size_t>(i)] = best >= 0 ? at : (i ? sig[static_cast<std::size_t>(i - 1)] : 0.0);
   }
-  auto wrap = [&](double d) { return d - per * std::floor(d / per + 0.5); };
-  for (int i = 1; i < n; ++i)
-    sig[static_cast<std::size_t>(i)] = sig[static_cast<std::size_t>(i - 1)] + wrap(sig[static_cast<std::size_t>(i)] - sig[static_cast<std::size_t>(i - 1)]);
-  const double turn = sig[static_cast<std::size_t>(n - 1)] + wrap(sig[0] - sig[static_cast<std::size_t>(n - 1)]) - sig[0];
-  if (std::abs(turn - per) >= 0.5 * per)
+  if (!unwrap_once(sig, per))
     for (int i = 1; i < n; ++i) sig[static_cast<std::size_t>(i)] = sig[0] + per * i / n;
   return sig;
 }
@@ -1078,38 +1074,47 @@ TubeSweep find_tube_sweep(const Surface& outer, const RemeshOptions& o, const st
 namespace {
 
 // Convex hull of the points of several loops (plane frame), counter-clockwise
-// (Andrew's monotone chain), as a Loop with its area and area centroid.
-Loop convex_hull_loop(const std::vector<Loop>& loops) {
-  std::vector<Vec2> p;
-  for (const auto& l : loops) p.insert(p.end(), l.q.begin(), l.q.end());
-  std::sort(p.begin(), p.end(), [](const Vec2& a, const Vec2& b) { return a.x() < b.x() || (a.x() == b.x() && a.y() < b.y()); });
+// (Andrew's monotone chain), as a Loop with its area and area centroid, and
+// per hull edge q[v] q[v+1] the loop it lies on (the edge joins consecutive
+// points of that loop), -1 where it bridges between loops. Empty (and `on`
+// empty) when the points span no area.
+Loop convex_hull_loop(const std::vector<Loop>& loops, std::vector<int>& on) {
+  struct P2 {
+    Vec2 q;
+    int loop, idx;
+  };
+  std::vector<P2> p;
+  for (std::size_t li = 0; li < loops.size(); ++li)
+    for (std::size_t qi = 0; qi < loops[li].q.size(); ++qi)
+      p.push_back({loops[li].q[qi], static_cast<int>(li), static_cast<int>(qi)});
+  std::sort(p.begin(), p.end(), [](const P2& x, const P2& y) {
+    return x.q.x() < y.q.x() || (x.q.x() == y.q.x() && x.q.y() < y.q.y());
+  });
   auto cross = [](const Vec2& o, const Vec2& a, const Vec2& b) {
     return (a.x() - o.x()) * (b.y() - o.y()) - (a.y() - o.y()) * (b.x() - o.x());
   };
-  std::vector<Vec2> h(2 * p.size() + 1);
+  std::vector<P2> h(2 * p.size() + 1);
   std::size_t k = 0;
   for (std::size_t i = 0; i < p.size(); ++i) {
-    while (k >= 2 && cross(h[k - 2], h[k - 1], p[i]) <= 0) --k;
+    while (k >= 2 && cross(h[k - 2].q, h[k - 1].q, p[i].q) <= 0) --k;
     h[k++] = p[i];
   }
   for (std::size_t i = p.size() - 1, t = k + 1; i-- > 0;) {
-    while (k >= t && cross(h[k - 2], h[k - 1], p[i]) <= 0) --k;
+    while (k >= t && cross(h[k - 2].q, h[k - 1].q, p[i].q) <= 0) --k;
     h[k++] = p[i];
   }
   Loop hull;
+  on.clear();
   if (k < 4) return hull;
-  hull.q.assign(h.begin(), h.begin() + static_cast<std::ptrdiff_t>(k - 1));
-  double A = 0;
-  Vec2 c = Vec2::Zero();
-  for (std::size_t i = 0; i < hull.q.size(); ++i) {
-    const Vec2& a = hull.q[i];
-    const Vec2& b = hull.q[(i + 1) % hull.q.size()];
-    const double w = a.x() * b.y() - a.y() * b.x();
-    A += w;
-    c += w * (a + b);
+  h.resize(k - 1);
+  for (std::size_t v = 0; v < h.size(); ++v) {
+    const P2& x = h[v];
+    const P2& y = h[(v + 1) % h.size()];
+    const int ns = static_cast<int>(loops[static_cast<std::size_t>(x.loop)].q.size());
+    hull.q.push_back(x.q);
+    on.push_back(x.loop == y.loop && (x.idx + 1) % ns == y.idx ? x.loop : -1);
   }
-  hull.area = 0.5 * A;
-  hull.centroid = A != 0 ? Vec2(c / (3 * A)) : Vec2::Zero();
+  remesh_detail::set_area_centroid(hull);
   return hull;
 }
 
@@ -1342,19 +1347,7 @@ RemeshResult remesh_layers(const std::vector<NamedSurface>& layers, const Remesh
           if (sj == res.stations_m(j)) continue;
           const SweepPlane ps = sweep_plane(sw, sj);
           for (Loop l : slicers[k].slice(ps)) {
-            double a2 = 0, cx = 0, cy = 0;
-            for (std::size_t v = 0; v < l.p.size(); ++v) {
-              const Vec3 r = l.p[v] - pl.centre;
-              l.q[v] = Vec2(r.dot(pl.e1), r.dot(pl.e2));
-            }
-            for (std::size_t v = 0; v < l.q.size(); ++v) {
-              const Vec2& a = l.q[v];
-              const Vec2& b = l.q[(v + 1) % l.q.size()];
-              const double w = a.x() * b.y() - a.y() * b.x();
-              a2 += w, cx += w * (a.x() + b.x()), cy += w * (a.y() + b.y());
-            }
-            l.area = 0.5 * a2;
-            l.centroid = a2 != 0 ? Vec2(cx / (3 * a2), cy / (3 * a2)) : Vec2::Zero();
+            remesh_detail::to_plane_frame(l, pl);
             loops.push_back(std::move(l));
           }
         }
@@ -1374,8 +1367,9 @@ RemeshResult remesh_layers(const std::vector<NamedSurface>& layers, const Remesh
       outer.q = prev_target[j].empty() ? P : prev_target[j];
       const bool several = loops.size() > 1;
       Loop hull;
+      std::vector<int> hull_on;
       if (several) {
-        hull = convex_hull_loop(loops);
+        hull = convex_hull_loop(loops, hull_on);
         if (hull.q.size() >= 3 && hull.area > 0) c = hull.centroid;
       }
       if (remesh_detail::winding(outer, c) == 0)
@@ -1393,39 +1387,9 @@ RemeshResult remesh_layers(const std::vector<NamedSurface>& layers, const Remesh
         // (the interosseous membrane). Convex, so the rays from its centroid
         // and the outer normals meet it in order, with no zig-zag between the
         // bones; an edge is on a bone where it joins consecutive loop points.
-        struct P2 {
-          Vec2 q;
-          int loop, idx;
-        };
-        std::vector<P2> pts2;
-        for (std::size_t li = 0; li < loops.size(); ++li)
-          for (std::size_t qi = 0; qi < loops[li].q.size(); ++qi)
-            pts2.push_back({loops[li].q[qi], static_cast<int>(li), static_cast<int>(qi)});
-        std::sort(pts2.begin(), pts2.end(), [](const P2& x, const P2& y) {
-          return x.q.x() < y.q.x() || (x.q.x() == y.q.x() && x.q.y() < y.q.y());
-        });
-        auto cross = [](const Vec2& o2, const Vec2& a2, const Vec2& b2) {
-          return (a2.x() - o2.x()) * (b2.y() - o2.y()) - (a2.y() - o2.y()) * (b2.x() - o2.x());
-        };
-        std::vector<P2> h(2 * pts2.size() + 1);
-        std::size_t kh = 0;
-        for (std::size_t i = 0; i < pts2.size(); ++i) {
-          while (kh >= 2 && cross(h[kh - 2].q, h[kh - 1].q, pts2[i].q) <= 0) --kh;
-          h[kh++] = pts2[i];
-        }
-        for (std::size_t i = pts2.size() - 1, t = kh + 1; i-- > 0;) {
-          while (kh >= t && cross(h[kh - 2].q, h[kh - 1].q, pts2[i].q) <= 0) --kh;
-          h[kh++] = pts2[i];
-        }
-        if (kh < 4) continue;
-        h.resize(kh - 1);
-        for (std::size_t v = 0; v < h.size(); ++v) {
-          const P2& x = h[v];
-          const P2& y = h[(v + 1) % h.size()];
-          const int ns = static_cast<int>(loops[static_cast<std::size_t>(x.loop)].q.size());
-          T.push_back(x.q);
-          on.push_back(x.loop == y.loop && (x.idx + 1) % ns == y.idx ? x.loop : -1);
-        }
+        if (hull.q.empty()) continue;
+        T = hull.q;
+        on = hull_on;
         // the hull must stay inside the layer above
         for (const Vec2& q : T) {
           const Vec2 w = q - c;

@@ -259,30 +259,37 @@ std::vector<Loop> Slicer::slice(const SweepPlane& pl) const {
     if (loop.p.size() > 1 && (loop.p.front() - loop.p.back()).squaredNorm() == 0) loop.p.pop_back();
     if (loop.p.size() < 3) continue;
     if (flip_[loop.component]) std::reverse(loop.p.begin(), loop.p.end());
-    // plane frame, signed area and centroid
-    const std::size_t m = loop.p.size();
-    loop.q.resize(m);
-    for (std::size_t i = 0; i < m; ++i) {
-      const Eigen::Vector3d r = loop.p[i] - pl.centre;
-      loop.q[i] = {r.dot(pl.e1), r.dot(pl.e2)};
-    }
-    double A = 0, cx = 0, cy = 0;
-    for (std::size_t i = 0; i < m; ++i) {
-      const Eigen::Vector2d& u = loop.q[i];
-      const Eigen::Vector2d& v = loop.q[(i + 1) % m];
-      const double cr = u.x() * v.y() - v.x() * u.y();
-      A += cr;
-      cx += (u.x() + v.x()) * cr;
-      cy += (u.y() + v.y()) * cr;
-    }
-    loop.area = 0.5 * A;
-    if (A != 0) loop.centroid = {cx / (3 * A), cy / (3 * A)};
+    to_plane_frame(loop, pl);
     loops.push_back(std::move(loop));
   }
   // deterministic order: by decreasing |area|
   std::stable_sort(loops.begin(), loops.end(),
                    [](const Loop& a, const Loop& b) { return std::abs(a.area) > std::abs(b.area); });
   return loops;
+}
+
+void set_area_centroid(Loop& l) {
+  const std::size_t m = l.q.size();
+  double A = 0, cx = 0, cy = 0;
+  for (std::size_t i = 0; i < m; ++i) {
+    const Eigen::Vector2d& u = l.q[i];
+    const Eigen::Vector2d& v = l.q[(i + 1) % m];
+    const double cr = u.x() * v.y() - v.x() * u.y();
+    A += cr;
+    cx += (u.x() + v.x()) * cr;
+    cy += (u.y() + v.y()) * cr;
+  }
+  l.area = 0.5 * A;
+  l.centroid = A != 0 ? Eigen::Vector2d(cx / (3 * A), cy / (3 * A)) : Eigen::Vector2d::Zero();
+}
+
+void to_plane_frame(Loop& l, const SweepPlane& pl) {
+  l.q.resize(l.p.size());
+  for (std::size_t i = 0; i < l.p.size(); ++i) {
+    const Eigen::Vector3d r = l.p[i] - pl.centre;
+    l.q[i] = {r.dot(pl.e1), r.dot(pl.e2)};
+  }
+  set_area_centroid(l);
 }
 
 int winding(const Loop& l, const Eigen::Vector2d& x) {
