@@ -232,7 +232,7 @@ void add_remesh_command(CLI::App& app) {
         w->remove("/quads");
         for (std::size_t l = 0; l < r.layers.size(); ++l) w->write(names[l], r.layers[l]);
         w->write("remesh", make_provenance(command_line(), report.json()["inputs"].dump(),
-                                           report.parameters().dump(), 0, r.check_s + r.axis_s + r.rings_s));
+                                           report.parameters().dump(), 0, r.total_s));
       }
       dir.commit();
       if (w) w->commit();
@@ -276,7 +276,7 @@ void add_remesh_command(CLI::App& app) {
       std::cout << std::fixed << std::setprecision(3);
       std::cout << "remesh: " << o.nu << "x" << o.nv << " grid, axis " << r.sweep.length_m * 1e3 << " mm, ends "
                 << (r.sweep.flat_cap[0] ? "flat cap" : "trimmed") << " / " << (r.sweep.flat_cap[1] ? "flat cap" : "trimmed")
-                << ", " << (r.check_s + r.axis_s + r.rings_s) * 1e3 << " ms\n";
+                << ", " << r.total_s * 1e3 << " ms\n";
       for (std::size_t l = 0; l < r.layers.size(); ++l) {
         const auto& q = ev.quality[l];
         const auto& d = ev.distance[l];

@@ -6,6 +6,8 @@
 
 #include <Eigen/Core>
 
+#include <tbb/enumerable_thread_specific.h>
+
 #include <array>
 #include <string>
 #include <vector>
@@ -43,6 +45,7 @@ class Slicer {
  public:
   Slicer(const Surface& s, const Topology& t, const Eigen::Vector3d& axis_point, const Eigen::Vector3d& axis_dir);
   // Loops of the plane through p.centre with normal p.normal; q uses p.e1, p.e2.
+  // Thread-safe (per-thread scratch).
   std::vector<Loop> slice(const SweepPlane& p) const;
 
  private:
@@ -51,14 +54,22 @@ class Slicer {
   Eigen::Vector3d a0_, ad_;
   std::vector<int> order_;          // faces sorted by tmin
   std::vector<double> tmin_sorted_, tmax_;  // tmin in sorted order; tmax by face
+  std::vector<Eigen::Vector4d> ball_;       // in sorted order: a ball around the face (centre, radius)
   double max_extent_ = 0, rho_max_ = 0;
   std::vector<int> flip_;           // 1 where a component is inward (negative volume)
-  mutable std::vector<double> dist_;
-  mutable std::vector<unsigned> stamp_;
-  mutable unsigned cur_ = 0;
-  mutable std::vector<unsigned> fstamp_;
-  mutable std::vector<int> fexit_;  // per face: exit edge (- to + in face order)
+  // per-thread scratch of slice(): slices may run side by side
+  struct Scratch {
+    std::vector<double> dist;
+    std::vector<unsigned> stamp;
+    unsigned cur = 0;
+    std::vector<unsigned> fstamp;
+    std::vector<int> fexit;  // per face: exit edge (- to + in face order)
+  };
+  mutable tbb::enumerable_thread_specific<Scratch> scratch_;
 };
+
+// The loops of each plane, sliced side by side (result in plane order).
+std::vector<std::vector<Loop>> slice_all(const Slicer& sl, const std::vector<SweepPlane>& planes);
 
 // Signed area and area centroid of the loop's plane-frame points q.
 void set_area_centroid(Loop& l);

@@ -8,6 +8,7 @@
 #include <Eigen/Sparse>
 
 #include <tbb/parallel_for.h>
+#include <tbb/parallel_invoke.h>
 
 #include <algorithm>
 #include <exception>
@@ -106,22 +107,38 @@ struct Cap {
 
 // The largest planar patch facing the end `dir` (unit, pointing out of the
 // tube), grown from the face furthest along dir.
-Cap detect_cap(const Surface& s, const Topology& t, const Vec3& dir, double angle_deg, double length) {
-  Cap cap;
+// Outward unit normal, centroid and area of every face (shared by both caps).
+struct FaceData {
+  std::vector<Vec3> nrm, cen;
+  std::vector<double> area;
+};
+
+FaceData face_data(const Surface& s, const Topology& t) {
   const int nf = static_cast<int>(s.faces.rows());
-  std::vector<Vec3> nrm(nf), cen(nf);
-  std::vector<double> area(nf);
-  int seed = -1;
-  double best = -1e300;
+  FaceData d;
+  d.nrm.resize(nf), d.cen.resize(nf), d.area.resize(nf);
   for (int f = 0; f < nf; ++f) {
     const Vec3 p0 = s.vertices.row(s.faces(f, 0)), p1 = s.vertices.row(s.faces(f, 1)),
                p2 = s.vertices.row(s.faces(f, 2));
-    Vec3 n = (p1 - p0).cross(p2 - p0);
-    area[f] = 0.5 * n.norm();
-    nrm[f] = area[f] > 0 ? Vec3(n.normalized()) : Vec3::Zero();
-    if (t.component_volume[t.face_component[f]] < 0) nrm[f] = -nrm[f];
-    cen[f] = (p0 + p1 + p2) / 3;
-    if (area[f] > 0 && nrm[f].dot(dir) > std::cos(50 * kPi / 180) && cen[f].dot(dir) > best) {
+    const Vec3 n = (p1 - p0).cross(p2 - p0);
+    d.area[f] = 0.5 * n.norm();
+    d.nrm[f] = d.area[f] > 0 ? Vec3(n.normalized()) : Vec3::Zero();
+    if (t.component_volume[t.face_component[f]] < 0) d.nrm[f] = -d.nrm[f];
+    d.cen[f] = (p0 + p1 + p2) / 3;
+  }
+  return d;
+}
+
+Cap detect_cap(const Surface& s, const Topology& t, const FaceData& fd, const Vec3& dir, double angle_deg, double length) {
+  Cap cap;
+  const int nf = static_cast<int>(s.faces.rows());
+  const std::vector<Vec3>&nrm = fd.nrm, &cen = fd.cen;
+  const std::vector<double>& area = fd.area;
+  int seed = -1;
+  double best = -1e300;
+  const double cos_seed = std::cos(50 * kPi / 180);
+  for (int f = 0; f < nf; ++f) {
+    if (area[f] > 0 && nrm[f].dot(dir) > cos_seed && cen[f].dot(dir) > best) {
       best = cen[f].dot(dir);
       seed = f;
     }
@@ -796,8 +813,9 @@ TubeSweep sweep_impl(const Surface& s, const Topology& topo, const Slicer& sl, c
   }
   const double extent = t1 - t0;
   if (!(extent > 0)) throw Error(name, "not tube-like: the surface is flat");
-  Cap caps[2] = {detect_cap(s, topo, -ax.d, o.cap_angle_deg, extent),
-                 detect_cap(s, topo, ax.d, o.cap_angle_deg, extent)};
+  const FaceData fd = face_data(s, topo);
+  Cap caps[2] = {detect_cap(s, topo, fd, -ax.d, o.cap_angle_deg, extent),
+                 detect_cap(s, topo, fd, ax.d, o.cap_angle_deg, extent)};
 
   // a cap is flat when its planar patch is at least half as large as the
   // middle section
@@ -823,10 +841,15 @@ TubeSweep sweep_impl(const Surface& s, const Topology& topo, const Slicer& sl, c
   const int K = o.axis_sections;
   std::vector<Vec3> pts;
   std::vector<double> areas;
+  std::vector<SweepPlane> first(static_cast<std::size_t>(K));
   for (int k = 0; k < K; ++k) {
     const double t = ta + (k + 0.5) / K * (tb - ta);
-    const SweepPlane pl = make_plane(ax.m + t * ax.d, ax.d, reference_perpendicular(ax.d));
-    const auto loops = sl.slice(pl);
+    first[static_cast<std::size_t>(k)] = make_plane(ax.m + t * ax.d, ax.d, reference_perpendicular(ax.d));
+  }
+  const std::vector<std::vector<Loop>> first_loops = remesh_detail::slice_all(sl, first);
+  for (int k = 0; k < K; ++k) {
+    const SweepPlane& pl = first[static_cast<std::size_t>(k)];
+    const auto& loops = first_loops[static_cast<std::size_t>(k)];
     if (loops.empty()) continue;
     const Loop& l = loops[0];
     pts.push_back(pl.centre + l.centroid.x() * pl.e1 + l.centroid.y() * pl.e2);
@@ -875,10 +898,16 @@ TubeSweep sweep_impl(const Surface& s, const Topology& topo, const Slicer& sl, c
     const NormalField nf = normal_field(curve, caps, radius);
     std::vector<Vec3> next;
     sec_s.clear(), sec_a.clear();
+    std::vector<SweepPlane> sec(static_cast<std::size_t>(K));
     for (int k = 0; k < K; ++k) {
       const double sk = (k + 0.5) / K * curve.length();
-      const SweepPlane pl = make_plane(curve.point(sk), nf(sk), reference_perpendicular(nf(sk)));
-      const auto loops = sl.slice(pl);
+      sec[static_cast<std::size_t>(k)] = make_plane(curve.point(sk), nf(sk), reference_perpendicular(nf(sk)));
+    }
+    const std::vector<std::vector<Loop>> sec_loops = remesh_detail::slice_all(sl, sec);
+    for (int k = 0; k < K; ++k) {
+      const double sk = (k + 0.5) / K * curve.length();
+      const SweepPlane& pl = sec[static_cast<std::size_t>(k)];
+      const auto& loops = sec_loops[static_cast<std::size_t>(k)];
       const Loop* l = nullptr;
       for (const auto& c : loops)
         if (remesh_detail::winding(c, Vec2(0, 0)) != 0) {
@@ -1155,11 +1184,12 @@ VecXd place_stations(const TubeSweep& sw, const Slicer& sl, const RemeshOptions&
   for (int i = 0; i < M; ++i) u[i] = static_cast<double>(i) / M;
   std::vector<std::vector<Vec3>> ring(K);
   const double ds = L / (K - 1);
-  for (int k = 0; k < K; ++k) {
-    const SweepPlane pl = sweep_plane(sw, k * ds);
-    const auto loops = sl.slice(pl);
-    sample_loop(tube_loop(loops, name, k * ds, L), pl, o.around, o.arc_window, u, ring[k], nullptr, name);
-  }
+  std::vector<SweepPlane> planes(static_cast<std::size_t>(K));
+  for (int k = 0; k < K; ++k) planes[static_cast<std::size_t>(k)] = sweep_plane(sw, k * ds);
+  const std::vector<std::vector<Loop>> loops = remesh_detail::slice_all(sl, planes);
+  for (int k = 0; k < K; ++k)
+    sample_loop(tube_loop(loops[static_cast<std::size_t>(k)], name, k * ds, L), planes[static_cast<std::size_t>(k)], o.around,
+                o.arc_window, u, ring[k], nullptr, name);
   std::vector<double> g(K, 0);
   for (int k = 1; k + 1 < K; ++k) {
     double acc = 0;
@@ -1205,58 +1235,81 @@ RemeshResult remesh_layers(const std::vector<NamedSurface>& layers, const Remesh
   validate(o);
   if (layers.empty()) throw Error("", "no surface to remesh");
   auto t0 = std::chrono::steady_clock::now();
+  const auto t_start = t0;
   RemeshResult res;
   const int nl = static_cast<int>(layers.size());
-  // the layers' checks are independent: side by side, errors reported in
-  // layer order (the first bad layer, as a sequential run would)
-  auto each_layer = [&](int from, auto&& f) {
-    std::vector<std::exception_ptr> err(static_cast<std::size_t>(nl));
-    tbb::parallel_for(from, nl, [&](int k) {
-      try {
-        f(k);
-      } catch (...) {
-        err[static_cast<std::size_t>(k)] = std::current_exception();
-      }
-    });
-    for (const auto& e : err)
-      if (e) std::rethrow_exception(e);
-  };
+  // Two branches side by side: (A) the outer layer's topology, then its axis,
+  // sweep and stations; (B) the inner layers' topologies, then each inner
+  // layer's containment in the one above. On 2 cores the axis's sequential
+  // parts fill the gaps of the checks. Errors are reported as a sequential run
+  // would: topology in layer order, then containment, then the axis.
   std::vector<Topology> topo(static_cast<std::size_t>(nl));
-  each_layer(0, [&](int k) {
-    topo[static_cast<std::size_t>(k)] = remesh_detail::build_topology(layers[k].surface, layers[k].name, k == 0);
-  });
-  if (topo[0].check.euler != 2)
-    throw Error(layers[0].name, "not tube-like: the surface has " + std::to_string((2 - topo[0].check.euler) / 2) +
-                                    " handle(s) (Euler characteristic " + std::to_string(topo[0].check.euler) +
-                                    "); remesh needs a tube closed at both ends");
-  each_layer(1, [&](int k) {
-    const std::int64_t bad = first_point_outside(layers[k - 1].surface, layers[k].surface.vertices);
-    if (bad >= 0) {
-      const Vec3 p = layers[k].surface.vertices.row(bad);
-      std::ostringstream m;
-      m.precision(4);
-      m << "not inside " << layers[k - 1].name << ": vertex " << bad << " at (" << p.x() * 1e3 << ", " << p.y() * 1e3
-        << ", " << p.z() * 1e3 << ") mm lies outside it";
-      throw Error(layers[k].name, m.str());
+  std::vector<std::exception_ptr> topo_err(static_cast<std::size_t>(nl)), contain_err(static_cast<std::size_t>(nl));
+  std::exception_ptr axis_err;
+  auto capture = [](std::exception_ptr& e, auto&& f) {
+    try {
+      f();
+    } catch (...) {
+      e = std::current_exception();
     }
-  });
-  res.check_s = seconds_since(t0);
-  t0 = std::chrono::steady_clock::now();
-
-  const Axis ax = principal_axis(layers[0].surface);
+  };
+  Axis ax;
   std::vector<Slicer> slicers;
   slicers.reserve(nl);
-  for (int k = 0; k < nl; ++k) slicers.emplace_back(layers[k].surface, topo[k], ax.m, ax.d);
-  res.sweep = sweep_impl(layers[0].surface, topo[0], slicers[0], ax, o, layers[0].name);
+  tbb::parallel_invoke(
+      [&] {
+        capture(topo_err[0], [&] {
+          topo[0] = remesh_detail::build_topology(layers[0].surface, layers[0].name, true);
+          if (topo[0].check.euler != 2)
+            throw Error(layers[0].name, "not tube-like: the surface has " + std::to_string((2 - topo[0].check.euler) / 2) +
+                                            " handle(s) (Euler characteristic " + std::to_string(topo[0].check.euler) +
+                                            "); remesh needs a tube closed at both ends");
+        });
+        if (topo_err[0]) return;
+        const auto ta = std::chrono::steady_clock::now();
+        capture(axis_err, [&] {
+          ax = principal_axis(layers[0].surface);
+          slicers.emplace_back(layers[0].surface, topo[0], ax.m, ax.d);
+          res.sweep = sweep_impl(layers[0].surface, topo[0], slicers[0], ax, o, layers[0].name);
+          const TubeSweep& sw = res.sweep;
+          SweepPlane pa = sweep_plane(sw, 0), pb = sweep_plane(sw, sw.length_m);
+          pb.normal = -pb.normal;
+          res.sweep.uncovered_m2 = {sw.flat_cap[0] ? 0.0 : area_behind(layers[0].surface, pa),
+                                    sw.flat_cap[1] ? 0.0 : area_behind(layers[0].surface, pb)};
+          res.stations_m = place_stations(sw, slicers[0], o, layers[0].name);
+        });
+        res.axis_s = seconds_since(ta);
+      },
+      [&] {
+        tbb::parallel_for(1, nl, [&](int k) {
+          capture(topo_err[static_cast<std::size_t>(k)], [&] {
+            topo[static_cast<std::size_t>(k)] = remesh_detail::build_topology(layers[k].surface, layers[k].name, false);
+          });
+        });
+        // layer 0 may still be in its checks: points_inside refuses a surface
+        // it cannot read, and a failed check of layer 0 is reported first
+        tbb::parallel_for(1, nl, [&](int k) {
+          if (k > 1 && topo_err[static_cast<std::size_t>(k - 1)]) return;
+          capture(contain_err[static_cast<std::size_t>(k)], [&] {
+            const std::int64_t bad = first_point_outside(layers[k - 1].surface, layers[k].surface.vertices);
+            if (bad >= 0) {
+              const Vec3 p = layers[k].surface.vertices.row(bad);
+              std::ostringstream m;
+              m.precision(4);
+              m << "not inside " << layers[k - 1].name << ": vertex " << bad << " at (" << p.x() * 1e3 << ", "
+                << p.y() * 1e3 << ", " << p.z() * 1e3 << ") mm lies outside it";
+              throw Error(layers[k].name, m.str());
+            }
+          });
+        });
+        res.check_s = seconds_since(t0);
+      });
+  for (const auto* errs : {&topo_err, &contain_err})
+    for (const auto& e : *errs)
+      if (e) std::rethrow_exception(e);
+  if (axis_err) std::rethrow_exception(axis_err);
+  for (int k = 1; k < nl; ++k) slicers.emplace_back(layers[k].surface, topo[k], ax.m, ax.d);
   const TubeSweep& sw = res.sweep;
-  {
-    SweepPlane a = sweep_plane(sw, 0), b = sweep_plane(sw, sw.length_m);
-    b.normal = -b.normal;
-    res.sweep.uncovered_m2 = {sw.flat_cap[0] ? 0.0 : area_behind(layers[0].surface, a),
-                              sw.flat_cap[1] ? 0.0 : area_behind(layers[0].surface, b)};
-  }
-  res.stations_m = place_stations(sw, slicers[0], o, layers[0].name);
-  res.axis_s = seconds_since(t0);
   t0 = std::chrono::steady_clock::now();
 
   const int nu = o.nu, nv = o.nv;
@@ -1499,6 +1552,7 @@ RemeshResult remesh_layers(const std::vector<NamedSurface>& layers, const Remesh
   }
   for (int k = 0; k < nl; ++k) res.layers.push_back(make_grid(nu, nv, pts[k], res.stations_m, L));
   res.rings_s = seconds_since(t0);
+  res.total_s = seconds_since(t_start);
   return res;
 }
 

@@ -170,7 +170,10 @@ struct RemeshResult {
   MatX3d ring_centre;               // (nv x 3) centre of each ring plane (on the axis)
   MatX3d ring_normal;               // (nv x 3)
   std::vector<MatX3d> ray_origin;   // per layer (nv x 3): origin of the rays of each ring (layer 0: the ring centres)
-  double check_s = 0, axis_s = 0, rings_s = 0;  // wall time of the phases
+  // wall time of the phases: check (topology, then the containment test),
+  // axis (axis, sweep, stations; it runs beside the containment test, so the
+  // phases may add up to more than total_s), rings
+  double check_s = 0, axis_s = 0, rings_s = 0, total_s = 0;
 };
 
 // Remeshes `layers[0]` (the outer surface, one component) into an exact
@@ -240,9 +243,14 @@ struct RemeshEvaluation {
 };
 RemeshEvaluation evaluate_remesh(const RemeshResult& r, const std::vector<NamedSurface>& inputs, int k = 4);
 
-// ---- containment (CGAL) -----------------------------------------------------
-// Index of the first point of `points` strictly outside the closed surface
-// `closed` (points on the surface count as inside), or -1 if none.
+// ---- containment (containment.cpp) -------------------------------------------
+// Per point of `points`: 1 when it lies inside or on the closed, consistently
+// oriented surface `closed`, 0 when strictly outside (or not finite). Exact:
+// ray parity with CGAL's exact predicates and a symbolic perturbation of the
+// ray; no spatial tree (a flat grid of the faces' projections). Throws Error
+// on a non-finite vertex or a face's vertex id out of range.
+std::vector<char> points_inside(const Surface& closed, const MatX3d& points);
+// Index of the first point of `points` strictly outside `closed`, or -1.
 std::int64_t first_point_outside(const Surface& closed, const MatX3d& points);
 
 }  // namespace orthosim

@@ -1,5 +1,4 @@
-// The only CGAL translation unit of remesh: point-to-mesh distances (AABB
-// tree) and containment (Side_of_triangle_mesh).
+// Point-to-mesh distances of remesh's evaluation (CGAL AABB tree).
 #include "libmodel/remesh/remesh.h"
 
 #include <Eigen/Geometry>
@@ -8,8 +7,6 @@
 #include <CGAL/AABB_tree.h>
 #include <CGAL/AABB_triangle_primitive.h>
 #include <CGAL/Exact_predicates_inexact_constructions_kernel.h>
-#include <CGAL/Side_of_triangle_mesh.h>
-#include <CGAL/Surface_mesh.h>
 
 #include <tbb/blocked_range.h>
 #include <tbb/parallel_for.h>
@@ -28,7 +25,6 @@ using Triangle = K::Triangle_3;
 using TriIter = std::vector<Triangle>::const_iterator;
 using Primitive = CGAL::AABB_triangle_primitive<K, TriIter>;
 using Tree = CGAL::AABB_tree<CGAL::AABB_traits<K, Primitive>>;
-using Mesh = CGAL::Surface_mesh<Point>;
 using Vec3 = Eigen::Vector3d;
 
 Point P(const Vec3& v) { return {v.x(), v.y(), v.z()}; }
@@ -47,23 +43,6 @@ std::vector<double> distances(const std::vector<Triangle>& tris, const std::vect
 }
 
 }  // namespace
-
-std::int64_t first_point_outside(const Surface& closed, const MatX3d& points) {
-  if (points.rows() == 0) return -1;
-  Mesh m;
-  std::vector<Mesh::Vertex_index> vi(closed.vertices.rows());
-  for (Eigen::Index v = 0; v < closed.vertices.rows(); ++v) vi[v] = m.add_vertex(P(closed.vertices.row(v)));
-  for (Eigen::Index f = 0; f < closed.faces.rows(); ++f)
-    m.add_face(vi[closed.faces(f, 0)], vi[closed.faces(f, 1)], vi[closed.faces(f, 2)]);
-  CGAL::Side_of_triangle_mesh<Mesh, K> side(m);
-  std::vector<char> out(points.rows(), 0);
-  out[0] = side(P(points.row(0))) == CGAL::ON_UNBOUNDED_SIDE;
-  tbb::parallel_for(tbb::blocked_range<Eigen::Index>(1, points.rows(), 512), [&](const auto& r) {
-    for (Eigen::Index i = r.begin(); i != r.end(); ++i) out[i] = side(P(points.row(i))) == CGAL::ON_UNBOUNDED_SIDE;
-  });
-  auto it = std::find(out.begin(), out.end(), 1);
-  return it == out.end() ? -1 : static_cast<std::int64_t>(it - out.begin());
-}
 
 SurfaceDistance quad_surface_distance(const QuadSurface& q, const Surface& input, const SweepPlane& first,
                                       const SweepPlane& last, int k) {

@@ -3,6 +3,8 @@
 
 #include <Eigen/Geometry>
 
+#include <tbb/parallel_for.h>
+
 #include <algorithm>
 #include <cmath>
 #include <numeric>
@@ -38,38 +40,36 @@ Topology build_topology(const Surface& s, const std::string& name, bool single_c
       throw Error(name, "face " + std::to_string(f) + " repeats a vertex (degenerate)");
   }
 
-  // vertex -> faces (CSR)
-  std::vector<int> off(nv + 1, 0), vf(3 * static_cast<std::size_t>(nf));
+  // vertex -> faces (CSR); with each entry, the vertex's slot in the face:
+  // the half-edge leaving v in face vf[q] is (v, nxt[q])
+  std::vector<int> off(nv + 1, 0), vf(3 * static_cast<std::size_t>(nf)), slot(3 * static_cast<std::size_t>(nf)),
+      nxt(3 * static_cast<std::size_t>(nf));
   for (int f = 0; f < nf; ++f)
     for (int k = 0; k < 3; ++k) ++off[s.faces(f, k) + 1];
   for (int v = 0; v < nv; ++v) off[v + 1] += off[v];
   {
     std::vector<int> fill(off.begin(), off.end() - 1);
     for (int f = 0; f < nf; ++f)
-      for (int k = 0; k < 3; ++k) vf[fill[s.faces(f, k)]++] = f;
+      for (int k = 0; k < 3; ++k) {
+        const int q = fill[s.faces(f, k)]++;
+        vf[q] = f, slot[q] = k, nxt[q] = s.faces(f, (k + 1) % 3);
+      }
   }
-  auto slot_of = [&](int f, int a, int b) {  // slot k with face edge (a, b), or -1
-    for (int k = 0; k < 3; ++k)
-      if (s.faces(f, k) == a && s.faces(f, (k + 1) % 3) == b) return k;
-    return -1;
-  };
 
   Topology t;
   t.face_edge.assign(nf, {-1, -1, -1});
+  t.edge_face.reserve(3 * static_cast<std::size_t>(nf) / 2);
   for (int f = 0; f < nf; ++f) {
     for (int k = 0; k < 3; ++k) {
       const int a = s.faces(f, k), b = s.faces(f, (k + 1) % 3);
-      int other = -1, n_other = 0;
+      // the other faces with edge (a, b): in the same direction (a -> b) or
+      // the opposite one (b -> a, at b's slot)
+      int other = -1, other_slot = -1, n_other = 0;
       bool same_direction = false;
-      for (int q = off[a]; q < off[a + 1]; ++q) {
-        const int g = vf[q];
-        if (g == f) continue;
-        const bool ab = slot_of(g, a, b) >= 0, ba = slot_of(g, b, a) >= 0;
-        if (!ab && !ba) continue;
-        ++n_other;
-        other = g;
-        same_direction = ab;
-      }
+      for (int q = off[a]; q < off[a + 1]; ++q)
+        if (nxt[q] == b && vf[q] != f) ++n_other, other = vf[q], same_direction = true;
+      for (int q = off[b]; q < off[b + 1]; ++q)
+        if (nxt[q] == a) ++n_other, other = vf[q], other_slot = slot[q], same_direction = false;
       if (n_other == 0) throw Error(name, "open surface: edge " + edge_text(a, b) + " belongs to only one face");
       if (n_other > 1)
         throw Error(name, "non-manifold: edge " + edge_text(a, b) + " belongs to " + std::to_string(n_other + 1) + " faces");
@@ -80,7 +80,7 @@ Topology build_topology(const Surface& s, const std::string& name, bool single_c
         t.face_edge[f][k] = t.n_edges++;
         t.edge_face.push_back({f, other});
       } else {
-        t.face_edge[f][k] = t.face_edge[other][slot_of(other, b, a)];
+        t.face_edge[f][k] = t.face_edge[other][other_slot];
       }
     }
   }
@@ -170,23 +170,35 @@ Slicer::Slicer(const Surface& s, const Topology& t, const Eigen::Vector3d& axis_
   std::iota(order_.begin(), order_.end(), 0);
   std::stable_sort(order_.begin(), order_.end(), [&](int a, int b) { return tmin[a] < tmin[b]; });
   tmin_sorted_.resize(nf);
-  for (int k = 0; k < nf; ++k) tmin_sorted_[k] = tmin[order_[k]];
+  ball_.resize(nf);
+  for (int k = 0; k < nf; ++k) {
+    const int f = order_[k];
+    tmin_sorted_[k] = tmin[f];
+    const Eigen::Vector3d a = s.vertices.row(s.faces(f, 0)), b = s.vertices.row(s.faces(f, 1)), c = s.vertices.row(s.faces(f, 2));
+    const Eigen::Vector3d m = (a + b + c) / 3;
+    const double r = std::sqrt(std::max({(a - m).squaredNorm(), (b - m).squaredNorm(), (c - m).squaredNorm()}));
+    ball_[k] << m, r;
+  }
   flip_.resize(t.component_volume.size());
   for (std::size_t c = 0; c < flip_.size(); ++c) flip_[c] = t.component_volume[c] < 0;
-  dist_.assign(nv, 0);
-  stamp_.assign(nv, 0);
-  fstamp_.assign(nf, 0);
-  fexit_.assign(nf, -1);
 }
 
 std::vector<Loop> Slicer::slice(const SweepPlane& pl) const {
-  ++cur_;
-  if (cur_ == 0) {  // wrapped: reset the stamps
+  Scratch& sc = scratch_.local();
+  if (sc.dist.empty()) {
+    const std::size_t nv = static_cast<std::size_t>(s_.vertices.rows()), nf = order_.size();
+    sc.dist.assign(nv, 0), sc.stamp.assign(nv, 0), sc.fstamp.assign(nf, 0), sc.fexit.assign(nf, -1);
+  }
+  std::vector<double>& dist_ = sc.dist;
+  std::vector<unsigned>&stamp_ = sc.stamp, &fstamp_ = sc.fstamp;
+  std::vector<int>& fexit_ = sc.fexit;
+  ++sc.cur;
+  if (sc.cur == 0) {  // wrapped: reset the stamps
     std::fill(stamp_.begin(), stamp_.end(), 0);
     std::fill(fstamp_.begin(), fstamp_.end(), 0);
-    cur_ = 1;
+    sc.cur = 1;
   }
-  const unsigned cur = cur_;
+  const unsigned cur = sc.cur;
   const Eigen::Vector3d n = pl.normal;
   auto dist = [&](int v) {
     if (stamp_[v] != cur) {
@@ -225,8 +237,14 @@ std::vector<Loop> Slicer::slice(const SweepPlane& pl) const {
     k1 = static_cast<int>(std::upper_bound(tmin_sorted_.begin(), tmin_sorted_.end(), tc + w + pad) -
                           tmin_sorted_.begin());
   }
+  // a face whose ball the plane misses (with a margin for the rounding of
+  // the distances) cannot cross it: one dot product per face of the slab
+  const double margin = 1e-9 * (rho_max_ + max_extent_ + (pl.centre - a0_).norm());
+  const Eigen::Vector4d plane(n.x(), n.y(), n.z(), -n.dot(pl.centre));
   std::vector<int> crossing;
   for (int k = k0; k < k1; ++k) {
+    const Eigen::Vector4d& b = ball_[k];
+    if (std::abs(plane.head<3>().dot(b.head<3>()) + plane(3)) > b(3) + margin) continue;
     const int f = order_[k];
     if (tmax_[f] < tlo) continue;
     if (prepare(f) >= 0) crossing.push_back(f);
@@ -266,6 +284,12 @@ std::vector<Loop> Slicer::slice(const SweepPlane& pl) const {
   std::stable_sort(loops.begin(), loops.end(),
                    [](const Loop& a, const Loop& b) { return std::abs(a.area) > std::abs(b.area); });
   return loops;
+}
+
+std::vector<std::vector<Loop>> slice_all(const Slicer& sl, const std::vector<SweepPlane>& planes) {
+  std::vector<std::vector<Loop>> out(planes.size());
+  tbb::parallel_for(std::size_t{0}, planes.size(), [&](std::size_t k) { out[k] = sl.slice(planes[k]); });
+  return out;
 }
 
 void set_area_centroid(Loop& l) {

@@ -504,6 +504,23 @@ TEST(RemeshErrors, OneLineMessages) {
   EXPECT_NE(msg({{"skin", skin}, {"fat", test::cylinder(0.02, 0.1, 64, 16, 0.02, 0, 0.01)}}).find("not inside skin"),
             std::string::npos);
   EXPECT_NE(msg({{"skin", Surface{}}}).find("empty"), std::string::npos);
+  // the checks run side by side; the first failure in the sequential order
+  // is reported: the outer layer's topology before an inner layer's
+  // containment, an inner layer's topology before a deeper containment
+  {
+    Surface open = skin;
+    open.faces.conservativeResize(open.faces.rows() - 1, 3);
+    Surface big = test::cylinder(0.035, 0.12, 64, 16);
+    EXPECT_NE(msg({{"skin", open}, {"fat", big}}).find("skin: open surface"), std::string::npos);
+    Surface fat = test::cylinder(0.02, 0.1, 64, 16);
+    Surface fat_open = fat;
+    fat_open.faces.conservativeResize(fat_open.faces.rows() - 1, 3);
+    EXPECT_NE(msg({{"skin", skin}, {"fat", fat_open}, {"muscle", big}}).find("fat: open surface"), std::string::npos);
+    EXPECT_NE(msg({{"skin", skin}, {"fat", fat}, {"muscle", big}}).find("muscle: not inside fat"), std::string::npos);
+    Surface nan = skin;
+    nan.vertices(3, 0) = std::nan("");
+    EXPECT_NE(msg({{"skin", nan}, {"fat", fat}}).find("skin: vertex 3 has a non-finite coordinate"), std::string::npos);
+  }
   for (const std::string& m : {msg({{"t.stl", test::torus(0.05, 0.01)}}), msg({{"skin", Surface{}}})})
     EXPECT_EQ(m.find('\n'), std::string::npos);
 }
