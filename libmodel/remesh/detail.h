@@ -53,8 +53,7 @@ class Slicer {
   const Topology& t_;
   Eigen::Vector3d a0_, ad_;
   std::vector<int> order_;          // faces sorted by tmin
-  std::vector<double> tmin_sorted_, tmax_;  // tmin in sorted order; tmax by face
-  std::vector<Eigen::Vector4d> ball_;       // in sorted order: a ball around the face (centre, radius)
+  std::vector<double> tmin_sorted_, tmax_sorted_;  // tmin, tmax in sorted order
   double max_extent_ = 0, rho_max_ = 0;
   std::vector<int> flip_;           // 1 where a component is inward (negative volume)
   // per-thread scratch of slice(): slices may run side by side

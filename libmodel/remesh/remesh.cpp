@@ -13,6 +13,7 @@
 #include <algorithm>
 #include <exception>
 #include <limits>
+#include <memory>
 #include <chrono>
 #include <cmath>
 #include <deque>
@@ -1239,7 +1240,7 @@ RemeshResult remesh_layers(const std::vector<NamedSurface>& layers, const Remesh
   RemeshResult res;
   const int nl = static_cast<int>(layers.size());
   // Two branches side by side: (A) the outer layer's topology, then its axis,
-  // sweep and stations; (B) the inner layers' topologies, then each inner
+  // sweep and stations; (B) the inner layers' topologies and each inner
   // layer's containment in the one above. On 2 cores the axis's sequential
   // parts fill the gaps of the checks. Errors are reported as a sequential run
   // would: topology in layer order, then containment, then the axis.
@@ -1254,8 +1255,7 @@ RemeshResult remesh_layers(const std::vector<NamedSurface>& layers, const Remesh
     }
   };
   Axis ax;
-  std::vector<Slicer> slicers;
-  slicers.reserve(nl);
+  std::vector<std::unique_ptr<Slicer>> slicers(static_cast<std::size_t>(nl));
   tbb::parallel_invoke(
       [&] {
         capture(topo_err[0], [&] {
@@ -1269,27 +1269,29 @@ RemeshResult remesh_layers(const std::vector<NamedSurface>& layers, const Remesh
         const auto ta = std::chrono::steady_clock::now();
         capture(axis_err, [&] {
           ax = principal_axis(layers[0].surface);
-          slicers.emplace_back(layers[0].surface, topo[0], ax.m, ax.d);
-          res.sweep = sweep_impl(layers[0].surface, topo[0], slicers[0], ax, o, layers[0].name);
+          slicers[0] = std::make_unique<Slicer>(layers[0].surface, topo[0], ax.m, ax.d);
+          res.sweep = sweep_impl(layers[0].surface, topo[0], *slicers[0], ax, o, layers[0].name);
           const TubeSweep& sw = res.sweep;
           SweepPlane pa = sweep_plane(sw, 0), pb = sweep_plane(sw, sw.length_m);
           pb.normal = -pb.normal;
           res.sweep.uncovered_m2 = {sw.flat_cap[0] ? 0.0 : area_behind(layers[0].surface, pa),
                                     sw.flat_cap[1] ? 0.0 : area_behind(layers[0].surface, pb)};
-          res.stations_m = place_stations(sw, slicers[0], o, layers[0].name);
+          res.stations_m = place_stations(sw, *slicers[0], o, layers[0].name);
         });
         res.axis_s = seconds_since(ta);
       },
       [&] {
-        tbb::parallel_for(1, nl, [&](int k) {
-          capture(topo_err[static_cast<std::size_t>(k)], [&] {
-            topo[static_cast<std::size_t>(k)] = remesh_detail::build_topology(layers[k].surface, layers[k].name, false);
-          });
-        });
-        // layer 0 may still be in its checks: points_inside refuses a surface
-        // it cannot read, and a failed check of layer 0 is reported first
-        tbb::parallel_for(1, nl, [&](int k) {
-          if (k > 1 && topo_err[static_cast<std::size_t>(k - 1)]) return;
+        // the inner layers' topologies and containment tests, all side by
+        // side: points_inside refuses a surface it cannot read, and a failed
+        // check of the layer above is reported before the containment
+        tbb::parallel_for(0, 2 * (nl - 1), [&](int task) {
+          const int k = 1 + task % (nl - 1);
+          if (task >= nl - 1) {
+            capture(topo_err[static_cast<std::size_t>(k)], [&] {
+              topo[static_cast<std::size_t>(k)] = remesh_detail::build_topology(layers[k].surface, layers[k].name, false);
+            });
+            return;
+          }
           capture(contain_err[static_cast<std::size_t>(k)], [&] {
             const std::int64_t bad = first_point_outside(layers[k - 1].surface, layers[k].surface.vertices);
             if (bad >= 0) {
@@ -1308,7 +1310,9 @@ RemeshResult remesh_layers(const std::vector<NamedSurface>& layers, const Remesh
     for (const auto& e : *errs)
       if (e) std::rethrow_exception(e);
   if (axis_err) std::rethrow_exception(axis_err);
-  for (int k = 1; k < nl; ++k) slicers.emplace_back(layers[k].surface, topo[k], ax.m, ax.d);
+  tbb::parallel_for(1, nl, [&](int k) {
+    slicers[static_cast<std::size_t>(k)] = std::make_unique<Slicer>(layers[k].surface, topo[k], ax.m, ax.d);
+  });
   const TubeSweep& sw = res.sweep;
   t0 = std::chrono::steady_clock::now();
 
@@ -1327,20 +1331,25 @@ RemeshResult remesh_layers(const std::vector<NamedSurface>& layers, const Remesh
     res.stats[k].components = topo[k].check.components;
   }
 
-  // outer rings
-  std::vector<Vec3> ring;
+  // outer rings, side by side (the first failing ring is reported)
+  auto each_ring = [nv](auto&& f) {
+    std::vector<std::exception_ptr> err(static_cast<std::size_t>(nv));
+    tbb::parallel_for(0, nv, [&](int j) {
+      try {
+        f(j);
+      } catch (...) {
+        err[static_cast<std::size_t>(j)] = std::current_exception();
+      }
+    });
+    for (const auto& e : err)
+      if (e) std::rethrow_exception(e);
+  };
   for (int j = 0; j < nv; ++j) {
     planes[j] = sweep_plane(sw, res.stations_m(j));
     res.ring_centre.row(j) = planes[j].centre;
     res.ring_normal.row(j) = planes[j].normal;
     res.ray_origin[0].row(j) = planes[j].centre;
-    const auto loops = slicers[0].slice(planes[j]);
-    sample_loop(tube_loop(loops, layers[0].name, res.stations_m(j), L), planes[j], o.around, o.arc_window, u, ring, nullptr,
-                layers[0].name);
-    std::copy(ring.begin(), ring.end(), pts[0].begin() + static_cast<std::ptrdiff_t>(j) * nu);
   }
-  res.stats[0].hit = static_cast<std::int64_t>(nu) * nv;
-
   // inner layers: in each ring plane, vertex (i, j) of layer k is where the
   // in-plane inward normal of layer k-1's ring at vertex i first meets layer
   // k's target curve (the section loop, or the envelope of several loops),
@@ -1348,10 +1357,15 @@ RemeshResult remesh_layers(const std::vector<NamedSurface>& layers, const Remesh
   // correspondences). The target of every layer in every ring is kept: it is
   // the bound for the envelope of the layer below.
   std::vector<std::vector<Vec2>> prev_target(nv);  // layer k-1's section in ring j (plane frame), empty if filled
-  for (int j = 0; j < nv; ++j) {
-    const auto loops = slicers[0].slice(planes[j]);
-    prev_target[j] = tube_loop(loops, layers[0].name, res.stations_m(j), L).q;
-  }
+  each_ring([&](int j) {
+    const auto loops = slicers[0]->slice(planes[j]);
+    const Loop& l = tube_loop(loops, layers[0].name, res.stations_m(j), L);
+    std::vector<Vec3> ring;
+    sample_loop(l, planes[j], o.around, o.arc_window, u, ring, nullptr, layers[0].name);
+    std::copy(ring.begin(), ring.end(), pts[0].begin() + static_cast<std::ptrdiff_t>(j) * nu);
+    prev_target[j] = l.q;
+  });
+  res.stats[0].hit = static_cast<std::int64_t>(nu) * nv;
   for (int k = 1; k < nl; ++k) {
     const std::string& name = layers[k].name;
     std::vector<char> has(nv, 0);
@@ -1368,9 +1382,9 @@ RemeshResult remesh_layers(const std::vector<NamedSurface>& layers, const Remesh
       double per = 0;        // perimeter of T
     };
     std::vector<RingTarget> rings(static_cast<std::size_t>(nv));
-    for (int j = 0; j < nv; ++j) {
+    each_ring([&](int j) {
       const SweepPlane& pl = planes[j];
-      std::vector<Loop> loops = slicers[k].slice(pl);
+      std::vector<Loop> loops = slicers[k]->slice(pl);
       if (topo[k].check.components > 1) {
         // Several parts (the bones): the envelope is taken over the slab
         // between the midpoints to the neighbouring rings, its sections
@@ -1399,7 +1413,7 @@ RemeshResult remesh_layers(const std::vector<NamedSurface>& layers, const Remesh
           const double sj = lo + (hi - lo) * q / nplanes;
           if (sj == res.stations_m(j)) continue;
           const SweepPlane ps = sweep_plane(sw, sj);
-          for (Loop l : slicers[k].slice(ps)) {
+          for (Loop l : slicers[k]->slice(ps)) {
             remesh_detail::to_plane_frame(l, pl);
             loops.push_back(std::move(l));
           }
@@ -1408,7 +1422,7 @@ RemeshResult remesh_layers(const std::vector<NamedSurface>& layers, const Remesh
       double A = 0;
       Vec2 c = Vec2::Zero();
       for (const auto& l : loops) A += l.area, c += l.area * l.centroid;
-      if (loops.empty() || !(std::abs(A) > 0)) continue;
+      if (loops.empty() || !(std::abs(A) > 0)) return;
       c /= A;
       // the enclosing ring (layer k-1) in the plane frame
       std::vector<Vec2> P(nu);
@@ -1440,7 +1454,7 @@ RemeshResult remesh_layers(const std::vector<NamedSurface>& layers, const Remesh
         // (the interosseous membrane). Convex, so the rays from its centroid
         // and the outer normals meet it in order, with no zig-zag between the
         // bones; an edge is on a bone where it joins consecutive loop points.
-        if (hull.q.empty()) continue;
+        if (hull.q.empty()) return;
         T = hull.q;
         on = hull_on;
         // the hull must stay inside the layer above
@@ -1476,7 +1490,7 @@ RemeshResult remesh_layers(const std::vector<NamedSurface>& layers, const Remesh
       rt.on = std::move(on);
       rt.several = several;
       rt.loops = loops;
-    }
+    });
     // one blend of the normal hits with the radial ones for the whole layer:
     // the largest that keeps every ring in order (blends that differ between
     // rings shear the cells between them: on the sample at 200x50, a per-ring
