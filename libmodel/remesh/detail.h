@@ -58,11 +58,17 @@ class Slicer {
   std::vector<int> flip_;           // 1 where a component is inward (negative volume)
   // per-thread scratch of slice(): slices may run side by side
   struct Scratch {
-    std::vector<double> dist;
-    std::vector<unsigned> stamp;
+    struct Vert {
+      unsigned stamp;
+      double dist;  // signed distance to the current plane, valid when stamp == cur
+    };
+    struct Face {
+      unsigned stamp;
+      int exit;  // exit edge (- to + in face order), -1 none, -2 - slot once walked
+    };
+    std::vector<Vert> vert;
+    std::vector<Face> face;
     unsigned cur = 0;
-    std::vector<unsigned> fstamp;
-    std::vector<int> fexit;  // per face: exit edge (- to + in face order)
   };
   mutable tbb::enumerable_thread_specific<Scratch> scratch_;
 };

@@ -199,39 +199,40 @@ Slicer::Slicer(const Surface& s, const Topology& t, const Eigen::Vector3d& axis_
 
 std::vector<Loop> Slicer::slice(const SweepPlane& pl) const {
   Scratch& sc = scratch_.local();
-  if (sc.dist.empty()) {
-    const std::size_t nv = static_cast<std::size_t>(s_.vertices.rows()), nf = order_.size();
-    sc.dist.assign(nv, 0), sc.stamp.assign(nv, 0), sc.fstamp.assign(nf, 0), sc.fexit.assign(nf, -1);
+  if (sc.vert.empty()) {
+    sc.vert.assign(static_cast<std::size_t>(s_.vertices.rows()), {0, 0.0});
+    sc.face.assign(order_.size(), {0, -1});
   }
-  std::vector<double>& dist_ = sc.dist;
-  std::vector<unsigned>&stamp_ = sc.stamp, &fstamp_ = sc.fstamp;
-  std::vector<int>& fexit_ = sc.fexit;
   ++sc.cur;
   if (sc.cur == 0) {  // wrapped: reset the stamps
-    std::fill(stamp_.begin(), stamp_.end(), 0);
-    std::fill(fstamp_.begin(), fstamp_.end(), 0);
+    for (auto& v : sc.vert) v.stamp = 0;
+    for (auto& f : sc.face) f.stamp = 0;
     sc.cur = 1;
   }
   const unsigned cur = sc.cur;
+  auto& vert = sc.vert;
+  auto& face = sc.face;
   const Eigen::Vector3d n = pl.normal;
   auto dist = [&](int v) {
-    if (stamp_[v] != cur) {
-      stamp_[v] = cur;
-      dist_[v] = (s_.vertices.row(v).transpose() - pl.centre).dot(n);
+    auto& x = vert[static_cast<std::size_t>(v)];
+    if (x.stamp != cur) {
+      x.stamp = cur;
+      x.dist = (s_.vertices.row(v).transpose() - pl.centre).dot(n);
     }
-    return dist_[v];
+    return x.dist;
   };
   // exit slot of face f: the face edge going from the negative to the
   // non-negative side, or -1 when the plane does not cross the face
   auto prepare = [&](int f) {
-    if (fstamp_[f] == cur) return fexit_[f];
-    fstamp_[f] = cur;
-    int ex = -1;
-    for (int k = 0; k < 3; ++k) {
-      const bool a = dist(s_.faces(f, k)) >= 0, b = dist(s_.faces(f, (k + 1) % 3)) >= 0;
-      if (!a && b) ex = k;
-    }
-    fexit_[f] = ex;
+    auto& x = face[static_cast<std::size_t>(f)];
+    if (x.stamp == cur) return x.exit;
+    x.stamp = cur;
+    const bool s0 = dist(s_.faces(f, 0)) >= 0, s1 = dist(s_.faces(f, 1)) >= 0, s2 = dist(s_.faces(f, 2)) >= 0;
+    int ex = -1;  // the last slot k with (- , +), as a loop over k would leave it
+    if (!s0 && s1) ex = 0;
+    if (!s1 && s2) ex = 1;
+    if (!s2 && s0) ex = 2;
+    x.exit = ex;
     return ex;
   };
 
@@ -258,16 +259,16 @@ std::vector<Loop> Slicer::slice(const SweepPlane& pl) const {
     if (prepare(f) >= 0) crossing.push_back(f);
   }
 
-  // walk each cycle of crossing faces; a walked face has fexit_ = -2 - slot
+  // walk each cycle of crossing faces; a walked face has exit = -2 - slot
   std::vector<Loop> loops;
   for (std::size_t c = 0; c < crossing.size(); ++c) {
     const int f0 = crossing[c];
-    if (fexit_[f0] < -1) continue;  // already walked (marked as -2 - slot)
+    if (face[static_cast<std::size_t>(f0)].exit < -1) continue;  // already walked (marked as -2 - slot)
     Loop loop;
     int f = f0;
     int guard = 0;
     while (true) {
-      int ex = fexit_[f];
+      int ex = face[static_cast<std::size_t>(f)].exit;
       if (ex < 0) break;  // back at a walked face (or, impossibly, one not crossed)
       const int a = s_.faces(f, ex), b = s_.faces(f, (ex + 1) % 3);
       const double da = dist(a), db = dist(b);
@@ -275,11 +276,11 @@ std::vector<Loop> Slicer::slice(const SweepPlane& pl) const {
       const Eigen::Vector3d xa = s_.vertices.row(a), xb = s_.vertices.row(b);
       const Eigen::Vector3d p = xa + lam * (xb - xa);
       if (loop.p.empty() || (p - loop.p.back()).squaredNorm() > 0) loop.p.push_back(p);
-      fexit_[f] = -2 - ex;  // walked
+      face[static_cast<std::size_t>(f)].exit = -2 - ex;  // walked
       if (loop.p.size() == 1) loop.component = t_.face_component[f];
       const int e = t_.face_edge[f][ex];
       f = t_.edge_face[e][0] == f ? t_.edge_face[e][1] : t_.edge_face[e][0];
-      if (fstamp_[f] != cur) prepare(f);
+      if (face[static_cast<std::size_t>(f)].stamp != cur) prepare(f);
       if (++guard > 4 * nf) break;
     }
     if (loop.p.size() > 1 && (loop.p.front() - loop.p.back()).squaredNorm() == 0) loop.p.pop_back();
