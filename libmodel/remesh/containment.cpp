@@ -67,7 +67,7 @@ bool on_triangle(const P3& a, const P3& b, const P3& c, const P3& p) {
 
 class ParityGrid {
  public:
-  explicit ParityGrid(const Surface& s) {
+  explicit ParityGrid(const Surface& s) : s_(s) {
     const int nf = static_cast<int>(s.faces.rows());
     const Eigen::Vector3d lo = s.vertices.colwise().minCoeff(), hi = s.vertices.colwise().maxCoeff();
     // rays along the axis of least extent: across a limb, not along it
@@ -83,16 +83,13 @@ class ParityGrid {
     nb_ = std::clamp(static_cast<int>(eb / h) + 1, 1, 4096);
     nc_ = std::clamp(static_cast<int>(ec / h) + 1, 1, 4096);
     ib_ = nb_ / std::max(eb, 1e-300), ic_ = nc_ / std::max(ec, 1e-300);
-    corners_.resize(static_cast<std::size_t>(nf));
     amax_.resize(static_cast<std::size_t>(nf));
     std::vector<std::array<int, 4>> span(static_cast<std::size_t>(nf));
     std::vector<int> count(static_cast<std::size_t>(nb_) * nc_ + 1, 0);
     for (int f = 0; f < nf; ++f) {
-      auto& C = corners_[static_cast<std::size_t>(f)];
       double amax = -INFINITY, bmin = INFINITY, bmax = -INFINITY, cmin = INFINITY, cmax = -INFINITY;
       for (int k = 0; k < 3; ++k) {
         const auto v = s.vertices.row(s.faces(f, k));
-        C[k] = P3(v(0), v(1), v(2));
         amax = std::max(amax, v(a_));
         bmin = std::min(bmin, v(b_)), bmax = std::max(bmax, v(b_));
         cmin = std::min(cmin, v(c_)), cmax = std::max(cmax, v(c_));
@@ -126,8 +123,11 @@ class ParityGrid {
     for (int q = start_[cell]; q < start_[cell + 1]; ++q) {
       const int f = face_[static_cast<std::size_t>(q)];
       if (amax_[static_cast<std::size_t>(f)] < pa) continue;  // wholly behind the ray's start
-      const auto& C = corners_[static_cast<std::size_t>(f)];
-      const P3 &A = C[0], &B = C[1], &Cc = C[2];
+      const auto V = [&](int k) {
+        const double* x = s_.vertices.data() + 3 * static_cast<std::ptrdiff_t>(s_.faces(f, k));
+        return P3(x[0], x[1], x[2]);
+      };
+      const P3 A = V(0), B = V(1), Cc = V(2);
       const double bmin = std::min({A[b_], B[b_], Cc[b_]}), bmax = std::max({A[b_], B[b_], Cc[b_]});
       const double cmin = std::min({A[c_], B[c_], Cc[c_]}), cmax = std::max({A[c_], B[c_], Cc[c_]});
       if (pb < bmin || pb > bmax || pc < cmin || pc > cmax) continue;
@@ -157,7 +157,7 @@ class ParityGrid {
   int a_ = 0, b_ = 1, c_ = 2, nb_ = 1, nc_ = 1;
   double ib_ = 1, ic_ = 1;
   Eigen::Vector3d lo_, hi_;
-  std::vector<std::array<P3, 3>> corners_;
+  const Surface& s_;
   std::vector<double> amax_;
   std::vector<int> start_, face_;
 };
