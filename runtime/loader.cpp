@@ -189,6 +189,28 @@ Model load_model(const ModelReader& r, const LoadRequest& req) {
       if (!std::isfinite(x)) throw Error(path, g + "/nodes has a non-finite value");
     for (auto x : v.radii)
       if (!(std::isfinite(x) && x >= 0)) throw Error(path, g + "/radii has a negative or non-finite value");
+    if (req.vessel_tubes && f.exists(g + "/tube_vertices")) {
+      std::vector<std::uint64_t> dv, dq, dt;
+      v.tube_vertices = f.read<double>(g + "/tube_vertices", &dv);
+      const std::vector<std::int32_t> quads =
+          f.exists(g + "/tube_quads") ? f.read<std::int32_t>(g + "/tube_quads", &dq) : std::vector<std::int32_t>{};
+      const std::vector<std::int32_t> tris =
+          f.exists(g + "/tube_tris") ? f.read<std::int32_t>(g + "/tube_tris", &dt) : std::vector<std::int32_t>{};
+      const std::uint64_t nt = v.tube_vertices.size() / 3;
+      if ((!v.tube_vertices.empty() && (dv.size() != 2 || dv[1] != 3)) || (!quads.empty() && (dq.size() != 2 || dq[1] != 4)) ||
+          (!tris.empty() && (dt.size() != 2 || dt[1] != 3)))
+        throw Error(path, g + ": tube_vertices (n x 3), tube_quads (n x 4) and tube_tris (n x 3) have wrong shapes");
+      for (auto x : v.tube_vertices)
+        if (!std::isfinite(x)) throw Error(path, g + "/tube_vertices has a non-finite value");
+      for (const auto* ids : {&quads, &tris})
+        for (auto i : *ids)
+          if (i < 0 || static_cast<std::uint64_t>(i) >= nt) throw Error(path, g + ": a tube face has a vertex id out of range");
+      v.tube_triangles.reserve(quads.size() / 4 * 6 + tris.size());
+      for (std::size_t q = 0; q + 3 < quads.size(); q += 4)
+        v.tube_triangles.insert(v.tube_triangles.end(),
+                                {quads[q], quads[q + 1], quads[q + 2], quads[q], quads[q + 2], quads[q + 3]});
+      v.tube_triangles.insert(v.tube_triangles.end(), tris.begin(), tris.end());
+    }
     m.vessels.push_back(std::move(v));
   }
   return m;

@@ -29,6 +29,7 @@ struct LoadRequest {
   std::vector<std::string> node_sets;  // names under /layers/sets
   std::vector<std::string> vessels;    // names under /vessels
   bool surface = false;                // read the loaded layers' quads
+  bool vessel_tubes = false;           // read the named vessels' tube surfaces (output only)
   bool couple_unloaded = true;         // anchor springs of other layers that reach loaded nodes
 };
 

@@ -105,6 +105,10 @@ struct Model {
     std::vector<Real> nodes;  // (n x 3) m
     std::vector<Real> radii;  // (n) m
     std::vector<std::int32_t> edges;  // (n_edges x 2)
+    // the tube surface, read only when a scene writes output (LoadRequest::vessel_tubes):
+    // the file's quads split into two triangles each, then its triangles
+    std::vector<Real> tube_vertices;            // (n_tube x 3) m
+    std::vector<std::int32_t> tube_triangles;   // (n_tri x 3), outward
   };
   std::vector<Vessel> vessels;
 

@@ -417,6 +417,7 @@ void Scene::init(const std::string& model_file) {
     req.layers = def_.layers;
     req.vessels = def_.vessels;
     req.surface = (def_.output.enabled && def_.output.vtk.surface) || def_.fluid.enabled;  // the blood collides with the quads
+    req.vessel_tubes = def_.output.enabled;  // drawn in the output, not simulated
     req.couple_unloaded = def_.couple_unloaded;
     std::set<std::string> sets(def_.fixed.begin(), def_.fixed.end());
     sets.insert(def_.sets.begin(), def_.sets.end());
@@ -549,6 +550,7 @@ void Scene::init(const std::string& model_file) {
     fs::create_directories(def_.output.dir, ec);
     if (ec) throw Error(def_.output.dir, "cannot create the output directory: " + ec.message());
     vtk_ = std::make_unique<VtkSeries>(m, def_.output.dir, def_.output.name, def_.output.vtk);
+    write_vessels();
   }
   user_force_.assign(3 * static_cast<std::size_t>(m.n_nodes), 0);
   arena_ = std::make_unique<Arena>(def_.threads);
@@ -572,7 +574,6 @@ struct Scene::FluidRun {
   std::vector<Real> force;         // (n_nodes x 3) N, the blood's wall forces of the last step
   FluidSummary summary;
   std::vector<std::pair<Real, std::string>> frames;  // blood surface series
-  bool vessels_written = false;
 };
 
 Scene::~Scene() = default;
@@ -695,21 +696,29 @@ void Scene::fluid_step_now(Real dt, std::span<const Real> x_start) {
   fr.summary.wall_s += std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
 }
 
+void Scene::write_vessels() {
+  if (model_->vessels.empty()) return;
+  // once (they do not move): the tube surfaces (<name>_vessels.vtp) and
+  // the centrelines, points with their radius (<name>_centrelines.vtp)
+  const std::string base = def_.output.dir + "/" + def_.output.name;
+  std::vector<double> pts, radius, tube;
+  std::vector<std::int32_t> tri;
+  for (const auto& v : model_->vessels) {
+    pts.insert(pts.end(), v.nodes.begin(), v.nodes.end());
+    radius.insert(radius.end(), v.radii.begin(), v.radii.end());
+    const auto off = static_cast<std::int32_t>(tube.size() / 3);
+    tube.insert(tube.end(), v.tube_vertices.begin(), v.tube_vertices.end());
+    for (auto i : v.tube_triangles) tri.push_back(off + i);
+  }
+  write_vtp(base + "_centrelines.vtp", pts, {}, {VtpArray{"radius", 1, radius}}, def_.output.vtk.binary);
+  if (!tri.empty()) write_vtp(base + "_vessels.vtp", tube, tri, {}, def_.output.vtk.binary);
+}
+
 void Scene::write_fluid_frame() {
   FluidRun& fr = *fluid_;
   const std::string& dir = def_.output.dir;
   const std::string& name = def_.output.name;
   const int k = static_cast<int>(fr.frames.size());
-  if (!fr.vessels_written && !model_->vessels.empty()) {
-    // the loaded vessel centrelines (points with their radius), once
-    std::vector<double> pts, radius;
-    for (const auto& v : model_->vessels) {
-      pts.insert(pts.end(), v.nodes.begin(), v.nodes.end());
-      radius.insert(radius.end(), v.radii.begin(), v.radii.end());
-    }
-    write_vtp(dir + "/" + name + "_vessels.vtp", pts, {}, {VtpArray{"radius", 1, radius}}, def_.output.vtk.binary);
-    fr.vessels_written = true;
-  }
   const Real t = state_.time;
   auto pvd = [&](const std::string& series, const std::vector<std::pair<Real, std::string>>& files) {
     write_pvd(dir + "/" + name + "_" + series + ".pvd", files);

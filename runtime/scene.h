@@ -236,6 +236,7 @@ class Scene {
   void fluid_step_now(Real dt, std::span<const Real> x_start);
   void update_fluid_surface();
   void write_fluid_frame();
+  void write_vessels();  // the loaded vessels' tubes and centrelines, once
 
   SceneDef def_;
   std::shared_ptr<const Model> model_;

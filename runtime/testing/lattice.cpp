@@ -231,6 +231,18 @@ void write_model_file(const std::string& path, const LayeredBlock& b, bool extra
     t.branch_offsets << 0, 3;
     t.branch_nodes.resize(3);
     t.branch_nodes << 0, 1, 2;
+    // a square tube of side 2 mm around the centreline, closed by two triangles at each end
+    t.tube_vertices.resize(12, 3);
+    for (int r = 0; r < 3; ++r)
+      for (int c = 0; c < 4; ++c) {
+        const double a = 0.5 * 3.14159265358979 * c;
+        t.tube_vertices.row(4 * r + c) << 0.01 + 1e-3 * std::cos(a), 0.005 + 1e-3 * std::sin(a), 0.01 * r;
+      }
+    t.tube_quads.resize(8, 4);
+    for (int r = 0; r < 2; ++r)
+      for (int c = 0; c < 4; ++c) t.tube_quads.row(4 * r + c) << 4 * r + c, 4 * r + (c + 1) % 4, 4 * (r + 1) + (c + 1) % 4, 4 * (r + 1) + c;
+    t.tube_tris.resize(4, 3);
+    t.tube_tris << 0, 2, 1, 0, 3, 2, 8, 9, 10, 8, 10, 11;
     w.write("artery", t);
     Tuning tu;
     tu.method = "none";

@@ -133,5 +133,49 @@ TEST_F(LoaderTest, InvalidSpringDataIsRejected) {
   }
 }
 
+TEST_F(LoaderTest, VesselTubesAreReadOnRequestAndChecked) {
+  {
+    ModelReader r(file);
+    LoadRequest req;
+    req.vessels = {"artery"};
+    req.vessel_tubes = true;
+    Model m = load_model(r, req);
+    EXPECT_TRUE(read_any(r.h5().stats(), "/vessels/artery/tube_vertices"));
+    ASSERT_EQ(m.vessels.size(), 1u);
+    EXPECT_EQ(m.vessels[0].tube_vertices.size(), 12u * 3);
+    // quads split as (a, b, c), (a, c, d): the first quad of the test tube is (0, 1, 5, 4)
+    const std::vector<std::int32_t> first(m.vessels[0].tube_triangles.begin(), m.vessels[0].tube_triangles.begin() + 6);
+    EXPECT_EQ(first, (std::vector<std::int32_t>{0, 1, 5, 0, 5, 4}));
+  }
+  // a tube face naming a vertex that is not there
+  {
+    VesselTree t;
+    t.nodes.resize(2, 3);
+    t.nodes << 0, 0, 0, 0, 0, 0.01;
+    t.radii.resize(2);
+    t.radii << 1e-3, 1e-3;
+    t.edges.resize(1, 2);
+    t.edges << 0, 1;
+    t.tube_vertices.resize(3, 3);
+    t.tube_vertices << 0, 0, 0, 1e-3, 0, 0, 0, 1e-3, 0;
+    t.tube_tris.resize(1, 3);
+    t.tube_tris << 0, 1, 3;
+    ModelWriter w(file, ModelWriter::Start::update);
+    w.write("bad", t);
+    w.commit();
+  }
+  ModelReader r(file);
+  LoadRequest req;
+  req.vessels = {"bad"};
+  EXPECT_NO_THROW(load_model(r, req)) << "the tube is not read without vessel_tubes";
+  req.vessel_tubes = true;
+  try {
+    load_model(r, req);
+    FAIL() << "out-of-range tube id accepted";
+  } catch (const Error& e) {
+    EXPECT_NE(std::string(e.what()).find("/vessels/bad: a tube face has a vertex id out of range"), std::string::npos) << e.what();
+  }
+}
+
 }  // namespace
 }  // namespace orthosim::runtime

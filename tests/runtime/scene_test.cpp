@@ -270,6 +270,40 @@ TEST_F(SceneTest, WritesAParaViewSeries) {
   }
 }
 
+TEST_F(SceneTest, WritesTheVesselTubesOnce) {
+  // the vessel's tube surface and centreline go into the output, read from
+  // the file only because the scene writes output
+  const std::string with_vessels = dir / "vessels.h5";
+  testing::write_model_file(with_vessels, block, /*extras=*/true);
+  SceneDef d;
+  d.model = with_vessels;
+  d.fixed = {"fixed"};
+  d.vessels = {"artery"};
+  d.dt = 0.01;
+  d.output.enabled = true;
+  d.output.dir = dir / "vessels";
+  d.output.vtk.binary = false;
+  Scene s(d);
+  run(s, 2);
+  ASSERT_EQ(s.model().vessels.size(), 1u);
+  const auto& v = s.model().vessels[0];
+  EXPECT_EQ(v.tube_vertices.size(), 12u * 3);
+  EXPECT_EQ(v.tube_triangles.size(), (8u * 2 + 4) * 3) << "8 quads as 2 triangles each, and 4 triangles";
+  const std::string tube = orthosim::test::read_file(d.output.dir + "/tissue_vessels.vtp");
+  EXPECT_NE(tube.find("NumberOfPoints=\"12\""), std::string::npos) << tube.substr(0, 400);
+  EXPECT_NE(tube.find("NumberOfPolys=\"20\""), std::string::npos) << tube.substr(0, 400);
+  const std::string line = orthosim::test::read_file(d.output.dir + "/tissue_centrelines.vtp");
+  EXPECT_NE(line.find("NumberOfPoints=\"3\""), std::string::npos);
+  EXPECT_NE(line.find("Name=\"radius\""), std::string::npos);
+
+  // without output the tubes are not read
+  SceneDef q = d;
+  q.output.enabled = false;
+  Scene s2(q);
+  EXPECT_TRUE(s2.model().vessels[0].tube_vertices.empty());
+  EXPECT_FALSE(s2.model().vessels[0].nodes.empty());
+}
+
 }  // namespace
 }  // namespace orthosim::runtime
 
