@@ -106,8 +106,6 @@ struct Cap {
   std::vector<int> faces;
 };
 
-// The largest planar patch facing the end `dir` (unit, pointing out of the
-// tube), grown from the face furthest along dir.
 // Outward unit normal, centroid and area of every face (shared by both caps).
 struct FaceData {
   std::vector<Vec3> nrm, cen;
@@ -130,6 +128,8 @@ FaceData face_data(const Surface& s, const Topology& t) {
   return d;
 }
 
+// The largest planar patch facing the end `dir` (unit, pointing out of the
+// tube), grown from the face furthest along dir.
 Cap detect_cap(const Surface& s, const Topology& t, const FaceData& fd, const Vec3& dir, double angle_deg, double length) {
   Cap cap;
   const int nf = static_cast<int>(s.faces.rows());
