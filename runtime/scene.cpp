@@ -261,6 +261,19 @@ SceneDef parse_scene(const std::string& text, const std::string& file) {
     if (eos == "tait") p.eos = Eos::tait;
     else if (eos == "linear") p.eos = Eos::linear;
     else f.fail("eos must be tait or linear (got '" + eos + "')");
+    const std::string rheology = f.string("rheology", "newtonian");
+    if (rheology == "newtonian") p.rheology = Rheology::newtonian;
+    else if (rheology == "carreau") p.rheology = Rheology::carreau;
+    else f.fail("rheology must be newtonian or carreau (got '" + rheology + "')");
+    if (f.has("carreau")) {
+      if (p.rheology != Rheology::carreau) f.fail("carreau parameters given with rheology '" + rheology + "'");
+      Obj c(f.at("carreau"), "fluid: carreau: ", file);
+      p.carreau.mu0 = c.number("mu0", p.carreau.mu0, 0, 1e6, true);
+      p.carreau.mu_inf = c.number("mu_inf", p.carreau.mu_inf, 0, 1e6);
+      p.carreau.lambda = c.number("lambda", p.carreau.lambda, 0, 1e6);
+      p.carreau.n = c.number("n", p.carreau.n, 0, 1, true);
+      c.finish();
+    }
     fd.tissue_wall.restitution = f.number("restitution", fd.tissue_wall.restitution, 0, 1);
     fd.tissue_wall.friction = f.number("friction", fd.tissue_wall.friction, 0, 1e3);
     fd.box_wall = fd.tissue_wall;

@@ -2,6 +2,8 @@
 
 #include "libmodel/format/types.h"
 
+#include <Eigen/Dense>
+
 #include <tbb/blocked_range.h>
 #include <tbb/enumerable_thread_specific.h>
 #include <tbb/parallel_for.h>
@@ -509,6 +511,7 @@ struct Pass {
   Real *rho = nullptr, *p = nullptr, *P = nullptr, *ir = nullptr, *nb = nullptr, *ksum = nullptr;
   Real *ax = nullptr, *ay = nullptr, *az = nullptr, *wx = nullptr, *wy = nullptr, *wz = nullptr;
   Real* pack = nullptr;           // (n x 8) x, y, z, P, vx, vy, vz, 1/rho per particle (the force pass's gathers)
+  Real* mu = nullptr;             // (n) Pa s, per-particle viscosity (carreau rheology), else null
   std::int32_t* list = nullptr;   // (n x kListStride) neighbour lists (self excluded), padded with i
   std::int32_t* count = nullptr;  // (n) list lengths; > kMaxList: overflowed, the force pass scans the cells
   std::array<Real, 3> period{};   // m, > 0 on periodic axes
@@ -690,7 +693,7 @@ struct PairSums {
 
 // one group of 4 neighbours (positions already relative: d = x_i - x_j)
 inline void pair_terms(const PairConstants& k, V dx, V dy, V dz, V dvx, V dvy, V dvz, V Pj, V irj, V mask, Real Pi,
-                       Real iri, Real kv, PairSums& acc) {
+                       Real iri, V kv, PairSums& acc) {
   const V zero = {0, 0, 0, 0};
   const V r2 = dx * dx + dy * dy + dz * dz;
   const V q = vsqrt(r2) * k.invH;
@@ -724,8 +727,9 @@ inline void transpose4(V r0, V r1, V r2, V r3, V& c0, V& c1, V& c2, V& c3) {
   c3 = __builtin_shuffle(t1, t3, M{2, 3, 6, 7});
 }
 
-ORTHOSIM_SPH_CLONES
-void force_cell(const Pass& c, std::int32_t cell) {
+// kVar: per-particle viscosity (carreau), mu_i + mu_j per pair; else 2 mu
+template <bool kVar>
+inline __attribute__((always_inline)) void force_cell_impl(const Pass& c, std::int32_t cell) {
   const Fluid& f = *c.f;
   const PairConstants k(f);
   const V zero = {0, 0, 0, 0}, lane = {0, 1, 2, 3};
@@ -735,6 +739,9 @@ void force_cell(const Pass& c, std::int32_t cell) {
   for (std::int32_t i = c.g->start[cell]; i < c.g->start[cell + 1]; ++i) {
     PairSums acc{zero, zero, zero};
     const Real Pi = c.P[i], iri = c.ir[i], kv = k.two_mu * iri;
+    // Morris viscosity with 2 mu, or mu_i + mu_j per pair (carreau)
+    const Real kvar = kVar ? f.viscous_scale * iri : 0, mui = kVar ? c.mu[i] : 0;
+    const V kv4 = {kv, kv, kv, kv};
     const Real xi = c.x[i], yi = c.y[i], zi = c.z[i], vxi = c.vx[i], vyi = c.vy[i], vzi = c.vz[i];
     const std::int32_t cnt = c.count[i];
     if (cnt <= kMaxList) {
@@ -754,7 +761,8 @@ void force_cell(const Pass& c, std::int32_t cell) {
           dz = minimum_image(dz, c.period[2]);
         }
         const V mask = (lane + static_cast<Real>(b)) < static_cast<Real>(cnt) ? V{1, 1, 1, 1} : zero;
-        pair_terms(k, dx, dy, dz, vxi - VX, vyi - VY, vzi - VZ, Pj, irj, mask, Pi, iri, kv, acc);
+        const V kvj = kVar ? kvar * (mui + V{c.mu[j[0]], c.mu[j[1]], c.mu[j[2]], c.mu[j[3]]}) : kv4;
+        pair_terms(k, dx, dy, dz, vxi - VX, vyi - VY, vzi - VZ, Pj, irj, mask, Pi, iri, kvj, acc);
       }
     } else {
       // overflow: scan the cells (the self term is zero: r_ii = 0, v_ii = 0)
@@ -762,9 +770,10 @@ void force_cell(const Pass& c, std::int32_t cell) {
       for (int r = 0; r < nr; ++r) {
         const Real xs = xi - runs[r].sx, ys = yi - runs[r].sy, zs = zi - runs[r].sz;
         for_lanes(runs[r].begin, runs[r].end, c.n, [&](std::int32_t s, V mask) {
+          const V kvj = kVar ? kvar * (mui + load4(c.mu, s, c.n)) : kv4;
           pair_terms(k, xs - load4(c.x, s, c.n), ys - load4(c.y, s, c.n), zs - load4(c.z, s, c.n), vxi - load4(c.vx, s, c.n),
                      vyi - load4(c.vy, s, c.n), vzi - load4(c.vz, s, c.n), load4(c.P, s, c.n), load4(c.ir, s, c.n), mask, Pi,
-                     iri, kv, acc);
+                     iri, kvj, acc);
         });
       }
     }
@@ -772,6 +781,55 @@ void force_cell(const Pass& c, std::int32_t cell) {
     c.ax[i] = m * hsum(acc.ax);
     c.ay[i] = m * hsum(acc.ay);
     c.az[i] = m * hsum(acc.az);
+  }
+}
+
+ORTHOSIM_SPH_CLONES
+void force_cell(const Pass& c, std::int32_t cell) { force_cell_impl<false>(c, cell); }
+ORTHOSIM_SPH_CLONES
+void force_cell_var(const Pass& c, std::int32_t cell) { force_cell_impl<true>(c, cell); }
+
+// Carreau viscosity of every particle of the cell from its shear rate
+// sqrt(2 D:D), D = (A + A^T) / 2 and A the velocity gradient
+//   A = [sum_j V_j w_ij (v_i - v_j) d^T] [sum_j V_j w_ij d d^T]^-1,
+// d = x_i - x_j, w_ij = 210 / (pi H^5) (1 - q)^3 (so grad_i W_ij = -w_ij d): the
+// renormalised SPH gradient, exact for a linear velocity field also where the
+// neighbourhood is cut by a wall or a free surface (where the moment matrix
+// is near singular, the lattice-calibrated sum is used instead).
+void shear_viscosity_cell(const Pass& c, std::int32_t cell) {
+  const Fluid& f = *c.f;
+  const Real invH = 1 / f.H, G = f.mass * Real(210) / (kPi * f.H * f.H * f.H * f.H * f.H);
+  const bool periodic = c.period[0] > 0 || c.period[1] > 0 || c.period[2] > 0;
+  NeighbourRun runs[27];
+  int nr = -1;
+  for (std::int32_t i = c.g->start[cell]; i < c.g->start[cell + 1]; ++i) {
+    Eigen::Matrix3d M = Eigen::Matrix3d::Zero(), A = Eigen::Matrix3d::Zero();
+    const Eigen::Vector3d xi(c.x[i], c.y[i], c.z[i]), vi(c.vx[i], c.vy[i], c.vz[i]);
+    auto add = [&](std::int32_t j, const Eigen::Vector3d& shift) {
+      Eigen::Vector3d d = xi - shift - Eigen::Vector3d(c.x[j], c.y[j], c.z[j]);
+      if (periodic)
+        for (int a = 0; a < 3; ++a)
+          if (c.period[a] > 0) d(a) -= c.period[a] * std::round(d(a) / c.period[a]);
+      const Real q = d.norm() * invH;
+      if (!(q < 1) || j == i) return;
+      const Real t = 1 - q, w = G * c.ir[j] * t * t * t;
+      M.noalias() += w * d * d.transpose();
+      A.noalias() += w * (vi - Eigen::Vector3d(c.vx[j], c.vy[j], c.vz[j])) * d.transpose();
+    };
+    const std::int32_t cnt = c.count[i];
+    if (cnt <= kMaxList) {
+      const std::int32_t* list = c.list + static_cast<std::int64_t>(i) * kListStride;
+      for (std::int32_t b = 0; b < cnt; ++b) add(list[b], Eigen::Vector3d::Zero());
+    } else {
+      if (nr < 0) nr = neighbour_runs(*c.g, cell, runs);
+      for (int r = 0; r < nr; ++r)
+        for (std::int32_t j = runs[r].begin; j < runs[r].end; ++j) add(j, Eigen::Vector3d(runs[r].sx, runs[r].sy, runs[r].sz));
+    }
+    const Real det = M.determinant(), scale = M.trace() / 3;
+    const Eigen::Matrix3d grad = scale > 0 && det > 1e-3 * scale * scale * scale ? Eigen::Matrix3d(A * M.inverse())
+                                                                              : Eigen::Matrix3d(f.gradient_scale * A);
+    const Eigen::Matrix3d D = 0.5 * (grad + grad.transpose());
+    c.mu[i] = carreau_viscosity(f.params.carreau, std::sqrt(2 * D.squaredNorm()));
   }
 }
 
@@ -846,8 +904,8 @@ struct Reaction {
 //   no-slip viscosity (Morris et al. 1997 ghost velocities, summed):
 //     a = 2 mu / rho_i vm / H^2 (v_i - u)
 template <class Pw, class Sink>
-Vec3 wall_acceleration(const Fluid& f, const Walls& w, const Vec3& p, const Vec3& v, Real rho, Real pr, Pw&& pw_fn, Real tau,
-                       Sink&& reaction, Contact* cache) {
+Vec3 wall_acceleration(const Fluid& f, const Walls& w, const Vec3& p, const Vec3& v, Real rho, Real pr, Real mu, Pw&& pw_fn,
+                       Real tau, Sink&& reaction, Contact* cache) {
   Vec3 total;
   Real pw = -1;
   const Vec3 g = vec(f.params.gravity);
@@ -862,8 +920,7 @@ Vec3 wall_acceleration(const Fluid& f, const Walls& w, const Vec3& p, const Vec3
     const Real vn = dot(v - c.u, c.n);
     if (vn < 0 && f.params.artificial_viscosity > 0)
       a += (-2 * f.params.artificial_viscosity * f.c0 * f.h * vn * WallTables::at(f.walls.av, f.walls.n, q) / (f.H * f.H)) * c.n;
-    if (!c.wall->slip && f.params.viscosity > 0)
-      a += (2 * f.params.viscosity / rho * WallTables::at(f.walls.vm, f.walls.n, q) / (f.H * f.H)) * (v - c.u);
+    if (!c.wall->slip && mu > 0) a += (2 * mu / rho * WallTables::at(f.walls.vm, f.walls.n, q) / (f.H * f.H)) * (v - c.u);
     total += a;
     if (c.surface >= 0) reaction(c, a);
   }, cache, cache != nullptr);
@@ -1006,6 +1063,10 @@ struct Stepper {
     c.rho = s.rho.data(), c.p = s.p.data(), c.P = sc.P.data(), c.ir = sc.inv_rho.data(), c.nb = sc.neighbours.data();
     sc.pack.resize(8 * np);
     c.pack = sc.pack.data();
+    if (f.params.rheology == Rheology::carreau) {
+      sc.mu.resize(np);
+      c.mu = sc.mu.data();
+    }
     c.ksum = sc.ksum.data(), c.list = sc.list.data(), c.count = sc.count.data();
     c.period = sc.grid.period;
     c.ax = sc.a[0].data(), c.ay = sc.a[1].data(), c.az = sc.a[2].data();
@@ -1058,6 +1119,10 @@ struct Stepper {
   // accelerations (pair + walls); returns (max |a|^2, max |v|^2) and the reactions
   std::array<Real, 2> forces(const Pass& c, std::vector<Reaction>& reactions) {
     const auto& occ = c.g->occupied;
+    if (c.mu)
+      tbb::parallel_for(tbb::blocked_range<std::size_t>(0, occ.size(), 16), [&](const tbb::blocked_range<std::size_t>& r) {
+        for (std::size_t k = r.begin(); k < r.end(); ++k) shear_viscosity_cell(c, occ[k]);
+      });
     tbb::enumerable_thread_specific<std::vector<Reaction>> local;
     const Vec3 g = vec(f.params.gravity);
     const bool any_surface = !walls.surfaces.empty();
@@ -1068,12 +1133,16 @@ struct Stepper {
           std::vector<Reaction>* rec = any_surface ? &local.local() : nullptr;
           for (std::size_t k = r.begin(); k < r.end(); ++k) {
             const std::int32_t cell = occ[k];
-            force_cell(c, cell);
+            if (c.mu)
+              force_cell_var(c, cell);
+            else
+              force_cell(c, cell);
             for (std::int32_t i = c.g->start[cell]; i < c.g->start[cell + 1]; ++i) {
               const Vec3 p{c.x[i], c.y[i], c.z[i]}, v{c.vx[i], c.vy[i], c.vz[i]};
               const auto pw = [&] { return shepard_pressure(c, i); };
               const Vec3 aw = !walls.maybe_near(p) ? Vec3{}
-                              : wall_acceleration(f, walls, p, v, c.rho[i], c.p[i], pw, c.tau, [&](const Contact& ct, const Vec3& a) {
+                              : wall_acceleration(f, walls, p, v, c.rho[i], c.p[i], c.mu ? c.mu[i] : f.params.viscosity, pw, c.tau,
+                                                  [&](const Contact& ct, const Vec3& a) {
                                   rec->push_back({i, ct.surface, ct.tri, ct.w0, ct.w1, ct.w2, -f.mass * a});
                                 }, ntw > 0 ? contact_cache.data() + static_cast<std::size_t>(i) * ntw : nullptr);
               c.wx[i] = aw.x, c.wy[i] = aw.y, c.wz[i] = aw.z;
@@ -1351,6 +1420,12 @@ struct Stepper {
 // ---- public functions -------------------------------------------------------------
 
 const char* to_string(Eos e) { return e == Eos::linear ? "linear" : "tait"; }
+const char* to_string(Rheology r) { return r == Rheology::carreau ? "carreau" : "newtonian"; }
+
+Real carreau_viscosity(const Carreau& c, Real shear_rate) {
+  const Real lg = c.lambda * shear_rate;
+  return c.mu_inf + (c.mu0 - c.mu_inf) * std::pow(1 + lg * lg, (c.n - 1) / 2);
+}
 
 Real eos_density(Eos e, Real p, Real rho0, Real c0, int gamma) {
   if (e == Eos::linear) return rho0 + p / (c0 * c0);
@@ -1386,6 +1461,14 @@ void validate(const FluidParams& p) {
   };
   positive(p.rest_density, "rest_density");
   nonneg(p.viscosity, "viscosity");
+  if (p.rheology == Rheology::carreau) {
+    const Carreau& c = p.carreau;
+    if (!(std::isfinite(c.mu0) && c.mu0 > 0)) fail("carreau.mu0 must be > 0 (got " + str(c.mu0) + ")");
+    if (!(c.mu_inf >= 0 && c.mu_inf <= c.mu0))
+      fail("carreau.mu_inf must be in [0, mu0] (got " + str(c.mu_inf) + ")");
+    if (!(std::isfinite(c.lambda) && c.lambda >= 0)) fail("carreau.lambda must be >= 0 (got " + str(c.lambda) + ")");
+    if (!(c.n > 0 && c.n <= 1)) fail("carreau.n must be in (0, 1] (got " + str(c.n) + ")");
+  }
   positive(p.spacing, "spacing");
   if (!(p.support_ratio >= 1.5 && p.support_ratio <= 4))
     fail("support_ratio must be in [1.5, 4] (got " + str(p.support_ratio) + ")");
@@ -1443,7 +1526,7 @@ Fluid make_fluid(const FluidParams& p) {
     f.c0 = p.sound_speed > 0 ? p.sound_speed : 10 * p.max_speed;
   }
   f.physx_stiffness = sound_speed_to_physx_stiffness(f.c0, p.spacing);
-  f.nu = p.viscosity / p.rest_density;
+  f.nu = (p.rheology == Rheology::carreau ? p.carreau.mu0 : p.viscosity) / p.rest_density;  // the largest viscosity
   f.expected_density_variation = (p.max_speed / f.c0) * (p.max_speed / f.c0);
   f.viscous_limit = f.nu > 0 ? p.viscous_cfl * f.h * f.h / f.nu : HUGE_VAL;
   f.walls = make_wall_tables(256, ratio, 1 / (f.lattice_sum * p.spacing * p.spacing * p.spacing), f.gradient_scale,

@@ -124,9 +124,28 @@ Real poiseuille_flow_rate(Real radius, Real pressure_drop, Real viscosity, Real 
 
 // ---- parameters and the immutable fluid -----------------------------------------
 
+// Shear-thinning blood (Carreau; Cho & Kensey, Biorheology 28, 1991; reference/tissues.md):
+//   mu(g) = mu_inf + (mu0 - mu_inf) [1 + (lambda g)^2]^((n - 1) / 2),  g the shear rate (1/s)
+struct Carreau {
+  Real mu0 = 0.056;       // Pa s, zero-shear viscosity
+  Real mu_inf = 0.00345;  // Pa s, infinite-shear viscosity, 0 <= mu_inf <= mu0
+  Real lambda = 3.313;    // s, relaxation time, >= 0
+  Real n = 0.3568;        // power index, (0, 1]
+};
+Real carreau_viscosity(const Carreau& c, Real shear_rate);
+
+enum class Rheology { newtonian, carreau };
+const char* to_string(Rheology r);
+
 struct FluidParams {
   Real rest_density = 1060;   // kg/m^3, rho0 (blood, reference/tissues.md)
-  Real viscosity = 0.003;     // Pa s, dynamic viscosity mu (3 cP, the paper), >= 0
+  Real viscosity = 0.003;     // Pa s, dynamic viscosity mu (3 cP, the paper), >= 0; newtonian rheology
+  // carreau: each particle's viscosity follows its shear rate sqrt(2 D:D), D the
+  // strain rate from the velocity gradient (renormalised SPH gradient, exact for a
+  // linear field); pairs use mu_i + mu_j in place of 2 mu, walls the particle's mu.
+  // `viscosity` is then unused by the forces; the viscous substep limit uses mu0.
+  Rheology rheology = Rheology::newtonian;
+  Carreau carreau;
   Real spacing = 0.002;       // m, rest particle spacing dx (PhysX: 1 / restParticlesPerMeter)
   Real support_ratio = 2.0;   // kernel support radius H / spacing, [1.5, 4]; 2: ~33 neighbours
   std::array<Real, 3> gravity{0, -9.81, 0};  // m/s^2, any body acceleration
@@ -390,6 +409,7 @@ struct FluidScratch {
   std::array<std::vector<Real>, 3> aw;  // (3)(n) m/s^2, of which from walls
   std::vector<Real> P;                  // (n) p / rho^2
   std::vector<Real> inv_rho;            // (n) 1 / rho
+  std::vector<Real> mu;                 // (n) Pa s, per-particle viscosity (carreau rheology only)
   std::vector<Real> neighbours;         // (n) particles within H, self included
   std::vector<Real> ksum;               // (n) kernel sum (the walls' Shepard pressure sums are taken on demand)
   std::vector<Real> pack;               // (n x 8) x, y, z, p / rho^2, vx, vy, vz, 1 / rho: the force pass's gathers

@@ -47,9 +47,10 @@ struct Scenario {
   Real dt = 0;  // one substep at the CFL limit of the expected speed
 };
 
-Scenario make_scenario(std::int64_t n) {
+Scenario make_scenario(std::int64_t n, bool carreau = false) {
   rt::FluidParams p;
   p.spacing = 0.002;
+  if (carreau) p.rheology = rt::Rheology::carreau;  // the blood of reference/tissues.md
   const int m = std::max(2, static_cast<int>(std::lround(std::cbrt(n / 2.0))));
   const Real w = m * p.spacing;
   p.max_speed = std::sqrt(2 * 9.81 * 2 * w);
@@ -296,6 +297,21 @@ void BM_FluidStep(benchmark::State& st) {
   st.SetItemsProcessed(st.iterations() * sc.state.size());
 }
 BENCHMARK(BM_FluidStep)->ArgsProduct({{1000, 5000, 20000, 100000}, {1, 2}})->Unit(benchmark::kMillisecond);
+
+// The same steps with Carreau blood: the shear-rate pass, and more substeps
+// (the viscous limit of mu0 = 56 cP); time per substep = time / substeps.
+void BM_FluidStepCarreau(benchmark::State& st) {
+  Scenario sc = make_scenario(st.range(0), true);
+  tbb::task_arena arena(static_cast<int>(st.range(1)));
+  std::int64_t substeps = 0;
+  arena.execute([&] {
+    for (int k = 0; k < 10; ++k) rt::fluid_step(sc.fluid, sc.state, sc.dt, sc.bounds);
+    for (auto _ : st) substeps += rt::fluid_step(sc.fluid, sc.state, sc.dt, sc.bounds).substeps;
+  });
+  st.counters["particles"] = static_cast<double>(sc.state.size());
+  st.counters["substeps"] = static_cast<double>(substeps) / static_cast<double>(st.iterations());
+}
+BENCHMARK(BM_FluidStepCarreau)->ArgsProduct({{5000, 100000}, {2}})->Unit(benchmark::kMillisecond);
 
 void BM_FluidSurface(benchmark::State& st) {
   Scenario sc = make_scenario(st.range(0));

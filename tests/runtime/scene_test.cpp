@@ -70,6 +70,17 @@ TEST_F(SceneTest, ParsesAFullScene) {
   EXPECT_GT(s.tool_nodes(0).size(), 0u);
 }
 
+TEST_F(SceneTest, ParsesCarreauBlood) {
+  const SceneDef d = parse_scene_file(
+      scene_file(R"({"model": "model.h5", "fluid": {"spacing": 0.002, "rheology": "carreau", "carreau": {"mu0": 0.06, "n": 0.4}}})"));
+  EXPECT_EQ(d.fluid.params.rheology, Rheology::carreau);
+  EXPECT_DOUBLE_EQ(d.fluid.params.carreau.mu0, 0.06);
+  EXPECT_DOUBLE_EQ(d.fluid.params.carreau.n, 0.4);
+  EXPECT_DOUBLE_EQ(d.fluid.params.carreau.mu_inf, Carreau{}.mu_inf) << "unset: the blood values of reference/tissues.md";
+  EXPECT_EQ(parse_scene_file(scene_file(R"({"model": "model.h5", "fluid": {"spacing": 0.002}})")).fluid.params.rheology,
+            Rheology::newtonian);
+}
+
 TEST_F(SceneTest, BadScenesAreOneLineErrorsBeforeAnyStep) {
   struct Case {
     std::string json, expect;
@@ -90,6 +101,11 @@ TEST_F(SceneTest, BadScenesAreOneLineErrorsBeforeAnyStep) {
       {R"({"model": "model.h5", "integrator": "rk4"})", "integrator must be symplectic or implicit"},
       {R"({"model": "model.h5", "dtt": 0.01})", "unknown key 'dtt'"},
       {R"({"model": "model.h5", "fluid": {"particles": 5000}})", "particles must be true or false"},
+      {R"({"model": "model.h5", "fluid": {"rheology": "casson"}})", "rheology must be newtonian or carreau"},
+      {R"({"model": "model.h5", "fluid": {"carreau": {"mu0": 0.05}}})", "carreau parameters given with rheology 'newtonian'"},
+      {R"({"model": "model.h5", "fluid": {"rheology": "carreau", "carreau": {"n": 1.5}}})", "fluid: carreau: n must be"},
+      {R"({"model": "model.h5", "fluid": {"rheology": "carreau", "carreau": {"mu0": 0.01, "mu_inf": 0.02}}})",
+       "carreau.mu_inf must be in [0, mu0]"},
       {R"({"model": "model.h5", "tools": [{"type": "pull", "center": [0, 0, 0]}]})", "radius is required"},
       {R"({"model": "model.h5", "tools": [{"type": "pressure", "center": [0, 0, 0], "radius": 0.01, "pressure": 5}]})",
        "direction must be a non-zero"},

@@ -408,6 +408,78 @@ TEST(SphPhysics, PoiseuilleStartUpFlow) {
   EXPECT_EQ(s.counters.left_domain + s.counters.nonfinite, 0);
 }
 
+// ---- shear-thinning blood (Carreau) ------------------------------------------------------
+
+TEST(SphCarreau, ViscosityMatchesTheReferenceTable) {
+  // reference/tissues.md (Cho & Kensey 1991): mu at shear rates 0.01 ... 1000 1/s
+  const Carreau blood;
+  const std::pair<Real, Real> table[] = {{0.01, 0.05598}, {0.1, 0.05427}, {1, 0.02710},
+                                         {10, 0.00898},   {100, 0.00471}, {1000, 0.00374}};
+  for (const auto& [g, mu] : table) EXPECT_NEAR(carreau_viscosity(blood, g), mu, 5e-6 + 1e-4 * mu) << g << " 1/s";
+  EXPECT_DOUBLE_EQ(carreau_viscosity(blood, 0), blood.mu0);
+}
+
+// Steady plane Poiseuille flow of a Carreau fluid between walls at y = 0 and
+// d under a body force F: the shear stress is rho F (d/2 - y), the shear rate
+// g solves mu(g) g = |stress| (monotone for n > 0), u = integral of g from the wall.
+Real carreau_channel(Real y, Real d, Real F, Real rho, const Carreau& c) {
+  const Real ye = std::min(y, d - y);
+  auto rate = [&](Real tau) {
+    Real lo = 0, hi = tau / std::max(c.mu_inf, Real(1e-300)) + 1;
+    for (int it = 0; it < 200; ++it) {
+      const Real g = 0.5 * (lo + hi);
+      (carreau_viscosity(c, g) * g < tau ? lo : hi) = g;
+    }
+    return 0.5 * (lo + hi);
+  };
+  const int n = 2000;
+  Real u = 0;
+  for (int k = 0; k < n; ++k) {  // midpoint rule
+    const Real s = (k + 0.5) / n * ye;
+    u += rate(rho * F * (d / 2 - s)) * ye / n;
+  }
+  return u;
+}
+
+TEST(SphCarreau, ChannelFlowReachesTheShearThinningProfile) {
+  // the Newtonian start-up case's channel (d = 1, F = 1000, rho = 1000), with a
+  // viscosity falling fivefold across the channel: mu0 = 2e5, mu_inf = 4e4 Pa s,
+  // lambda = 0.5 s, n = 0.5 (lambda g ~ 2 at the walls)
+  const Real d = 1, F = 1000;
+  FluidParams p;
+  p.rest_density = 1000;
+  p.rheology = Rheology::carreau;
+  p.carreau = {2e5, 4e4, 0.5, 0.5};
+  p.spacing = d / 20;
+  p.gravity = {F, 0, 0};
+  const Real umax = carreau_channel(d / 2, d, F, p.rest_density, p.carreau);
+  p.max_speed = umax;
+  p.artificial_viscosity = 0;
+  const Fluid f = make_fluid(p);
+  const Real L = 3 * f.H + 1e-12;
+  FluidBoundaries b = make_box_boundaries({0, 0, 0}, {L, d, L});
+  b.faces = {Face::periodic, Face::periodic, Face::wall, Face::wall, Face::periodic, Face::periodic};
+  FluidState s = make_fluid_state();
+  fill_box(f, s, {0, 0, 0}, {L, d, L});
+  // steady after ~5 of the slowest viscous times d^2 / (pi^2 nu_inf)
+  run_until(f, s, b, 5 * d * d / (kPi * kPi * p.carreau.mu_inf / p.rest_density), 0.0005);
+  // the Newtonian profiles of the two limits bracket it: the SPH profile must
+  // be resolved well within the distance between them and the Carreau one
+  Real err = 0, gap0 = 0, gap_inf = 0;
+  const Real nu0 = p.carreau.mu0 / p.rest_density, nu_inf = p.carreau.mu_inf / p.rest_density;
+  for (std::size_t i = 0; i < s.id.size(); ++i) {
+    const Real y = s.x[1][i], uc = carreau_channel(y, d, F, p.rest_density, p.carreau);
+    err = std::max(err, std::abs(s.v[0][i] - uc));
+    gap0 = std::max(gap0, std::abs(F / (2 * nu0) * y * (d - y) - uc));
+    gap_inf = std::max(gap_inf, std::abs(F / (2 * nu_inf) * y * (d - y) - uc));
+  }
+  std::printf("  u_max %.4f: max |u - u_carreau| / u_max = %.2f %%; Newtonian mu0 / mu_inf profiles differ by %.0f / %.0f %%\n",
+              umax, 100 * err / umax, 100 * gap0 / umax, 100 * gap_inf / umax);
+  EXPECT_LT(err / umax, 0.01);  // as the Newtonian start-up flow
+  EXPECT_LT(10 * err, std::min(gap0, gap_inf));
+  EXPECT_EQ(s.counters.left_domain + s.counters.nonfinite, 0);
+}
+
 // ---- conservation, determinism, robustness ----------------------------------------------
 
 // a compressed block (spacing 0.9 dx) with random velocities, no gravity
