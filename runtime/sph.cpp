@@ -803,28 +803,38 @@ void shear_viscosity_cell(const Pass& c, std::int32_t cell) {
   NeighbourRun runs[27];
   int nr = -1;
   for (std::int32_t i = c.g->start[cell]; i < c.g->start[cell + 1]; ++i) {
-    Eigen::Matrix3d M = Eigen::Matrix3d::Zero(), A = Eigen::Matrix3d::Zero();
-    const Eigen::Vector3d xi(c.x[i], c.y[i], c.z[i]), vi(c.vx[i], c.vy[i], c.vz[i]);
-    auto add = [&](std::int32_t j, const Eigen::Vector3d& shift) {
-      Eigen::Vector3d d = xi - shift - Eigen::Vector3d(c.x[j], c.y[j], c.z[j]);
+    // M = sum w d d^T (symmetric: 6 sums), A = sum w (v_i - v_j) d^T (9 sums)
+    Real m00 = 0, m01 = 0, m02 = 0, m11 = 0, m12 = 0, m22 = 0;
+    Real a[3][3] = {{0, 0, 0}, {0, 0, 0}, {0, 0, 0}};
+    const Real xi = c.x[i], yi = c.y[i], zi = c.z[i], vxi = c.vx[i], vyi = c.vy[i], vzi = c.vz[i];
+    // neighbour j's packed record: x, y, z, P, vx, vy, vz, 1/rho
+    auto add = [&](const Real* pk, Real sx, Real sy, Real sz) {
+      Real d[3] = {xi - sx - pk[0], yi - sy - pk[1], zi - sz - pk[2]};
       if (periodic)
-        for (int a = 0; a < 3; ++a)
-          if (c.period[a] > 0) d(a) -= c.period[a] * std::round(d(a) / c.period[a]);
-      const Real q = d.norm() * invH;
-      if (!(q < 1) || j == i) return;
-      const Real t = 1 - q, w = G * c.ir[j] * t * t * t;
-      M.noalias() += w * d * d.transpose();
-      A.noalias() += w * (vi - Eigen::Vector3d(c.vx[j], c.vy[j], c.vz[j])) * d.transpose();
+        for (int k = 0; k < 3; ++k)
+          if (c.period[k] > 0) d[k] -= c.period[k] * std::round(d[k] / c.period[k]);
+      const Real r2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
+      if (!(r2 < f.H * f.H) || r2 == 0) return;
+      const Real t = 1 - std::sqrt(r2) * invH, w = G * pk[7] * t * t * t;
+      m00 += w * d[0] * d[0], m01 += w * d[0] * d[1], m02 += w * d[0] * d[2];
+      m11 += w * d[1] * d[1], m12 += w * d[1] * d[2], m22 += w * d[2] * d[2];
+      const Real dv[3] = {w * (vxi - pk[4]), w * (vyi - pk[5]), w * (vzi - pk[6])};
+      for (int r = 0; r < 3; ++r)
+        for (int k = 0; k < 3; ++k) a[r][k] += dv[r] * d[k];
     };
     const std::int32_t cnt = c.count[i];
     if (cnt <= kMaxList) {
       const std::int32_t* list = c.list + static_cast<std::int64_t>(i) * kListStride;
-      for (std::int32_t b = 0; b < cnt; ++b) add(list[b], Eigen::Vector3d::Zero());
+      for (std::int32_t b = 0; b < cnt; ++b) add(c.pack + 8 * static_cast<std::int64_t>(list[b]), 0, 0, 0);
     } else {
       if (nr < 0) nr = neighbour_runs(*c.g, cell, runs);
       for (int r = 0; r < nr; ++r)
-        for (std::int32_t j = runs[r].begin; j < runs[r].end; ++j) add(j, Eigen::Vector3d(runs[r].sx, runs[r].sy, runs[r].sz));
+        for (std::int32_t j = runs[r].begin; j < runs[r].end; ++j)
+          if (j != i) add(c.pack + 8 * static_cast<std::int64_t>(j), runs[r].sx, runs[r].sy, runs[r].sz);
     }
+    Eigen::Matrix3d M, A;
+    M << m00, m01, m02, m01, m11, m12, m02, m12, m22;
+    A << a[0][0], a[0][1], a[0][2], a[1][0], a[1][1], a[1][2], a[2][0], a[2][1], a[2][2];
     const Real det = M.determinant(), scale = M.trace() / 3;
     const Eigen::Matrix3d grad = scale > 0 && det > 1e-3 * scale * scale * scale ? Eigen::Matrix3d(A * M.inverse())
                                                                               : Eigen::Matrix3d(f.gradient_scale * A);
