@@ -547,8 +547,11 @@ TEST(SphPhysics, DeterministicAcrossRunsAndThreadCounts) {
   }
 }
 
-TEST(SphRobustness, ExtremeTimeStepsNeverLeaveNaN) {
+class SphRobustness : public ::testing::TestWithParam<Rheology> {};
+
+TEST_P(SphRobustness, ExtremeTimeStepsNeverLeaveNaN) {
   FluidParams p;
+  p.rheology = GetParam();
   p.max_substeps = 50;
   const Fluid f = make_fluid(p);
   FluidBoundaries b = make_box_boundaries({0, 0, 0}, {0.04, 0.04, 0.04});
@@ -589,6 +592,8 @@ TEST(SphRobustness, ExtremeTimeStepsNeverLeaveNaN) {
   EXPECT_EQ(s.counters.nonfinite, 1);
   EXPECT_EQ(s.counters.left_domain, 0);  // walls all around
 }
+INSTANTIATE_TEST_SUITE_P(Rheologies, SphRobustness, ::testing::Values(Rheology::newtonian, Rheology::carreau),
+                         [](const auto& info) { return std::string(to_string(info.param)); });
 
 TEST(SphBoundaries, ParticlesLeavingTheDomainAreCounted) {
   const Fluid f = make_fluid(weightless());
