@@ -579,6 +579,13 @@ Real bleeding_flow_rate(Real radius, Real pressure, Real viscosity, Real length,
   return std::min(poiseuille_flow_rate(radius, pressure, viscosity, length), inertial);
 }
 
+Real bleeding_flow_rate(Real radius, Real pressure, const FluidParams& p, Real length) {
+  if (p.rheology == Rheology::newtonian) return bleeding_flow_rate(radius, pressure, p.viscosity, length, p.rest_density);
+  if (!(radius > 0) || !(pressure > 0)) return 0;
+  const Real inertial = M_PI * radius * radius * std::sqrt(2 * pressure / p.rest_density);
+  return std::min(carreau_pipe_flow_rate(radius, pressure, length, p.carreau), inertial);
+}
+
 struct Scene::FluidRun {
   Fluid fluid;
   FluidBoundaries bounds;
@@ -833,8 +840,7 @@ CutReport Scene::apply_cut(const CutDef& def) {
       // the jet is at least 1.5 particle spacings wide (a 3 x 3 disc of
       // particles); the flow rate is the vessel's
       e.radius = std::max(h.radius, Real(1.5) * fluid_->fluid.params.spacing);
-      e.flow_rate = bleeding_flow_rate(h.radius, fd.bleed_pressure, fluid_->fluid.params.viscosity, fd.bleed_length,
-                                       fluid_->fluid.params.rest_density);
+      e.flow_rate = bleeding_flow_rate(h.radius, fd.bleed_pressure, fluid_->fluid.params, fd.bleed_length);
       e.profile = EmitterProfile::parabolic;
       e.start = state_.time;
       e.end = state_.time + fd.bleed_duration;

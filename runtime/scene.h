@@ -112,6 +112,9 @@ struct FluidDef {
 // vessels (r = 2 mm, 10 mmHg, L = 5 cm: a mean speed of 4.4 m/s, against
 // 1.6 m/s for the orifice).
 Real bleeding_flow_rate(Real radius, Real pressure, Real viscosity, Real length, Real density);
+// The same for the fluid's rheology: Newtonian as above with p.viscosity;
+// Carreau with its pipe flow (carreau_pipe_flow_rate), capped by the orifice.
+Real bleeding_flow_rate(Real radius, Real pressure, const FluidParams& p, Real length);
 
 struct OutputDef {
   bool enabled = false;

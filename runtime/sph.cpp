@@ -1437,6 +1437,34 @@ Real carreau_viscosity(const Carreau& c, Real shear_rate) {
   return c.mu_inf + (c.mu0 - c.mu_inf) * std::pow(1 + lg * lg, (c.n - 1) / 2);
 }
 
+Real carreau_shear_rate(const Carreau& c, Real stress) {
+  if (!(stress > 0) || !(c.mu0 > 0)) return 0;
+  // mu g is increasing in g; g lies in [stress / mu0, stress / max(mu_inf, ...)]: bisection
+  Real lo = stress / c.mu0, hi = c.mu_inf > 0 ? stress / c.mu_inf : 2 * lo;
+  while (carreau_viscosity(c, hi) * hi < stress) hi *= 2;  // mu_inf = 0: grow the bracket
+  for (int it = 0; it < 200 && hi - lo > 1e-15 * hi; ++it) {
+    const Real g = 0.5 * (lo + hi);
+    (carreau_viscosity(c, g) * g < stress ? lo : hi) = g;
+  }
+  return 0.5 * (lo + hi);
+}
+
+Real carreau_pipe_flow_rate(Real radius, Real pressure_drop, Real length, const Carreau& c) {
+  if (!(radius > 0) || !(pressure_drop > 0) || !(length > 0)) return 0;
+  // Gauss-Legendre on [0, r] in 8 panels of 4 points (the integrand is smooth)
+  static const Real x4[4] = {-0.8611363115940526, -0.3399810435848563, 0.3399810435848563, 0.8611363115940526};
+  static const Real w4[4] = {0.3478548451374538, 0.6521451548625461, 0.6521451548625461, 0.3478548451374538};
+  const int panels = 8;
+  const Real h = radius / panels;
+  Real sum = 0;
+  for (int k = 0; k < panels; ++k)
+    for (int q = 0; q < 4; ++q) {
+      const Real s = (k + 0.5 + 0.5 * x4[q]) * h;
+      sum += 0.5 * h * w4[q] * s * s * carreau_shear_rate(c, pressure_drop * s / (2 * length));
+    }
+  return kPi * sum;
+}
+
 Real eos_density(Eos e, Real p, Real rho0, Real c0, int gamma) {
   if (e == Eos::linear) return rho0 + p / (c0 * c0);
   return rho0 * std::pow(1 + p * gamma / (rho0 * c0 * c0), Real(1) / gamma);

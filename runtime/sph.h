@@ -133,6 +133,13 @@ struct Carreau {
   Real n = 0.3568;        // power index, (0, 1]
 };
 Real carreau_viscosity(const Carreau& c, Real shear_rate);
+// Shear rate g >= 0 with carreau_viscosity(c, g) g = stress (monotone for n > 0).
+Real carreau_shear_rate(const Carreau& c, Real stress);
+// Steady flow rate (m^3/s) of a Carreau fluid through a pipe of radius r and
+// length L under a pressure drop dp: the wall stress dp r / (2L) falls linearly
+// to the axis, Q = pi integral_0^r s^2 g(dp s / 2L) ds (Rabinowitsch-Mooney).
+// For n = 1 or lambda = 0 it is Poiseuille's law with mu0.
+Real carreau_pipe_flow_rate(Real radius, Real pressure_drop, Real length, const Carreau& c);
 
 enum class Rheology { newtonian, carreau };
 const char* to_string(Rheology r);

@@ -91,6 +91,14 @@ TEST(Bleeding, FlowLawIsPoiseuilleCappedByTheOrifice) {
   EXPECT_LT(bleeding_flow_rate(r2, dp, mu, L, rho), M_PI * std::pow(r2, 4) * dp / (8 * mu * L));
   EXPECT_EQ(bleeding_flow_rate(r2, 0, mu, L, rho), 0);
   EXPECT_EQ(bleeding_flow_rate(0, dp, mu, L, rho), 0);
+  // by the fluid's rheology: Newtonian as above, Carreau by its pipe flow, capped alike
+  FluidParams p;
+  p.viscosity = mu, p.rest_density = rho;
+  EXPECT_DOUBLE_EQ(bleeding_flow_rate(r1, dp, p, L), bleeding_flow_rate(r1, dp, mu, L, rho));
+  p.rheology = Rheology::carreau;
+  EXPECT_DOUBLE_EQ(bleeding_flow_rate(r1, dp, p, L), carreau_pipe_flow_rate(r1, dp, L, p.carreau));
+  EXPECT_DOUBLE_EQ(bleeding_flow_rate(r2, dp, p, L), M_PI * r2 * r2 * std::sqrt(2 * dp / rho));
+  EXPECT_EQ(bleeding_flow_rate(r2, 0, p, L), 0);
 }
 
 TEST(Bleeding, ACutVesselEmitsItsFlowAndParticlesAreConserved) {

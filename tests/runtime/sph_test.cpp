@@ -419,6 +419,38 @@ TEST(SphCarreau, ViscosityMatchesTheReferenceTable) {
   EXPECT_DOUBLE_EQ(carreau_viscosity(blood, 0), blood.mu0);
 }
 
+TEST(SphCarreau, PipeFlowRate) {
+  const Carreau blood;
+  // the shear rate inverts the stress law
+  for (Real tau : {1e-3, 0.1, 1.0, 10.0, 1e3}) {
+    const Real g = carreau_shear_rate(blood, tau);
+    EXPECT_NEAR(carreau_viscosity(blood, g) * g, tau, 1e-12 * tau) << tau;
+  }
+  EXPECT_EQ(carreau_shear_rate(blood, 0), 0);
+  // Newtonian limits: Poiseuille's law with mu0
+  const Real r = 0.5e-3, dp = 1330, L = 0.05;
+  Carreau newt = blood;
+  newt.n = 1;
+  EXPECT_NEAR(carreau_pipe_flow_rate(r, dp, L, newt), poiseuille_flow_rate(r, dp, blood.mu0, L), 1e-12);
+  newt = blood;
+  newt.lambda = 0;
+  EXPECT_NEAR(carreau_pipe_flow_rate(r, dp, L, newt) / poiseuille_flow_rate(r, dp, blood.mu0, L), 1, 1e-12);
+  // blood: between the zero- and infinite-shear Poiseuille flows, and equal to
+  // an independent integration of the velocity profile (u from the wall in,
+  // then Q = integral 2 pi s u ds)
+  const Real q = carreau_pipe_flow_rate(r, dp, L, blood);
+  EXPECT_GT(q, poiseuille_flow_rate(r, dp, blood.mu0, L));
+  EXPECT_LT(q, poiseuille_flow_rate(r, dp, blood.mu_inf, L));
+  const int n = 20000;
+  Real u = 0, Q = 0;
+  for (int k = n - 1; k >= 0; --k) {  // midpoint rule, from the wall to the axis
+    const Real s = (k + 0.5) / n * r, ds = r / n;
+    u += carreau_shear_rate(blood, dp * s / (2 * L)) * ds;
+    Q += 2 * kPi * s * u * ds;
+  }
+  EXPECT_NEAR(q / Q, 1, 1e-3);
+}
+
 // Steady plane Poiseuille flow of a Carreau fluid between walls at y = 0 and
 // d under a body force F: the shear stress is rho F (d/2 - y), the shear rate
 // g solves mu(g) g = |stress| (monotone for n > 0), u = integral of g from the wall.
