@@ -571,19 +571,23 @@ void Scene::init(const std::string& model_file) {
 
 // ---- blood ---------------------------------------------------------------------
 
+namespace {
+// the viscous limit (any law) capped by the inertial one of the orifice
+Real capped_by_orifice(Real viscous, Real radius, Real pressure, Real density) {
+  return std::min(viscous, Real(M_PI) * radius * radius * std::sqrt(2 * pressure / density));
+}
+}  // namespace
+
 Real bleeding_flow_rate(Real radius, Real pressure, Real viscosity, Real length, Real density) {
   if (!(radius > 0) || !(pressure > 0)) return 0;
-  const Real area = M_PI * radius * radius;
-  const Real inertial = area * std::sqrt(2 * pressure / density);
-  if (!(viscosity > 0)) return inertial;
-  return std::min(poiseuille_flow_rate(radius, pressure, viscosity, length), inertial);
+  if (!(viscosity > 0)) return capped_by_orifice(HUGE_VAL, radius, pressure, density);
+  return capped_by_orifice(poiseuille_flow_rate(radius, pressure, viscosity, length), radius, pressure, density);
 }
 
 Real bleeding_flow_rate(Real radius, Real pressure, const FluidParams& p, Real length) {
   if (p.rheology == Rheology::newtonian) return bleeding_flow_rate(radius, pressure, p.viscosity, length, p.rest_density);
   if (!(radius > 0) || !(pressure > 0)) return 0;
-  const Real inertial = M_PI * radius * radius * std::sqrt(2 * pressure / p.rest_density);
-  return std::min(carreau_pipe_flow_rate(radius, pressure, length, p.carreau), inertial);
+  return capped_by_orifice(carreau_pipe_flow_rate(radius, pressure, length, p.carreau), radius, pressure, p.rest_density);
 }
 
 struct Scene::FluidRun {

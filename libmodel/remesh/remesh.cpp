@@ -1332,15 +1332,9 @@ RemeshResult remesh_layers(const std::vector<NamedSurface>& layers, const Remesh
   }
 
   // outer rings, side by side (the first failing ring is reported)
-  auto each_ring = [nv](auto&& f) {
+  auto each_ring = [nv, &capture](auto&& f) {
     std::vector<std::exception_ptr> err(static_cast<std::size_t>(nv));
-    tbb::parallel_for(0, nv, [&](int j) {
-      try {
-        f(j);
-      } catch (...) {
-        err[static_cast<std::size_t>(j)] = std::current_exception();
-      }
-    });
+    tbb::parallel_for(0, nv, [&](int j) { capture(err[static_cast<std::size_t>(j)], [&] { f(j); }); });
     for (const auto& e : err)
       if (e) std::rethrow_exception(e);
   };
@@ -1373,8 +1367,8 @@ RemeshResult remesh_layers(const std::vector<NamedSurface>& layers, const Remesh
     std::vector<Vec2> q2(static_cast<std::size_t>(nu) * nv, Vec2::Zero());  // the inner vertices, plane frame
     std::vector<std::vector<Vec2>> target(nv);
     struct RingTarget {
-      std::vector<Loop> loops;
       std::vector<Vec2> T;   // target curve, counter-clockwise
+      std::vector<double> cum;  // its closed_arc_lengths
       std::vector<int> on;   // per edge T[v] T[v+1]: the loop it lies on, -1 bridged
       bool several = false;
       std::vector<double> x; // normal hits, unwrapped arc length on T
@@ -1477,19 +1471,17 @@ RemeshResult remesh_layers(const std::vector<NamedSurface>& layers, const Remesh
         // bumps of the ring at the input's voxel scale, whose slopes are large
         // but whose extent is small, move the hits by about their height, not
         // by d times their slope. d: the distance to the radial hit.
-        const std::vector<double> cumT = remesh_detail::closed_arc_lengths(T);
+        rt.cum = remesh_detail::closed_arc_lengths(T);
         std::vector<double> depth(static_cast<std::size_t>(nu));
         for (int i = 0; i < nu; ++i)
           depth[static_cast<std::size_t>(i)] =
-              (remesh_detail::point_at_arc(T, cumT, rt.base[static_cast<std::size_t>(i)]) - P[static_cast<std::size_t>(i)]).norm();
+              (remesh_detail::point_at_arc(T, rt.cum, rt.base[static_cast<std::size_t>(i)]) - P[static_cast<std::size_t>(i)]).norm();
         rt.x = remesh_detail::normal_hits(P, T, &depth);
       }
-      rt.per = 0;
-      for (std::size_t s = 0; s < T.size(); ++s) rt.per += (T[(s + 1) % T.size()] - T[s]).norm();
+      rt.per = rt.cum.back();
       rt.T = std::move(T);
       rt.on = std::move(on);
       rt.several = several;
-      rt.loops = loops;
     });
     // one blend of the normal hits with the radial ones for the whole layer:
     // the largest that keeps every ring in order (blends that differ between
@@ -1508,10 +1500,9 @@ RemeshResult remesh_layers(const std::vector<NamedSurface>& layers, const Remesh
       const std::vector<Vec2>& T = rt.T;
       const std::vector<double> sig = remesh_detail::ordered_blend(rt.x, rt.base, rt.per, alpha, o.min_ring_spacing_fraction);
       // points at the parameters; on a stretch of one loop, exactly on it
-      const std::vector<double> cum = remesh_detail::closed_arc_lengths(T);
       for (int i = 0; i < nu; ++i) {
         std::size_t s = 0;
-        const Vec2 q = remesh_detail::point_at_arc(T, cum, sig[static_cast<std::size_t>(i)], &s);
+        const Vec2 q = remesh_detail::point_at_arc(T, rt.cum, sig[static_cast<std::size_t>(i)], &s);
         if (!rt.several || rt.on[s] >= 0)
           ++res.stats[k].hit;
         else

@@ -365,6 +365,22 @@ TEST(SphPhysics, DamBreakSurgeFront) {
 
 // ---- Poiseuille start-up flow (Morris, Fox & Zhu 1997) --------------------------------
 
+// A channel of width d between walls at y = 0 and d, periodic in x and z over
+// 3 H, filled at rest: the start-up and Carreau flows.
+struct Channel {
+  Fluid f;
+  FluidBoundaries b;
+  FluidState s;
+};
+Channel make_channel(const FluidParams& p, Real d) {
+  Channel c{make_fluid(p), {}, make_fluid_state()};
+  const Real L = 3 * c.f.H + 1e-12;
+  c.b = make_box_boundaries({0, 0, 0}, {L, d, L});
+  c.b.faces = {Face::periodic, Face::periodic, Face::wall, Face::wall, Face::periodic, Face::periodic};
+  fill_box(c.f, c.s, {0, 0, 0}, {L, d, L});
+  return c;
+}
+
 Real poiseuille_series(Real y, Real t, Real d, Real F, Real nu) {
   Real u = F / (2 * nu) * y * (d - y);
   for (int n = 0; n < 200; ++n) {
@@ -390,12 +406,10 @@ TEST(SphPhysics, PoiseuilleStartUpFlow) {
   p.gravity = {F, 0, 0};
   p.max_speed = umax;
   p.artificial_viscosity = 0;
-  const Fluid f = make_fluid(p);
-  const Real L = 3 * f.H + 1e-12;
-  FluidBoundaries b = make_box_boundaries({0, 0, 0}, {L, d, L});
-  b.faces = {Face::periodic, Face::periodic, Face::wall, Face::wall, Face::periodic, Face::periodic};
-  FluidState s = make_fluid_state();
-  fill_box(f, s, {0, 0, 0}, {L, d, L});
+  Channel ch = make_channel(p, d);
+  const Fluid& f = ch.f;
+  const FluidBoundaries& b = ch.b;
+  FluidState& s = ch.s;
   Real worst = 0;
   for (Real t : {0.0005, 0.001, 0.002, 0.005, 0.01}) {
     run_until(f, s, b, t, 0.0005);
@@ -479,12 +493,10 @@ TEST(SphCarreau, ChannelFlowReachesTheShearThinningProfile) {
   const Real umax = carreau_channel(d / 2, d, F, p.rest_density, p.carreau);
   p.max_speed = umax;
   p.artificial_viscosity = 0;
-  const Fluid f = make_fluid(p);
-  const Real L = 3 * f.H + 1e-12;
-  FluidBoundaries b = make_box_boundaries({0, 0, 0}, {L, d, L});
-  b.faces = {Face::periodic, Face::periodic, Face::wall, Face::wall, Face::periodic, Face::periodic};
-  FluidState s = make_fluid_state();
-  fill_box(f, s, {0, 0, 0}, {L, d, L});
+  Channel ch = make_channel(p, d);
+  const Fluid& f = ch.f;
+  const FluidBoundaries& b = ch.b;
+  FluidState& s = ch.s;
   // steady after ~5 of the slowest viscous times d^2 / (pi^2 nu_inf)
   run_until(f, s, b, 5 * d * d / (kPi * kPi * p.carreau.mu_inf / p.rest_density), 0.0005);
   // the Newtonian profiles of the two limits bracket it: the SPH profile must
