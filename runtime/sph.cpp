@@ -253,6 +253,8 @@ void build_triangle_grid(const TriangleSource& src, Real duration, Real margin, 
     box.push_back(bb);
     ids.push_back(t);
   }
+  g.listed.assign(static_cast<std::size_t>(nt), 0);
+  for (const std::int32_t t : ids) g.listed[static_cast<std::size_t>(t)] = 1;
   g.start.assign(1, 0);
   g.items.clear();
   g.dims = {0, 0, 0};
@@ -346,17 +348,43 @@ struct TriFrame {
 // true. One-sided: fluid on the face normal's side, a particle behind gets
 // d = 0 and n = the face normal. Two-sided: the side the particle is on.
 // With a frame at tau, candidates whose bounding sphere lies farther than the
-// best distance so far are skipped (exact: they cannot be closer).
+// best distance so far are skipped (exact: they cannot be closer). hint: a
+// triangle likely to be the closest (the particle's contact a moment ago),
+// tried first so that the others are mostly skipped; the result does not
+// depend on it (the closest, ties to the lowest triangle id, as without).
 bool triangle_contact(const TriangleSource& src, const TriangleGrid& g, const Vec3& p, Real tau, Real H,
-                      const WallParams& wall, bool two_sided, Contact& out, const TriFrame* frame = nullptr) {
+                      const WallParams& wall, bool two_sided, Contact& out, const TriFrame* frame = nullptr,
+                      std::int32_t hint = -1) {
   const auto [b, e] = grid_candidates(g, p);
   Real best = H * H, best_d = H;
   std::int32_t best_t = -1;
   ClosestPoint best_c{};
   if (frame && !(frame->valid && (frame->tau == tau || src.v == nullptr))) frame = nullptr;
+  auto closest = [&](std::int32_t t) {
+    if (frame) {
+      const auto& T = frame->tri[static_cast<std::size_t>(t)];
+      return closest_on_triangle(p, {T[0], T[1], T[2]}, {T[3], T[4], T[5]}, {T[6], T[7], T[8]});
+    }
+    return closest_on_triangle(p, src.vertex(t, 0, tau), src.vertex(t, 1, tau), src.vertex(t, 2, tau));
+  };
+  auto consider = [&](std::int32_t t, const ClosestPoint& c) {
+    const Vec3 dd = p - c.p;
+    const Real d2 = dot(dd, dd);
+    if (d2 < best || (d2 == best && t < best_t)) {
+      best = d2;
+      best_d = std::sqrt(d2);
+      best_t = t;
+      best_c = c;
+    }
+  };
+  if (b == e) return false;
+  if (hint >= 0 && hint < static_cast<std::int32_t>(g.listed.size()) && g.listed[static_cast<std::size_t>(hint)])
+    consider(hint, closest(hint));
+  else
+    hint = -1;
   for (std::int32_t k = b; k < e; ++k) {
     const std::int32_t t = g.items[k];
-    ClosestPoint c;
+    if (t == hint) continue;
     if (frame) {
       const auto& T = frame->tri[static_cast<std::size_t>(t)];
       const Vec3 dm{p.x - T[9], p.y - T[10], p.z - T[11]};
@@ -364,18 +392,8 @@ bool triangle_contact(const TriangleSource& src, const TriangleGrid& g, const Ve
       if (dot(dm, dm) > lim * lim) continue;  // the bounding sphere is farther than the best
       // the plane is farther than the best (the margin covers the rounding of the normal)
       if (std::abs(dm.x * T[13] + dm.y * T[14] + dm.z * T[15]) > best_d * (1 + 1e-9) + 1e-12 * T[12]) continue;
-      c = closest_on_triangle(p, {T[0], T[1], T[2]}, {T[3], T[4], T[5]}, {T[6], T[7], T[8]});
-    } else {
-      c = closest_on_triangle(p, src.vertex(t, 0, tau), src.vertex(t, 1, tau), src.vertex(t, 2, tau));
     }
-    const Vec3 dd = p - c.p;
-    const Real d2 = dot(dd, dd);
-    if (d2 < best) {
-      best = d2;
-      best_d = std::sqrt(d2);
-      best_t = t;
-      best_c = c;
-    }
+    consider(t, closest(t));
   }
   if (best_t < 0) return false;
   const Vec3 a = src.vertex(best_t, 0, tau), bb = src.vertex(best_t, 1, tau), cc = src.vertex(best_t, 2, tau);
@@ -433,9 +451,11 @@ struct Walls {
 
   // Calls f(const Contact&) for every wall within H of p at time tau.
   // cache: (n_triangle_walls) the particle's triangle contacts at this tau;
-  // cached: read them from it, else query and store them.
+  // cached: read them from it, else query and store them. hints:
+  // (n_triangle_walls) first guesses of the queries, or null.
   template <class F>
-  void contacts(const Vec3& p, Real tau, F&& f, Contact* cache = nullptr, bool cached = false) const {
+  void contacts(const Vec3& p, Real tau, F&& f, Contact* cache = nullptr, bool cached = false,
+                const std::int32_t* hints = nullptr) const {
     const Real q[3] = {p.x, p.y, p.z};
     for (int a = 0; a < 3; ++a) {
       for (int side = 0; side < 2; ++side) {
@@ -469,7 +489,7 @@ struct Walls {
       Contact c;
       if (cache && cached) c = cache[m];
       else if (!triangle_contact(meshes[m], b->meshes[m].grid, p, 0, H, b->meshes[m].wall, b->meshes[m].two_sided, c,
-                                 &mesh_frames[m]))
+                                 &mesh_frames[m], hints ? hints[m] : -1))
         c = Contact{};
       if (cache && !cached) cache[m] = c;
       if (c.wall) f(c);
@@ -478,7 +498,8 @@ struct Walls {
       const FluidSurface& sf = (*surf)[k];
       Contact c;
       if (cache && cached) c = cache[meshes.size() + k];
-      else if (triangle_contact(surfaces[k], sf.grid, p, tau, H, sf.wall, sf.two_sided, c, &surface_frames[k]))
+      else if (triangle_contact(surfaces[k], sf.grid, p, tau, H, sf.wall, sf.two_sided, c, &surface_frames[k],
+                                hints ? hints[meshes.size() + k] : -1))
         c.surface = static_cast<int>(k);
       else
         c = Contact{};
@@ -890,9 +911,10 @@ Real pressure_sum(const Pass& c, std::int32_t i) {
 // plain sum counts the sites beyond two walls twice; on the rest lattice in
 // a right-angled corner that overlap is ~2 % of the kernel sum, far less than
 // the product rule 1 - prod(1 - f0) removes (~9 %).
-Real wall_fraction(const Fluid& f, const Walls& w, const Vec3& p, Real tau, Contact* cache) {
+Real wall_fraction(const Fluid& f, const Walls& w, const Vec3& p, Real tau, Contact* cache, const std::int32_t* hints) {
   Real sum = 0;
-  w.contacts(p, tau, [&](const Contact& c) { sum += WallTables::at(f.walls.f0, f.walls.n, c.d / f.H); }, cache, false);
+  w.contacts(p, tau, [&](const Contact& c) { sum += WallTables::at(f.walls.f0, f.walls.n, c.d / f.H); }, cache, false,
+             hints);
   return sum;
 }
 
@@ -1031,6 +1053,13 @@ struct Stepper {
     }
     auto& tid = sc.tmp_id;
     tid.resize(nz);
+    // the collision tests' first guesses travel with their particles
+    const std::size_t ntw = walls.n_triangle_walls();
+    auto& hint = sc.wall_hint;
+    if (hint.size() != nz * ntw) hint.assign(nz * ntw, -1);
+    sc.tmp_hint.resize(nz * ntw);
+    const std::int32_t* hold = hint.data();
+    std::int32_t* hnew = sc.tmp_hint.data();
     const std::int32_t* order = g.order.data();
     const std::array<Real, 3> o = g.origin;
     tbb::parallel_for(tbb::blocked_range<std::int32_t>(0, np, 2048), [&](const auto& r) {
@@ -1039,8 +1068,10 @@ struct Stepper {
         for (int a = 0; a < 6; ++a) dst[a][k] = src[a][j];
         for (int a = 0; a < 3; ++a) xf[a][k] = static_cast<float>(src[a][j] - o[a]);
         tid[k] = s.id[j];
+        for (std::size_t w = 0; w < ntw; ++w) hnew[static_cast<std::size_t>(k) * ntw + w] = hold[static_cast<std::size_t>(j) * ntw + w];
       }
     });
+    hint.swap(sc.tmp_hint);
     for (int k = 0; k < 3; ++k) {
       s.x[k].swap(sc.perm[k]);
       s.v[k].swap(sc.perm[3 + k]);
@@ -1108,7 +1139,9 @@ struct Stepper {
             for (std::int32_t i = c.g->start[cell]; i < c.g->start[cell + 1]; ++i) {
               const Vec3 p{c.x[i], c.y[i], c.z[i]};
               Contact* cache = ntw > 0 ? contact_cache.data() + static_cast<std::size_t>(i) * ntw : nullptr;
-              const Real rho = mk * c.ksum[i] + (walls.maybe_near(p) ? rho0 * wall_fraction(f, walls, p, c.tau, cache) : Real(0));
+              const std::int32_t* hint = ntw > 0 ? s.scratch.wall_hint.data() + static_cast<std::size_t>(i) * ntw : nullptr;
+              const Real rho =
+                  mk * c.ksum[i] + (walls.maybe_near(p) ? rho0 * wall_fraction(f, walls, p, c.tau, cache, hint) : Real(0));
               Real pr = eos_pressure(f.eos, rho, rho0, f.c0, gamma);
               if (clamp) pr = std::max(Real(0), pr);
               c.rho[i] = rho;
@@ -1203,11 +1236,14 @@ struct Stepper {
     const std::int32_t np = n();
     FluidScratch& sc = s.scratch;
     sc.dead.assign(np, kAlive);
+    if (sc.wall_hint.size() != static_cast<std::size_t>(np) * walls.n_triangle_walls())
+      sc.wall_hint.assign(static_cast<std::size_t>(np) * walls.n_triangle_walls(), -1);
     walls.frames_at(tau + h);
     const Vec3 g = vec(f.params.gravity);
     const Real damp = 1 / (1 + f.params.damping * h);
     const Real dmin = f.params.collision_distance * f.params.spacing;
     const bool any_surface = !walls.surfaces.empty();
+    const std::size_t ntw = walls.n_triangle_walls();
     tbb::enumerable_thread_specific<std::vector<Reaction>> local;
     auto res = tbb::parallel_reduce(
         tbb::blocked_range<std::int32_t>(0, np, 1024), std::array<std::int64_t, 2>{0, 0},
@@ -1247,10 +1283,18 @@ struct Stepper {
             }
             // triangle walls: the closest triangle at the new time; a two-sided
             // wall keeps the particle on the side it started the substep on
+            // first guesses: the density pass's contacts at tau (same particle
+            // order); the contacts found here are the next substep's
+            const Contact* cached = ntw > 0 && contact_cache.size() >= (static_cast<std::size_t>(i) + 1) * ntw
+                                        ? contact_cache.data() + static_cast<std::size_t>(i) * ntw
+                                        : nullptr;
+            std::int32_t* hint = ntw > 0 ? sc.wall_hint.data() + static_cast<std::size_t>(i) * ntw : nullptr;
             auto mesh_collide = [&](const TriangleSource& src, const TriangleGrid& grid, const WallParams& wall,
-                                    bool two_sided, int surface, const TriFrame* frame) {
+                                    bool two_sided, int surface, const TriFrame* frame, std::size_t slot) {
               Contact ct;
-              if (!triangle_contact(src, grid, x, tau + h, f.H, wall, two_sided, ct, frame)) return;
+              const bool found = triangle_contact(src, grid, x, tau + h, f.H, wall, two_sided, ct, frame, cached ? cached[slot].tri : -1);
+              hint[slot] = found ? ct.tri : -1;
+              if (!found) return;
               Vec3 face = ct.face;
               Real sd;
               if (two_sided) {
@@ -1278,11 +1322,12 @@ struct Stepper {
               }
             };
             for (std::size_t m = 0; m < walls.meshes.size(); ++m)
-              mesh_collide(walls.meshes[m], b.meshes[m].grid, b.meshes[m].wall, b.meshes[m].two_sided, -1, &walls.mesh_frames[m]);
+              mesh_collide(walls.meshes[m], b.meshes[m].grid, b.meshes[m].wall, b.meshes[m].two_sided, -1, &walls.mesh_frames[m],
+                           m);
             if (any_surface)
               for (std::size_t k = 0; k < walls.surfaces.size(); ++k)
                 mesh_collide(walls.surfaces[k], s.surfaces[k].grid, s.surfaces[k].wall, s.surfaces[k].two_sided,
-                             static_cast<int>(k), &walls.surface_frames[k]);
+                             static_cast<int>(k), &walls.surface_frames[k], walls.meshes.size() + k);
             // domain
             bool out = false;
             const Real q2[3] = {x.x, x.y, x.z};
@@ -1324,6 +1369,9 @@ struct Stepper {
   void compact() {
     const std::int32_t np = n();
     auto& dead = s.scratch.dead;
+    const std::size_t ntw = walls.n_triangle_walls();
+    auto& hint = s.scratch.wall_hint;
+    if (hint.size() != static_cast<std::size_t>(np) * ntw) hint.assign(static_cast<std::size_t>(np) * ntw, -1);
     FluidCounters& k = s.counters;
     for (std::int32_t i = 0; i < np; ++i) {
       const std::uint8_t d = dead[i];
@@ -1353,9 +1401,11 @@ struct Stepper {
         s.rho[w] = s.rho[i];
         s.p[w] = s.p[i];
         s.id[w] = s.id[i];
+        for (std::size_t t = 0; t < ntw; ++t) hint[static_cast<std::size_t>(w) * ntw + t] = hint[static_cast<std::size_t>(i) * ntw + t];
       }
       ++w;
     }
+    hint.resize(static_cast<std::size_t>(w) * ntw);
     for (int a = 0; a < 3; ++a) {
       s.x[a].resize(w);
       s.v[a].resize(w);
@@ -1419,6 +1469,8 @@ struct Stepper {
         }
       }
     }
+    if (total > 0 && s.scratch.wall_hint.size() == (s.id.size() - static_cast<std::size_t>(total)) * walls.n_triangle_walls())
+      s.scratch.wall_hint.resize(s.id.size() * walls.n_triangle_walls(), -1);  // new particles: no guess
     s.counters.emitted += total;
     s.counters.emitted_volume += static_cast<Real>(total) * f.volume;
     return total;

@@ -259,6 +259,7 @@ struct TriangleGrid {
   std::array<std::int32_t, 3> dims{0, 0, 0};
   std::vector<std::int32_t> start;  // (n_cells + 1)
   std::vector<std::int32_t> items;  // triangle ids
+  std::vector<std::uint8_t> listed; // (n_triangles) 1 where the triangle is in the grid (valid, not degenerate)
 };
 
 // A static triangle mesh wall (a tray, a bone). One-sided meshes keep fluid on
@@ -425,6 +426,9 @@ struct FluidScratch {
   std::vector<std::int32_t> list;       // (n x 100) neighbour lists of the density pass
   std::vector<std::int32_t> count;      // (n) their lengths
   std::vector<std::uint8_t> dead;       // (n) removal reason, 0 = alive
+  std::vector<std::int32_t> wall_hint;  // (n x triangle walls) each particle's closest triangle at its last
+                                        // collision test, or -1: the next query's first guess (speed only)
+  std::vector<std::int32_t> tmp_hint;   // (n x triangle walls) permutation buffer
   std::vector<Real> reactions;          // surface reaction records of the substep
 };
 

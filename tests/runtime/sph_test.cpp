@@ -739,6 +739,93 @@ void check_two_way_coupling(Real plate_speed) {
 TEST(SphBoundaries, MovingSurfaceTwoWayCouplingAtRest) { check_two_way_coupling(0); }
 TEST(SphBoundaries, MovingSurfaceTwoWayCouplingPushingUp) { check_two_way_coupling(0.1); }
 
+// A bumpy sheet of n x n quads (two triangles each) at height y0 + a sin
+// bump, triangulated along alternating diagonals: many candidates per grid
+// cell and ties on shared edges.
+void bumpy_sheet(int n, Real L, Real y0, Real bump, std::vector<Real>& x, std::vector<std::int32_t>& t) {
+  x.clear();
+  t.clear();
+  for (int j = 0; j <= n; ++j)
+    for (int i = 0; i <= n; ++i) {
+      const Real u = -L + 2 * L * i / n, w = -L + 2 * L * j / n;
+      x.insert(x.end(), {u, y0 + bump * std::sin(40 * u) * std::cos(30 * w), w});
+    }
+  for (int j = 0; j < n; ++j)
+    for (int i = 0; i < n; ++i) {
+      const std::int32_t a = j * (n + 1) + i, b = a + 1, c = a + n + 2, d = a + n + 1;
+      if ((i + j) % 2 == 0) t.insert(t.end(), {a, d, c, a, c, b});
+      else t.insert(t.end(), {a, d, b, b, d, c});
+    }
+}
+
+// The collision tests start from each particle's last contact (a hint kept
+// in the scratch and carried through sorting, removal and emission); the
+// result is the closest triangle whatever the hint: runs whose hints are
+// scrambled before every step (other triangles, out-of-range ids, none) end
+// bitwise equal to the plain run, with two moving sheets and a static mesh,
+// an emitter and a drain.
+TEST(SphBoundaries, WallHintsNeverChangeTheResult) {
+  FluidParams p;
+  p.spacing = 0.003;
+  const Fluid f = make_fluid(p);
+  FluidBoundaries b = open_box(0.2);
+  FluidMesh tray;
+  bumpy_sheet(12, 0.06, -0.004, 0.001, tray.vertices, tray.triangles);
+  add_mesh(b, tray, f);
+  auto run = [&](int scramble) {
+    FluidState s = make_fluid_state();
+    fill_box(f, s, {-0.012, 0.004, -0.012}, {0.012, 0.02, 0.012}, {0, -0.3, 0});
+    for (Real y0 : {0.0, 0.003}) {
+      FluidSurface sheet;
+      bumpy_sheet(16, 0.05, y0 - 0.003, 0.0015, sheet.x, sheet.triangles);
+      // and a degenerate triangle (a segment) in the fluid: no wall, even as a hint
+      const auto nv = static_cast<std::int32_t>(sheet.x.size() / 3);
+      sheet.x.insert(sheet.x.end(), {-0.01, 0.008, 0.0, 0.01, 0.008, 0.0});
+      sheet.triangles.insert(sheet.triangles.end(), {nv, nv + 1, nv + 1});
+      sheet.v.assign(sheet.x.size(), 0);
+      for (std::size_t k = 1; k < sheet.x.size(); k += 3) sheet.v[k] = 0.05;
+      sheet.two_sided = y0 > 0;
+      s.surfaces.push_back(sheet);
+    }
+    FluidEmitter e;
+    e.center = {0, 0.03, 0};
+    e.direction = {0, -1, 0};
+    e.radius = 0.004;
+    e.flow_rate = 2e-5;
+    s.emitters.push_back(e);
+    FluidDrain d;
+    d.center = {0.02, 0.0, 0.0};
+    d.radius = 0.006;
+    s.drains.push_back(d);
+    std::uint64_t rng = 12345;
+    std::int64_t hinted = 0;
+    for (int k = 0; k < 40; ++k) {
+      auto& h = s.scratch.wall_hint;
+      for (std::int32_t v : h) hinted += v >= 0;
+      if (scramble == 1)
+        for (auto& v : h) v = static_cast<std::int32_t>((rng = rng * 6364136223846793005ULL + 1442695040888963407ULL) >> 33) % 600 - 40;
+      if (scramble == 2) h.clear();
+      fluid_step(f, s, 0.002, b);
+      for (FluidSurface& sf : s.surfaces)
+        for (std::size_t v = 0; v < sf.x.size(); ++v) sf.x[v] += sf.v[v] * 0.002;
+    }
+    std::vector<Real> force;
+    for (const FluidSurface& sf : s.surfaces) force.insert(force.end(), sf.force.begin(), sf.force.end());
+    return std::tuple{fluid_state_hash(s), force, s.counters.emitted, s.counters.drained, s.counters.collisions, hinted};
+  };
+  const auto plain = run(0), scrambled = run(1), none = run(2);
+  EXPECT_GT(std::get<4>(plain), 0);   // the fluid hit the walls
+  EXPECT_GT(std::get<3>(plain), 0);   // the drain took some
+  EXPECT_GT(std::get<5>(plain), 1000);  // and the hints were kept (contacts found)
+  for (const auto* r : {&scrambled, &none}) {
+    EXPECT_EQ(std::get<0>(*r), std::get<0>(plain));
+    EXPECT_EQ(std::get<1>(*r), std::get<1>(plain));
+    EXPECT_EQ(std::get<2>(*r), std::get<2>(plain));
+    EXPECT_EQ(std::get<3>(*r), std::get<3>(plain));
+    EXPECT_EQ(std::get<4>(*r), std::get<4>(plain));
+  }
+}
+
 // ---- emitters and drains -----------------------------------------------------------------
 
 TEST(SphSources, EmitterMatchesRequestedFlow) {
