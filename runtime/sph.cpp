@@ -222,8 +222,9 @@ struct TriangleSource {
 
 bool finite(const Vec3& a) { return std::isfinite(a.x) && std::isfinite(a.y) && std::isfinite(a.z); }
 
-// Builds g over the triangles' bounding boxes during [0, duration] inflated
-// by margin. Degenerate or invalid triangles are left out.
+// Builds g over the triangles' bounding boxes during [0, duration], level 0
+// inflated by margin, level 1 by margin / 2. Degenerate or invalid triangles
+// are left out.
 void build_triangle_grid(const TriangleSource& src, Real duration, Real margin, TriangleGrid& g) {
   const std::int32_t nt = src.n_triangles;
   std::vector<std::array<Real, 6>> box;
@@ -242,8 +243,8 @@ void build_triangle_grid(const TriangleSource& src, Real duration, Real margin, 
     for (const Vec3& p : {a, b, c, a1, b1, c1}) {
       const Real q[3] = {p.x, p.y, p.z};
       for (int k = 0; k < 3; ++k) {
-        bb[k] = std::min(bb[k], q[k] - margin);
-        bb[3 + k] = std::max(bb[3 + k], q[k] + margin);
+        bb[k] = std::min(bb[k], q[k]);
+        bb[3 + k] = std::max(bb[3 + k], q[k]);
       }
     }
     for (int k = 0; k < 3; ++k) {
@@ -255,55 +256,61 @@ void build_triangle_grid(const TriangleSource& src, Real duration, Real margin, 
   }
   g.listed.assign(static_cast<std::size_t>(nt), 0);
   for (const std::int32_t t : ids) g.listed[static_cast<std::size_t>(t)] = 1;
-  g.start.assign(1, 0);
-  g.items.clear();
-  g.dims = {0, 0, 0};
-  if (ids.empty()) return;
-  const std::int64_t cap = std::max<std::int64_t>(8 * static_cast<std::int64_t>(ids.size()), 4096);
-  Real cell = std::max(margin, Real(1e-9));
-  auto dims_for = [&](Real c, std::array<std::int32_t, 3>& d) {
-    std::int64_t total = 1;
-    for (int k = 0; k < 3; ++k) {
-      d[k] = static_cast<std::int32_t>(std::min<Real>(std::floor((hi[k] - lo[k]) / c) + 1, 1 << 20));
-      total *= d[k];
-    }
-    return total;
-  };
-  std::array<std::int32_t, 3> d{};
-  while (dims_for(cell, d) > cap) cell *= 1.26;
-  g.origin = {lo[0], lo[1], lo[2]};
-  g.cell = cell;
-  g.dims = d;
-  const std::int64_t nc = static_cast<std::int64_t>(d[0]) * d[1] * d[2];
-  std::vector<std::int32_t> count(nc + 1, 0);
-  auto range = [&](const std::array<Real, 6>& bb, int k) {
-    const auto a = static_cast<std::int32_t>(std::clamp<Real>(std::floor((bb[k] - lo[k]) / cell), 0, d[k] - 1));
-    const auto b = static_cast<std::int32_t>(std::clamp<Real>(std::floor((bb[3 + k] - lo[k]) / cell), 0, d[k] - 1));
-    return std::pair{a, b};
-  };
-  for (int pass = 0; pass < 2; ++pass) {
-    for (std::size_t m = 0; m < ids.size(); ++m) {
-      const auto [x0, x1] = range(box[m], 0);
-      const auto [y0, y1] = range(box[m], 1);
-      const auto [z0, z1] = range(box[m], 2);
-      for (std::int32_t z = z0; z <= z1; ++z)
-        for (std::int32_t y = y0; y <= y1; ++y)
-          for (std::int32_t x = x0; x <= x1; ++x) {
-            const std::int64_t c = x + static_cast<std::int64_t>(d[0]) * (y + static_cast<std::int64_t>(d[1]) * z);
-            if (pass == 0) ++count[c + 1];
-            else g.items[count[c]++] = ids[m];
-          }
-    }
-    if (pass == 0) {
-      for (std::int64_t c = 0; c < nc; ++c) count[c + 1] += count[c];
-      g.start.assign(count.begin(), count.end());
-      g.items.assign(static_cast<std::size_t>(count[nc]), 0);
+  for (int lv = 0; lv < 2; ++lv) {
+    TriangleCells& G = g.level[static_cast<std::size_t>(lv)];
+    const Real m = lv == 0 ? margin : margin / 2;
+    G.margin = m;
+    G.start.assign(1, 0);
+    G.items.clear();
+    G.dims = {0, 0, 0};
+    if (ids.empty()) continue;
+    const Real glo[3] = {lo[0] - m, lo[1] - m, lo[2] - m}, ghi[3] = {hi[0] + m, hi[1] + m, hi[2] + m};
+    const std::int64_t cap = std::max<std::int64_t>(8 * static_cast<std::int64_t>(ids.size()), 4096);
+    Real cell = std::max(m, Real(1e-9));
+    auto dims_for = [&](Real c, std::array<std::int32_t, 3>& d) {
+      std::int64_t total = 1;
+      for (int k = 0; k < 3; ++k) {
+        d[k] = static_cast<std::int32_t>(std::min<Real>(std::floor((ghi[k] - glo[k]) / c) + 1, 1 << 20));
+        total *= d[k];
+      }
+      return total;
+    };
+    std::array<std::int32_t, 3> d{};
+    while (dims_for(cell, d) > cap) cell *= 1.26;
+    G.origin = {glo[0], glo[1], glo[2]};
+    G.cell = cell;
+    G.dims = d;
+    const std::int64_t nc = static_cast<std::int64_t>(d[0]) * d[1] * d[2];
+    std::vector<std::int32_t> count(nc + 1, 0);
+    auto range = [&](const std::array<Real, 6>& bb, int k) {
+      const auto a = static_cast<std::int32_t>(std::clamp<Real>(std::floor((bb[k] - m - glo[k]) / cell), 0, d[k] - 1));
+      const auto b = static_cast<std::int32_t>(std::clamp<Real>(std::floor((bb[3 + k] + m - glo[k]) / cell), 0, d[k] - 1));
+      return std::pair{a, b};
+    };
+    for (int pass = 0; pass < 2; ++pass) {
+      for (std::size_t q = 0; q < ids.size(); ++q) {
+        const auto [x0, x1] = range(box[q], 0);
+        const auto [y0, y1] = range(box[q], 1);
+        const auto [z0, z1] = range(box[q], 2);
+        for (std::int32_t z = z0; z <= z1; ++z)
+          for (std::int32_t y = y0; y <= y1; ++y)
+            for (std::int32_t x = x0; x <= x1; ++x) {
+              const std::int64_t c = x + static_cast<std::int64_t>(d[0]) * (y + static_cast<std::int64_t>(d[1]) * z);
+              if (pass == 0) ++count[c + 1];
+              else G.items[count[c]++] = ids[q];
+            }
+      }
+      if (pass == 0) {
+        for (std::int64_t c = 0; c < nc; ++c) count[c + 1] += count[c];
+        G.start.assign(count.begin(), count.end());
+        G.items.assign(static_cast<std::size_t>(count[nc]), 0);
+      }
     }
   }
 }
 
 // The candidates of the grid cell containing p: [begin, end) of g.items (empty outside).
-std::pair<std::int32_t, std::int32_t> grid_candidates(const TriangleGrid& g, const Vec3& p) {
+std::pair<std::int32_t, std::int32_t> grid_candidates(const TriangleCells& g, const Vec3& p) {
   if (g.dims[0] == 0) return {0, 0};
   const Real q[3] = {p.x, p.y, p.z};
   std::int64_t idx[3];
@@ -355,7 +362,6 @@ struct TriFrame {
 bool triangle_contact(const TriangleSource& src, const TriangleGrid& g, const Vec3& p, Real tau, Real H,
                       const WallParams& wall, bool two_sided, Contact& out, const TriFrame* frame = nullptr,
                       std::int32_t hint = -1) {
-  const auto [b, e] = grid_candidates(g, p);
   Real best = H * H, best_d = H;
   std::int32_t best_t = -1;
   ClosestPoint best_c{};
@@ -377,13 +383,16 @@ bool triangle_contact(const TriangleSource& src, const TriangleGrid& g, const Ve
       best_c = c;
     }
   };
-  if (b == e) return false;
   if (hint >= 0 && hint < static_cast<std::int32_t>(g.listed.size()) && g.listed[static_cast<std::size_t>(hint)])
     consider(hint, closest(hint));
   else
     hint = -1;
+  // a contact within the fine level's margin (with room for the rounding of
+  // its boxes): every closer triangle is in the fine level's cell
+  const TriangleCells& lv = best_t >= 0 && best_d < g.level[1].margin * (1 - 1e-9) ? g.level[1] : g.level[0];
+  const auto [b, e] = grid_candidates(lv, p);
   for (std::int32_t k = b; k < e; ++k) {
-    const std::int32_t t = g.items[k];
+    const std::int32_t t = lv.items[k];
     if (t == hint) continue;
     if (frame) {
       const auto& T = frame->tri[static_cast<std::size_t>(t)];

@@ -253,13 +253,20 @@ struct FluidPlane {
 
 // A uniform grid of triangles (bounding boxes inflated by a margin), built in
 // O(n) by counting sort: cell c lists items [start[c], start[c + 1]).
-struct TriangleGrid {
+struct TriangleCells {
+  Real margin = 0;                  // m, every triangle within margin of a cell's point is listed in it
   std::array<Real, 3> origin{0, 0, 0};
   Real cell = 1;
   std::array<std::int32_t, 3> dims{0, 0, 0};
   std::vector<std::int32_t> start;  // (n_cells + 1)
   std::vector<std::int32_t> items;  // triangle ids
-  std::vector<std::uint8_t> listed; // (n_triangles) 1 where the triangle is in the grid (valid, not degenerate)
+};
+
+// Two levels over the same triangles: margin H (any contact) and H / 2 (a
+// query that already has a contact that near reads a few candidates only).
+struct TriangleGrid {
+  std::array<TriangleCells, 2> level;
+  std::vector<std::uint8_t> listed;  // (n_triangles) 1 where the triangle is in the grid (valid, not degenerate)
 };
 
 // A static triangle mesh wall (a tray, a bone). One-sided meshes keep fluid on

@@ -759,8 +759,9 @@ void bumpy_sheet(int n, Real L, Real y0, Real bump, std::vector<Real>& x, std::v
 }
 
 // The collision tests start from each particle's last contact (a hint kept
-// in the scratch and carried through sorting, removal and emission); the
-// result is the closest triangle whatever the hint: runs whose hints are
+// in the scratch and carried through sorting, removal and emission) and,
+// when that contact is near, read the fine grid level's cell; the result is
+// the closest triangle whatever the hint and level: runs whose hints are
 // scrambled before every step (other triangles, out-of-range ids, none) end
 // bitwise equal to the plain run, with two moving sheets and a static mesh,
 // an emitter and a drain.
