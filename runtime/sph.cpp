@@ -19,6 +19,7 @@
 #include <cstring>
 #include <numeric>
 #include <sstream>
+#include <tuple>
 
 namespace orthosim::runtime {
 
@@ -1220,13 +1221,18 @@ struct Stepper {
     return res;
   }
 
-  Real limit(const std::array<Real, 2>& maxima) const {
+  // the substep limit and which one it is (FluidCounters::substep_limit's index)
+  std::pair<Real, int> limit(const std::array<Real, 2>& maxima) const {
     const Real vmax = std::sqrt(maxima[1]), amax = std::sqrt(maxima[0]);
     Real h = f.params.cfl * f.h / (f.c0 + vmax);
-    if (amax > 0) h = std::min(h, f.params.force_cfl * std::sqrt(f.h / amax));
-    h = std::min(h, f.viscous_limit);
-    if (f.params.max_substep > 0) h = std::min(h, f.params.max_substep);
-    return h;
+    int which = 1;
+    auto take = [&](Real l, int k) {
+      if (l < h) h = l, which = k;
+    };
+    if (amax > 0) take(f.params.force_cfl * std::sqrt(f.h / amax), 2);
+    take(f.viscous_limit, 3);
+    if (f.params.max_substep > 0) take(f.params.max_substep, 4);
+    return {h, which};
   }
 
   void add_reaction(const Reaction& r, Real weight) {
@@ -1492,6 +1498,10 @@ struct Stepper {
 
 const char* to_string(Eos e) { return e == Eos::linear ? "linear" : "tait"; }
 const char* to_string(Rheology r) { return r == Rheology::carreau ? "carreau" : "newtonian"; }
+const char* substep_limit_name(int k) {
+  static const char* const names[5] = {"step", "cfl", "force", "viscous", "max_substep"};
+  return k >= 0 && k < 5 ? names[k] : "?";
+}
 
 Real carreau_viscosity(const Carreau& c, Real shear_rate) {
   const Real lg = c.lambda * shear_rate;
@@ -1848,7 +1858,7 @@ Real fluid_substep_limit(const Fluid& f, FluidState& s, const FluidBoundaries& b
   const Pass c = st.pass(0);
   st.density(c);
   std::vector<Reaction> rec;
-  return st.limit(st.forces(c, rec));
+  return st.limit(st.forces(c, rec)).first;
 }
 
 FluidStepInfo fluid_step(const Fluid& f, FluidState& s, Real dt, const FluidBoundaries& b) {
@@ -1870,20 +1880,22 @@ FluidStepInfo fluid_step(const Fluid& f, FluidState& s, Real dt, const FluidBoun
       break;
     }
     Real h;
+    int which;
     if (st.n() > 0) {
       st.sort();
       const Pass c = st.pass(tau);
       info.max_compression = std::max(info.max_compression, st.density(c));
       reactions.clear();
       const auto maxima = st.forces(c, reactions);
-      h = st.limit(maxima);
+      std::tie(h, which) = st.limit(maxima);
     } else {
-      h = st.limit({0, 0});
+      std::tie(h, which) = st.limit({0, 0});
     }
     // even substeps over the rest of the step
     const Real rest = dt - tau;
-    if (h >= rest) h = rest;
+    if (h >= rest) h = rest, which = 0;
     else h = rest / std::ceil(rest / h);
+    ++s.counters.substep_limit[static_cast<std::size_t>(which)];
     for (const Reaction& r : reactions) st.add_reaction(r, h / dt);
     impulses.clear();
     if (st.n() > 0) {

@@ -398,12 +398,21 @@ struct FluidCounters {
   std::int64_t collisions = 0;       // wall projections
   std::int64_t truncated_steps = 0;  // steps that hit max_substeps (the rest of the step skipped)
   std::int64_t invalid_steps = 0;    // refused: dt not finite or <= 0
+  // substeps by the limit that set their length (fluid_step spreads the rest
+  // of a step evenly, so a substep is shorter than the limit, never longer):
+  // [0] none (the rest of the step fits), [1] CFL, sound and flow speed
+  // (cfl h / (c0 + |v|max)), [2] force (force_cfl sqrt(h / |a|max)),
+  // [3] viscous (viscous_limit), [4] max_substep
+  std::array<std::int64_t, 5> substep_limit{};
   Real emitted_volume = 0;           // m^3
   Real drained_volume = 0;           // m^3
   Real lost_volume = 0;              // m^3, left the domain or non-finite
 };
 
 // What one step did.
+// Names of FluidCounters::substep_limit's entries: "step", "cfl", "force", "viscous", "max_substep".
+const char* substep_limit_name(int k);
+
 struct FluidStepInfo {
   int substeps = 0;
   bool truncated = false;

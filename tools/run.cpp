@@ -10,6 +10,17 @@
 
 namespace orthosim::cli {
 
+namespace {
+
+// the fluid's substeps by the limit that set their length
+nlohmann::json substep_limits(const runtime::FluidCounters& c) {
+  nlohmann::json j = nlohmann::json::object();
+  for (std::size_t k = 0; k < c.substep_limit.size(); ++k) j[runtime::substep_limit_name(static_cast<int>(k))] = c.substep_limit[k];
+  return j;
+}
+
+}  // namespace
+
 void add_run_command(CLI::App& app) {
   auto* sub = app.add_subcommand("run", "simulate a scene: lazy model loading, mass-spring solver, ParaView output");
   static std::string scene_file, model_override, out_override;
@@ -113,6 +124,7 @@ void add_run_command(CLI::App& app) {
                       {"emitter_paused_steps", f.paused_steps},
                       {"max_compression", f.max_compression},
                       {"substeps", fs->counters.substeps},
+                      {"substeps_set_by", substep_limits(fs->counters)},
                       {"collisions", fs->counters.collisions},
                       {"spacing_m", fl.params.spacing},
                       {"sound_speed_m_s", fl.c0},

@@ -208,6 +208,7 @@ void print_dam_break(bool full) {
 struct PaperScene {
   double dt = 0, steps_per_s = 0, fluid_share = 0, substeps = 0, neighbours = 0, compression = 0;
   double particles0 = 0, particles1 = 0, warmup_s = 0;
+  std::array<std::int64_t, 5> limits{};  // timed substeps by the limit that set them (FluidCounters::substep_limit)
 };
 
 PaperScene paper_scene(double dt, std::int64_t particles, int steps, int threads) {
@@ -253,6 +254,7 @@ PaperScene paper_scene(double dt, std::int64_t particles, int steps, int threads
   r.particles0 = static_cast<double>(fs.size());
   const double fluid0 = scene.fluid_summary().wall_s;
   const std::int64_t sub0 = fs.counters.substeps;
+  const auto lim0 = fs.counters.substep_limit;
   const auto t1 = clock_type::now();
   for (int k = 0; k < steps; ++k) {
     scene.simulate(dt);
@@ -264,6 +266,7 @@ PaperScene paper_scene(double dt, std::int64_t particles, int steps, int threads
   r.steps_per_s = steps / wall;
   r.fluid_share = (scene.fluid_summary().wall_s - fluid0) / wall;
   r.substeps = static_cast<double>(fs.counters.substeps - sub0) / steps;
+  for (std::size_t k = 0; k < r.limits.size(); ++k) r.limits[k] = fs.counters.substep_limit[k] - lim0[k];
   r.neighbours /= steps;
   r.particles1 = static_cast<double>(fs.size());
   return r;
@@ -279,6 +282,12 @@ void print_paper_scene(int threads, std::int64_t particles) {
     std::printf("%9.2f %7d %5.0f-%-6.0f %10.1f %14.3f %14.2f %11.0f%% %10.1f %12.1f %11.1f\n", 1e3 * r.dt, threads,
                 r.particles0, r.particles1, r.steps_per_s, r.steps_per_s * r.dt, r.substeps, 100 * r.fluid_share,
                 r.neighbours, 100 * r.compression, r.warmup_s);
+    std::int64_t all = 0;
+    for (auto v : r.limits) all += v;
+    std::printf("          substeps set by:");
+    for (std::size_t k = 0; k < r.limits.size(); ++k)
+      if (r.limits[k] > 0) std::printf(" %s %.0f%%", rt::substep_limit_name(static_cast<int>(k)), 100.0 * r.limits[k] / all);
+    std::printf("\n");
     std::fflush(stdout);
   }
 }

@@ -558,6 +558,50 @@ TEST(SphPhysics, MomentumConservedWithoutBoundaries) {
   EXPECT_EQ(s.counters.collisions, 0);
 }
 
+// Each substep is counted under the limit that set its length: making one
+// limit 1 000 times stricter makes it bind in every substep but the last of
+// a step (which takes the rest of the step, counted as "step").
+TEST(SphPhysics, SubstepsCountTheLimitThatSetThem) {
+  const FluidBoundaries b = open_box(1);
+  auto run = [&](const FluidParams& p, Real dt) {
+    const Fluid f = make_fluid(p);
+    FluidState s = compressed_block(f, 8, 3);
+    fluid_step(f, s, dt, b);
+    std::int64_t all = 0;
+    for (auto v : s.counters.substep_limit) all += v;
+    EXPECT_EQ(all, s.counters.substeps);
+    return s.counters.substep_limit;
+  };
+  FluidParams base = weightless();
+  base.cfl = base.force_cfl = base.viscous_cfl = 1;
+  auto expect_bound = [&](FluidParams p, int which) {
+    const Fluid f = make_fluid(p);
+    FluidState s = compressed_block(f, 8, 3);
+    const Real h = fluid_substep_limit(f, s, b);
+    const auto c = run(p, 5.5 * h);
+    EXPECT_GE(c[static_cast<std::size_t>(which)], 4) << substep_limit_name(which);
+    for (int k = 1; k < 5; ++k)
+      if (k != which) EXPECT_EQ(c[static_cast<std::size_t>(k)], 0) << substep_limit_name(which) << ": " << substep_limit_name(k);
+    EXPECT_LE(c[0], 1);
+  };
+  EXPECT_EQ(run(base, 1e-9)[0], 1);  // the whole step in one substep
+  FluidParams p = base;
+  p.cfl = 1e-3;
+  expect_bound(p, 1);  // sound and flow speed
+  p = base;
+  p.force_cfl = 1e-3;
+  expect_bound(p, 2);  // the compressed block's pressure forces
+  p = base;
+  p.viscous_cfl = 1e-9;
+  expect_bound(p, 3);
+  p = base;
+  const Fluid f = make_fluid(base);
+  FluidState s = compressed_block(f, 8, 3);
+  p.max_substep = 1e-3 * fluid_substep_limit(f, s, b);
+  expect_bound(p, 4);
+  EXPECT_STREQ(substep_limit_name(1), "cfl");
+}
+
 TEST(SphPhysics, DeterministicAcrossRunsAndThreadCounts) {
   for (Rheology rh : {Rheology::newtonian, Rheology::carreau}) {
     FluidParams p = weightless();
