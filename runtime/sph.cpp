@@ -257,14 +257,15 @@ void build_triangle_grid(const TriangleSource& src, Real duration, Real margin, 
   }
   g.listed.assign(static_cast<std::size_t>(nt), 0);
   for (const std::int32_t t : ids) g.listed[static_cast<std::size_t>(t)] = 1;
-  for (int lv = 0; lv < 2; ++lv) {
+  // the two levels side by side (independent: the same boxes, their own cells)
+  tbb::parallel_for(0, 2, [&](int lv) {
     TriangleCells& G = g.level[static_cast<std::size_t>(lv)];
     const Real m = lv == 0 ? margin : margin / 2;
     G.margin = m;
     G.start.assign(1, 0);
     G.items.clear();
     G.dims = {0, 0, 0};
-    if (ids.empty()) continue;
+    if (ids.empty()) return;
     const Real glo[3] = {lo[0] - m, lo[1] - m, lo[2] - m}, ghi[3] = {hi[0] + m, hi[1] + m, hi[2] + m};
     const std::int64_t cap = std::max<std::int64_t>(8 * static_cast<std::int64_t>(ids.size()), 4096);
     Real cell = std::max(m, Real(1e-9));
@@ -307,7 +308,7 @@ void build_triangle_grid(const TriangleSource& src, Real duration, Real margin, 
         G.items.assign(static_cast<std::size_t>(count[nc]), 0);
       }
     }
-  }
+  });
 }
 
 // The candidates of the grid cell containing p: [begin, end) of g.items (empty outside).
