@@ -416,6 +416,11 @@ void results(const std::string& path, bool quick) {
     row.extra = {{"steps_per_s", r.steps_per_s}, {"sim_s_per_wall_s", r.steps_per_s * r.dt}, {"fluid_share", r.fluid_share},
                  {"fluid_substeps_per_step", r.substeps}, {"particles_start", r.particles0}, {"particles_end", r.particles1},
                  {"warmup_s", r.warmup_s}};
+    std::int64_t all = 0;
+    for (auto v : r.limits) all += v;
+    for (std::size_t k = 0; k < r.limits.size(); ++k)  // the share of the substeps each limit set
+      row.extra[std::string("substeps_set_by_") + rt::substep_limit_name(static_cast<int>(k))] =
+          all > 0 ? static_cast<double>(r.limits[k]) / static_cast<double>(all) : 0.0;
     out.add(row);
   }
   out.write(path);
