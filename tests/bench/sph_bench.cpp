@@ -4,6 +4,7 @@
 //   sph_bench --sizes=1000,5000     other sizes
 //   sph_bench --threads=2           one thread count
 //   sph_bench --dam-break [--full]  surge front against Martin & Moyce (1952) for 8..32 (40) particles per width
+//   sph_bench --kernel-radii        the dam break for H / dx = 1.5 ... 3 at 8 ... 32 per width
 //   sph_bench --scene [--threads=2] the integrated paper scene (39x9x4 tissue + 5 000 particles + a bleeding cut)
 //   sph_bench --benchmark_filter=.  the Google Benchmark timings (BM_FluidStep)
 // One "step" is one SPH substep: grid rebuild and sort, density pass, force
@@ -117,9 +118,11 @@ struct DamBreak {
   std::vector<std::array<Real, 3>> points;
 };
 
-DamBreak dam_break(int per_a) {
+// per_a particles across the column's width; support: the kernel radius H / dx
+DamBreak dam_break(int per_a, Real support = 2) {
   const Real a = 0.05715, g = 9.81;
   rt::FluidParams p;
+  p.support_ratio = support;
   p.rest_density = 1000;
   p.viscosity = 1e-3;
   p.spacing = a / per_a;
@@ -173,6 +176,20 @@ DamBreak dam_break(int per_a) {
     r.max_error_lead = std::max(r.max_error_lead, std::abs(pt[1] - lead - pt[2]) / pt[2]);
   }
   return r;
+}
+
+void print_kernel_radii() {
+  std::printf("Dam break against Martin & Moyce (1952) by kernel radius H / dx and resolution (particles per width a)\n");
+  std::printf("%8s %8s %10s %10s %14s %12s %10s %18s\n", "H / dx", "per a", "particles", "wall s", "max error %",
+              "speed ratio", "lead T", "error after lead %");
+  for (Real support : {1.5, 2.0, 2.5, 3.0})
+    for (int per_a : {8, 16, 24, 32}) {
+      const DamBreak r = dam_break(per_a, support);
+      std::printf("%8.1f %8d %10lld %10.1f %14.1f %12.3f %10.3f %18.1f\n", support, per_a,
+                  static_cast<long long>(r.particles), r.wall_s, 100 * r.max_error, r.speed_ratio, r.lead_T,
+                  100 * r.max_error_lead);
+      std::fflush(stdout);
+    }
 }
 
 void print_dam_break(bool full) {
@@ -398,7 +415,22 @@ void results(const std::string& path, bool quick) {
     else row.error("max front error after lead", r.max_error_lead);
     row.x = static_cast<double>(r.particles);
     row.extra = {{"particles", r.particles}, {"per_a", per_a}, {"speed_ratio", r.speed_ratio}, {"lead_T", r.lead_T},
-                 {"max_error_raw", r.max_error}};
+                 {"max_error_raw", r.max_error}, {"support_ratio", 2.0}};
+    out.add(row);
+  }
+  // kernel radii (full only): H / dx at 16 per a; 2 is the row above
+  for (Real support : quick ? std::vector<Real>{} : std::vector<Real>{1.5, 2.5, 3.0}) {
+    const DamBreak r = dam_break(16, support);
+    ob::Row row;
+    row.workload = "dam break against Martin & Moyce (1952), kernel radius, 16 per a";
+    char set[64];
+    std::snprintf(set, sizeof set, "H / dx = %.1f", support);
+    row.setting = set;
+    row.seconds = {r.wall_s};
+    row.error("max front error after lead", r.max_error_lead);
+    row.x = support;
+    row.extra = {{"particles", r.particles}, {"per_a", 16}, {"speed_ratio", r.speed_ratio}, {"lead_T", r.lead_T},
+                 {"max_error_raw", r.max_error}, {"support_ratio", support}};
     out.add(row);
   }
   // the integrated paper scene (paper_scene above), 2 threads: time per scene step
@@ -435,7 +467,7 @@ int main(int argc, char** argv) {
   }
   std::vector<std::int64_t> sizes{1000, 5000, 20000, 100000};
   std::vector<int> threads{1, 2};
-  bool dam = false, full = false, gbench = false, scene = false, sizes_given = false;
+  bool dam = false, full = false, gbench = false, scene = false, sizes_given = false, kernels = false;
   double min_seconds = 2;
   std::vector<char*> rest{argv[0]};
   for (int i = 1; i < argc; ++i) {
@@ -451,6 +483,8 @@ int main(int argc, char** argv) {
       min_seconds = std::atof(a + 10);
     } else if (std::strcmp(a, "--dam-break") == 0) {
       dam = true;
+    } else if (std::strcmp(a, "--kernel-radii") == 0) {
+      kernels = true;
     } else if (std::strcmp(a, "--scene") == 0) {
       scene = true;
     } else if (std::strcmp(a, "--full") == 0) {
@@ -467,6 +501,7 @@ int main(int argc, char** argv) {
     return 0;
   }
   if (scene) print_paper_scene(threads.size() == 1 ? threads[0] : 2, sizes_given ? sizes[0] : 5000);
+  else if (kernels) print_kernel_radii();
   else if (dam) print_dam_break(full);
   else print_table(sizes, threads, min_seconds);
   return 0;
