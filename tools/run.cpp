@@ -136,6 +136,19 @@ void add_run_command(CLI::App& app) {
         std::cerr << "run: blood: " << f.emitters << " vessel(s) bleeding, " << f.emitted << " particles emitted, "
                   << f.drained << " drained, " << f.left_domain << " left the domain, " << f.particles
                   << " in the scene; fluid " << f.wall_s << " s of the steps\n";
+      // what sets the fluid's substeps: the largest share (the steps' last substeps aside)
+      const auto& lim = fs->counters.substep_limit;
+      std::int64_t set = 0;
+      std::size_t top = 1;
+      for (std::size_t k = 1; k < lim.size(); ++k) {
+        set += lim[k];
+        if (lim[k] > lim[top]) top = k;
+      }
+      if (!common.quiet && r.steps > 0 && set > 0)
+        std::cerr << "run: fluid: " << static_cast<double>(fs->counters.substeps) / static_cast<double>(r.steps)
+                  << " substeps per step, limited by " << runtime::substep_limit_name(static_cast<int>(top)) << " ("
+                  << std::lround(100.0 * static_cast<double>(lim[top]) / static_cast<double>(set))
+                  << " % of the limited ones; metrics.fluid.substeps_set_by)\n";
     }
     met["cuts"] = nlohmann::json::array();
     for (const auto& c : scene->cuts())

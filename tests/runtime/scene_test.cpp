@@ -326,6 +326,27 @@ TEST_F(SceneTest, WritesTheVesselTubesOnce) {
 namespace orthosim::runtime {
 namespace {
 
+// The two bleeding scenes (the demo runs the first): the paper's PhysX
+// blood and the physically stiff one, otherwise the same scenario; the
+// suction reaches the floor of the fluid domain (radius = margin).
+TEST_F(SceneTest, SampleBleedingScenesParse) {
+  const std::string dir_s = std::string(ORTHOSIM_SOURCE_DIR) + "/data-samples/scenes/";
+  const SceneDef a = parse_scene_file(dir_s + "bleeding.json"), b = parse_scene_file(dir_s + "bleeding_physical.json");
+  for (const SceneDef* d : {&a, &b}) {
+    EXPECT_TRUE(d->fluid.enabled);
+    ASSERT_EQ(d->tools.size(), 5u);
+    EXPECT_EQ(d->tools[0].type, ToolType::cut);
+    EXPECT_EQ(d->tools[4].type, ToolType::drain);
+    EXPECT_DOUBLE_EQ(d->tools[4].radius, d->fluid.margin);
+    EXPECT_EQ(d->vessels, (std::vector<std::string>{"artery", "vein"}));
+  }
+  EXPECT_DOUBLE_EQ(a.fluid.params.physx_stiffness, 20);
+  EXPECT_DOUBLE_EQ(a.fluid.params.sound_speed, 0);
+  EXPECT_DOUBLE_EQ(b.fluid.params.physx_stiffness, 0);
+  EXPECT_DOUBLE_EQ(b.fluid.params.sound_speed, 3);
+  EXPECT_NE(a.output.dir, b.output.dir);
+}
+
 // The sample scenes parse and run on a lattice model (the builder's model
 // replaces it in scripts/demo).
 TEST_F(SceneTest, SampleScenesRunOnALatticeModel) {
