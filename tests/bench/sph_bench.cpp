@@ -28,6 +28,7 @@
 #include <cstdio>
 #include <cstring>
 #include <fstream>
+#include <numbers>
 #include <sstream>
 #include <string>
 #include <vector>
@@ -141,7 +142,7 @@ DamBreak dam_break(int per_a, Real support = 2, bool settled = false) {
   if (settled) {
     // damped at twice the angular frequency of the column's lowest acoustic
     // mode (a quarter wave over its height 2a), for ten of its periods
-    const Real pi = 3.14159265358979323846, omega = pi * f.c0 / (2 * 2 * a);
+    const Real pi = std::numbers::pi, omega = pi * f.c0 / (2 * 2 * a);
     rt::FluidParams ps = p;
     ps.damping = 2 * omega;
     const rt::Fluid fs = rt::make_fluid(ps);
@@ -247,6 +248,15 @@ void print_dam_break(bool full) {
 // step of dt and the fluid advanced by dt (its CFL substeps inside, counted).
 // The particles are emitted up to `particles`, then the timed steps run with
 // the emitter still active.
+// the share of the substeps each limit set (FluidCounters::substep_limit's order)
+std::array<double, 5> limit_shares(const std::array<std::int64_t, 5>& limits) {
+  std::int64_t all = 0;
+  for (auto v : limits) all += v;
+  std::array<double, 5> share{};
+  for (std::size_t k = 0; k < limits.size(); ++k) share[k] = all > 0 ? static_cast<double>(limits[k]) / static_cast<double>(all) : 0;
+  return share;
+}
+
 struct PaperScene {
   double dt = 0, steps_per_s = 0, fluid_share = 0, substeps = 0, neighbours = 0, compression = 0;
   double particles0 = 0, particles1 = 0, warmup_s = 0;
@@ -324,11 +334,10 @@ void print_paper_scene(int threads, std::int64_t particles) {
     std::printf("%9.2f %7d %5.0f-%-6.0f %10.1f %14.3f %14.2f %11.0f%% %10.1f %12.1f %11.1f\n", 1e3 * r.dt, threads,
                 r.particles0, r.particles1, r.steps_per_s, r.steps_per_s * r.dt, r.substeps, 100 * r.fluid_share,
                 r.neighbours, 100 * r.compression, r.warmup_s);
-    std::int64_t all = 0;
-    for (auto v : r.limits) all += v;
+    const auto share = limit_shares(r.limits);
     std::printf("          substeps set by:");
-    for (std::size_t k = 0; k < r.limits.size(); ++k)
-      if (r.limits[k] > 0) std::printf(" %s %.0f%%", rt::substep_limit_name(static_cast<int>(k)), 100.0 * r.limits[k] / all);
+    for (std::size_t k = 0; k < share.size(); ++k)
+      if (share[k] > 0) std::printf(" %s %.0f%%", rt::substep_limit_name(static_cast<int>(k)), 100 * share[k]);
     std::printf("\n");
     std::fflush(stdout);
   }
@@ -473,11 +482,9 @@ void results(const std::string& path, bool quick) {
     row.extra = {{"steps_per_s", r.steps_per_s}, {"sim_s_per_wall_s", r.steps_per_s * r.dt}, {"fluid_share", r.fluid_share},
                  {"fluid_substeps_per_step", r.substeps}, {"particles_start", r.particles0}, {"particles_end", r.particles1},
                  {"warmup_s", r.warmup_s}};
-    std::int64_t all = 0;
-    for (auto v : r.limits) all += v;
-    for (std::size_t k = 0; k < r.limits.size(); ++k)  // the share of the substeps each limit set
-      row.extra[std::string("substeps_set_by_") + rt::substep_limit_name(static_cast<int>(k))] =
-          all > 0 ? static_cast<double>(r.limits[k]) / static_cast<double>(all) : 0.0;
+    const auto share = limit_shares(r.limits);
+    for (std::size_t k = 0; k < share.size(); ++k)
+      row.extra[std::string("substeps_set_by_") + rt::substep_limit_name(static_cast<int>(k))] = share[k];
     out.add(row);
   }
   out.write(path);

@@ -372,6 +372,16 @@ struct Channel {
   FluidBoundaries b;
   FluidState s;
 };
+// water-dense fluid (rho0 = 1000) of 20 particles across the channel of width
+// d, driven by the body force F along x, no artificial viscosity
+FluidParams channel_params(Real d, Real F) {
+  FluidParams p;
+  p.rest_density = 1000;
+  p.spacing = d / 20;
+  p.gravity = {F, 0, 0};
+  p.artificial_viscosity = 0;
+  return p;
+}
 Channel make_channel(const FluidParams& p, Real d) {
   Channel c{make_fluid(p), {}, make_fluid_state()};
   const Real L = 3 * c.f.H + 1e-12;
@@ -399,13 +409,9 @@ TEST(SphPhysics, PoiseuilleSeriesMatchesReferenceTable) {
 
 TEST(SphPhysics, PoiseuilleStartUpFlow) {
   const Real d = 1, F = 1000, nu = 100, umax = F * d * d / (8 * nu);
-  FluidParams p;
-  p.rest_density = 1000;
+  FluidParams p = channel_params(d, F);
   p.viscosity = nu * p.rest_density;
-  p.spacing = d / 20;
-  p.gravity = {F, 0, 0};
   p.max_speed = umax;
-  p.artificial_viscosity = 0;
   Channel ch = make_channel(p, d);
   const Fluid& f = ch.f;
   const FluidBoundaries& b = ch.b;
@@ -484,15 +490,11 @@ TEST(SphCarreau, ChannelFlowReachesTheShearThinningProfile) {
   // viscosity falling fivefold across the channel: mu0 = 2e5, mu_inf = 4e4 Pa s,
   // lambda = 0.5 s, n = 0.5 (lambda g ~ 2 at the walls)
   const Real d = 1, F = 1000;
-  FluidParams p;
-  p.rest_density = 1000;
+  FluidParams p = channel_params(d, F);
   p.rheology = Rheology::carreau;
   p.carreau = {2e5, 4e4, 0.5, 0.5};
-  p.spacing = d / 20;
-  p.gravity = {F, 0, 0};
   const Real umax = carreau_channel(d / 2, d, F, p.rest_density, p.carreau);
   p.max_speed = umax;
-  p.artificial_viscosity = 0;
   Channel ch = make_channel(p, d);
   const Fluid& f = ch.f;
   const FluidBoundaries& b = ch.b;
