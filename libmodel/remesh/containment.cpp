@@ -26,6 +26,7 @@
 #include <algorithm>
 #include <array>
 #include <cmath>
+#include <numeric>
 #include <vector>
 
 namespace orthosim {
@@ -65,9 +66,29 @@ bool on_triangle(const P3& a, const P3& b, const P3& c, const P3& p) {
   return K::Segment_3(a, b).has_on(p) || K::Segment_3(b, c).has_on(p) || K::Segment_3(c, a).has_on(p);
 }
 
+// Axis-aligned bounding box of each face (both grids below read them).
+struct FaceBox {
+  std::array<double, 3> lo, hi;
+};
+std::vector<FaceBox> face_boxes(const Surface& s) {
+  std::vector<FaceBox> b(static_cast<std::size_t>(s.faces.rows()));
+  tbb::parallel_for(tbb::blocked_range<Eigen::Index>(0, s.faces.rows(), 4096), [&](const auto& r) {
+    for (Eigen::Index f = r.begin(); f != r.end(); ++f) {
+      FaceBox& x = b[static_cast<std::size_t>(f)];
+      for (int a = 0; a < 3; ++a) {
+        const double p = s.vertices(s.faces(f, 0), a), q = s.vertices(s.faces(f, 1), a), w = s.vertices(s.faces(f, 2), a);
+        x.lo[a] = std::min({p, q, w}), x.hi[a] = std::max({p, q, w});
+      }
+    }
+  });
+  return b;
+}
+
 class ParityGrid {
  public:
-  explicit ParityGrid(const Surface& s) : s_(s) {
+  // faces_per_cell: the mean number of faces per cell of the box; more cells
+  // cost more span entries to build, fewer a longer list per ray
+  ParityGrid(const Surface& s, const std::vector<FaceBox>& box, double faces_per_cell) : s_(s), box_(box) {
     const int nf = static_cast<int>(s.faces.rows());
     const Eigen::Vector3d lo = s.vertices.colwise().minCoeff(), hi = s.vertices.colwise().maxCoeff();
     // rays along the axis of least extent: across a limb, not along it
@@ -75,30 +96,19 @@ class ParityGrid {
     (hi - lo).minCoeff(&ax);
     a_ = static_cast<int>(ax), b_ = (a_ + 1) % 3, c_ = (a_ + 2) % 3;  // (a, b, c) cyclic: n_a = orient2_bc
     lo_ = lo, hi_ = hi;
-    // about eight faces per cell of the box: coarser cells write fewer cell
-    // entries, finer ones test fewer faces per point (phantom's four layers:
-    // build + test 23 ms at two per cell, 19 ms at eight, 21 ms at sixteen)
     const double eb = hi[b_] - lo[b_], ec = hi[c_] - lo[c_];
-    const double h = std::sqrt(std::max(eb * ec, 1e-300) / std::max(1.0, nf / 8.0));
+    const double h = std::sqrt(std::max(eb * ec, 1e-300) / std::max(1.0, nf / faces_per_cell));
     nb_ = std::clamp(static_cast<int>(eb / h) + 1, 1, 4096);
     nc_ = std::clamp(static_cast<int>(ec / h) + 1, 1, 4096);
     ib_ = nb_ / std::max(eb, 1e-300), ic_ = nc_ / std::max(ec, 1e-300);
-    amax_.resize(static_cast<std::size_t>(nf));
     std::vector<std::array<int, 4>> span(static_cast<std::size_t>(nf));
     std::vector<int> count(static_cast<std::size_t>(nb_) * nc_ + 1, 0);
     for (int f = 0; f < nf; ++f) {
-      double amax = -INFINITY, bmin = INFINITY, bmax = -INFINITY, cmin = INFINITY, cmax = -INFINITY;
-      for (int k = 0; k < 3; ++k) {
-        const auto v = s.vertices.row(s.faces(f, k));
-        amax = std::max(amax, v(a_));
-        bmin = std::min(bmin, v(b_)), bmax = std::max(bmax, v(b_));
-        cmin = std::min(cmin, v(c_)), cmax = std::max(cmax, v(c_));
-      }
-      amax_[static_cast<std::size_t>(f)] = amax;
+      const FaceBox& x = box[static_cast<std::size_t>(f)];
       // a point at b lies in cell cell_b(b), which is monotone in b: every
       // point inside the face's projected box finds the face
-      span[static_cast<std::size_t>(f)] = {cell_b(bmin), cell_b(bmax), cell_c(cmin), cell_c(cmax)};
-      const auto& sp = span[static_cast<std::size_t>(f)];
+      auto& sp = span[static_cast<std::size_t>(f)];
+      sp = {cell_b(x.lo[b_]), cell_b(x.hi[b_]), cell_c(x.lo[c_]), cell_c(x.hi[c_])};
       for (int i = sp[0]; i <= sp[1]; ++i)
         for (int j = sp[2]; j <= sp[3]; ++j) ++count[static_cast<std::size_t>(i) * nc_ + j + 1];
     }
@@ -122,15 +132,14 @@ class ParityGrid {
     int crossings = 0;
     for (int q = start_[cell]; q < start_[cell + 1]; ++q) {
       const int f = face_[static_cast<std::size_t>(q)];
-      if (amax_[static_cast<std::size_t>(f)] < pa) continue;  // wholly behind the ray's start
+      const FaceBox& x = box_[static_cast<std::size_t>(f)];
+      if (x.hi[a_] < pa) continue;  // wholly behind the ray's start
+      if (pb < x.lo[b_] || pb > x.hi[b_] || pc < x.lo[c_] || pc > x.hi[c_]) continue;
       const auto V = [&](int k) {
-        const double* x = s_.vertices.data() + 3 * static_cast<std::ptrdiff_t>(s_.faces(f, k));
-        return P3(x[0], x[1], x[2]);
+        const double* v = s_.vertices.data() + 3 * static_cast<std::ptrdiff_t>(s_.faces(f, k));
+        return P3(v[0], v[1], v[2]);
       };
       const P3 A = V(0), B = V(1), Cc = V(2);
-      const double bmin = std::min({A[b_], B[b_], Cc[b_]}), bmax = std::max({A[b_], B[b_], Cc[b_]});
-      const double cmin = std::min({A[c_], B[c_], Cc[c_]}), cmax = std::max({A[c_], B[c_], Cc[c_]});
-      if (pb < bmin || pb > bmax || pc < cmin || pc > cmax) continue;
       const int s = orient2(A[b_], A[c_], B[b_], B[c_], Cc[b_], Cc[c_]);
       if (s == 0) {
         // parallel to the ray: never crossed by the moved ray; p may lie on it
@@ -158,22 +167,183 @@ class ParityGrid {
   double ib_ = 1, ic_ = 1;
   Eigen::Vector3d lo_, hi_;
   const Surface& s_;
-  std::vector<double> amax_;
+  const std::vector<FaceBox>& box_;
   std::vector<int> start_, face_;
+};
+
+// Empty cells of a box grid over the surface. A cell that no face's bounding
+// box reaches holds no point of the surface, and the cell of a point is
+// monotone in each coordinate, so the points that fall in one cell form a box
+// and the points of two face-adjacent cells form a box too. A set of empty
+// cells connected through their faces therefore holds points of one side
+// only: one exact ray test (of its first point in point order) answers for
+// every point in it. Points in occupied cells take their own ray. The answer
+// is the exact test's, whatever the cell size; the size only moves work
+// between the two paths: twice the mean edge (of a sample of faces), so that a point a few edges
+// inside the surface finds an empty cell, and at most kCellsPerFace cells per
+// face, so that a fine mesh of a large box does not grow the grid beyond the
+// surface's own size.
+class EmptyCells {
+ public:
+  static constexpr double kCellsPerFace = 4;
+
+  EmptyCells(const Surface& s, const std::vector<FaceBox>& box) {
+    const Eigen::Index nf = s.faces.rows();
+    lo_ = s.vertices.colwise().minCoeff(), hi_ = s.vertices.colwise().maxCoeff();
+    // the mean edge of at most 4 096 faces spread over the list
+    const Eigen::Index stride = std::max<Eigen::Index>(1, nf / 4096);
+    double edges = 0;
+    Eigen::Index sampled = 0;
+    for (Eigen::Index f = 0; f < nf; f += stride, ++sampled)
+      for (int k = 0; k < 3; ++k) edges += (s.vertices.row(s.faces(f, k)) - s.vertices.row(s.faces(f, (k + 1) % 3))).norm();
+    const Eigen::Vector3d ext = (hi_ - lo_).cwiseMax(1e-300);
+    double h = 2 * edges / (3.0 * static_cast<double>(std::max<Eigen::Index>(sampled, 1)));
+    auto cells_at = [&](double hh) {
+      double n = 1;
+      for (int a = 0; a < 3; ++a) n *= std::min(4096.0, std::floor(ext(a) / hh) + 1);
+      return n;
+    };
+    const double cap = kCellsPerFace * static_cast<double>(nf) + 64;
+    if (!(h > 0)) h = ext.maxCoeff();
+    while (cells_at(h) > cap) h *= 1.25;
+    for (int a = 0; a < 3; ++a) {
+      n_[a] = static_cast<int>(std::min(4096.0, std::floor(ext(a) / h) + 1));
+      inv_[a] = n_[a] / ext(a);
+    }
+    const std::size_t ncell = static_cast<std::size_t>(n_[0]) * n_[1] * n_[2];
+    std::vector<unsigned char> occupied(ncell, 0);
+    for (const FaceBox& x : box) {
+      std::array<int, 3> c0, c1;
+      for (int a = 0; a < 3; ++a) c0[a] = cell(x.lo[a], a), c1[a] = cell(x.hi[a], a);
+      for (int k = c0[2]; k <= c1[2]; ++k)
+        for (int j = c0[1]; j <= c1[1]; ++j)
+          for (int i = c0[0]; i <= c1[0]; ++i) occupied[index(i, j, k)] = 1;
+    }
+    // runs of empty cells along x, joined across rows by union-find
+    struct Run {
+      int x0, x1;
+    };
+    const int nrow = n_[1] * n_[2];
+    std::vector<Run> runs;
+    std::vector<int> row_start(static_cast<std::size_t>(nrow) + 1, 0), parent;
+    for (int r = 0; r < nrow; ++r) {
+      row_start[static_cast<std::size_t>(r)] = static_cast<int>(runs.size());
+      const unsigned char* row = occupied.data() + static_cast<std::size_t>(r) * n_[0];
+      for (int i = 0; i < n_[0];) {
+        if (row[i]) {
+          ++i;
+          continue;
+        }
+        const int i0 = i;
+        while (i < n_[0] && !row[i]) ++i;
+        runs.push_back({i0, i - 1});
+      }
+    }
+    row_start[static_cast<std::size_t>(nrow)] = static_cast<int>(runs.size());
+    parent.resize(runs.size());
+    std::iota(parent.begin(), parent.end(), 0);
+    auto find = [&](int a) {
+      while (parent[static_cast<std::size_t>(a)] != a)
+        a = parent[static_cast<std::size_t>(a)] = parent[static_cast<std::size_t>(parent[static_cast<std::size_t>(a)])];
+      return a;
+    };
+    auto join_rows = [&](int r, int q) {  // runs of row r with the overlapping runs of row q
+      int a = row_start[static_cast<std::size_t>(r)], b = row_start[static_cast<std::size_t>(q)];
+      const int ae = row_start[static_cast<std::size_t>(r) + 1], be = row_start[static_cast<std::size_t>(q) + 1];
+      while (a < ae && b < be) {
+        const Run &ra = runs[static_cast<std::size_t>(a)], &rb = runs[static_cast<std::size_t>(b)];
+        if (ra.x0 <= rb.x1 && rb.x0 <= ra.x1) {
+          const int x = find(a), y = find(b);
+          if (x != y) parent[static_cast<std::size_t>(std::max(x, y))] = std::min(x, y);
+        }
+        if (ra.x1 < rb.x1)
+          ++a;
+        else
+          ++b;
+      }
+    };
+    for (int r = 0; r < nrow; ++r) {
+      if (r % n_[1] > 0) join_rows(r, r - 1);      // the row below in y
+      if (r >= n_[1]) join_rows(r, r - n_[1]);     // the row below in z
+    }
+    component_.assign(ncell, -1);
+    std::vector<int> id(runs.size(), -1);
+    for (int r = 0; r < nrow; ++r)
+      for (int a = row_start[static_cast<std::size_t>(r)]; a < row_start[static_cast<std::size_t>(r) + 1]; ++a) {
+        int& c = id[static_cast<std::size_t>(find(a))];
+        if (c < 0) c = n_components_++;
+        const Run& ra = runs[static_cast<std::size_t>(a)];
+        std::fill_n(component_.begin() + static_cast<std::ptrdiff_t>(static_cast<std::size_t>(r) * n_[0] + ra.x0),
+                    ra.x1 - ra.x0 + 1, c);
+      }
+  }
+
+  int components() const { return n_components_; }
+  // the component of the empty cell holding p, -1 when p's cell is occupied,
+  // p lies outside the surface's box or is not finite
+  int component(const Eigen::Vector3d& p) const {
+    for (int a = 0; a < 3; ++a)
+      if (!(p(a) >= lo_(a) && p(a) <= hi_(a))) return -1;
+    return component_[index(cell(p(0), 0), cell(p(1), 1), cell(p(2), 2))];
+  }
+
+ private:
+  // monotone in x (a point and a face's box corner map alike)
+  int cell(double x, int a) const {
+    const double t = (x - lo_(a)) * inv_[a];
+    return t > 0 ? (t < n_[a] ? static_cast<int>(t) : n_[a] - 1) : 0;
+  }
+  std::size_t index(int i, int j, int k) const {
+    return (static_cast<std::size_t>(k) * n_[1] + j) * n_[0] + i;
+  }
+
+  Eigen::Vector3d lo_, hi_;
+  std::array<int, 3> n_{1, 1, 1};
+  std::array<double, 3> inv_{1, 1, 1};
+  std::vector<int> component_;
+  int n_components_ = 0;
 };
 
 }  // namespace
 
-std::vector<char> points_inside(const Surface& closed, const MatX3d& points) {
+std::vector<char> points_inside(const Surface& closed, const MatX3d& points, ContainmentStats* stats) {
   std::vector<char> in(static_cast<std::size_t>(points.rows()), 0);
+  if (stats) *stats = ContainmentStats{points.rows(), 0, 0};
   if (points.rows() == 0 || closed.faces.rows() == 0) return in;
   // a surface it cannot read is refused (its closedness is the caller's check)
   if (!closed.vertices.allFinite()) throw Error("", "containment: the surface has a non-finite vertex");
   if (closed.faces.minCoeff() < 0 || closed.faces.maxCoeff() >= closed.vertices.rows())
     throw Error("", "containment: the surface has a vertex id out of range");
-  const ParityGrid grid(closed);
-  tbb::parallel_for(tbb::blocked_range<Eigen::Index>(0, points.rows(), 1024), [&](const auto& r) {
-    for (Eigen::Index i = r.begin(); i != r.end(); ++i) in[static_cast<std::size_t>(i)] = grid.inside(points.row(i).transpose());
+  const std::vector<FaceBox> box = face_boxes(closed);
+  const EmptyCells cells(closed, box);
+  // pass 1: a point in an empty cell whose set's side is known takes it;
+  // the others (in occupied cells, and the first point of each set, in point
+  // order) take a ray in pass 2, then the rest of each set takes its side
+  std::vector<int> comp(static_cast<std::size_t>(points.rows()));
+  tbb::parallel_for(tbb::blocked_range<Eigen::Index>(0, points.rows(), 4096), [&](const auto& r) {
+    for (Eigen::Index i = r.begin(); i != r.end(); ++i) comp[static_cast<std::size_t>(i)] = cells.component(points.row(i).transpose());
+  });
+  std::vector<std::int64_t> first(static_cast<std::size_t>(cells.components()), -1), ray;
+  for (Eigen::Index i = 0; i < points.rows(); ++i) {
+    const int c = comp[static_cast<std::size_t>(i)];
+    if (c >= 0 && first[static_cast<std::size_t>(c)] >= 0) continue;
+    if (c >= 0) first[static_cast<std::size_t>(c)] = i;
+    ray.push_back(i);
+  }
+  if (stats) stats->ray_tests = static_cast<std::int64_t>(ray.size()), stats->empty_components = cells.components();
+  // at least eight faces per cell; more when few rays share the grid's build
+  const ParityGrid grid(closed, box, std::max(8.0, static_cast<double>(closed.faces.rows()) / static_cast<double>(ray.size())));
+  tbb::parallel_for(tbb::blocked_range<std::size_t>(0, ray.size(), 256), [&](const auto& r) {
+    for (std::size_t k = r.begin(); k != r.end(); ++k) {
+      const Eigen::Index i = ray[k];
+      in[static_cast<std::size_t>(i)] = grid.inside(points.row(i).transpose()) ? 1 : 0;
+    }
+  });
+  tbb::parallel_for(tbb::blocked_range<Eigen::Index>(0, points.rows(), 4096), [&](const auto& r) {
+    for (Eigen::Index i = r.begin(); i != r.end(); ++i) {
+      const int c = comp[static_cast<std::size_t>(i)];
+      if (c >= 0) in[static_cast<std::size_t>(i)] = in[static_cast<std::size_t>(first[static_cast<std::size_t>(c)])];
+    }
   });
   return in;
 }

@@ -247,9 +247,15 @@ RemeshEvaluation evaluate_remesh(const RemeshResult& r, const std::vector<NamedS
 // Per point of `points`: 1 when it lies inside or on the closed, consistently
 // oriented surface `closed`, 0 when strictly outside (or not finite). Exact:
 // ray parity with CGAL's exact predicates and a symbolic perturbation of the
-// ray; no spatial tree (a flat grid of the faces' projections). Throws Error
-// on a non-finite vertex or a face's vertex id out of range.
-std::vector<char> points_inside(const Surface& closed, const MatX3d& points);
+// ray; no spatial tree (a flat grid of the faces' projections). Points in a
+// connected set of grid cells that no face's box reaches share one ray test
+// (the first point's). Throws Error on a non-finite vertex or a face's vertex
+// id out of range.
+struct ContainmentStats {
+  std::int64_t points = 0, ray_tests = 0;  // points asked; points that took their own ray
+  int empty_components = 0;                // connected sets of empty cells
+};
+std::vector<char> points_inside(const Surface& closed, const MatX3d& points, ContainmentStats* stats = nullptr);
 // Index of the first point of `points` strictly outside `closed`, or -1.
 std::int64_t first_point_outside(const Surface& closed, const MatX3d& points);
 

@@ -126,6 +126,51 @@ TEST(Containment, VoxelStaircaseOnEveryHalfLatticePoint) {
   }
 }
 
+TEST(Containment, AHollowShellsEmptyCellsShareOneRayPerSet) {
+  // a box with a box-shaped cavity (its faces turned inward): two sets of
+  // empty cells (the shell's material, the cavity), each answered by one
+  // ray, and every lattice point (on vertices, edges and faces of both
+  // surfaces included) classified exactly
+  Staircase outer, cavity;
+  outer.level.assign(40, {0, 32, 0, 32});  // walls of 10 voxels: 4.4 cells
+  cavity.level.assign(20, {10, 22, 10, 22});
+  cavity.origin = outer.at(0, 0, 10);
+  const Surface so = outer.mesh(), sc = cavity.mesh();
+  Surface s;
+  s.vertices.resize(so.vertices.rows() + sc.vertices.rows(), 3);
+  s.vertices << so.vertices, sc.vertices;
+  s.faces.resize(so.faces.rows() + sc.faces.rows(), 3);
+  s.faces << so.faces, sc.faces.array() + static_cast<int>(so.vertices.rows());
+  s.faces.bottomRows(sc.faces.rows()).col(1).swap(s.faces.bottomRows(sc.faces.rows()).col(2));
+  ASSERT_EQ(check_closed_surface(s, "shell", false).components, 2);
+  std::vector<Eigen::Vector3d> q;
+  std::vector<char> truth;
+  for (int z = -2; z <= 2 * 40 + 2; ++z)
+    for (int y = -2; y <= 2 * 32 + 2; ++y)
+      for (int x = -2; x <= 2 * 32 + 2; ++x) {
+        const double X = 0.5 * x, Y = 0.5 * y, Z = 0.5 * z;
+        q.push_back(outer.at(X, Y, Z));
+        const bool in_cavity = X > 10 && X < 22 && Y > 10 && Y < 22 && Z > 10 && Z < 30;
+        truth.push_back(outer.inside(X, Y, Z) && !in_cavity);
+      }
+  MatX3d P(static_cast<Eigen::Index>(q.size()), 3);
+  for (std::size_t k = 0; k < q.size(); ++k) P.row(static_cast<Eigen::Index>(k)) = q[k];
+  ContainmentStats stats;
+  const std::vector<char> in = points_inside(s, P, &stats);
+  int wrong = 0, n_in = 0, n_cavity = 0;
+  for (std::size_t k = 0; k < q.size(); ++k) wrong += in[k] != truth[k], n_in += truth[k];
+  for (int z = 21; z < 60; ++z) n_cavity += !in[static_cast<std::size_t>(((z + 2) * 69 + 34) * 69 + 34)];
+  EXPECT_EQ(wrong, 0) << "of " << q.size() << " points";
+  EXPECT_EQ(n_cavity, 39);  // the cavity's axis is outside
+  EXPECT_GT(n_in, 1000);
+  EXPECT_EQ(stats.points, static_cast<std::int64_t>(q.size()));
+  EXPECT_EQ(stats.empty_components, 2);  // the boundary cells are all occupied: no set outside
+  EXPECT_GE(stats.ray_tests, stats.empty_components);
+  // the walls are only about four cells thick, so about half the points sit
+  // in cells a face reaches (or outside the box); the rest took their set's answer
+  EXPECT_LT(stats.ray_tests, stats.points * 3 / 4);
+}
+
 TEST(Containment, FirstPointOutside) {
   const Staircase st = random_staircase(7, 10, 8);
   const Surface s = st.mesh();
