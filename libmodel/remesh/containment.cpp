@@ -53,7 +53,12 @@ int orient2_sos(double ux, double uy, double vx, double vy, double qx, double qy
 
 // point p exactly on the closed triangle (a, b, c), any shape
 bool on_triangle(const P3& a, const P3& b, const P3& c, const P3& p) {
-  if (CGAL::orientation(a, b, c, p) != CGAL::COPLANAR) return false;
+  // four points with one coordinate equal are coplanar (exact, and the common
+  // case of a voxel surface or a flat cap, where the filtered predicate would
+  // fall back to exact arithmetic to find the zero)
+  bool flat = false;
+  for (int k = 0; k < 3 && !flat; ++k) flat = a[k] == b[k] && b[k] == c[k] && c[k] == p[k];
+  if (!flat && CGAL::orientation(a, b, c, p) != CGAL::COPLANAR) return false;
   for (int drop = 0; drop < 3; ++drop) {
     const int i = (drop + 1) % 3, j = (drop + 2) % 3;
     const int s = orient2(a[i], a[j], b[i], b[j], c[i], c[j]);
@@ -68,6 +73,7 @@ bool on_triangle(const P3& a, const P3& b, const P3& c, const P3& p) {
 
 // Axis-aligned bounding box of each face (both grids below read them).
 struct FaceBox {
+  FaceBox() {}  // left unset: face_boxes writes every entry
   std::array<double, 3> lo, hi;
 };
 std::vector<FaceBox> face_boxes(const Surface& s) {
@@ -140,10 +146,14 @@ class ParityGrid {
         return P3(v[0], v[1], v[2]);
       };
       const P3 A = V(0), B = V(1), Cc = V(2);
-      const int s = orient2(A[b_], A[c_], B[b_], B[c_], Cc[b_], Cc[c_]);
+      // a projection onto a line of constant b or c is degenerate (exact; it
+      // spares the filtered predicate its exact fallback on axis-aligned faces)
+      const bool flat = (A[b_] == B[b_] && B[b_] == Cc[b_]) || (A[c_] == B[c_] && B[c_] == Cc[c_]);
+      const int s = flat ? 0 : orient2(A[b_], A[c_], B[b_], B[c_], Cc[b_], Cc[c_]);
       if (s == 0) {
         // parallel to the ray: never crossed by the moved ray; p may lie on it
-        if (on_triangle(A, B, Cc, P)) return true;
+        // (only where p is within the face's extent along the ray)
+        if (pa >= x.lo[a_] && on_triangle(A, B, Cc, P)) return true;
         continue;
       }
       int e0 = 0, e1 = 0, e2 = 0;

@@ -43,6 +43,8 @@ struct Loop {
 // nearly normal to it touches only the faces of a slab.
 class Slicer {
  public:
+  // Reads the surface only (its face ids must be in range); the topology is
+  // read by slice(), so it may be built after the slicer.
   Slicer(const Surface& s, const Topology& t, const Eigen::Vector3d& axis_point, const Eigen::Vector3d& axis_dir);
   // Loops of the plane through p.centre with normal p.normal; q uses p.e1, p.e2.
   // Thread-safe (per-thread scratch).
@@ -55,7 +57,6 @@ class Slicer {
   std::vector<int> order_;          // faces sorted by tmin
   std::vector<double> tmin_sorted_, tmax_sorted_;  // tmin, tmax in sorted order
   double max_extent_ = 0, rho_max_ = 0;
-  std::vector<int> flip_;           // 1 where a component is inward (negative volume)
   // per-thread scratch of slice(): slices may run side by side
   struct Scratch {
     struct Vert {

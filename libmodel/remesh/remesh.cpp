@@ -9,6 +9,7 @@
 
 #include <tbb/parallel_for.h>
 #include <tbb/parallel_invoke.h>
+#include <tbb/task_group.h>
 
 #include <algorithm>
 #include <exception>
@@ -1256,6 +1257,7 @@ RemeshResult remesh_layers(const std::vector<NamedSurface>& layers, const Remesh
   };
   Axis ax;
   std::vector<std::unique_ptr<Slicer>> slicers(static_cast<std::size_t>(nl));
+  tbb::task_group inner_slicers;
   tbb::parallel_invoke(
       [&] {
         capture(topo_err[0], [&] {
@@ -1269,6 +1271,14 @@ RemeshResult remesh_layers(const std::vector<NamedSurface>& layers, const Remesh
         const auto ta = std::chrono::steady_clock::now();
         capture(axis_err, [&] {
           ax = principal_axis(layers[0].surface);
+          // the inner layers' slicers, beside the axis and the checks (a layer
+          // whose face ids are out of range gets none: its topology reports it)
+          for (int k = 1; k < nl; ++k)
+            if (layers[k].surface.faces.size() > 0 && layers[k].surface.faces.minCoeff() >= 0 &&
+                layers[k].surface.faces.maxCoeff() < layers[k].surface.vertices.rows())
+              inner_slicers.run([&, k] {
+                slicers[static_cast<std::size_t>(k)] = std::make_unique<Slicer>(layers[k].surface, topo[k], ax.m, ax.d);
+              });
           slicers[0] = std::make_unique<Slicer>(layers[0].surface, topo[0], ax.m, ax.d);
           res.sweep = sweep_impl(layers[0].surface, topo[0], *slicers[0], ax, o, layers[0].name);
           const TubeSweep& sw = res.sweep;
@@ -1306,13 +1316,11 @@ RemeshResult remesh_layers(const std::vector<NamedSurface>& layers, const Remesh
         });
         res.check_s = seconds_since(t0);
       });
+  inner_slicers.wait();
   for (const auto* errs : {&topo_err, &contain_err})
     for (const auto& e : *errs)
       if (e) std::rethrow_exception(e);
   if (axis_err) std::rethrow_exception(axis_err);
-  tbb::parallel_for(1, nl, [&](int k) {
-    slicers[static_cast<std::size_t>(k)] = std::make_unique<Slicer>(layers[k].surface, topo[k], ax.m, ax.d);
-  });
   const TubeSweep& sw = res.sweep;
   t0 = std::chrono::steady_clock::now();
 

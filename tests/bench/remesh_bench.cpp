@@ -11,6 +11,7 @@
 // four layers. Timings: remesh_layers (checks, axis, rings) on the phantom
 // sample's skin and on all four layers.
 #include "libmodel/remesh/remesh.h"
+#include "libmodel/remesh/detail.h"
 #include "tests/libmodel/remesh_shapes.h"
 #include "tests/bench/bench_results.h"
 #ifdef ORTHOSIM_HAVE_PHANTOM_LIB
@@ -18,6 +19,7 @@
 #endif
 
 #include <benchmark/benchmark.h>
+#include <tbb/task_arena.h>
 #include <nlohmann/json.hpp>
 
 #include <chrono>
@@ -154,6 +156,34 @@ void BM_RemeshPhantomFourLayers(benchmark::State& st) {
   st.counters["rings_ms"] = 1e3 * rings / n;  // check and axis overlap (remesh.h)
 }
 BENCHMARK(BM_RemeshPhantomFourLayers)->Args({39, 9})->Args({400, 100})->Unit(benchmark::kMillisecond);
+
+// The parts of a four-layer remesh, on one thread each (the CPU they cost;
+// remesh_layers runs them side by side): the topology and checks of the skin,
+// a slicer over it (faces sorted along the principal axis), the fat's
+// vertices tested inside the skin.
+void BM_RemeshPartTopology(benchmark::State& st) {
+  const Surface& s = phantom_layers()[0].surface;
+  for (auto _ : st) benchmark::DoNotOptimize(remesh_detail::build_topology(s, "skin", true));
+}
+BENCHMARK(BM_RemeshPartTopology)->Unit(benchmark::kMillisecond);
+
+void BM_RemeshPartSlicer(benchmark::State& st) {
+  const Surface& s = phantom_layers()[0].surface;
+  const remesh_detail::Topology t = remesh_detail::build_topology(s, "skin", true);
+  const Eigen::Vector3d c = s.vertices.colwise().mean().transpose();
+  for (auto _ : st) remesh_detail::Slicer sl(s, t, c, Eigen::Vector3d(0, 0, 1));
+}
+BENCHMARK(BM_RemeshPartSlicer)->Unit(benchmark::kMillisecond);
+
+void BM_RemeshPartContainment(benchmark::State& st) {
+  const Surface& skin = phantom_layers()[0].surface;
+  const MatX3d& fat = phantom_layers()[1].surface.vertices;
+  tbb::task_arena one(1);
+  one.execute([&] {
+    for (auto _ : st) benchmark::DoNotOptimize(points_inside(skin, fat));
+  });
+}
+BENCHMARK(BM_RemeshPartContainment)->Unit(benchmark::kMillisecond);
 #endif
 
 void BM_RemeshBentTube(benchmark::State& st) {
