@@ -1272,10 +1272,11 @@ RemeshResult remesh_layers(const std::vector<NamedSurface>& layers, const Remesh
         capture(axis_err, [&] {
           ax = principal_axis(layers[0].surface);
           // the inner layers' slicers, beside the axis and the checks (a layer
-          // whose face ids are out of range gets none: its topology reports it)
+          // with a face id out of range or a non-finite vertex gets none: its
+          // topology reports it)
           for (int k = 1; k < nl; ++k)
-            if (layers[k].surface.faces.size() > 0 && layers[k].surface.faces.minCoeff() >= 0 &&
-                layers[k].surface.faces.maxCoeff() < layers[k].surface.vertices.rows())
+            if (const Surface& sk = layers[k].surface; sk.faces.size() > 0 && sk.faces.minCoeff() >= 0 &&
+                                                      sk.faces.maxCoeff() < sk.vertices.rows() && sk.vertices.allFinite())
               inner_slicers.run([&, k] {
                 slicers[static_cast<std::size_t>(k)] = std::make_unique<Slicer>(layers[k].surface, topo[k], ax.m, ax.d);
               });

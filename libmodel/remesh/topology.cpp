@@ -61,21 +61,22 @@ Topology build_topology(const Surface& s, const std::string& name, bool single_c
 
   Topology t;
   // Fast pass, vertex by vertex: a's outgoing half-edges (a, b) with a < b
-  // find their twin (b, a) among b's; duplicated targets and missing or
-  // repeated twins flag a defect, and the per-face pass below then finds the
-  // first one in face order for the message.
+  // find their twin (b, a) among b's; a missing, repeated or already taken
+  // twin flags a defect (a half-edge (a, b) twice: with a < b the second
+  // finds the twin taken, with a > b the twin search from b finds two), and
+  // the per-face pass below then finds the first one in face order for the
+  // message.
   t.face_edge.assign(nf, {-1, -1, -1});
   t.edge_face.reserve(3 * static_cast<std::size_t>(nf) / 2);
   bool defect = false;
   for (int a = 0; a < nv && !defect; ++a)
     for (int q = off[a]; q < off[a + 1]; ++q) {
       const int b = nxt[q];
-      for (int q2 = q + 1; q2 < off[a + 1]; ++q2) defect |= nxt[q2] == b;
       if (a > b) continue;
       int twin = -1, n = 0;
       for (int r = off[b]; r < off[b + 1]; ++r)
         if (nxt[r] == a) twin = r, ++n;
-      if (n != 1) {
+      if (n != 1 || t.face_edge[vf[twin]][slot[twin]] >= 0) {
         defect = true;
         break;
       }

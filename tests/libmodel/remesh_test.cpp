@@ -520,6 +520,14 @@ TEST(RemeshErrors, OneLineMessages) {
     Surface nan = skin;
     nan.vertices(3, 0) = std::nan("");
     EXPECT_NE(msg({{"skin", nan}, {"fat", fat}}).find("skin: vertex 3 has a non-finite coordinate"), std::string::npos);
+    // an inner layer's slicer is built beside its checks: unreadable inner
+    // layers get the checks' messages
+    Surface fat_ids = fat;
+    fat_ids.faces(5, 1) = 1000000;
+    EXPECT_NE(msg({{"skin", skin}, {"fat", fat_ids}}).find("fat: face 5 has a vertex id out of range"), std::string::npos);
+    Surface fat_nan = fat;
+    fat_nan.vertices(2, 1) = std::nan("");
+    EXPECT_NE(msg({{"skin", skin}, {"fat", fat_nan}}).find("fat: vertex 2 has a non-finite coordinate"), std::string::npos);
   }
   for (const std::string& m : {msg({{"t.stl", test::torus(0.05, 0.01)}}), msg({{"skin", Surface{}}})})
     EXPECT_EQ(m.find('\n'), std::string::npos);
