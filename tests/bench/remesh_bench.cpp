@@ -179,9 +179,12 @@ void BM_RemeshPartContainment(benchmark::State& st) {
   const Surface& skin = phantom_layers()[0].surface;
   const MatX3d& fat = phantom_layers()[1].surface.vertices;
   tbb::task_arena one(1);
+  ContainmentStats stats;
   one.execute([&] {
-    for (auto _ : st) benchmark::DoNotOptimize(points_inside(skin, fat));
+    for (auto _ : st) benchmark::DoNotOptimize(points_inside(skin, fat, &stats));
   });
+  st.counters["points"] = static_cast<double>(stats.points);
+  st.counters["rays"] = static_cast<double>(stats.ray_tests);  // points that took a ray of their own
 }
 BENCHMARK(BM_RemeshPartContainment)->Unit(benchmark::kMillisecond);
 #endif
