@@ -189,10 +189,10 @@ class ParityGrid {
 // only: one exact ray test (of its first point in point order) answers for
 // every point in it. Points in occupied cells take their own ray. The answer
 // is the exact test's, whatever the cell size; the size only moves work
-// between the two paths: twice the mean edge (of a sample of faces), so that a point a few edges
-// inside the surface finds an empty cell, and at most kCellsPerFace cells per
-// face, so that a fine mesh of a large box does not grow the grid beyond the
-// surface's own size.
+// between the two paths: twice the mean edge (of a sample of faces), so that
+// a point a few edges inside the surface finds an empty cell, and at most
+// kCellsPerFace cells per face, so that a fine mesh of a large box does not
+// grow the grid beyond the surface's own size.
 class EmptyCells {
  public:
   static constexpr double kCellsPerFace = 4;

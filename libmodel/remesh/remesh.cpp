@@ -1240,9 +1240,10 @@ RemeshResult remesh_layers(const std::vector<NamedSurface>& layers, const Remesh
   const auto t_start = t0;
   RemeshResult res;
   const int nl = static_cast<int>(layers.size());
-  // Two branches side by side: (A) the outer layer's topology, then its axis,
-  // sweep and stations; (B) the inner layers' topologies and each inner
-  // layer's containment in the one above. On 2 cores the axis's sequential
+  // Two branches side by side: (A) the outer layer's topology, then its axis
+  // (which starts the inner layers' slicers as tasks: they need only the axis
+  // and their surface), sweep and stations; (B) the inner layers' topologies
+  // and each inner layer's containment in the one above. On 2 cores the axis's sequential
   // parts fill the gaps of the checks. Errors are reported as a sequential run
   // would: topology in layer order, then containment, then the axis.
   std::vector<Topology> topo(static_cast<std::size_t>(nl));
@@ -1322,6 +1323,8 @@ RemeshResult remesh_layers(const std::vector<NamedSurface>& layers, const Remesh
     for (const auto& e : *errs)
       if (e) std::rethrow_exception(e);
   if (axis_err) std::rethrow_exception(axis_err);
+  for (int k = 1; k < nl; ++k)  // every layer that passed its checks has one
+    if (!slicers[static_cast<std::size_t>(k)]) throw Error(layers[k].name, "internal: the layer was not sliced");
   const TubeSweep& sw = res.sweep;
   t0 = std::chrono::steady_clock::now();
 
