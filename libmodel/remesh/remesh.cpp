@@ -162,7 +162,15 @@ Cap detect_cap(const Surface& s, const Topology& t, const FaceData& fd, const Ve
       const auto& ef = t.edge_face[t.face_edge[f][k]];
       const int g = ef[0] == f ? ef[1] : ef[0];
       if (in[g] || !(area[g] > 0)) continue;
-      if (nrm[g].dot(nrm[seed]) < cos_tol || std::abs((cen[g] - cen[seed]).dot(nrm[seed])) > dist_tol) continue;
+      // against the patch's plane so far (area-weighted normal and centroid):
+      // a decimated cap is planar only to within its faces' tilt, so a far
+      // face measured against the seed's own plane would drift out of it
+      const Vec3 pn = nsum.normalized(), pq = qsum / cap.area;
+      double edge = 0;  // the face's longest edge: its tilt within cos_tol moves its centroid by ~edge sin(angle)
+      for (int j = 0; j < 3; ++j)
+        edge = std::max(edge, (s.vertices.row(s.faces(g, j)) - s.vertices.row(s.faces(g, (j + 1) % 3))).norm());
+      const double tol = std::max(dist_tol, 0.1 * edge);
+      if (nrm[g].dot(pn) < cos_tol || std::abs((cen[g] - pq).dot(pn)) > tol) continue;
       in[g] = 1;
       queue.push_back(g);
     }
