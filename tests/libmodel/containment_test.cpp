@@ -85,6 +85,13 @@ struct Staircase {
   }
 };
 
+// the points as the rows of a matrix
+MatX3d rows(const std::vector<Eigen::Vector3d>& q) {
+  MatX3d P(static_cast<Eigen::Index>(q.size()), 3);
+  for (std::size_t k = 0; k < q.size(); ++k) P.row(static_cast<Eigen::Index>(k)) = q[k];
+  return P;
+}
+
 Staircase random_staircase(unsigned seed, int levels, int width) {
   std::mt19937 rng(seed);
   Staircase st;
@@ -114,8 +121,7 @@ TEST(Containment, VoxelStaircaseOnEveryHalfLatticePoint) {
           q.push_back(st.at(0.5 * x, 0.5 * y, 0.5 * z));
           truth.push_back(st.inside(0.5 * x, 0.5 * y, 0.5 * z));
         }
-    MatX3d P(static_cast<Eigen::Index>(q.size()), 3);
-    for (std::size_t k = 0; k < q.size(); ++k) P.row(static_cast<Eigen::Index>(k)) = q[k];
+    const MatX3d P = rows(q);
     const std::vector<char> in = points_inside(s, P);
     ASSERT_EQ(in.size(), truth.size());
     int wrong = 0, n_in = 0;
@@ -135,13 +141,9 @@ TEST(Containment, AHollowShellsEmptyCellsShareOneRayPerSet) {
   outer.level.assign(40, {0, 32, 0, 32});  // walls of 10 voxels: 4.4 cells
   cavity.level.assign(20, {10, 22, 10, 22});
   cavity.origin = outer.at(0, 0, 10);
-  const Surface so = outer.mesh(), sc = cavity.mesh();
-  Surface s;
-  s.vertices.resize(so.vertices.rows() + sc.vertices.rows(), 3);
-  s.vertices << so.vertices, sc.vertices;
-  s.faces.resize(so.faces.rows() + sc.faces.rows(), 3);
-  s.faces << so.faces, sc.faces.array() + static_cast<int>(so.vertices.rows());
-  s.faces.bottomRows(sc.faces.rows()).col(1).swap(s.faces.bottomRows(sc.faces.rows()).col(2));
+  Surface inward = cavity.mesh();
+  inward.faces.col(1).swap(inward.faces.col(2));
+  const Surface s = test::merge(outer.mesh(), inward);
   ASSERT_EQ(check_closed_surface(s, "shell", false).components, 2);
   std::vector<Eigen::Vector3d> q;
   std::vector<char> truth;
@@ -153,8 +155,7 @@ TEST(Containment, AHollowShellsEmptyCellsShareOneRayPerSet) {
         const bool in_cavity = X > 10 && X < 22 && Y > 10 && Y < 22 && Z > 10 && Z < 30;
         truth.push_back(outer.inside(X, Y, Z) && !in_cavity);
       }
-  MatX3d P(static_cast<Eigen::Index>(q.size()), 3);
-  for (std::size_t k = 0; k < q.size(); ++k) P.row(static_cast<Eigen::Index>(k)) = q[k];
+  const MatX3d P = rows(q);
   ContainmentStats stats;
   const std::vector<char> in = points_inside(s, P, &stats);
   int wrong = 0, n_in = 0, n_cavity = 0;
@@ -211,8 +212,7 @@ TEST(Containment, AgreesWithCgalOnABentTube) {
     q.push_back((a + b + c) / 3);
     q.push_back((a + b + c) / 3 + 1e-9 * (b - a).cross(c - a).normalized());
   }
-  MatX3d P(static_cast<Eigen::Index>(q.size()), 3);
-  for (std::size_t k = 0; k < q.size(); ++k) P.row(static_cast<Eigen::Index>(k)) = q[k];
+  const MatX3d P = rows(q);
   const std::vector<char> in = points_inside(s, P);
   int wrong = 0, n_in = 0;
   for (std::size_t k = 0; k < q.size(); ++k) {
