@@ -104,8 +104,14 @@ using V = Real __attribute__((vector_size(4 * sizeof(Real))));
 #else
 #define ORTHOSIM_SPH_CLONES
 #endif
+// Every helper and lambda that takes or returns a vector is inlined into its
+// clone, at every optimisation level: out of line it would be compiled for
+// the baseline target and read a 32-byte vector argument where the
+// x86-64-v3 caller did not put it (an ABI mismatch, wrong values at -O0).
+#define ORTHOSIM_SPH_INLINE inline __attribute__((always_inline))
+#define ORTHOSIM_SPH_LAMBDA __attribute__((always_inline))
 
-inline V load4(const Real* a, std::int32_t s, std::int32_t n) {
+ORTHOSIM_SPH_INLINE V load4(const Real* a, std::int32_t s, std::int32_t n) {
   V v;
   if (s + 4 <= n) {
     std::memcpy(&v, a + s, sizeof v);
@@ -114,19 +120,19 @@ inline V load4(const Real* a, std::int32_t s, std::int32_t n) {
   }
   return v;
 }
-inline V vsqrt(V x) {
+ORTHOSIM_SPH_INLINE V vsqrt(V x) {
   V r;
   for (int k = 0; k < 4; ++k) r[k] = std::sqrt(x[k]);
   return r;
 }
-inline Real hsum(V v) { return (v[0] + v[1]) + (v[2] + v[3]); }
+ORTHOSIM_SPH_INLINE Real hsum(V v) { return (v[0] + v[1]) + (v[2] + v[3]); }
 
 // Calls body(s, mask) over the run [b, e) in vectors of 4 slots starting at s;
 // mask is 1 on the lanes in [b, e) not yet visited, 0 elsewhere. The last
 // vector is moved back to end at e (overlapping, masked) so every load stays
 // inside [0, n).
 template <class Body>
-inline void for_lanes(std::int32_t b, std::int32_t e, std::int32_t n, Body&& body) {
+ORTHOSIM_SPH_INLINE void for_lanes(std::int32_t b, std::int32_t e, std::int32_t n, Body&& body) {
   const V lane = {0, 1, 2, 3};
   const V one = {1, 1, 1, 1}, zero = {0, 0, 0, 0};
   std::int32_t j = b;
@@ -140,7 +146,7 @@ inline void for_lanes(std::int32_t b, std::int32_t e, std::int32_t n, Body&& bod
 }
 
 // periodic minimum image of a lane of differences
-inline V minimum_image(V d, Real period) {
+ORTHOSIM_SPH_INLINE V minimum_image(V d, Real period) {
   if (period <= 0) return d;
   V r;
   for (int k = 0; k < 4; ++k) r[k] = d[k] - period * std::nearbyint(d[k] / period);
@@ -545,7 +551,7 @@ struct Pass {
   const Real *x = nullptr, *y = nullptr, *z = nullptr, *vx = nullptr, *vy = nullptr, *vz = nullptr;
   Real *rho = nullptr, *p = nullptr, *P = nullptr, *ir = nullptr, *nb = nullptr, *ksum = nullptr;
   Real *ax = nullptr, *ay = nullptr, *az = nullptr, *wx = nullptr, *wy = nullptr, *wz = nullptr;
-  Real* pack = nullptr;           // (n x 8) x, y, z, P, vx, vy, vz, 1/rho per particle (the force pass's gathers)
+  float* pack = nullptr;          // (n + 8) x 8: x, y, z (- origin), P, vx, vy, vz, 1/rho in single precision (the force pass)
   Real* mu = nullptr;             // (n) Pa s, per-particle viscosity (carreau rheology), else null
   std::int32_t* list = nullptr;   // (n x kListStride) neighbour lists (self excluded), padded with i
   std::int32_t* count = nullptr;  // (n) list lengths; > kMaxList: overflowed, the force pass scans the cells
@@ -565,9 +571,9 @@ constexpr int kMaxList = 92, kListStride = kMaxList + 8;
 // Grows a scratch array that every pass rewrites before reading (old values
 // are dropped) to n entries. A new allocation is advised to use transparent
 // huge pages before it is first touched: the density pass writes the lists
-// (400 B per particle) and the force pass gathers from the pack (64 B per
+// (400 B per particle) and the force pass gathers from the pack (32 B per
 // particle) across the whole particle range, and with 4 KiB pages a
-// 100 k-particle step (47 MB of both) misses the TLB on most gathers. Advice
+// 100 k-particle step (44 MB of both) misses the TLB on most gathers. Advice
 // only: where the kernel declines it nothing changes, and the values are the
 // same either way.
 template <class T>
@@ -628,7 +634,7 @@ struct CompactTable {
 };
 const CompactTable kCompact;
 
-__attribute__((target("avx2"))) std::int32_t scan_run_avx2(const float* xf, const float* yf, const float* zf,
+__attribute__((target("avx2"), always_inline)) inline std::int32_t scan_run_avx2(const float* xf, const float* yf, const float* zf,
                                                            std::int32_t b, std::int32_t e, std::int32_t self, float xi,
                                                            float yi, float zi, float r2max, std::int32_t* list,
                                                            std::int32_t cnt) {
@@ -651,14 +657,45 @@ __attribute__((target("avx2"))) std::int32_t scan_run_avx2(const float* xf, cons
 }
 #endif
 
-ScanFn pick_scan() {
+// The lists of the particles [b, e) of one cell over the runs around it:
+// list and count of each (see scan_run). One call per cell: the runs' loop
+// and the scan of a run are inlined into it.
+using ScanCellFn = void (*)(const Pass& c, const NeighbourRun* runs, int nr, std::int32_t b, std::int32_t e);
+
+// particle i's position relative to the grid origin less run r's shift, in float
+#define ORTHOSIM_SPH_SCAN_CELL(scan)                                                                    \
+  for (std::int32_t i = b; i < e; ++i) {                                                               \
+    std::int32_t* list = c.list + static_cast<std::int64_t>(i) * kListStride;                         \
+    std::int32_t cnt = 0;                                                                              \
+    for (int r = 0; r < nr; ++r) {                                                                     \
+      const auto xi = static_cast<float>(c.x[i] - runs[r].sx - c.origin[0]);                           \
+      const auto yi = static_cast<float>(c.y[i] - runs[r].sy - c.origin[1]);                           \
+      const auto zi = static_cast<float>(c.z[i] - runs[r].sz - c.origin[2]);                           \
+      cnt = scan(c.xf, c.yf, c.zf, runs[r].begin, runs[r].end, i, xi, yi, zi, c.search_r2, list, cnt); \
+    }                                                                                                  \
+    c.count[i] = cnt;                                                                                  \
+  }
+
+void scan_cell_generic(const Pass& c, const NeighbourRun* runs, int nr, std::int32_t b, std::int32_t e) {
+  ORTHOSIM_SPH_SCAN_CELL(scan_run_generic)
+}
+
+#ifdef ORTHOSIM_SPH_AVX2
+__attribute__((target("avx2"))) void scan_cell_avx2(const Pass& c, const NeighbourRun* runs, int nr, std::int32_t b,
+                                                    std::int32_t e) {
+  ORTHOSIM_SPH_SCAN_CELL(scan_run_avx2)
+}
+#endif
+#undef ORTHOSIM_SPH_SCAN_CELL
+
+ScanCellFn pick_scan() {
 #ifdef ORTHOSIM_SPH_AVX2
   __builtin_cpu_init();
-  if (__builtin_cpu_supports("avx2")) return scan_run_avx2;
+  if (__builtin_cpu_supports("avx2")) return scan_cell_avx2;
 #endif
-  return scan_run_generic;
+  return scan_cell_generic;
 }
-const ScanFn scan_run = pick_scan();
+const ScanCellFn scan_cell = pick_scan();
 
 // Density pass of the particles of one cell: the list of the neighbours
 // within the search radius (self excluded; found in float, see scan_run),
@@ -673,22 +710,17 @@ void density_cell(const Pass& c, std::int32_t cell) {
   const Real invH = 1 / c.f->H;
   const V zero = {0, 0, 0, 0}, one = {1, 1, 1, 1}, lane = {0, 1, 2, 3};
   const bool periodic = c.period[0] > 0 || c.period[1] > 0 || c.period[2] > 0;
+  scan_cell(c, runs, nr, c.g->start[cell], c.g->start[cell + 1]);
   for (std::int32_t i = c.g->start[cell]; i < c.g->start[cell + 1]; ++i) {
     std::int32_t* list = c.list + static_cast<std::int64_t>(i) * kListStride;
-    std::int32_t cnt = 0;
-    for (int r = 0; r < nr; ++r) {
-      const auto xi = static_cast<float>(c.x[i] - runs[r].sx - c.origin[0]);
-      const auto yi = static_cast<float>(c.y[i] - runs[r].sy - c.origin[1]);
-      const auto zi = static_cast<float>(c.z[i] - runs[r].sz - c.origin[2]);
-      cnt = scan_run(c.xf, c.yf, c.zf, runs[r].begin, runs[r].end, i, xi, yi, zi, c.search_r2, list, cnt);
-    }
+    const std::int32_t cnt = c.count[i];
     V acc = zero, within = zero;
     const Real xi = c.x[i], yi = c.y[i], zi = c.z[i];
     if (cnt <= kMaxList) {
-      for (int k = cnt; k < cnt + 4; ++k) list[k] = i;  // padding of the last group of 4
+      for (int k = cnt; k < cnt + 8; ++k) list[k] = i;  // padding of the last group (4 here, 8 in the force pass)
       for (std::int32_t b = 0; b < cnt; b += 4) {
         const std::int32_t* j = list + b;
-        auto gather = [&](const Real* a) { return V{a[j[0]], a[j[1]], a[j[2]], a[j[3]]}; };
+        auto gather = [&](const Real* a) ORTHOSIM_SPH_LAMBDA { return V{a[j[0]], a[j[1]], a[j[2]], a[j[3]]}; };
         V dx = xi - gather(c.x), dy = yi - gather(c.y), dz = zi - gather(c.z);
         if (periodic) {
           dx = minimum_image(dx, c.period[0]);
@@ -707,7 +739,7 @@ void density_cell(const Pass& c, std::int32_t cell) {
       // overflow: scan the cells (self included)
       for (int r = 0; r < nr; ++r) {
         const Real xs = xi - runs[r].sx, ys = yi - runs[r].sy, zs = zi - runs[r].sz;
-        for_lanes(runs[r].begin, runs[r].end, c.n, [&](std::int32_t s, V mask) {
+        for_lanes(runs[r].begin, runs[r].end, c.n, [&](std::int32_t s, V mask) ORTHOSIM_SPH_LAMBDA {
           const V dx = xs - load4(c.x, s, c.n), dy = ys - load4(c.y, s, c.n), dz = zs - load4(c.z, s, c.n);
           const V q = vsqrt(dx * dx + dy * dy + dz * dz) * invH;
           V t = 1 - q;
@@ -720,7 +752,6 @@ void density_cell(const Pass& c, std::int32_t cell) {
       acc[0] -= 1;  // the self term, added below
       within[0] -= 1;
     }
-    c.count[i] = cnt;
     c.ksum[i] = 1 + hsum(acc);
     c.nb[i] = 1 + hsum(within);
   }
@@ -732,106 +763,147 @@ void density_cell(const Pass& c, std::int32_t cell) {
 // the laminar viscosity of Morris, Fox & Zhu (1997) and Monaghan's artificial
 // viscosity Pi_ij = -alpha c0 h (v_ij . r_ij) / (r_ij^2 + eta^2) (1/rho_i + 1/rho_j) / 2
 // for approaching pairs (v_ij . r_ij < 0), eta^2 = 0.01 h^2; the lattice
-// scales are folded into P, Pi and the viscosity. Every pair term is
-// antisymmetric in (i, j): linear momentum is conserved.
+// scales are folded into P, Pi and the viscosity.
+//
+// The pair terms are computed in single precision, 8 lanes, from the float
+// pack (positions relative to the grid origin, P, v, 1/rho), and summed in
+// double. Every operation of a pair term sees the same operands for (i, j)
+// as for (j, i), up to the sign of r_ij and v_ij or the order of a commutative
+// + or *, so the term of (j, i) is exactly minus that of (i, j), and linear
+// momentum is conserved to the round-off of the double sums. A float term
+// errs by ~1e-7 of itself, and by ~1e-7 of the coordinates in r_ij (see the
+// neighbour search), far below the discretisation's error.
+using VF = float __attribute__((vector_size(8 * sizeof(float))));
+using VI = std::int32_t __attribute__((vector_size(8 * sizeof(std::int32_t))));
+
 struct PairConstants {
-  Real invH, eta2, avc, two_mu;
+  float invH, eta2, avc, two_mu, vscale;
   explicit PairConstants(const Fluid& f)
-      : invH(1 / f.H),
-        eta2(0.01 * f.h * f.h),
-        avc(f.params.artificial_viscosity * f.c0 * f.h * 0.5 * f.gradient_scale),
-        two_mu(2 * f.params.viscosity * f.viscous_scale) {}
+      : invH(static_cast<float>(1 / f.H)),
+        eta2(static_cast<float>(0.01 * f.h * f.h)),
+        avc(static_cast<float>(f.params.artificial_viscosity * f.c0 * f.h * 0.5 * f.gradient_scale)),
+        two_mu(static_cast<float>(2 * f.params.viscosity * f.viscous_scale)),
+        vscale(static_cast<float>(f.viscous_scale)) {}
 };
 
 struct PairSums {
   V ax, ay, az;
 };
 
-// one group of 4 neighbours (positions already relative: d = x_i - x_j)
-inline void pair_terms(const PairConstants& k, V dx, V dy, V dz, V dvx, V dvy, V dvz, V Pj, V irj, V mask, Real Pi,
-                       Real iri, V kv, PairSums& acc) {
-  const V zero = {0, 0, 0, 0};
-  const V r2 = dx * dx + dy * dy + dz * dz;
-  const V q = vsqrt(r2) * k.invH;
-  V t = 1 - q;
-  t = t > 0 ? t * mask : zero;
-  const V gw = t * t * t;
-  const V vr = dvx * dx + dvy * dy + dvz * dz;
-  const V ie = 1 / (r2 + k.eta2);
-  const V piv = vr < 0 ? (-k.avc) * vr * ie * (iri + irj) : zero;
-  const V A = gw * (Pi + Pj + piv);
-  const V B = gw * r2 * ie * irj * kv;
-  acc.ax += A * dx - B * dvx;
-  acc.ay += A * dy - B * dvy;
-  acc.az += A * dz - B * dvz;
+ORTHOSIM_SPH_INLINE VF vsqrtf(VF x) {
+  VF r;
+  for (int k = 0; k < 8; ++k) r[k] = std::sqrt(x[k]);
+  return r;
 }
 
-inline V loadu(const Real* a) {
-  V v;
+ORTHOSIM_SPH_INLINE VF minimum_image(VF d, float period) {
+  VF r;
+  for (int k = 0; k < 8; ++k) r[k] = d[k] - period * std::nearbyint(d[k] / period);
+  return r;
+}
+
+// 8 lanes of float added into 4 lanes of double (lanes k and k + 4 first;
+// through an 8-double vector: GCC then converts with two vcvtps2pd)
+ORTHOSIM_SPH_INLINE void add_wide(V& acc, VF v) {
+  using V8 = Real __attribute__((vector_size(8 * sizeof(Real))));
+  const V8 w = __builtin_convertvector(v, V8);
+  acc += __builtin_shufflevector(w, w, 0, 1, 2, 3) + __builtin_shufflevector(w, w, 4, 5, 6, 7);
+}
+
+ORTHOSIM_SPH_INLINE VF loadf(const float* a) {
+  VF v;
   std::memcpy(&v, a, sizeof v);
   return v;
 }
 
-// 4 x 4 transpose of rows (a0 a1 a2 a3) into columns
-inline void transpose4(V r0, V r1, V r2, V r3, V& c0, V& c1, V& c2, V& c3) {
-  using M = std::int64_t __attribute__((vector_size(32)));
-  const V t0 = __builtin_shuffle(r0, r1, M{0, 4, 2, 6}), t1 = __builtin_shuffle(r0, r1, M{1, 5, 3, 7});
-  const V t2 = __builtin_shuffle(r2, r3, M{0, 4, 2, 6}), t3 = __builtin_shuffle(r2, r3, M{1, 5, 3, 7});
-  c0 = __builtin_shuffle(t0, t2, M{0, 1, 4, 5});
-  c2 = __builtin_shuffle(t0, t2, M{2, 3, 6, 7});
-  c1 = __builtin_shuffle(t1, t3, M{0, 1, 4, 5});
-  c3 = __builtin_shuffle(t1, t3, M{2, 3, 6, 7});
+// 8 x 8 transpose: r[k] is particle k's record, c[a] the field a of the 8
+ORTHOSIM_SPH_INLINE void transpose8(const VF* r, VF* c) {
+  const VI lo = {0, 8, 1, 9, 4, 12, 5, 13}, hi = {2, 10, 3, 11, 6, 14, 7, 15};
+  const VI s0 = {0, 1, 8, 9, 4, 5, 12, 13}, s1 = {2, 3, 10, 11, 6, 7, 14, 15};
+  const VI p0 = {0, 1, 2, 3, 8, 9, 10, 11}, p1 = {4, 5, 6, 7, 12, 13, 14, 15};
+  VF t[8], u[8];
+  for (int k = 0; k < 4; ++k) {
+    t[2 * k] = __builtin_shuffle(r[2 * k], r[2 * k + 1], lo);
+    t[2 * k + 1] = __builtin_shuffle(r[2 * k], r[2 * k + 1], hi);
+  }
+  for (int h = 0; h < 2; ++h) {  // rows 0-3, rows 4-7
+    u[4 * h] = __builtin_shuffle(t[4 * h], t[4 * h + 2], s0);
+    u[4 * h + 1] = __builtin_shuffle(t[4 * h], t[4 * h + 2], s1);
+    u[4 * h + 2] = __builtin_shuffle(t[4 * h + 1], t[4 * h + 3], s0);
+    u[4 * h + 3] = __builtin_shuffle(t[4 * h + 1], t[4 * h + 3], s1);
+  }
+  for (int a = 0; a < 4; ++a) {
+    c[a] = __builtin_shuffle(u[a], u[4 + a], p0);
+    c[4 + a] = __builtin_shuffle(u[a], u[4 + a], p1);
+  }
 }
 
 // kVar: per-particle viscosity (carreau), mu_i + mu_j per pair; else 2 mu
 template <bool kVar>
-inline __attribute__((always_inline)) void force_cell_impl(const Pass& c, std::int32_t cell) {
+ORTHOSIM_SPH_INLINE void force_cell_impl(const Pass& c, std::int32_t cell) {
   const Fluid& f = *c.f;
   const PairConstants k(f);
-  const V zero = {0, 0, 0, 0}, lane = {0, 1, 2, 3};
+  const VF zero = {0, 0, 0, 0, 0, 0, 0, 0}, one = {1, 1, 1, 1, 1, 1, 1, 1};
+  const VI lane = {0, 1, 2, 3, 4, 5, 6, 7};
+  const V zero4 = {0, 0, 0, 0};
   const bool periodic = c.period[0] > 0 || c.period[1] > 0 || c.period[2] > 0;
+  const float per[3] = {static_cast<float>(c.period[0]), static_cast<float>(c.period[1]), static_cast<float>(c.period[2])};
   NeighbourRun runs[27];
   int nr = -1;
   for (std::int32_t i = c.g->start[cell]; i < c.g->start[cell + 1]; ++i) {
-    PairSums acc{zero, zero, zero};
-    const Real Pi = c.P[i], iri = c.ir[i], kv = k.two_mu * iri;
-    // Morris viscosity with 2 mu, or mu_i + mu_j per pair (carreau)
-    const Real kvar = kVar ? f.viscous_scale * iri : 0, mui = kVar ? c.mu[i] : 0;
-    const V kv4 = {kv, kv, kv, kv};
-    const Real xi = c.x[i], yi = c.y[i], zi = c.z[i], vxi = c.vx[i], vyi = c.vy[i], vzi = c.vz[i];
+    const float* pi = c.pack + 8 * static_cast<std::int64_t>(i);
+    const float xi = pi[0], yi = pi[1], zi = pi[2], Pi = pi[3], vxi = pi[4], vyi = pi[5], vzi = pi[6], iri = pi[7];
+    const float mui = kVar ? static_cast<float>(c.mu[i]) : 0;
+    PairSums acc{zero4, zero4, zero4};
+    // neighbours j[0..7] (their records), lanes where mask = 0 add exactly 0
+    auto group = [&](const std::int32_t* j, VF mask) ORTHOSIM_SPH_LAMBDA {
+      VF r[8], col[8];
+      for (int l = 0; l < 8; ++l) r[l] = loadf(c.pack + 8 * static_cast<std::int64_t>(j[l]));
+      transpose8(r, col);
+      VF dx = xi - col[0], dy = yi - col[1], dz = zi - col[2];
+      if (periodic) {
+        if (per[0] > 0) dx = minimum_image(dx, per[0]);
+        if (per[1] > 0) dy = minimum_image(dy, per[1]);
+        if (per[2] > 0) dz = minimum_image(dz, per[2]);
+      }
+      const VF dvx = vxi - col[4], dvy = vyi - col[5], dvz = vzi - col[6], irj = col[7];
+      VF visc;  // 2 mu / (rho_i rho_j) with the lattice scale
+      if constexpr (kVar) {
+        auto mu = [&](int l) { return static_cast<float>(c.mu[std::min(j[l], c.n - 1)]); };
+        const VF muj = {mu(0), mu(1), mu(2), mu(3), mu(4), mu(5), mu(6), mu(7)};
+        visc = (k.vscale * (mui + muj)) * (iri * irj);
+      } else {
+        visc = k.two_mu * (iri * irj);
+      }
+      const VF r2 = dx * dx + dy * dy + dz * dz;
+      const VF q = vsqrtf(r2) * k.invH;
+      VF t = 1 - q;
+      t = t > 0 ? t * mask : zero;
+      const VF gw = t * t * t;
+      const VF vr = dvx * dx + dvy * dy + dvz * dz;
+      const VF ie = 1 / (r2 + k.eta2);
+      const VF piv = vr < 0 ? (-k.avc) * vr * ie * (iri + irj) : zero;
+      const VF A = gw * (Pi + col[3] + piv);
+      const VF B = gw * r2 * ie * visc;
+      add_wide(acc.ax, A * dx - B * dvx);
+      add_wide(acc.ay, A * dy - B * dvy);
+      add_wide(acc.az, A * dz - B * dvz);
+    };
     const std::int32_t cnt = c.count[i];
     if (cnt <= kMaxList) {
-      // gather over the list, 4 at a time, from the packed records (two 4 x 4 transposes)
+      // over the list, 8 at a time (padded with i: the self term is exactly 0)
       const std::int32_t* list = c.list + static_cast<std::int64_t>(i) * kListStride;
-      for (std::int32_t b = 0; b < cnt; b += 4) {
-        const std::int32_t* j = list + b;
-        const Real *p0 = c.pack + 8 * static_cast<std::int64_t>(j[0]), *p1 = c.pack + 8 * static_cast<std::int64_t>(j[1]);
-        const Real *p2 = c.pack + 8 * static_cast<std::int64_t>(j[2]), *p3 = c.pack + 8 * static_cast<std::int64_t>(j[3]);
-        V X, Y, Z, Pj, VX, VY, VZ, irj;
-        transpose4(loadu(p0), loadu(p1), loadu(p2), loadu(p3), X, Y, Z, Pj);
-        transpose4(loadu(p0 + 4), loadu(p1 + 4), loadu(p2 + 4), loadu(p3 + 4), VX, VY, VZ, irj);
-        V dx = xi - X, dy = yi - Y, dz = zi - Z;
-        if (periodic) {
-          dx = minimum_image(dx, c.period[0]);
-          dy = minimum_image(dy, c.period[1]);
-          dz = minimum_image(dz, c.period[2]);
-        }
-        const V mask = (lane + static_cast<Real>(b)) < static_cast<Real>(cnt) ? V{1, 1, 1, 1} : zero;
-        const V kvj = kVar ? kvar * (mui + V{c.mu[j[0]], c.mu[j[1]], c.mu[j[2]], c.mu[j[3]]}) : kv4;
-        pair_terms(k, dx, dy, dz, vxi - VX, vyi - VY, vzi - VZ, Pj, irj, mask, Pi, iri, kvj, acc);
-      }
+      for (std::int32_t b = 0; b < cnt; b += 8) group(list + b, (lane + b) < cnt ? one : zero);
     } else {
-      // overflow: scan the cells (the self term is zero: r_ii = 0, v_ii = 0)
+      // overflow: scan the cells in 8 consecutive slots (the pack has 8
+      // records of padding; the self term is exactly 0)
       if (nr < 0) nr = neighbour_runs(*c.g, cell, runs);
-      for (int r = 0; r < nr; ++r) {
-        const Real xs = xi - runs[r].sx, ys = yi - runs[r].sy, zs = zi - runs[r].sz;
-        for_lanes(runs[r].begin, runs[r].end, c.n, [&](std::int32_t s, V mask) {
-          const V kvj = kVar ? kvar * (mui + load4(c.mu, s, c.n)) : kv4;
-          pair_terms(k, xs - load4(c.x, s, c.n), ys - load4(c.y, s, c.n), zs - load4(c.z, s, c.n), vxi - load4(c.vx, s, c.n),
-                     vyi - load4(c.vy, s, c.n), vzi - load4(c.vz, s, c.n), load4(c.P, s, c.n), load4(c.ir, s, c.n), mask, Pi,
-                     iri, kvj, acc);
-        });
-      }
+      for (int r = 0; r < nr; ++r)
+        for (std::int32_t s = runs[r].begin; s < runs[r].end; s += 8) {
+          std::int32_t j[8];
+          for (int l = 0; l < 8; ++l) j[l] = std::min(s + l, c.n);  // slot n: the first padding record
+          group(j, (lane + s) < runs[r].end ? one : zero);
+        }
     }
     const Real m = f.mass * Real(210) / (kPi * f.H * f.H * f.H * f.H * f.H);
     c.ax[i] = m * hsum(acc.ax);
@@ -863,30 +935,29 @@ void shear_viscosity_cell(const Pass& c, std::int32_t cell) {
     Real m00 = 0, m01 = 0, m02 = 0, m11 = 0, m12 = 0, m22 = 0;
     Real a[3][3] = {{0, 0, 0}, {0, 0, 0}, {0, 0, 0}};
     const Real xi = c.x[i], yi = c.y[i], zi = c.z[i], vxi = c.vx[i], vyi = c.vy[i], vzi = c.vz[i];
-    // neighbour j's packed record: x, y, z, P, vx, vy, vz, 1/rho
-    auto add = [&](const Real* pk, Real sx, Real sy, Real sz) {
-      Real d[3] = {xi - sx - pk[0], yi - sy - pk[1], zi - sz - pk[2]};
+    auto add = [&](std::int32_t j, Real sx, Real sy, Real sz) {
+      Real d[3] = {xi - sx - c.x[j], yi - sy - c.y[j], zi - sz - c.z[j]};
       if (periodic)
         for (int k = 0; k < 3; ++k)
           if (c.period[k] > 0) d[k] -= c.period[k] * std::round(d[k] / c.period[k]);
       const Real r2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
       if (!(r2 < f.H * f.H) || r2 == 0) return;
-      const Real t = 1 - std::sqrt(r2) * invH, w = G * pk[7] * t * t * t;
+      const Real t = 1 - std::sqrt(r2) * invH, w = G * c.ir[j] * t * t * t;
       m00 += w * d[0] * d[0], m01 += w * d[0] * d[1], m02 += w * d[0] * d[2];
       m11 += w * d[1] * d[1], m12 += w * d[1] * d[2], m22 += w * d[2] * d[2];
-      const Real dv[3] = {w * (vxi - pk[4]), w * (vyi - pk[5]), w * (vzi - pk[6])};
+      const Real dv[3] = {w * (vxi - c.vx[j]), w * (vyi - c.vy[j]), w * (vzi - c.vz[j])};
       for (int r = 0; r < 3; ++r)
         for (int k = 0; k < 3; ++k) a[r][k] += dv[r] * d[k];
     };
     const std::int32_t cnt = c.count[i];
     if (cnt <= kMaxList) {
       const std::int32_t* list = c.list + static_cast<std::int64_t>(i) * kListStride;
-      for (std::int32_t b = 0; b < cnt; ++b) add(c.pack + 8 * static_cast<std::int64_t>(list[b]), 0, 0, 0);
+      for (std::int32_t b = 0; b < cnt; ++b) add(list[b], 0, 0, 0);
     } else {
       if (nr < 0) nr = neighbour_runs(*c.g, cell, runs);
       for (int r = 0; r < nr; ++r)
         for (std::int32_t j = runs[r].begin; j < runs[r].end; ++j)
-          if (j != i) add(c.pack + 8 * static_cast<std::int64_t>(j), runs[r].sx, runs[r].sy, runs[r].sz);
+          if (j != i) add(j, runs[r].sx, runs[r].sy, runs[r].sz);
     }
     Eigen::Matrix3d M, A;
     M << m00, m01, m02, m01, m11, m12, m02, m12, m22;
@@ -908,7 +979,7 @@ Real pressure_sum(const Pass& c, std::int32_t i) {
   const bool periodic = c.period[0] > 0 || c.period[1] > 0 || c.period[2] > 0;
   const Real xi = c.x[i], yi = c.y[i], zi = c.z[i];
   V acc = zero;
-  auto term = [&](V dx, V dy, V dz, V pj, V mask) {
+  auto term = [&](V dx, V dy, V dz, V pj, V mask) ORTHOSIM_SPH_LAMBDA {
     const V q = vsqrt(dx * dx + dy * dy + dz * dz) * invH;
     V t = 1 - q;
     t = t > 0 ? t * mask : zero;
@@ -920,7 +991,7 @@ Real pressure_sum(const Pass& c, std::int32_t i) {
     const std::int32_t* list = c.list + static_cast<std::int64_t>(i) * kListStride;
     for (std::int32_t b = 0; b < cnt; b += 4) {
       const std::int32_t* j = list + b;
-      auto gather = [&](const Real* a) { return V{a[j[0]], a[j[1]], a[j[2]], a[j[3]]}; };
+      auto gather = [&](const Real* a) ORTHOSIM_SPH_LAMBDA { return V{a[j[0]], a[j[1]], a[j[2]], a[j[3]]}; };
       V dx = xi - gather(c.x), dy = yi - gather(c.y), dz = zi - gather(c.z);
       if (periodic) {
         dx = minimum_image(dx, c.period[0]);
@@ -935,7 +1006,7 @@ Real pressure_sum(const Pass& c, std::int32_t i) {
   const int nr = neighbour_runs(*c.g, c.g->point_cell[c.g->order[i]], runs);
   for (int r = 0; r < nr; ++r) {
     const Real xs = xi - runs[r].sx, ys = yi - runs[r].sy, zs = zi - runs[r].sz;
-    for_lanes(runs[r].begin, runs[r].end, c.n, [&](std::int32_t s, V mask) {
+    for_lanes(runs[r].begin, runs[r].end, c.n, [&](std::int32_t s, V mask) ORTHOSIM_SPH_LAMBDA {
       term(xs - load4(c.x, s, c.n), ys - load4(c.y, s, c.n), zs - load4(c.z, s, c.n), load4(c.p, s, c.n), mask);
     });
   }
@@ -1137,7 +1208,10 @@ struct Stepper {
     c.x = s.x[0].data(), c.y = s.x[1].data(), c.z = s.x[2].data();
     c.vx = s.v[0].data(), c.vy = s.v[1].data(), c.vz = s.v[2].data();
     c.rho = s.rho.data(), c.p = s.p.data(), c.P = sc.P.data(), c.ir = sc.inv_rho.data(), c.nb = sc.neighbours.data();
-    grow_scratch(sc.pack, 8 * np);
+    grow_scratch(sc.pack, 8 * (np + 8));
+    // 8 records of padding, far away and at rest (overflowed particles read them masked)
+    std::fill(sc.pack.begin() + 8 * static_cast<std::ptrdiff_t>(np), sc.pack.end(), 0.0f);
+    for (std::size_t k = np; k < np + 8; ++k) sc.pack[8 * k] = sc.pack[8 * k + 1] = sc.pack[8 * k + 2] = 1e15f;
     c.pack = sc.pack.data();
     if (f.params.rheology == Rheology::carreau) {
       sc.mu.resize(np);
@@ -1183,9 +1257,10 @@ struct Stepper {
               c.p[i] = pr;
               c.ir[i] = 1 / rho;
               c.P[i] = gs * pr / (rho * rho);
-              Real* pk = c.pack + 8 * static_cast<std::int64_t>(i);
-              pk[0] = c.x[i], pk[1] = c.y[i], pk[2] = c.z[i], pk[3] = c.P[i];
-              pk[4] = c.vx[i], pk[5] = c.vy[i], pk[6] = c.vz[i], pk[7] = c.ir[i];
+              float* pk = c.pack + 8 * static_cast<std::int64_t>(i);
+              pk[0] = c.xf[i], pk[1] = c.yf[i], pk[2] = c.zf[i], pk[3] = static_cast<float>(c.P[i]);
+              pk[4] = static_cast<float>(c.vx[i]), pk[5] = static_cast<float>(c.vy[i]), pk[6] = static_cast<float>(c.vz[i]);
+              pk[7] = static_cast<float>(c.ir[i]);
               best = std::max(best, rho / rho0 - 1);
             }
           }
