@@ -658,22 +658,35 @@ __attribute__((target("avx2"), always_inline)) inline std::int32_t scan_run_avx2
 #endif
 
 // The lists of the particles [b, e) of one cell over the runs around it:
-// list and count of each (see scan_run). One call per cell: the runs' loop
-// and the scan of a run are inlined into it.
+// list and count of each (see scan_run). One call per cell. The runs are the
+// outer loop and the cell's particles the inner one (in chunks of 64), so
+// the scan of a run repeats its trip count for every particle of the cell
+// (a predictable branch); each list is still filled run by run, in the same
+// order as particle by particle. A particle's float position is its xf
+// entry, recomputed from the double only for a run shifted by a period.
 using ScanCellFn = void (*)(const Pass& c, const NeighbourRun* runs, int nr, std::int32_t b, std::int32_t e);
 
-// particle i's position relative to the grid origin less run r's shift, in float
-#define ORTHOSIM_SPH_SCAN_CELL(scan)                                                                    \
-  for (std::int32_t i = b; i < e; ++i) {                                                               \
-    std::int32_t* list = c.list + static_cast<std::int64_t>(i) * kListStride;                         \
-    std::int32_t cnt = 0;                                                                              \
-    for (int r = 0; r < nr; ++r) {                                                                     \
-      const auto xi = static_cast<float>(c.x[i] - runs[r].sx - c.origin[0]);                           \
-      const auto yi = static_cast<float>(c.y[i] - runs[r].sy - c.origin[1]);                           \
-      const auto zi = static_cast<float>(c.z[i] - runs[r].sz - c.origin[2]);                           \
-      cnt = scan(c.xf, c.yf, c.zf, runs[r].begin, runs[r].end, i, xi, yi, zi, c.search_r2, list, cnt); \
-    }                                                                                                  \
-    c.count[i] = cnt;                                                                                  \
+#define ORTHOSIM_SPH_SCAN_CELL(scan)                                                                          \
+  constexpr std::int32_t kChunk = 64;                                                                        \
+  std::int32_t cnt[kChunk];                                                                                  \
+  for (std::int32_t cb = b; cb < e; cb += kChunk) {                                                          \
+    const std::int32_t ce = std::min(e, cb + kChunk);                                                        \
+    for (std::int32_t i = cb; i < ce; ++i) cnt[i - cb] = 0;                                                  \
+    for (int r = 0; r < nr; ++r) {                                                                           \
+      const NeighbourRun& run = runs[r];                                                                     \
+      const bool shifted = run.sx != 0 || run.sy != 0 || run.sz != 0;                                        \
+      for (std::int32_t i = cb; i < ce; ++i) {                                                               \
+        float xi = c.xf[i], yi = c.yf[i], zi = c.zf[i];                                                      \
+        if (shifted) {                                                                                       \
+          xi = static_cast<float>(c.x[i] - run.sx - c.origin[0]);                                            \
+          yi = static_cast<float>(c.y[i] - run.sy - c.origin[1]);                                            \
+          zi = static_cast<float>(c.z[i] - run.sz - c.origin[2]);                                            \
+        }                                                                                                    \
+        std::int32_t* list = c.list + static_cast<std::int64_t>(i) * kListStride;                           \
+        cnt[i - cb] = scan(c.xf, c.yf, c.zf, run.begin, run.end, i, xi, yi, zi, c.search_r2, list, cnt[i - cb]); \
+      }                                                                                                      \
+    }                                                                                                        \
+    for (std::int32_t i = cb; i < ce; ++i) c.count[i] = cnt[i - cb];                                        \
   }
 
 void scan_cell_generic(const Pass& c, const NeighbourRun* runs, int nr, std::int32_t b, std::int32_t e) {
