@@ -549,9 +549,11 @@ struct Pass {
   const Walls* walls = nullptr;
   std::int32_t n = 0;
   const Real *x = nullptr, *y = nullptr, *z = nullptr, *vx = nullptr, *vy = nullptr, *vz = nullptr;
-  Real *rho = nullptr, *p = nullptr, *P = nullptr, *ir = nullptr, *nb = nullptr, *ksum = nullptr;
+  Real *rho = nullptr, *p = nullptr, *ir = nullptr, *nb = nullptr, *ksum = nullptr;
   Real *ax = nullptr, *ay = nullptr, *az = nullptr, *wx = nullptr, *wy = nullptr, *wz = nullptr;
   float* pack = nullptr;          // (n + 8) x 8: x, y, z (- origin), P, vx, vy, vz, 1/rho in single precision (the force pass)
+  std::uint8_t* near = nullptr;   // (n) 1 where a wall may be within H (Walls::maybe_near): the force pass sums psum
+  Real* psum = nullptr;           // (n) Pa, sum_{j != i} p_j (1 - q)^4 (1 + 4 q), where near (the walls' Shepard pressure)
   Real* mu = nullptr;             // (n) Pa s, per-particle viscosity (carreau rheology), else null
   std::int32_t* list = nullptr;   // (n x kListStride) neighbour lists (self excluded), padded with i
   std::int32_t* count = nullptr;  // (n) list lengths; > kMaxList: overflowed, the force pass scans the cells
@@ -790,13 +792,14 @@ using VF = float __attribute__((vector_size(8 * sizeof(float))));
 using VI = std::int32_t __attribute__((vector_size(8 * sizeof(std::int32_t))));
 
 struct PairConstants {
-  float invH, eta2, avc, two_mu, vscale;
+  float invH, eta2, avc, two_mu, vscale, gs;
   explicit PairConstants(const Fluid& f)
       : invH(static_cast<float>(1 / f.H)),
         eta2(static_cast<float>(0.01 * f.h * f.h)),
         avc(static_cast<float>(f.params.artificial_viscosity * f.c0 * f.h * 0.5 * f.gradient_scale)),
         two_mu(static_cast<float>(2 * f.params.viscosity * f.viscous_scale)),
-        vscale(static_cast<float>(f.viscous_scale)) {}
+        vscale(static_cast<float>(f.viscous_scale)),
+        gs(static_cast<float>(f.gradient_scale)) {}
 };
 
 struct PairSums {
@@ -866,10 +869,12 @@ ORTHOSIM_SPH_INLINE void force_cell_impl(const Pass& c, std::int32_t cell) {
   for (std::int32_t i = c.g->start[cell]; i < c.g->start[cell + 1]; ++i) {
     const float* pi = c.pack + 8 * static_cast<std::int64_t>(i);
     const float xi = pi[0], yi = pi[1], zi = pi[2], Pi = pi[3], vxi = pi[4], vyi = pi[5], vzi = pi[6], iri = pi[7];
+    const bool shepard = c.near[i] != 0;
+    V psum = zero4;
     const float mui = kVar ? static_cast<float>(c.mu[i]) : 0;
     PairSums acc{zero4, zero4, zero4};
     // neighbours j[0..7] (their records), lanes where mask = 0 add exactly 0
-    auto group = [&](const std::int32_t* j, VF mask) ORTHOSIM_SPH_LAMBDA {
+    auto group = [&](const std::int32_t* j, VF mask, auto with_psum) ORTHOSIM_SPH_LAMBDA {
       VF r[8], col[8];
       for (int l = 0; l < 8; ++l) r[l] = loadf(c.pack + 8 * static_cast<std::int64_t>(j[l]));
       transpose8(r, col);
@@ -901,27 +906,42 @@ ORTHOSIM_SPH_INLINE void force_cell_impl(const Pass& c, std::int32_t cell) {
       add_wide(acc.ax, A * dx - B * dvx);
       add_wide(acc.ay, A * dy - B * dvy);
       add_wide(acc.az, A * dz - B * dvz);
+      if constexpr (decltype(with_psum)::value) {  // p_j W_ij, p_j = P_j rho_j^2 / gs (the 1 / gs below)
+        const VF t2 = t * t;
+        add_wide(psum, col[3] / (irj * irj) * (t2 * t2 * (1 + 4 * q)));
+      }
     };
+    using Yes = std::true_type;
+    using No = std::false_type;
     const std::int32_t cnt = c.count[i];
     if (cnt <= kMaxList) {
       // over the list, 8 at a time (padded with i: the self term is exactly 0)
       const std::int32_t* list = c.list + static_cast<std::int64_t>(i) * kListStride;
-      for (std::int32_t b = 0; b < cnt; b += 8) group(list + b, (lane + b) < cnt ? one : zero);
+      if (shepard)
+        for (std::int32_t b = 0; b < cnt; b += 8) group(list + b, (lane + b) < cnt ? one : zero, Yes{});
+      else
+        for (std::int32_t b = 0; b < cnt; b += 8) group(list + b, (lane + b) < cnt ? one : zero, No{});
     } else {
       // overflow: scan the cells in 8 consecutive slots (the pack has 8
-      // records of padding; the self term is exactly 0)
+      // records of padding; the self term of the forces is exactly 0, that
+      // of psum, p_i W(0), is taken out below)
       if (nr < 0) nr = neighbour_runs(*c.g, cell, runs);
       for (int r = 0; r < nr; ++r)
         for (std::int32_t s = runs[r].begin; s < runs[r].end; s += 8) {
           std::int32_t j[8];
           for (int l = 0; l < 8; ++l) j[l] = std::min(s + l, c.n);  // slot n: the first padding record
-          group(j, (lane + s) < runs[r].end ? one : zero);
+          if (shepard)
+            group(j, (lane + s) < runs[r].end ? one : zero, Yes{});
+          else
+            group(j, (lane + s) < runs[r].end ? one : zero, No{});
         }
+      psum[0] -= Pi / (iri * iri);  // the self term, W(0) = 1
     }
     const Real m = f.mass * Real(210) / (kPi * f.H * f.H * f.H * f.H * f.H);
     c.ax[i] = m * hsum(acc.ax);
     c.ay[i] = m * hsum(acc.ay);
     c.az[i] = m * hsum(acc.az);
+    if (shepard) c.psum[i] = hsum(psum) / f.gradient_scale;
   }
 }
 
@@ -983,49 +1003,6 @@ void shear_viscosity_cell(const Pass& c, std::int32_t cell) {
   }
 }
 
-// psum_i = sum_{j != i} p_j (1 - q)^4 (1 + 4 q), for the walls' Shepard
-// pressure: only particles near a wall need it.
-ORTHOSIM_SPH_CLONES
-Real pressure_sum(const Pass& c, std::int32_t i) {
-  const Real invH = 1 / c.f->H;
-  const V zero = {0, 0, 0, 0}, one = {1, 1, 1, 1}, lane = {0, 1, 2, 3};
-  const bool periodic = c.period[0] > 0 || c.period[1] > 0 || c.period[2] > 0;
-  const Real xi = c.x[i], yi = c.y[i], zi = c.z[i];
-  V acc = zero;
-  auto term = [&](V dx, V dy, V dz, V pj, V mask) ORTHOSIM_SPH_LAMBDA {
-    const V q = vsqrt(dx * dx + dy * dy + dz * dz) * invH;
-    V t = 1 - q;
-    t = t > 0 ? t * mask : zero;
-    const V t2 = t * t;
-    acc += pj * t2 * t2 * (1 + 4 * q);
-  };
-  const std::int32_t cnt = c.count[i];
-  if (cnt <= kMaxList) {
-    const std::int32_t* list = c.list + static_cast<std::int64_t>(i) * kListStride;
-    for (std::int32_t b = 0; b < cnt; b += 4) {
-      const std::int32_t* j = list + b;
-      auto gather = [&](const Real* a) ORTHOSIM_SPH_LAMBDA { return V{a[j[0]], a[j[1]], a[j[2]], a[j[3]]}; };
-      V dx = xi - gather(c.x), dy = yi - gather(c.y), dz = zi - gather(c.z);
-      if (periodic) {
-        dx = minimum_image(dx, c.period[0]);
-        dy = minimum_image(dy, c.period[1]);
-        dz = minimum_image(dz, c.period[2]);
-      }
-      term(dx, dy, dz, gather(c.p), (lane + static_cast<Real>(b)) < static_cast<Real>(cnt) ? one : zero);
-    }
-    return hsum(acc);
-  }
-  NeighbourRun runs[27];
-  const int nr = neighbour_runs(*c.g, c.g->point_cell[c.g->order[i]], runs);
-  for (int r = 0; r < nr; ++r) {
-    const Real xs = xi - runs[r].sx, ys = yi - runs[r].sy, zs = zi - runs[r].sz;
-    for_lanes(runs[r].begin, runs[r].end, c.n, [&](std::int32_t s, V mask) ORTHOSIM_SPH_LAMBDA {
-      term(xs - load4(c.x, s, c.n), ys - load4(c.y, s, c.n), zs - load4(c.z, s, c.n), load4(c.p, s, c.n), mask);
-    });
-  }
-  return hsum(acc) - c.p[i];  // the self term, W(0) = 1
-}
-
 // Wall share of the kernel sum over all contacts, sum_w f0(d_w / H). The
 // plain sum counts the sites beyond two walls twice; on the rest lattice in
 // a right-angled corner that overlap is ~2 % of the kernel sum, far less than
@@ -1083,7 +1060,7 @@ Vec3 wall_acceleration(const Fluid& f, const Walls& w, const Vec3& p, const Vec3
 // the two passes.
 inline Real shepard_pressure(const Pass& c, std::int32_t i) {
   const Real den = c.ksum[i];
-  return den > 0 ? std::max(Real(0), (pressure_sum(c, i) + c.p[i]) / den) : c.p[i];
+  return den > 0 ? std::max(Real(0), (c.psum[i] + c.p[i]) / den) : c.p[i];
 }
 
 // Projection of a particle out of a wall with restitution and friction.
@@ -1203,7 +1180,8 @@ struct Stepper {
   Pass pass(Real tau) {
     FluidScratch& sc = s.scratch;
     const std::size_t np = static_cast<std::size_t>(n());
-    sc.P.resize(np);
+    sc.near.resize(np);
+    sc.psum.resize(np);
     sc.inv_rho.resize(np);
     sc.neighbours.resize(np);
     sc.ksum.resize(np);
@@ -1220,7 +1198,7 @@ struct Stepper {
     c.n = n();
     c.x = s.x[0].data(), c.y = s.x[1].data(), c.z = s.x[2].data();
     c.vx = s.v[0].data(), c.vy = s.v[1].data(), c.vz = s.v[2].data();
-    c.rho = s.rho.data(), c.p = s.p.data(), c.P = sc.P.data(), c.ir = sc.inv_rho.data(), c.nb = sc.neighbours.data();
+    c.rho = s.rho.data(), c.p = s.p.data(), c.near = sc.near.data(), c.psum = sc.psum.data(), c.ir = sc.inv_rho.data(), c.nb = sc.neighbours.data();
     grow_scratch(sc.pack, 8 * (np + 8));
     // 8 records of padding, far away and at rest (overflowed particles read them masked)
     std::fill(sc.pack.begin() + 8 * static_cast<std::ptrdiff_t>(np), sc.pack.end(), 0.0f);
@@ -1251,7 +1229,6 @@ struct Stepper {
     const bool clamp = f.params.clamp_negative_pressure;
     const std::size_t ntw = walls.n_triangle_walls();  // the triangle contacts are cached for the force pass
     contact_cache.resize(ntw * static_cast<std::size_t>(c.n));
-    const Real gs = f.gradient_scale;
     return tbb::parallel_reduce(
         tbb::blocked_range<std::size_t>(0, occ.size(), 16), Real(-HUGE_VAL),
         [&](const tbb::blocked_range<std::size_t>& r, Real best) {
@@ -1262,16 +1239,16 @@ struct Stepper {
               const Vec3 p{c.x[i], c.y[i], c.z[i]};
               Contact* cache = ntw > 0 ? contact_cache.data() + static_cast<std::size_t>(i) * ntw : nullptr;
               const std::int32_t* hint = ntw > 0 ? s.scratch.wall_hint.data() + static_cast<std::size_t>(i) * ntw : nullptr;
-              const Real rho =
-                  mk * c.ksum[i] + (walls.maybe_near(p) ? rho0 * wall_fraction(f, walls, p, c.tau, cache, hint) : Real(0));
+              const bool near = walls.maybe_near(p);
+              c.near[i] = near;
+              const Real rho = mk * c.ksum[i] + (near ? rho0 * wall_fraction(f, walls, p, c.tau, cache, hint) : Real(0));
               Real pr = eos_pressure(f.eos, rho, rho0, f.c0, gamma);
               if (clamp) pr = std::max(Real(0), pr);
               c.rho[i] = rho;
               c.p[i] = pr;
               c.ir[i] = 1 / rho;
-              c.P[i] = gs * pr / (rho * rho);
               float* pk = c.pack + 8 * static_cast<std::int64_t>(i);
-              pk[0] = c.xf[i], pk[1] = c.yf[i], pk[2] = c.zf[i], pk[3] = static_cast<float>(c.P[i]);
+              pk[0] = c.xf[i], pk[1] = c.yf[i], pk[2] = c.zf[i], pk[3] = static_cast<float>(f.gradient_scale * pr / (rho * rho));
               pk[4] = static_cast<float>(c.vx[i]), pk[5] = static_cast<float>(c.vy[i]), pk[6] = static_cast<float>(c.vz[i]);
               pk[7] = static_cast<float>(c.ir[i]);
               best = std::max(best, rho / rho0 - 1);
@@ -2032,12 +2009,22 @@ FluidStepInfo fluid_step(const Fluid& f, FluidState& s, Real dt, const FluidBoun
   s.counters.substeps += info.substeps;
   if (info.substeps == 0) info.min_substep = 0;
   if (!(info.max_compression > -HUGE_VAL)) info.max_compression = 0;
+  // the neighbour counts (whole numbers: an exact sum) and the top speed, in parallel
   const auto& nb = s.scratch.neighbours;
-  if (!nb.empty()) info.mean_neighbours = std::accumulate(nb.begin(), nb.end(), Real(0)) / static_cast<Real>(nb.size());
-  Real v2 = 0;
-  for (std::size_t i = 0; i < s.id.size(); ++i)
-    v2 = std::max(v2, s.v[0][i] * s.v[0][i] + s.v[1][i] * s.v[1][i] + s.v[2][i] * s.v[2][i]);
-  info.max_speed = std::sqrt(v2);
+  using Tail = std::pair<std::int64_t, Real>;
+  const std::size_t nn = std::max(nb.size(), s.id.size());
+  const Tail tail = tbb::parallel_reduce(
+      tbb::blocked_range<std::size_t>(0, nn, 4096), Tail{0, 0},
+      [&](const tbb::blocked_range<std::size_t>& r, Tail t) {
+        for (std::size_t i = r.begin(); i < r.end(); ++i) {
+          if (i < nb.size()) t.first += static_cast<std::int64_t>(nb[i]);
+          if (i < s.id.size()) t.second = std::max(t.second, s.v[0][i] * s.v[0][i] + s.v[1][i] * s.v[1][i] + s.v[2][i] * s.v[2][i]);
+        }
+        return t;
+      },
+      [](Tail a, const Tail& b2) { return Tail{a.first + b2.first, std::max(a.second, b2.second)}; });
+  if (!nb.empty()) info.mean_neighbours = static_cast<Real>(tail.first) / static_cast<Real>(nb.size());
+  info.max_speed = std::sqrt(tail.second);
   s.last = info;
   return info;
 }

@@ -431,7 +431,8 @@ struct FluidScratch {
   std::vector<std::int64_t> tmp_id;     // (n)
   std::array<std::vector<Real>, 3> a;   // (3)(n) m/s^2, particle forces / mass
   std::array<std::vector<Real>, 3> aw;  // (3)(n) m/s^2, of which from walls
-  std::vector<Real> P;                  // (n) p / rho^2
+  std::vector<std::uint8_t> near;       // (n) 1 where a wall may be within H
+  std::vector<Real> psum;               // (n) Pa, the walls' Shepard pressure sums (where near)
   std::vector<Real> inv_rho;            // (n) 1 / rho
   std::vector<Real> mu;                 // (n) Pa s, per-particle viscosity (carreau rheology only)
   std::vector<Real> neighbours;         // (n) particles within H, self included
