@@ -590,6 +590,15 @@ Real bleeding_flow_rate(Real radius, Real pressure, const FluidParams& p, Real l
   return capped_by_orifice(carreau_pipe_flow_rate(radius, pressure, length, p.carreau), radius, pressure, p.rest_density);
 }
 
+EmitterProfile bleeding_profile(Real radius, Real pressure, const FluidParams& p, Real length) {
+  if (!(radius > 0) || !(pressure > 0)) return EmitterProfile::parabolic;  // no flow
+  const Real viscous = p.rheology == Rheology::carreau ? carreau_pipe_flow_rate(radius, pressure, length, p.carreau)
+                       : p.viscosity > 0                ? poiseuille_flow_rate(radius, pressure, p.viscosity, length)
+                                                        : HUGE_VAL;
+  return viscous < capped_by_orifice(HUGE_VAL, radius, pressure, p.rest_density) ? EmitterProfile::parabolic
+                                                                                  : EmitterProfile::plug;
+}
+
 struct Scene::FluidRun {
   Fluid fluid;
   FluidBoundaries bounds;
@@ -835,7 +844,8 @@ CutReport Scene::apply_cut(const CutDef& def) {
   if (vtk_) vtk_->set_topology(*model_);
   if (fluid_) {
     update_fluid_surface();
-    // each cut vessel bleeds: Poiseuille flow of its radius, out of the wound
+    // each cut vessel bleeds: Poiseuille flow of its radius capped by the
+    // orifice, with the profile of the limit that binds, out of the wound
     const FluidDef& fd = def_.fluid;
     for (const VesselHit& h : rep.vessel_hits) {
       FluidEmitter e;
@@ -845,7 +855,7 @@ CutReport Scene::apply_cut(const CutDef& def) {
       // particles); the flow rate is the vessel's
       e.radius = std::max(h.radius, Real(1.5) * fluid_->fluid.params.spacing);
       e.flow_rate = bleeding_flow_rate(h.radius, fd.bleed_pressure, fluid_->fluid.params, fd.bleed_length);
-      e.profile = EmitterProfile::parabolic;
+      e.profile = bleeding_profile(h.radius, fd.bleed_pressure, fluid_->fluid.params, fd.bleed_length);
       e.start = state_.time;
       e.end = state_.time + fd.bleed_duration;
       fluid_->state.emitters.push_back(e);

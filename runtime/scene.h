@@ -86,7 +86,8 @@ struct ToolDef {
 // which it pushes back (two-way coupling, one step lagged). A cut that
 // crosses a loaded vessel becomes an emitter at the crossing, jetting out of
 // the wound (against the blade direction) with the Poiseuille flow of the
-// vessel's radius (bleeding_flow_rate: Poiseuille, capped by the orifice).
+// vessel's radius (bleeding_flow_rate: Poiseuille, capped by the orifice) and
+// the exit profile of the limit that binds (bleeding_profile).
 struct FluidDef {
   bool enabled = false;
   FluidParams params;                 // blood by default; gravity is the scene's
@@ -115,6 +116,14 @@ Real bleeding_flow_rate(Real radius, Real pressure, Real viscosity, Real length,
 // The same for the fluid's rheology: Newtonian as above with p.viscosity;
 // Carreau with its pipe flow (carreau_pipe_flow_rate), capped by the orifice.
 Real bleeding_flow_rate(Real radius, Real pressure, const FluidParams& p, Real length);
+// The exit profile that goes with it: the law that sets the flow sets the
+// profile. Where the orifice (inertial) limit binds, the Bernoulli jet leaves
+// the whole orifice at sqrt(2 dp / rho): a plug. Where the viscous limit
+// binds, the pipe's parabolic profile (Poiseuille; for Carreau blood an
+// approximation of its blunter one). A parabolic profile at the orifice's rate
+// would put the centre at twice the Bernoulli speed: four times the kinetic
+// energy the pressure can supply.
+EmitterProfile bleeding_profile(Real radius, Real pressure, const FluidParams& p, Real length);
 
 struct OutputDef {
   bool enabled = false;

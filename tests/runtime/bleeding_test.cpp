@@ -101,6 +101,47 @@ TEST(Bleeding, FlowLawIsPoiseuilleCappedByTheOrifice) {
   EXPECT_EQ(bleeding_flow_rate(r2, 0, p, L), 0);
 }
 
+TEST(Bleeding, TheExitProfileIsThatOfTheBindingLimit) {
+  const Real mu = 0.003, rho = 1060, dp = 1330, L = 0.05;
+  FluidParams p;
+  p.viscosity = mu, p.rest_density = rho;
+  // thin vessel: viscous limit, the pipe's parabola; wide: the orifice's plug
+  EXPECT_EQ(bleeding_profile(0.2e-3, dp, p, L), EmitterProfile::parabolic);
+  EXPECT_EQ(bleeding_profile(3e-3, dp, p, L), EmitterProfile::plug);
+  // at the crossover radius (both limits equal: r^2 = 8 mu L sqrt(2 dp / rho) / dp) it switches
+  const Real rc = std::sqrt(8 * mu * L * std::sqrt(2 * dp / rho) / dp);
+  EXPECT_EQ(bleeding_profile(0.99 * rc, dp, p, L), EmitterProfile::parabolic);
+  EXPECT_EQ(bleeding_profile(1.01 * rc, dp, p, L), EmitterProfile::plug);
+  p.rheology = Rheology::carreau;
+  EXPECT_EQ(bleeding_profile(0.2e-3, dp, p, L), EmitterProfile::parabolic);
+  EXPECT_EQ(bleeding_profile(3e-3, dp, p, L), EmitterProfile::plug);
+}
+
+// The jet of a wide vessel under arterial pressure is orifice-limited: it
+// leaves at the Bernoulli speed sqrt(2 dp / rho) and no faster (a parabolic
+// profile at that flow rate put its centre at 2.45x that speed on the
+// emitter's 3 x 3 disc).
+TEST(Bleeding, AnOrificeJetLeavesAtTheBernoulliSpeed) {
+  SceneDef def = bleeding_def(false);
+  def.fluid.bleed_pressure = 13000;  // ~100 mmHg: Poiseuille would give 24 m/s, the orifice 4.95 m/s
+  def.dt = 1e-3;
+  def.tools[0].start = 0;
+  Scene scene(block_with_vessel(), def);
+  scene.simulate(def.dt);
+  scene.fetch_results();
+  const FluidState& fs = *scene.fluid_state();
+  ASSERT_EQ(fs.emitters.size(), 1u);
+  EXPECT_EQ(fs.emitters[0].profile, EmitterProfile::plug);
+  ASSERT_GT(fs.size(), 0u);
+  const Real ub = std::sqrt(2 * def.fluid.bleed_pressure / def.fluid.params.rest_density);
+  Real vmax = 0;
+  for (std::size_t i = 0; i < fs.size(); ++i)
+    vmax = std::max(vmax, std::sqrt(fs.v[0][i] * fs.v[0][i] + fs.v[1][i] * fs.v[1][i] + fs.v[2][i] * fs.v[2][i]));
+  // one step after the cut: the emitted speed plus what 1 ms of forces added
+  EXPECT_LT(vmax, 1.05 * ub);
+  EXPECT_GT(vmax, 0.9 * ub);
+}
+
 TEST(Bleeding, ACutVesselEmitsItsFlowAndParticlesAreConserved) {
   const SceneDef def = bleeding_def(false);
   Scene scene(block_with_vessel(), def);
