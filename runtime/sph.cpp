@@ -1158,7 +1158,7 @@ struct Stepper {
     std::int32_t* hnew = sc.tmp_hint.data();
     const std::int32_t* order = g.order.data();
     const std::array<Real, 3> o = g.origin;
-    tbb::parallel_for(tbb::blocked_range<std::int32_t>(0, np, 2048), [&](const auto& r) {
+    tbb::parallel_for(tbb::blocked_range<std::int32_t>(0, np, 1024), [&](const auto& r) {
       for (std::int32_t k = r.begin(); k < r.end(); ++k) {
         const std::int32_t j = order[k];
         for (int a = 0; a < 6; ++a) dst[a][k] = src[a][j];
@@ -1841,7 +1841,7 @@ void build_neighbour_grid(const Real* x, const Real* y, const Real* z, std::int6
   using Box = std::array<Real, 6>;
   const Box init{HUGE_VAL, HUGE_VAL, HUGE_VAL, -HUGE_VAL, -HUGE_VAL, -HUGE_VAL};
   const Box bb = tbb::parallel_reduce(
-      tbb::blocked_range<std::int32_t>(0, n, 8192), init,
+      tbb::blocked_range<std::int32_t>(0, n, 1024), init,
       [&](const tbb::blocked_range<std::int32_t>& r, Box b) {
         for (std::int32_t i = r.begin(); i < r.end(); ++i) {
           b[0] = std::min(b[0], x[i]), b[3] = std::max(b[3], x[i]);
@@ -1880,7 +1880,7 @@ void build_neighbour_grid(const Real* x, const Real* y, const Real* z, std::int6
   }
   const std::int64_t nc = g.n_cells();
   g.point_cell.resize(n);
-  tbb::parallel_for(tbb::blocked_range<std::int32_t>(0, n, 8192), [&](const auto& r) {
+  tbb::parallel_for(tbb::blocked_range<std::int32_t>(0, n, 1024), [&](const auto& r) {
     for (std::int32_t i = r.begin(); i < r.end(); ++i) g.point_cell[i] = g.cell_of(x[i], y[i], z[i]);
   });
   // counting sort: count, exclusive prefix sum, stable fill
