@@ -543,6 +543,8 @@ struct Walls {
 
 // ---- the passes -----------------------------------------------------------------
 
+struct BigLists;
+
 struct Pass {
   const Fluid* f = nullptr;
   const NeighbourGrid* g = nullptr;
@@ -556,7 +558,8 @@ struct Pass {
   Real* psum = nullptr;           // (n) Pa, sum_{j != i} p_j (1 - q)^4 (1 + 4 q), where near (the walls' Shepard pressure)
   Real* mu = nullptr;             // (n) Pa s, per-particle viscosity (carreau rheology), else null
   std::int32_t* list = nullptr;   // (n x kListStride) neighbour lists (self excluded), padded with i
-  std::int32_t* count = nullptr;  // (n) list lengths; > kMaxList: overflowed, the force pass scans the cells
+  std::int32_t* count = nullptr;  // (n) list lengths; > kMaxList: the list is in big
+  BigLists* big = nullptr;        // the full lists of the particles with more than kMaxList neighbours
   std::array<Real, 3> period{};   // m, > 0 on periodic axes
   const float *xf = nullptr, *yf = nullptr, *zf = nullptr;  // positions - origin, single precision (search only)
   std::array<Real, 3> origin{};   // m, the grid origin the float positions are relative to
@@ -564,9 +567,9 @@ struct Pass {
   Real tau = 0;  // time since the step's start
 };
 
-// Neighbour lists: at most kMaxList entries per particle (~30 at rest with
-// H = 2 dx); a particle with more (a fluid compressed ~2x) falls back to
-// scanning its cells in both passes. The stride leaves room for the 8 slots
+// Neighbour lists: at most kMaxList entries per particle in the flat array
+// (~30 at rest with H = 2 dx); a particle with more (a fluid compressed ~3x)
+// gets a list of its own (BigLists). The stride leaves room for the 8 slots
 // the vector search writes past the count.
 constexpr int kMaxList = 92, kListStride = kMaxList + 8;
 
@@ -601,21 +604,17 @@ void grow_scratch(std::vector<T>& v, std::size_t n) {
 // the same slots in ascending order.
 //
 // Appends the slots j in [b, e), j != self, with r^2 < r2max to list[cnt..];
-// returns the new count. The write position is clamped at kMaxList (the count
-// is not: cnt > kMaxList means overflow). The float arrays have 8 readable
-// entries past the last slot.
-using ScanFn = std::int32_t (*)(const float* xf, const float* yf, const float* zf, std::int32_t b, std::int32_t e,
-                                std::int32_t self, float xi, float yi, float zi, float r2max, std::int32_t* list,
-                                std::int32_t cnt);
-
-std::int32_t scan_run_generic(const float* xf, const float* yf, const float* zf, std::int32_t b, std::int32_t e,
-                              std::int32_t self, float xi, float yi, float zi, float r2max, std::int32_t* list,
-                              std::int32_t cnt) {
+// returns the new count. The write position is clamped at cap (the count is
+// not: cnt > cap means the list overflowed). The float arrays have 8 readable
+// entries past the last slot; the list, 8 writable entries past cap.
+inline std::int32_t scan_run_generic(const float* xf, const float* yf, const float* zf, std::int32_t b, std::int32_t e,
+                                     std::int32_t self, float xi, float yi, float zi, float r2max, std::int32_t* list,
+                                     std::int32_t cnt, std::int32_t cap) {
   for (std::int32_t j = b; j < e; ++j) {
     const float dx = xi - xf[j], dy = yi - yf[j], dz = zi - zf[j];
     const float dx2 = dx * dx, dy2 = dy * dy, dz2 = dz * dz;
     const float r2 = (dx2 + dy2) + dz2;
-    list[std::min(cnt, kMaxList)] = j;
+    list[std::min(cnt, cap)] = j;
     cnt += static_cast<std::int32_t>(r2 < r2max) & static_cast<std::int32_t>(j != self);
   }
   return cnt;
@@ -639,7 +638,7 @@ const CompactTable kCompact;
 __attribute__((target("avx2"), always_inline)) inline std::int32_t scan_run_avx2(const float* xf, const float* yf, const float* zf,
                                                            std::int32_t b, std::int32_t e, std::int32_t self, float xi,
                                                            float yi, float zi, float r2max, std::int32_t* list,
-                                                           std::int32_t cnt) {
+                                                           std::int32_t cnt, std::int32_t cap) {
   const __m256 X = _mm256_set1_ps(xi), Y = _mm256_set1_ps(yi), Z = _mm256_set1_ps(zi), R = _mm256_set1_ps(r2max);
   const __m256i lane = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
   const __m256i E = _mm256_set1_epi32(e), S = _mm256_set1_epi32(self);
@@ -652,7 +651,7 @@ __attribute__((target("avx2"), always_inline)) inline std::int32_t scan_run_avx2
     const __m256i valid = _mm256_andnot_si256(_mm256_cmpeq_epi32(idx, S), _mm256_cmpgt_epi32(E, idx));
     const int bits = _mm256_movemask_ps(_mm256_and_ps(_mm256_cmp_ps(r2, R, _CMP_LT_OQ), _mm256_castsi256_ps(valid)));
     const __m256i perm = _mm256_load_si256(reinterpret_cast<const __m256i*>(kCompact.lanes[bits]));
-    _mm256_storeu_si256(reinterpret_cast<__m256i*>(list + std::min(cnt, kMaxList)), _mm256_permutevar8x32_epi32(idx, perm));
+    _mm256_storeu_si256(reinterpret_cast<__m256i*>(list + std::min(cnt, cap)), _mm256_permutevar8x32_epi32(idx, perm));
     cnt += __builtin_popcount(static_cast<unsigned>(bits));
   }
   return cnt;
@@ -666,7 +665,17 @@ __attribute__((target("avx2"), always_inline)) inline std::int32_t scan_run_avx2
 // (a predictable branch); each list is still filled run by run, in the same
 // order as particle by particle. A particle's float position is its xf
 // entry, recomputed from the double only for a run shifted by a period.
+// scan_one lists one particle into a list of its own (cap: its known count).
 using ScanCellFn = void (*)(const Pass& c, const NeighbourRun* runs, int nr, std::int32_t b, std::int32_t e);
+using ScanOneFn = std::int32_t (*)(const Pass& c, const NeighbourRun* runs, int nr, std::int32_t i, std::int32_t* list,
+                                   std::int32_t cap);
+
+// particle i's float position for run r (relative to the grid origin, less the run's period shift)
+inline std::array<float, 3> scan_position(const Pass& c, const NeighbourRun& run, std::int32_t i) {
+  if (run.sx == 0 && run.sy == 0 && run.sz == 0) return {c.xf[i], c.yf[i], c.zf[i]};
+  return {static_cast<float>(c.x[i] - run.sx - c.origin[0]), static_cast<float>(c.y[i] - run.sy - c.origin[1]),
+          static_cast<float>(c.z[i] - run.sz - c.origin[2])};
+}
 
 #define ORTHOSIM_SPH_SCAN_CELL(scan)                                                                          \
   constexpr std::int32_t kChunk = 64;                                                                        \
@@ -676,23 +685,29 @@ using ScanCellFn = void (*)(const Pass& c, const NeighbourRun* runs, int nr, std
     for (std::int32_t i = cb; i < ce; ++i) cnt[i - cb] = 0;                                                  \
     for (int r = 0; r < nr; ++r) {                                                                           \
       const NeighbourRun& run = runs[r];                                                                     \
-      const bool shifted = run.sx != 0 || run.sy != 0 || run.sz != 0;                                        \
       for (std::int32_t i = cb; i < ce; ++i) {                                                               \
-        float xi = c.xf[i], yi = c.yf[i], zi = c.zf[i];                                                      \
-        if (shifted) {                                                                                       \
-          xi = static_cast<float>(c.x[i] - run.sx - c.origin[0]);                                            \
-          yi = static_cast<float>(c.y[i] - run.sy - c.origin[1]);                                            \
-          zi = static_cast<float>(c.z[i] - run.sz - c.origin[2]);                                            \
-        }                                                                                                    \
+        const auto q = scan_position(c, run, i);                                                             \
         std::int32_t* list = c.list + static_cast<std::int64_t>(i) * kListStride;                           \
-        cnt[i - cb] = scan(c.xf, c.yf, c.zf, run.begin, run.end, i, xi, yi, zi, c.search_r2, list, cnt[i - cb]); \
+        cnt[i - cb] = scan(c.xf, c.yf, c.zf, run.begin, run.end, i, q[0], q[1], q[2], c.search_r2, list,     \
+                           cnt[i - cb], kMaxList);                                                           \
       }                                                                                                      \
     }                                                                                                        \
     for (std::int32_t i = cb; i < ce; ++i) c.count[i] = cnt[i - cb];                                        \
   }
+#define ORTHOSIM_SPH_SCAN_ONE(scan)                                                                           \
+  std::int32_t cnt = 0;                                                                                      \
+  for (int r = 0; r < nr; ++r) {                                                                             \
+    const auto q = scan_position(c, runs[r], i);                                                             \
+    cnt = scan(c.xf, c.yf, c.zf, runs[r].begin, runs[r].end, i, q[0], q[1], q[2], c.search_r2, list, cnt, cap); \
+  }                                                                                                          \
+  return cnt;
 
 void scan_cell_generic(const Pass& c, const NeighbourRun* runs, int nr, std::int32_t b, std::int32_t e) {
   ORTHOSIM_SPH_SCAN_CELL(scan_run_generic)
+}
+std::int32_t scan_one_generic(const Pass& c, const NeighbourRun* runs, int nr, std::int32_t i, std::int32_t* list,
+                              std::int32_t cap) {
+  ORTHOSIM_SPH_SCAN_ONE(scan_run_generic)
 }
 
 #ifdef ORTHOSIM_SPH_AVX2
@@ -700,24 +715,66 @@ __attribute__((target("avx2"))) void scan_cell_avx2(const Pass& c, const Neighbo
                                                     std::int32_t e) {
   ORTHOSIM_SPH_SCAN_CELL(scan_run_avx2)
 }
+__attribute__((target("avx2"))) std::int32_t scan_one_avx2(const Pass& c, const NeighbourRun* runs, int nr,
+                                                           std::int32_t i, std::int32_t* list, std::int32_t cap) {
+  ORTHOSIM_SPH_SCAN_ONE(scan_run_avx2)
+}
 #endif
 #undef ORTHOSIM_SPH_SCAN_CELL
+#undef ORTHOSIM_SPH_SCAN_ONE
 
-ScanCellFn pick_scan() {
+struct Scanners {
+  ScanCellFn cell = scan_cell_generic;
+  ScanOneFn one = scan_one_generic;
+};
+Scanners pick_scan() {
 #ifdef ORTHOSIM_SPH_AVX2
   __builtin_cpu_init();
-  if (__builtin_cpu_supports("avx2")) return scan_cell_avx2;
+  if (__builtin_cpu_supports("avx2")) return {scan_cell_avx2, scan_one_avx2};
 #endif
-  return scan_cell_generic;
+  return {};
 }
-const ScanCellFn scan_cell = pick_scan();
+const Scanners kScan = pick_scan();
+
+// The full lists of the particles with more than kMaxList neighbours (a
+// fluid compressed ~3x, e.g. PhysX-soft blood pooling): per-thread buffers
+// filled by the density pass and read by the shear and force passes of the
+// same substep. A list's place: its buffer and offset (buffers may move as
+// they grow; the elements of enumerable_thread_specific do not).
+struct BigLists {
+  tbb::enumerable_thread_specific<std::vector<std::int32_t>> buf;
+  std::vector<std::pair<std::vector<std::int32_t>*, std::int64_t>> where;  // (n) valid where count > kMaxList
+
+  void reset(std::size_t n) {
+    for (auto& b : buf) b.clear();
+    where.resize(n);
+  }
+  // lists particle i (count known: cnt) into the calling thread's buffer
+  std::int32_t* fill(const Pass& c, const NeighbourRun* runs, int nr, std::int32_t i, std::int32_t cnt) {
+    std::vector<std::int32_t>& b = buf.local();
+    const auto off = static_cast<std::int64_t>(b.size());
+    b.resize(static_cast<std::size_t>(off + cnt + 8));  // 8 past the count: the vector stores and the padding
+    std::int32_t* list = b.data() + off;
+    kScan.one(c, runs, nr, i, list, cnt);
+    where[static_cast<std::size_t>(i)] = {&b, off};
+    return list;
+  }
+  const std::int32_t* list(std::int32_t i) const {
+    const auto& w = where[static_cast<std::size_t>(i)];
+    return w.first->data() + w.second;
+  }
+};
+
+// particle i's list: its slot of c.list, or its full list where it overflowed
+inline const std::int32_t* list_of(const Pass& c, std::int32_t i) {
+  return c.count[i] <= kMaxList ? c.list + static_cast<std::int64_t>(i) * kListStride : c.big->list(i);
+}
 
 // Density pass of the particles of one cell: the list of the neighbours
 // within the search radius (self excluded; found in float, see scan_run),
 // then in double over the list the kernel sums S_i = sum_j (1 - q)^4 (1 + 4 q)
-// (self included) and the number of particles within H. A particle whose
-// list overflows is summed by scanning the 27 cells around it in runs of
-// contiguous slots.
+// (self included) and the number of particles within H. A particle with more
+// than kMaxList neighbours is listed again into a list of its own (BigLists).
 ORTHOSIM_SPH_CLONES
 void density_cell(const Pass& c, std::int32_t cell) {
   NeighbourRun runs[27];
@@ -725,47 +782,30 @@ void density_cell(const Pass& c, std::int32_t cell) {
   const Real invH = 1 / c.f->H;
   const V zero = {0, 0, 0, 0}, one = {1, 1, 1, 1}, lane = {0, 1, 2, 3};
   const bool periodic = c.period[0] > 0 || c.period[1] > 0 || c.period[2] > 0;
-  scan_cell(c, runs, nr, c.g->start[cell], c.g->start[cell + 1]);
+  kScan.cell(c, runs, nr, c.g->start[cell], c.g->start[cell + 1]);
   for (std::int32_t i = c.g->start[cell]; i < c.g->start[cell + 1]; ++i) {
-    std::int32_t* list = c.list + static_cast<std::int64_t>(i) * kListStride;
     const std::int32_t cnt = c.count[i];
+    std::int32_t* list =
+        cnt <= kMaxList ? c.list + static_cast<std::int64_t>(i) * kListStride : c.big->fill(c, runs, nr, i, cnt);
+    for (int k = cnt; k < cnt + 8; ++k) list[k] = i;  // padding of the last group (4 here, 8 in the force pass)
     V acc = zero, within = zero;
     const Real xi = c.x[i], yi = c.y[i], zi = c.z[i];
-    if (cnt <= kMaxList) {
-      for (int k = cnt; k < cnt + 8; ++k) list[k] = i;  // padding of the last group (4 here, 8 in the force pass)
-      for (std::int32_t b = 0; b < cnt; b += 4) {
-        const std::int32_t* j = list + b;
-        auto gather = [&](const Real* a) ORTHOSIM_SPH_LAMBDA { return V{a[j[0]], a[j[1]], a[j[2]], a[j[3]]}; };
-        V dx = xi - gather(c.x), dy = yi - gather(c.y), dz = zi - gather(c.z);
-        if (periodic) {
-          dx = minimum_image(dx, c.period[0]);
-          dy = minimum_image(dy, c.period[1]);
-          dz = minimum_image(dz, c.period[2]);
-        }
-        const V mask = (lane + static_cast<Real>(b)) < static_cast<Real>(cnt) ? one : zero;
-        const V q = vsqrt(dx * dx + dy * dy + dz * dz) * invH;
-        V t = 1 - q;
-        t = t > 0 ? t * mask : zero;
-        const V t2 = t * t;
-        acc += t2 * t2 * (1 + 4 * q);
-        within += t > 0 ? one : zero;
+    for (std::int32_t b = 0; b < cnt; b += 4) {
+      const std::int32_t* j = list + b;
+      auto gather = [&](const Real* a) ORTHOSIM_SPH_LAMBDA { return V{a[j[0]], a[j[1]], a[j[2]], a[j[3]]}; };
+      V dx = xi - gather(c.x), dy = yi - gather(c.y), dz = zi - gather(c.z);
+      if (periodic) {
+        dx = minimum_image(dx, c.period[0]);
+        dy = minimum_image(dy, c.period[1]);
+        dz = minimum_image(dz, c.period[2]);
       }
-    } else {
-      // overflow: scan the cells (self included)
-      for (int r = 0; r < nr; ++r) {
-        const Real xs = xi - runs[r].sx, ys = yi - runs[r].sy, zs = zi - runs[r].sz;
-        for_lanes(runs[r].begin, runs[r].end, c.n, [&](std::int32_t s, V mask) ORTHOSIM_SPH_LAMBDA {
-          const V dx = xs - load4(c.x, s, c.n), dy = ys - load4(c.y, s, c.n), dz = zs - load4(c.z, s, c.n);
-          const V q = vsqrt(dx * dx + dy * dy + dz * dz) * invH;
-          V t = 1 - q;
-          t = t > 0 ? t * mask : zero;
-          const V t2 = t * t;
-          acc += t2 * t2 * (1 + 4 * q);
-          within += t > 0 ? one : zero;
-        });
-      }
-      acc[0] -= 1;  // the self term, added below
-      within[0] -= 1;
+      const V mask = (lane + static_cast<Real>(b)) < static_cast<Real>(cnt) ? one : zero;
+      const V q = vsqrt(dx * dx + dy * dy + dz * dz) * invH;
+      V t = 1 - q;
+      t = t > 0 ? t * mask : zero;
+      const V t2 = t * t;
+      acc += t2 * t2 * (1 + 4 * q);
+      within += t > 0 ? one : zero;
     }
     c.ksum[i] = 1 + hsum(acc);
     c.nb[i] = 1 + hsum(within);
@@ -864,8 +904,6 @@ ORTHOSIM_SPH_INLINE void force_cell_impl(const Pass& c, std::int32_t cell) {
   const V zero4 = {0, 0, 0, 0};
   const bool periodic = c.period[0] > 0 || c.period[1] > 0 || c.period[2] > 0;
   const float per[3] = {static_cast<float>(c.period[0]), static_cast<float>(c.period[1]), static_cast<float>(c.period[2])};
-  NeighbourRun runs[27];
-  int nr = -1;
   for (std::int32_t i = c.g->start[cell]; i < c.g->start[cell + 1]; ++i) {
     const float* pi = c.pack + 8 * static_cast<std::int64_t>(i);
     const float xi = pi[0], yi = pi[1], zi = pi[2], Pi = pi[3], vxi = pi[4], vyi = pi[5], vzi = pi[6], iri = pi[7];
@@ -913,30 +951,13 @@ ORTHOSIM_SPH_INLINE void force_cell_impl(const Pass& c, std::int32_t cell) {
     };
     using Yes = std::true_type;
     using No = std::false_type;
+    // over the list, 8 at a time (padded with i: the self term is exactly 0)
     const std::int32_t cnt = c.count[i];
-    if (cnt <= kMaxList) {
-      // over the list, 8 at a time (padded with i: the self term is exactly 0)
-      const std::int32_t* list = c.list + static_cast<std::int64_t>(i) * kListStride;
-      if (shepard)
-        for (std::int32_t b = 0; b < cnt; b += 8) group(list + b, (lane + b) < cnt ? one : zero, Yes{});
-      else
-        for (std::int32_t b = 0; b < cnt; b += 8) group(list + b, (lane + b) < cnt ? one : zero, No{});
-    } else {
-      // overflow: scan the cells in 8 consecutive slots (the pack has 8
-      // records of padding; the self term of the forces is exactly 0, that
-      // of psum, p_i W(0), is taken out below)
-      if (nr < 0) nr = neighbour_runs(*c.g, cell, runs);
-      for (int r = 0; r < nr; ++r)
-        for (std::int32_t s = runs[r].begin; s < runs[r].end; s += 8) {
-          std::int32_t j[8];
-          for (int l = 0; l < 8; ++l) j[l] = std::min(s + l, c.n);  // slot n: the first padding record
-          if (shepard)
-            group(j, (lane + s) < runs[r].end ? one : zero, Yes{});
-          else
-            group(j, (lane + s) < runs[r].end ? one : zero, No{});
-        }
-      psum[0] -= Pi / (iri * iri);  // the self term, W(0) = 1
-    }
+    const std::int32_t* list = list_of(c, i);
+    if (shepard)
+      for (std::int32_t b = 0; b < cnt; b += 8) group(list + b, (lane + b) < cnt ? one : zero, Yes{});
+    else
+      for (std::int32_t b = 0; b < cnt; b += 8) group(list + b, (lane + b) < cnt ? one : zero, No{});
     const Real m = f.mass * Real(210) / (kPi * f.H * f.H * f.H * f.H * f.H);
     c.ax[i] = m * hsum(acc.ax);
     c.ay[i] = m * hsum(acc.ay);
@@ -961,15 +982,13 @@ void shear_viscosity_cell(const Pass& c, std::int32_t cell) {
   const Fluid& f = *c.f;
   const Real invH = 1 / f.H, G = f.mass * Real(210) / (kPi * f.H * f.H * f.H * f.H * f.H);
   const bool periodic = c.period[0] > 0 || c.period[1] > 0 || c.period[2] > 0;
-  NeighbourRun runs[27];
-  int nr = -1;
   for (std::int32_t i = c.g->start[cell]; i < c.g->start[cell + 1]; ++i) {
     // M = sum w d d^T (symmetric: 6 sums), A = sum w (v_i - v_j) d^T (9 sums)
     Real m00 = 0, m01 = 0, m02 = 0, m11 = 0, m12 = 0, m22 = 0;
     Real a[3][3] = {{0, 0, 0}, {0, 0, 0}, {0, 0, 0}};
     const Real xi = c.x[i], yi = c.y[i], zi = c.z[i], vxi = c.vx[i], vyi = c.vy[i], vzi = c.vz[i];
-    auto add = [&](std::int32_t j, Real sx, Real sy, Real sz) {
-      Real d[3] = {xi - sx - c.x[j], yi - sy - c.y[j], zi - sz - c.z[j]};
+    auto add = [&](std::int32_t j) {
+      Real d[3] = {xi - c.x[j], yi - c.y[j], zi - c.z[j]};
       if (periodic)
         for (int k = 0; k < 3; ++k)
           if (c.period[k] > 0) d[k] -= c.period[k] * std::round(d[k] / c.period[k]);
@@ -983,15 +1002,8 @@ void shear_viscosity_cell(const Pass& c, std::int32_t cell) {
         for (int k = 0; k < 3; ++k) a[r][k] += dv[r] * d[k];
     };
     const std::int32_t cnt = c.count[i];
-    if (cnt <= kMaxList) {
-      const std::int32_t* list = c.list + static_cast<std::int64_t>(i) * kListStride;
-      for (std::int32_t b = 0; b < cnt; ++b) add(list[b], 0, 0, 0);
-    } else {
-      if (nr < 0) nr = neighbour_runs(*c.g, cell, runs);
-      for (int r = 0; r < nr; ++r)
-        for (std::int32_t j = runs[r].begin; j < runs[r].end; ++j)
-          if (j != i) add(j, runs[r].sx, runs[r].sy, runs[r].sz);
-    }
+    const std::int32_t* list = list_of(c, i);
+    for (std::int32_t b = 0; b < cnt; ++b) add(list[b]);
     Eigen::Matrix3d M, A;
     M << m00, m01, m02, m01, m11, m12, m02, m12, m22;
     A << a[0][0], a[0][1], a[0][2], a[1][0], a[1][1], a[1][2], a[2][0], a[2][1], a[2][2];
@@ -1121,6 +1133,7 @@ struct Stepper {
   }
 
   std::vector<Contact> contact_cache;  // (n x n_triangle_walls) of the density pass, reused by the force pass
+  BigLists big;                        // the full lists of the substep's overflowed particles
 
   std::int32_t n() const { return static_cast<std::int32_t>(s.id.size()); }
 
@@ -1209,6 +1222,7 @@ struct Stepper {
       c.mu = sc.mu.data();
     }
     c.ksum = sc.ksum.data(), c.list = sc.list.data(), c.count = sc.count.data();
+    c.big = &big;
     c.period = sc.grid.period;
     c.ax = sc.a[0].data(), c.ay = sc.a[1].data(), c.az = sc.a[2].data();
     c.wx = sc.aw[0].data(), c.wy = sc.aw[1].data(), c.wz = sc.aw[2].data();
@@ -1229,6 +1243,7 @@ struct Stepper {
     const bool clamp = f.params.clamp_negative_pressure;
     const std::size_t ntw = walls.n_triangle_walls();  // the triangle contacts are cached for the force pass
     contact_cache.resize(ntw * static_cast<std::size_t>(c.n));
+    big.reset(static_cast<std::size_t>(c.n));
     return tbb::parallel_reduce(
         tbb::blocked_range<std::size_t>(0, occ.size(), 16), Real(-HUGE_VAL),
         [&](const tbb::blocked_range<std::size_t>& r, Real best) {
