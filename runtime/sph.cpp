@@ -111,39 +111,12 @@ using V = Real __attribute__((vector_size(4 * sizeof(Real))));
 #define ORTHOSIM_SPH_INLINE inline __attribute__((always_inline))
 #define ORTHOSIM_SPH_LAMBDA __attribute__((always_inline))
 
-ORTHOSIM_SPH_INLINE V load4(const Real* a, std::int32_t s, std::int32_t n) {
-  V v;
-  if (s + 4 <= n) {
-    std::memcpy(&v, a + s, sizeof v);
-  } else {
-    for (int k = 0; k < 4; ++k) v[k] = a[std::min(s + k, n - 1)];
-  }
-  return v;
-}
 ORTHOSIM_SPH_INLINE V vsqrt(V x) {
   V r;
   for (int k = 0; k < 4; ++k) r[k] = std::sqrt(x[k]);
   return r;
 }
 ORTHOSIM_SPH_INLINE Real hsum(V v) { return (v[0] + v[1]) + (v[2] + v[3]); }
-
-// Calls body(s, mask) over the run [b, e) in vectors of 4 slots starting at s;
-// mask is 1 on the lanes in [b, e) not yet visited, 0 elsewhere. The last
-// vector is moved back to end at e (overlapping, masked) so every load stays
-// inside [0, n).
-template <class Body>
-ORTHOSIM_SPH_INLINE void for_lanes(std::int32_t b, std::int32_t e, std::int32_t n, Body&& body) {
-  const V lane = {0, 1, 2, 3};
-  const V one = {1, 1, 1, 1}, zero = {0, 0, 0, 0};
-  std::int32_t j = b;
-  for (; j + 4 <= e; j += 4) body(j, one);
-  if (j < e) {
-    const std::int32_t s = std::max(0, e - 4);
-    const V idx = lane + static_cast<Real>(s);
-    const V mask = (idx >= static_cast<Real>(j)) & (idx < static_cast<Real>(e)) ? one : zero;
-    body(s, mask);
-  }
-}
 
 // periodic minimum image of a lane of differences
 ORTHOSIM_SPH_INLINE V minimum_image(V d, Real period) {
