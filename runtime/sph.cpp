@@ -534,7 +534,7 @@ struct Pass {
   std::int32_t* count = nullptr;  // (n) list lengths; > kMaxList: the list is in big
   BigLists* big = nullptr;        // the full lists of the particles with more than kMaxList neighbours
   std::array<Real, 3> period{};   // m, > 0 on periodic axes
-  const float *xf = nullptr, *yf = nullptr, *zf = nullptr;  // positions - origin, single precision (search only)
+  const float *xf = nullptr, *yf = nullptr, *zf = nullptr;  // positions - origin, single precision (search, pack)
   std::array<Real, 3> origin{};   // m, the grid origin the float positions are relative to
   float search_r2 = 0;            // m^2, (1.005 H)^2: the search radius of the lists
   Real tau = 0;  // time since the step's start
@@ -569,8 +569,9 @@ void grow_scratch(std::vector<T>& v, std::size_t n) {
 
 // ---- neighbour search in single precision ---------------------------------------
 // The lists are found in float (8 lanes, no square root) with a search radius
-// 1.005 H; every kernel value and sum is then evaluated in double over the
-// list, where pairs beyond H give exactly 0. A float distance errs by about
+// 1.005 H; the density's kernel values and sums are then evaluated in double
+// over the list (the force pass's pair terms in float, summed in double),
+// where pairs beyond H give exactly 0. A float distance errs by about
 // 1e-7 of the coordinates (relative to the grid origin), so no pair within H
 // is missed while the grid is less than ~10^4 H across. Both code paths below
 // compute r^2 = (dx dx + dy dy) + dz dz without fused multiply-adds and list

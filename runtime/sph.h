@@ -440,7 +440,7 @@ struct FluidScratch {
   std::vector<float> pack;              // ((n + 8) x 8) x, y, z (- grid origin), p / rho^2, vx, vy, vz, 1 / rho in
                                         // single precision: the force pass's gathers (8 records of padding)
   std::array<std::vector<float>, 3> xf; // (3)(n + 8) m, positions relative to the grid origin in single
-                                        // precision: the neighbour search only (every sum is in double)
+                                        // precision: the neighbour search and the force pass's pack
   std::vector<std::int32_t> list;       // (n x 100) neighbour lists of the density pass
   std::vector<std::int32_t> count;      // (n) their lengths
   std::vector<std::uint8_t> dead;       // (n) removal reason, 0 = alive
