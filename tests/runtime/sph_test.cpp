@@ -583,7 +583,9 @@ TEST(SphPhysics, SubstepsCountTheLimitThatSetThem) {
     const auto c = run(p, 5.5 * h);
     EXPECT_GE(c[static_cast<std::size_t>(which)], 4) << substep_limit_name(which);
     for (int k = 1; k < 5; ++k)
-      if (k != which) EXPECT_EQ(c[static_cast<std::size_t>(k)], 0) << substep_limit_name(which) << ": " << substep_limit_name(k);
+      if (k != which) {
+        EXPECT_EQ(c[static_cast<std::size_t>(k)], 0) << substep_limit_name(which) << ": " << substep_limit_name(k);
+      }
     EXPECT_LE(c[0], 1);
   };
   EXPECT_EQ(run(base, 1e-9)[0], 1);  // the whole step in one substep
@@ -616,9 +618,9 @@ TEST(SphPhysics, CrowdedParticlesGetFullLists) {
     Real most = 0;
     for (Real k : s.scratch.neighbours) most = std::max(most, k);
     EXPECT_GT(most, 93);  // (self included): the crowded lists are exercised
-    for (std::size_t i = 0; i < s.size(); ++i) {
+    for (std::size_t i = 0; i < s.id.size(); ++i) {
       Real sum = 0;
-      for (std::size_t j = 0; j < s.size(); ++j)
+      for (std::size_t j = 0; j < s.id.size(); ++j)
         sum += wendland_w(std::hypot(s.x[0][i] - s.x[0][j], s.x[1][i] - s.x[1][j], s.x[2][i] - s.x[2][j]), f.H);
       ASSERT_NEAR(s.rho[i], f.mass * sum, 1e-10 * f.mass * sum) << i;
     }
