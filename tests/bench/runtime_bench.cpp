@@ -90,8 +90,6 @@ double symplectic_step_bytes(const rt::Model& m) {
 
 // ---- STREAM-like triad: the machine's memory bandwidth -------------------------
 
-double g_triad_bandwidth[3] = {0, 0, 0};  // GB/s by thread count (1, 2)
-
 void BM_StreamTriad(benchmark::State& state) {
   const int threads = static_cast<int>(state.range(0));
   const std::size_t n = std::size_t(1) << 23;  // 8 Mi doubles per array, 3 x 64 MiB

@@ -107,8 +107,9 @@ TEST(MsmSpecimen, CubicLatticeModulusMatchesRuleAndOracle) {
   // interior springs all have the same stiffness k: the oracle E = 5k / (2a)
   const double k = s.network.k1.maxCoeff();
   for (Eigen::Index i = 0; i < s.k_per_pa.size(); ++i)
-    if (s.cells(i) == (s.spring_class(i) == static_cast<std::uint8_t>(SpringClass::shear) ? 2 : 4))
+    if (s.cells(i) == (s.spring_class(i) == static_cast<std::uint8_t>(SpringClass::shear) ? 2 : 4)) {
       EXPECT_NEAR(s.network.k1(i), k, 1e-12 * k);
+    }
   const double oracle = 5 * k / (2 * 1e-3);
   EXPECT_NEAR(oracle, E, 1e-9 * E);
   for (int axis = 0; axis < 3; ++axis) {

@@ -146,7 +146,9 @@ void check_analytic(const Analytic& a, const std::string& name) {
     const SurfaceResult r = extract_surface(a.v, {1}, o);
     const std::string what = name + (target ? " decimated" : "");
     expect_topology(r.metrics, a.euler, what);
-    if (target) EXPECT_LE(r.metrics.faces, target) << what;
+    if (target) {
+      EXPECT_LE(r.metrics.faces, target) << what;
+    }
     const Dist d = analytic_distance(a, r.surface);
     const double dv = r.metrics.volume_m3 / a.volume_m3 - 1;
     std::printf("  %-20s faces %7lld (extracted %7lld)  volume %+.2f %%  mean %.3f  max %.3f voxel  Taubin dV %+.3f %%\n",
@@ -280,7 +282,9 @@ TEST(SurfaceNesting, EnforceNestingKeepsTheInnerSurfaceInside) {
   }
   // vertices that were well inside did not move
   for (Eigen::Index i = 0; i < inner.vertices.rows(); ++i)
-    if (before.vertices(i, 0) < 0) EXPECT_EQ(inner.vertices.row(i), before.vertices.row(i)) << i;
+    if (before.vertices(i, 0) < 0) {
+      EXPECT_EQ(inner.vertices.row(i), before.vertices.row(i)) << i;
+    }
   const SurfaceMetrics m = check_surface(inner, true);
   EXPECT_TRUE(m.closed && m.manifold && m.outward);
   // a surface already nested is left alone

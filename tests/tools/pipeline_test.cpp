@@ -86,7 +86,9 @@ TEST(Pipeline, ColdWarmAndIncremental) {
   {
     const nlohmann::json rep = s.report();
     for (const auto& st : rep["stages"])
-      if (st["stage"] == "vessels") EXPECT_TRUE(st.value("parallel", false));
+      if (st["stage"] == "vessels") {
+        EXPECT_TRUE(st.value("parallel", false));
+      }
     std::string seg_dir;
     for (const auto& st : rep["stages"])
       if (st["stage"] == "segment") seg_dir = st["dir"];
