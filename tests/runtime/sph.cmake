@@ -8,3 +8,25 @@ orthosim_add_test(runtime_sph_test SOURCES runtime/sph_test.cpp LIBS orthosim_ru
 # counts and density error; --dam-break: the resolution study; --scene: the
 # integrated paper scene (39x9x4 lattice + 5 000 particles + a bleeding cut)
 orthosim_add_bench(sph_bench SOURCES bench/sph_bench.cpp LIBS orthosim_runtime orthosim_runtime_testing)
+
+# The SPH passes at -O0. runtime/sph.cpp compiles its hot loops twice
+# (x86-64-v3 and baseline clones); a helper or lambda that takes a 32-byte
+# vector and is not inlined into its clone is compiled for the baseline and
+# reads its arguments from the wrong place, which only an unoptimised build
+# shows (the code of 2026-11-25 crashed at -O0). Here sph.cpp at -O0 replaces
+# the library's copy (an object file given to the linker wins over the
+# archive member) and the conservation, crowded-list and determinism
+# (Newtonian and Carreau) tests run on it (~20 s).
+add_library(orthosim_sph_O0 OBJECT ${CMAKE_SOURCE_DIR}/runtime/sph.cpp)
+target_link_libraries(orthosim_sph_O0 PRIVATE orthosim_format orthosim_flags Eigen3::Eigen TBB::tbb)
+target_compile_options(orthosim_sph_O0 PRIVATE -O0 -fno-math-errno -Wno-psabi)
+add_executable(runtime_sph_O0_test runtime/sph_test.cpp $<TARGET_OBJECTS:orthosim_sph_O0>)
+target_link_libraries(runtime_sph_O0_test PRIVATE orthosim_core orthosim_runtime orthosim_flags GTest::gtest
+                      GTest::gtest_main)
+target_compile_definitions(runtime_sph_O0_test PRIVATE ORTHOSIM_BINARY="${CMAKE_BINARY_DIR}/tools/orthosim"
+                           ORTHOSIM_SHARED_DIR="${CMAKE_SOURCE_DIR}/../shared")
+add_test(NAME runtime_sph_O0_test
+         COMMAND runtime_sph_O0_test
+                 --gtest_filter=SphPhysics.Momentum*:SphPhysics.Crowded*:SphPhysics.Deterministic*
+         WORKING_DIRECTORY ${CMAKE_CURRENT_BINARY_DIR})
+set_tests_properties(runtime_sph_O0_test PROPERTIES TIMEOUT 900)
