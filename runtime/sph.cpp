@@ -111,18 +111,21 @@ using V = Real __attribute__((vector_size(4 * sizeof(Real))));
 #define ORTHOSIM_SPH_INLINE inline __attribute__((always_inline))
 #define ORTHOSIM_SPH_LAMBDA __attribute__((always_inline))
 
-ORTHOSIM_SPH_INLINE V vsqrt(V x) {
-  V r;
-  for (int k = 0; k < 4; ++k) r[k] = std::sqrt(x[k]);
+// lane-wise sqrt of a vector of 4 doubles or 8 floats
+template <class W>
+ORTHOSIM_SPH_INLINE W vsqrt(W x) {
+  W r;
+  for (int k = 0; k < static_cast<int>(sizeof(W) / sizeof(x[0])); ++k) r[k] = std::sqrt(x[k]);
   return r;
 }
 ORTHOSIM_SPH_INLINE Real hsum(V v) { return (v[0] + v[1]) + (v[2] + v[3]); }
 
-// periodic minimum image of a lane of differences
-ORTHOSIM_SPH_INLINE V minimum_image(V d, Real period) {
+// periodic minimum image of a lane of differences (4 doubles or 8 floats)
+template <class W, class S>
+ORTHOSIM_SPH_INLINE W minimum_image(W d, S period) {
   if (period <= 0) return d;
-  V r;
-  for (int k = 0; k < 4; ++k) r[k] = d[k] - period * std::nearbyint(d[k] / period);
+  W r;
+  for (int k = 0; k < static_cast<int>(sizeof(W) / sizeof(d[0])); ++k) r[k] = d[k] - period * std::nearbyint(d[k] / period);
   return r;
 }
 
@@ -526,7 +529,7 @@ struct Pass {
   const Real *x = nullptr, *y = nullptr, *z = nullptr, *vx = nullptr, *vy = nullptr, *vz = nullptr;
   Real *rho = nullptr, *p = nullptr, *ir = nullptr, *nb = nullptr, *ksum = nullptr;
   Real *ax = nullptr, *ay = nullptr, *az = nullptr, *wx = nullptr, *wy = nullptr, *wz = nullptr;
-  float* pack = nullptr;          // (n + 8) x 8: x, y, z (- origin), P, vx, vy, vz, 1/rho in single precision (the force pass)
+  float* pack = nullptr;          // (n x 8) x, y, z (- origin), P, vx, vy, vz, 1/rho in single precision (the force pass)
   std::uint8_t* near = nullptr;   // (n) 1 where a wall may be within H (Walls::maybe_near): the force pass sums psum
   Real* psum = nullptr;           // (n) Pa, sum_{j != i} p_j (1 - q)^4 (1 + 4 q), where near (the walls' Shepard pressure)
   Real* mu = nullptr;             // (n) Pa s, per-particle viscosity (carreau rheology), else null
@@ -806,31 +809,18 @@ using VF = float __attribute__((vector_size(8 * sizeof(float))));
 using VI = std::int32_t __attribute__((vector_size(8 * sizeof(std::int32_t))));
 
 struct PairConstants {
-  float invH, eta2, avc, two_mu, vscale, gs;
+  float invH, eta2, avc, two_mu, vscale;
   explicit PairConstants(const Fluid& f)
       : invH(static_cast<float>(1 / f.H)),
         eta2(static_cast<float>(0.01 * f.h * f.h)),
         avc(static_cast<float>(f.params.artificial_viscosity * f.c0 * f.h * 0.5 * f.gradient_scale)),
         two_mu(static_cast<float>(2 * f.params.viscosity * f.viscous_scale)),
-        vscale(static_cast<float>(f.viscous_scale)),
-        gs(static_cast<float>(f.gradient_scale)) {}
+        vscale(static_cast<float>(f.viscous_scale)) {}
 };
 
 struct PairSums {
   V ax, ay, az;
 };
-
-ORTHOSIM_SPH_INLINE VF vsqrtf(VF x) {
-  VF r;
-  for (int k = 0; k < 8; ++k) r[k] = std::sqrt(x[k]);
-  return r;
-}
-
-ORTHOSIM_SPH_INLINE VF minimum_image(VF d, float period) {
-  VF r;
-  for (int k = 0; k < 8; ++k) r[k] = d[k] - period * std::nearbyint(d[k] / period);
-  return r;
-}
 
 // 8 lanes of float added into 4 lanes of double (lanes k and k + 4 first;
 // through an 8-double vector: GCC then converts with two vcvtps2pd)
@@ -892,21 +882,21 @@ ORTHOSIM_SPH_INLINE void force_cell_impl(const Pass& c, std::int32_t cell) {
       transpose8(r, col);
       VF dx = xi - col[0], dy = yi - col[1], dz = zi - col[2];
       if (periodic) {
-        if (per[0] > 0) dx = minimum_image(dx, per[0]);
-        if (per[1] > 0) dy = minimum_image(dy, per[1]);
-        if (per[2] > 0) dz = minimum_image(dz, per[2]);
+        dx = minimum_image(dx, per[0]);
+        dy = minimum_image(dy, per[1]);
+        dz = minimum_image(dz, per[2]);
       }
       const VF dvx = vxi - col[4], dvy = vyi - col[5], dvz = vzi - col[6], irj = col[7];
       VF visc;  // 2 mu / (rho_i rho_j) with the lattice scale
       if constexpr (kVar) {
-        auto mu = [&](int l) { return static_cast<float>(c.mu[std::min(j[l], c.n - 1)]); };
+        auto mu = [&](int l) { return static_cast<float>(c.mu[j[l]]); };
         const VF muj = {mu(0), mu(1), mu(2), mu(3), mu(4), mu(5), mu(6), mu(7)};
         visc = (k.vscale * (mui + muj)) * (iri * irj);
       } else {
         visc = k.two_mu * (iri * irj);
       }
       const VF r2 = dx * dx + dy * dy + dz * dz;
-      const VF q = vsqrtf(r2) * k.invH;
+      const VF q = vsqrt(r2) * k.invH;
       VF t = 1 - q;
       t = t > 0 ? t * mask : zero;
       const VF gw = t * t * t;
@@ -1186,10 +1176,7 @@ struct Stepper {
     c.x = s.x[0].data(), c.y = s.x[1].data(), c.z = s.x[2].data();
     c.vx = s.v[0].data(), c.vy = s.v[1].data(), c.vz = s.v[2].data();
     c.rho = s.rho.data(), c.p = s.p.data(), c.near = sc.near.data(), c.psum = sc.psum.data(), c.ir = sc.inv_rho.data(), c.nb = sc.neighbours.data();
-    grow_scratch(sc.pack, 8 * (np + 8));
-    // 8 records of padding, far away and at rest (overflowed particles read them masked)
-    std::fill(sc.pack.begin() + 8 * static_cast<std::ptrdiff_t>(np), sc.pack.end(), 0.0f);
-    for (std::size_t k = np; k < np + 8; ++k) sc.pack[8 * k] = sc.pack[8 * k + 1] = sc.pack[8 * k + 2] = 1e15f;
+    grow_scratch(sc.pack, 8 * np);
     c.pack = sc.pack.data();
     if (f.params.rheology == Rheology::carreau) {
       sc.mu.resize(np);

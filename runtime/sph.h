@@ -437,8 +437,8 @@ struct FluidScratch {
   std::vector<Real> mu;                 // (n) Pa s, per-particle viscosity (carreau rheology only)
   std::vector<Real> neighbours;         // (n) particles within H, self included
   std::vector<Real> ksum;               // (n) kernel sum (the walls' Shepard pressure sums are taken on demand)
-  std::vector<float> pack;              // ((n + 8) x 8) x, y, z (- grid origin), p / rho^2, vx, vy, vz, 1 / rho in
-                                        // single precision: the force pass's gathers (8 records of padding)
+  std::vector<float> pack;              // (n x 8) x, y, z (- grid origin), p / rho^2, vx, vy, vz, 1 / rho in
+                                        // single precision: the force pass's gathers
   std::array<std::vector<float>, 3> xf; // (3)(n + 8) m, positions relative to the grid origin in single
                                         // precision: the neighbour search and the force pass's pack
   std::vector<std::int32_t> list;       // (n x 100) neighbour lists of the density pass
