@@ -208,29 +208,49 @@ struct TriangleSource {
 
 bool finite(const Vec3& a) { return std::isfinite(a.x) && std::isfinite(a.y) && std::isfinite(a.z); }
 
+// Whether triangle t is binned: valid indices, finite at 0 and duration, not
+// degenerate at 0.
+bool binnable(const TriangleSource& src, std::int32_t t, Real duration) {
+  if (!src.valid(t)) return false;
+  const Vec3 a = src.vertex(t, 0, 0), b = src.vertex(t, 1, 0), c = src.vertex(t, 2, 0);
+  if (!finite(a) || !finite(b) || !finite(c)) return false;
+  if (!finite(src.vertex(t, 0, duration)) || !finite(src.vertex(t, 1, duration)) || !finite(src.vertex(t, 2, duration)))
+    return false;
+  const Vec3 nrm = cross(b - a, c - a);
+  const Real scale = std::max({dot(b - a, b - a), dot(c - a, c - a), Real(1e-300)});
+  return dot(nrm, nrm) > 1e-24 * scale * scale;
+}
+
 // Builds g over the triangles' bounding boxes during [0, duration], level 0
-// inflated by margin, level 1 by margin / 2. Degenerate or invalid triangles
-// are left out.
-void build_triangle_grid(const TriangleSource& src, Real duration, Real margin, TriangleGrid& g) {
+// inflated by margin, level 1 by margin / 2. Each vertex is binned with its
+// box over [0, duration] grown by slack (g.vertex_box), a triangle with the
+// union of its vertices' boxes, so that the grid serves later steps whose
+// vertices stay in those boxes (triangle_grid_holds). Degenerate or invalid
+// triangles are left out.
+void build_triangle_grid(const TriangleSource& src, Real duration, Real margin, TriangleGrid& g, Real slack = 0) {
   const std::int32_t nt = src.n_triangles;
+  ++g.builds;
+  g.vertex_box.resize(6 * static_cast<std::size_t>(src.n_vertices));
+  for (std::int32_t i = 0; i < src.n_vertices; ++i) {
+    Vec3 p0 = load3(src.x, i), p1 = p0;
+    if (src.v) p1 += duration * load3(src.v, i);
+    Real* B = g.vertex_box.data() + 6 * static_cast<std::size_t>(i);
+    B[0] = std::min(p0.x, p1.x) - slack, B[1] = std::min(p0.y, p1.y) - slack, B[2] = std::min(p0.z, p1.z) - slack;
+    B[3] = std::max(p0.x, p1.x) + slack, B[4] = std::max(p0.y, p1.y) + slack, B[5] = std::max(p0.z, p1.z) + slack;
+  }
+  g.triangles.assign(src.tri, src.tri + 3 * static_cast<std::size_t>(nt));
   std::vector<std::array<Real, 6>> box;
   std::vector<std::int32_t> ids;
   box.reserve(nt);
   Real lo[3] = {HUGE_VAL, HUGE_VAL, HUGE_VAL}, hi[3] = {-HUGE_VAL, -HUGE_VAL, -HUGE_VAL};
   for (std::int32_t t = 0; t < nt; ++t) {
-    if (!src.valid(t)) continue;
-    const Vec3 a = src.vertex(t, 0, 0), b = src.vertex(t, 1, 0), c = src.vertex(t, 2, 0);
-    const Vec3 a1 = src.vertex(t, 0, duration), b1 = src.vertex(t, 1, duration), c1 = src.vertex(t, 2, duration);
-    if (!finite(a) || !finite(b) || !finite(c) || !finite(a1) || !finite(b1) || !finite(c1)) continue;
-    const Vec3 nrm = cross(b - a, c - a);
-    const Real scale = std::max({dot(b - a, b - a), dot(c - a, c - a), Real(1e-300)});
-    if (!(dot(nrm, nrm) > 1e-24 * scale * scale)) continue;  // degenerate
+    if (!binnable(src, t, duration)) continue;
     std::array<Real, 6> bb{HUGE_VAL, HUGE_VAL, HUGE_VAL, -HUGE_VAL, -HUGE_VAL, -HUGE_VAL};
-    for (const Vec3& p : {a, b, c, a1, b1, c1}) {
-      const Real q[3] = {p.x, p.y, p.z};
+    for (int j = 0; j < 3; ++j) {
+      const Real* B = g.vertex_box.data() + 6 * static_cast<std::size_t>(src.tri[3 * t + j]);
       for (int k = 0; k < 3; ++k) {
-        bb[k] = std::min(bb[k], q[k]);
-        bb[3 + k] = std::max(bb[3 + k], q[k]);
+        bb[k] = std::min(bb[k], B[k]);
+        bb[3 + k] = std::max(bb[3 + k], B[3 + k]);
       }
     }
     for (int k = 0; k < 3; ++k) {
@@ -296,6 +316,32 @@ void build_triangle_grid(const TriangleSource& src, Real duration, Real margin, 
   });
 }
 
+// Whether g still serves src over [0, duration]: the triangles it binned,
+// every vertex at 0 and at duration inside its binning box (so every triangle
+// at any time of the step inside its binned box: the boxes are convex), and
+// every triangle's listing unchanged. Then each cell still lists every
+// triangle within its level's margin, and a query finds what it would find on
+// a new grid.
+bool triangle_grid_holds(const TriangleSource& src, Real duration, const TriangleGrid& g) {
+  const auto nt = static_cast<std::size_t>(src.n_triangles);
+  if (g.triangles.size() != 3 * nt || g.listed.size() != nt ||
+      g.vertex_box.size() != 6 * static_cast<std::size_t>(src.n_vertices))
+    return false;
+  if (nt > 0 && std::memcmp(g.triangles.data(), src.tri, 3 * nt * sizeof(std::int32_t)) != 0) return false;
+  for (std::int32_t i = 0; i < src.n_vertices; ++i) {
+    const Real* B = g.vertex_box.data() + 6 * static_cast<std::size_t>(i);
+    Vec3 p = load3(src.x, i);
+    for (int end = 0; end < 2; ++end) {
+      if (!(p.x >= B[0] && p.y >= B[1] && p.z >= B[2] && p.x <= B[3] && p.y <= B[4] && p.z <= B[5])) return false;
+      if (!src.v) break;
+      p += duration * load3(src.v, i);
+    }
+  }
+  for (std::int32_t t = 0; t < src.n_triangles; ++t)
+    if (static_cast<bool>(g.listed[static_cast<std::size_t>(t)]) != binnable(src, t, duration)) return false;
+  return true;
+}
+
 // The candidates of the grid cell containing p: [begin, end) of g.items (empty outside).
 std::pair<std::int32_t, std::int32_t> grid_candidates(const TriangleCells& g, const Vec3& p) {
   if (g.dims[0] == 0) return {0, 0};
@@ -312,19 +358,30 @@ std::pair<std::int32_t, std::int32_t> grid_candidates(const TriangleCells& g, co
 
 // The triangles of a source at one time tau: their vertices (x + tau v, as
 // TriangleSource::vertex) and bounding spheres about the centroid, computed
-// once per substep instead of per query.
+// once per substep instead of per query. The culling data of a triangle
+// (what a query reads of most candidates) fills one cache line of its own.
 struct TriFrame {
+  struct alignas(64) Cull {
+    Real m[3];  // centroid
+    Real r;     // bounding radius about it (rounded up)
+    Real n[3];  // unit normal
+    Real pad;
+  };
   Real tau = -HUGE_VAL;
   bool valid = false;
-  std::vector<std::array<Real, 16>> tri;  // (n_triangles) a, b, c, centroid (3 each), radius, unit normal
+  std::vector<std::array<Real, 9>> tri;  // (n_triangles) a, b, c
+  std::vector<Cull> cull;                // (n_triangles)
   void build(const TriangleSource& src, Real t) {
     tau = t;
     valid = true;
     tri.resize(static_cast<std::size_t>(src.n_triangles));
+    cull.resize(static_cast<std::size_t>(src.n_triangles));
     for (std::int32_t k = 0; k < src.n_triangles; ++k) {
       auto& T = tri[static_cast<std::size_t>(k)];
+      auto& C = cull[static_cast<std::size_t>(k)];
       if (!src.valid(k)) {
         T.fill(0);
+        C = Cull{};
         continue;
       }
       const Vec3 a = src.vertex(k, 0, t), b = src.vertex(k, 1, t), c = src.vertex(k, 2, t);
@@ -333,7 +390,8 @@ struct TriFrame {
       Vec3 nrm = cross(b - a, c - a);
       const Real ln = norm(nrm);
       nrm = ln > 0 ? (1 / ln) * nrm : Vec3{};
-      T = {a.x, a.y, a.z, b.x, b.y, b.z, c.x, c.y, c.z, m.x, m.y, m.z, r * (1 + 1e-9) + 1e-15, nrm.x, nrm.y, nrm.z};
+      T = {a.x, a.y, a.z, b.x, b.y, b.z, c.x, c.y, c.z};
+      C = Cull{{m.x, m.y, m.z}, r * (1 + 1e-9) + 1e-15, {nrm.x, nrm.y, nrm.z}, 0};
     }
   }
 };
@@ -382,12 +440,12 @@ bool triangle_contact(const TriangleSource& src, const TriangleGrid& g, const Ve
     const std::int32_t t = lv.items[k];
     if (t == hint) continue;
     if (frame) {
-      const auto& T = frame->tri[static_cast<std::size_t>(t)];
-      const Vec3 dm{p.x - T[9], p.y - T[10], p.z - T[11]};
-      const Real lim = best_d + T[12];
+      const TriFrame::Cull& C = frame->cull[static_cast<std::size_t>(t)];
+      const Vec3 dm{p.x - C.m[0], p.y - C.m[1], p.z - C.m[2]};
+      const Real lim = best_d + C.r;
       if (dot(dm, dm) > lim * lim) continue;  // the bounding sphere is farther than the best
       // the plane is farther than the best (the margin covers the rounding of the normal)
-      if (std::abs(dm.x * T[13] + dm.y * T[14] + dm.z * T[15]) > best_d * (1 + 1e-9) + 1e-12 * T[12]) continue;
+      if (std::abs(dm.x * C.n[0] + dm.y * C.n[1] + dm.z * C.n[2]) > best_d * (1 + 1e-9) + 1e-12 * C.r) continue;
     }
     consider(t, closest(t));
   }
@@ -983,9 +1041,11 @@ void shear_viscosity_cell(const Pass& c, std::int32_t cell) {
 // plain sum counts the sites beyond two walls twice; on the rest lattice in
 // a right-angled corner that overlap is ~2 % of the kernel sum, far less than
 // the product rule 1 - prod(1 - f0) removes (~9 %).
-Real wall_fraction(const Fluid& f, const Walls& w, const Vec3& p, Real tau, Contact* cache, const std::int32_t* hints) {
+// cached: the triangle contacts are in cache already (else queried and stored).
+Real wall_fraction(const Fluid& f, const Walls& w, const Vec3& p, Real tau, Contact* cache, bool cached,
+                   const std::int32_t* hints) {
   Real sum = 0;
-  w.contacts(p, tau, [&](const Contact& c) { sum += WallTables::at(f.walls.f0, f.walls.n, c.d / f.H); }, cache, false,
+  w.contacts(p, tau, [&](const Contact& c) { sum += WallTables::at(f.walls.f0, f.walls.n, c.d / f.H); }, cache, cached,
              hints);
   return sum;
 }
@@ -1089,7 +1149,10 @@ struct Stepper {
       walls.surfaces.push_back({sf.x.data(), moving ? sf.v.data() : nullptr, sf.triangles.data(),
                                 static_cast<std::int32_t>(sf.x.size() / 3),
                                 static_cast<std::int32_t>(sf.triangles.size() / 3)});
-      build_triangle_grid(walls.surfaces.back(), dt, f.H, sf.grid);
+      if (triangle_grid_holds(walls.surfaces.back(), dt, sf.grid))
+        ++sf.grid.reuses;
+      else
+        build_triangle_grid(walls.surfaces.back(), dt, f.H, sf.grid, f.params.surface_grid_slack * f.H);
       if (dt > 0) sf.force.assign(sf.x.size(), 0);  // a step's output; diagnostics leave it
     }
     for (int a = 0; a < 3; ++a) periodic[a] = b.faces[2 * a] == Face::periodic;
@@ -1097,6 +1160,13 @@ struct Stepper {
   }
 
   std::vector<Contact> contact_cache;  // (n x n_triangle_walls) of the density pass, reused by the force pass
+  // The triangle contacts the drift's collision tests found at the substep's
+  // end, (n x n_triangle_walls) in the particle order after compact and emit,
+  // and whether each particle's are still its contacts there: no triangle
+  // wall moved it after its queries (the next density pass, at the same
+  // position and time, reads them instead of querying again).
+  std::vector<Contact> end_contacts;
+  std::vector<std::uint8_t> end_valid;
   BigLists big;                        // the full lists of the substep's overflowed particles
 
   std::int32_t n() const { return static_cast<std::int32_t>(s.id.size()); }
@@ -1204,6 +1274,14 @@ struct Stepper {
     const bool clamp = f.params.clamp_negative_pressure;
     const std::size_t ntw = walls.n_triangle_walls();  // the triangle contacts are cached for the force pass
     contact_cache.resize(ntw * static_cast<std::size_t>(c.n));
+    // the last drift's contacts, by the particles' order before the sort
+    const bool reuse = ntw > 0 && f.params.reuse_wall_contacts && end_valid.size() == static_cast<std::size_t>(c.n);
+    if (reuse) {
+      std::int64_t k = 0;
+      for (std::int32_t i = 0; i < c.n; ++i) k += end_valid[static_cast<std::size_t>(c.g->order[i])];
+      s.counters.contacts_reused += k;
+    }
+    const std::int32_t* order = c.g->order.data();
     big.reset(static_cast<std::size_t>(c.n));
     return tbb::parallel_reduce(
         tbb::blocked_range<std::size_t>(0, occ.size(), 16), Real(-HUGE_VAL),
@@ -1217,7 +1295,11 @@ struct Stepper {
               const std::int32_t* hint = ntw > 0 ? s.scratch.wall_hint.data() + static_cast<std::size_t>(i) * ntw : nullptr;
               const bool near = walls.maybe_near(p);
               c.near[i] = near;
-              const Real rho = mk * c.ksum[i] + (near ? rho0 * wall_fraction(f, walls, p, c.tau, cache, hint) : Real(0));
+              const bool cached = reuse && near && end_valid[static_cast<std::size_t>(order[i])];
+              if (cached)
+                std::copy_n(end_contacts.data() + static_cast<std::size_t>(order[i]) * ntw, ntw, cache);
+              const Real rho =
+                  mk * c.ksum[i] + (near ? rho0 * wall_fraction(f, walls, p, c.tau, cache, cached, hint) : Real(0));
               Real pr = eos_pressure(f.eos, rho, rho0, f.c0, gamma);
               if (clamp) pr = std::max(Real(0), pr);
               c.rho[i] = rho;
@@ -1320,6 +1402,9 @@ struct Stepper {
     if (sc.wall_hint.size() != static_cast<std::size_t>(np) * walls.n_triangle_walls())
       sc.wall_hint.assign(static_cast<std::size_t>(np) * walls.n_triangle_walls(), -1);
     walls.frames_at(tau + h);
+    const std::size_t ntw_all = walls.n_triangle_walls();
+    end_contacts.resize(static_cast<std::size_t>(np) * ntw_all);
+    end_valid.assign(ntw_all > 0 ? static_cast<std::size_t>(np) : 0, 0);
     const Vec3 g = vec(f.params.gravity);
     const Real damp = 1 / (1 + f.params.damping * h);
     const Real dmin = f.params.collision_distance * f.params.spacing;
@@ -1370,12 +1455,19 @@ struct Stepper {
                                         ? contact_cache.data() + static_cast<std::size_t>(i) * ntw
                                         : nullptr;
             std::int32_t* hint = ntw > 0 ? sc.wall_hint.data() + static_cast<std::size_t>(i) * ntw : nullptr;
+            Contact* end = ntw > 0 ? end_contacts.data() + static_cast<std::size_t>(i) * ntw : nullptr;
+            bool moved = false;  // by a triangle wall (after the queries before it)
             auto mesh_collide = [&](const TriangleSource& src, const TriangleGrid& grid, const WallParams& wall,
                                     bool two_sided, int surface, const TriFrame* frame, std::size_t slot) {
-              Contact ct;
+              Contact& ct = end[slot];
+              ct = Contact{};
               const bool found = triangle_contact(src, grid, x, tau + h, f.H, wall, two_sided, ct, frame, cached ? cached[slot].tri : -1);
               hint[slot] = found ? ct.tri : -1;
-              if (!found) return;
+              if (!found) {
+                ct = Contact{};
+                return;
+              }
+              if (surface >= 0) ct.surface = surface;  // as Walls::contacts gives it
               Vec3 face = ct.face;
               Real sd;
               if (two_sided) {
@@ -1398,6 +1490,7 @@ struct Stepper {
               }
               const Hit hit = collide(x, v, n, sd, dmin, ct.u, wall);
               if (hit.hit) {
+                moved = true;
                 ++cnt[1];
                 if (surface >= 0) local.local().push_back({i, surface, ct.tri, ct.w0, ct.w1, ct.w2, (-f.mass / dt) * hit.dv});
               }
@@ -1409,6 +1502,7 @@ struct Stepper {
               for (std::size_t k = 0; k < walls.surfaces.size(); ++k)
                 mesh_collide(walls.surfaces[k], s.surfaces[k].grid, s.surfaces[k].wall, s.surfaces[k].two_sided,
                              static_cast<int>(k), &walls.surface_frames[k], walls.meshes.size() + k);
+            if (ntw > 0) end_valid[static_cast<std::size_t>(i)] = !moved;
             // domain
             bool out = false;
             const Real q2[3] = {x.x, x.y, x.z};
@@ -1483,10 +1577,18 @@ struct Stepper {
         s.p[w] = s.p[i];
         s.id[w] = s.id[i];
         for (std::size_t t = 0; t < ntw; ++t) hint[static_cast<std::size_t>(w) * ntw + t] = hint[static_cast<std::size_t>(i) * ntw + t];
+        if (end_valid.size() == static_cast<std::size_t>(np)) {
+          end_valid[w] = end_valid[i];
+          std::copy_n(end_contacts.data() + static_cast<std::size_t>(i) * ntw, ntw, end_contacts.data() + static_cast<std::size_t>(w) * ntw);
+        }
       }
       ++w;
     }
     hint.resize(static_cast<std::size_t>(w) * ntw);
+    if (end_valid.size() == static_cast<std::size_t>(np)) {
+      end_valid.resize(static_cast<std::size_t>(w));
+      end_contacts.resize(static_cast<std::size_t>(w) * ntw);
+    }
     for (int a = 0; a < 3; ++a) {
       s.x[a].resize(w);
       s.v[a].resize(w);
@@ -1552,6 +1654,10 @@ struct Stepper {
     }
     if (total > 0 && s.scratch.wall_hint.size() == (s.id.size() - static_cast<std::size_t>(total)) * walls.n_triangle_walls())
       s.scratch.wall_hint.resize(s.id.size() * walls.n_triangle_walls(), -1);  // new particles: no guess
+    if (total > 0 && end_valid.size() == s.id.size() - static_cast<std::size_t>(total)) {
+      end_valid.resize(s.id.size(), 0);  // new particles: no contacts
+      end_contacts.resize(s.id.size() * walls.n_triangle_walls());
+    }
     s.counters.emitted += total;
     s.counters.emitted_volume += static_cast<Real>(total) * f.volume;
     return total;
@@ -1664,6 +1770,8 @@ void validate(const FluidParams& p) {
   if (!(p.viscous_cfl > 0 && p.viscous_cfl <= 1)) fail("viscous_cfl must be in (0, 1] (got " + str(p.viscous_cfl) + ")");
   nonneg(p.max_substep, "max_substep");
   if (p.max_substeps < 1) fail("max_substeps must be >= 1 (got " + str(p.max_substeps) + ")");
+  if (!(p.surface_grid_slack >= 0 && p.surface_grid_slack <= 1))
+    fail("surface_grid_slack must be in [0, 1] (got " + str(p.surface_grid_slack) + ")");
 }
 
 Fluid make_fluid(const FluidParams& p) {

@@ -175,6 +175,15 @@ struct FluidParams {
   Real viscous_cfl = 0.125;
   Real max_substep = 0;       // s
   int max_substeps = 4096;    // per step; beyond, the rest of the step is skipped and counted
+  // Work savers for moving triangle surfaces; both leave every result
+  // unchanged (tests compare them bitwise with the plain path):
+  // a surface's triangle grid bins each vertex with its box over the step
+  // grown by surface_grid_slack H, and later steps keep it while every vertex
+  // stays in its box, [0, 1] (0: rebuilt whenever a vertex has moved);
+  Real surface_grid_slack = 0.125;
+  // the density pass reads the triangle contacts the drift's collision tests
+  // found at the same position and time (false: it queries again).
+  bool reuse_wall_contacts = true;
 };
 
 // Wall sums for a particle at distance d = q H from a plane wall, tabulated
@@ -264,9 +273,15 @@ struct TriangleCells {
 
 // Two levels over the same triangles: margin H (any contact) and H / 2 (a
 // query that already has a contact that near reads a few candidates only).
+// Each vertex has the box it was binned with (its positions over the build's
+// step, grown by a slack); a later step reuses the grid while every vertex
+// stays in its box and the triangles and their listing are unchanged.
 struct TriangleGrid {
   std::array<TriangleCells, 2> level;
-  std::vector<std::uint8_t> listed;  // (n_triangles) 1 where the triangle is in the grid (valid, not degenerate)
+  std::vector<std::uint8_t> listed;      // (n_triangles) 1 where the triangle is in the grid (valid, not degenerate)
+  std::vector<Real> vertex_box;          // (n_vertices x 6) m, lo xyz, hi xyz: the boxes the vertices were binned with
+  std::vector<std::int32_t> triangles;   // (n_triangles x 3) the triangles binned
+  std::int64_t builds = 0, reuses = 0;   // counters: grids built, steps that reused one
 };
 
 // A static triangle mesh wall (a tray, a bone). One-sided meshes keep fluid on
@@ -347,7 +362,7 @@ struct FluidSurface {
   WallParams wall;
   bool two_sided = false;
   std::vector<Real> force;              // (n_vertices x 3) N, output of the last step
-  TriangleGrid grid;                    // scratch, rebuilt every step
+  TriangleGrid grid;                    // scratch, rebuilt when the surface has left it (TriangleGrid)
 };
 
 // ---- neighbour grid (shared with the surface extraction and the tests) ------------
@@ -398,6 +413,7 @@ struct FluidCounters {
   std::int64_t collisions = 0;       // wall projections
   std::int64_t truncated_steps = 0;  // steps that hit max_substeps (the rest of the step skipped)
   std::int64_t invalid_steps = 0;    // refused: dt not finite or <= 0
+  std::int64_t contacts_reused = 0;  // particle-substeps whose density pass read the drift's triangle contacts
   // substeps by the limit that set their length (fluid_step spreads the rest
   // of a step evenly, so a substep is shorter than the limit, never longer):
   // [0] none (the rest of the step fits), [1] CFL, sound and flow speed

@@ -852,15 +852,23 @@ void bumpy_sheet(int n, Real L, Real y0, Real bump, std::vector<Real>& x, std::v
 // the closest triangle whatever the hint and level: runs whose hints are
 // scrambled before every step (other triangles, out-of-range ids, none) end
 // bitwise equal to the plain run, with two moving sheets and a static mesh,
-// an emitter and a drain.
+// an emitter and a drain. So do the work savers: a run whose surface grids
+// are rebuilt before every step (the plain run keeps them while the sheets
+// stay within the slack, and rebuilds them as they move on), and a run whose
+// density pass queries every contact again (the plain run reads the drift's
+// where no wall moved the particle).
 TEST(SphBoundaries, WallHintsNeverChangeTheResult) {
   FluidParams p;
   p.spacing = 0.003;
   const Fluid f = make_fluid(p);
+  FluidParams p_requery = p;
+  p_requery.reuse_wall_contacts = false;
+  const Fluid f_requery = make_fluid(p_requery);
   FluidBoundaries b = open_box(0.2);
   FluidMesh tray;
   bumpy_sheet(12, 0.06, -0.004, 0.001, tray.vertices, tray.triangles);
   add_mesh(b, tray, f);
+  std::int64_t builds = 0, reuses = 0, reused_contacts = 0;
   auto run = [&](int scramble) {
     FluidState s = make_fluid_state();
     fill_box(f, s, {-0.012, 0.004, -0.012}, {0.012, 0.02, 0.012}, {0, -0.3, 0});
@@ -894,19 +902,34 @@ TEST(SphBoundaries, WallHintsNeverChangeTheResult) {
       if (scramble == 1)
         for (auto& v : h) v = static_cast<std::int32_t>((rng = rng * 6364136223846793005ULL + 1442695040888963407ULL) >> 33) % 600 - 40;
       if (scramble == 2) h.clear();
-      fluid_step(f, s, 0.002, b);
+      if (scramble == 3)
+        for (FluidSurface& sf : s.surfaces) sf.grid = TriangleGrid{};
+      fluid_step(scramble == 4 ? f_requery : f, s, 0.002, b);
       for (FluidSurface& sf : s.surfaces)
         for (std::size_t v = 0; v < sf.x.size(); ++v) sf.x[v] += sf.v[v] * 0.002;
     }
     std::vector<Real> force;
     for (const FluidSurface& sf : s.surfaces) force.insert(force.end(), sf.force.begin(), sf.force.end());
+    if (scramble == 0) {
+      for (const FluidSurface& sf : s.surfaces) builds += sf.grid.builds, reuses += sf.grid.reuses;
+      reused_contacts = s.counters.contacts_reused;
+    }
+    if (scramble == 4) {
+      EXPECT_EQ(s.counters.contacts_reused, 0);
+    }
     return std::tuple{fluid_state_hash(s), force, s.counters.emitted, s.counters.drained, s.counters.collisions, hinted};
   };
-  const auto plain = run(0), scrambled = run(1), none = run(2);
+  const auto plain = run(0), scrambled = run(1), none = run(2), rebuilt = run(3), requeried = run(4);
   EXPECT_GT(std::get<4>(plain), 0);   // the fluid hit the walls
   EXPECT_GT(std::get<3>(plain), 0);   // the drain took some
   EXPECT_GT(std::get<5>(plain), 1000);  // and the hints were kept (contacts found)
-  for (const auto* r : {&scrambled, &none}) {
+  // the sheets move 0.1 mm a step against a slack of 0.75 mm: their grids
+  // were kept for most steps and rebuilt a few times
+  std::printf("  surface grids: %lld builds, %lld reuses; %lld contacts reused\n", (long long)builds, (long long)reuses, (long long)reused_contacts);
+  EXPECT_GT(reuses, builds);
+  EXPECT_GE(builds, 2 * 4);
+  EXPECT_GT(reused_contacts, 1000);
+  for (const auto* r : {&scrambled, &none, &rebuilt, &requeried}) {
     EXPECT_EQ(std::get<0>(*r), std::get<0>(plain));
     EXPECT_EQ(std::get<1>(*r), std::get<1>(plain));
     EXPECT_EQ(std::get<2>(*r), std::get<2>(plain));
@@ -1004,6 +1027,9 @@ TEST(SphParams, ValidationNamesTheField) {
   p = {};
   p.viscosity = std::nan("");
   EXPECT_NE(message(p).find("viscosity"), std::string::npos);
+  p = {};
+  p.surface_grid_slack = std::nan("");
+  EXPECT_NE(message(p).find("surface_grid_slack"), std::string::npos);
   FluidBoundaries b = make_box_boundaries({0, 0, 0}, {1, 1, 1});
   b.faces[0] = Face::periodic;
   EXPECT_THROW(validate(b, make_fluid({})), Error);
