@@ -1161,12 +1161,13 @@ struct Stepper {
 
   std::vector<Contact> contact_cache;  // (n x n_triangle_walls) of the density pass, reused by the force pass
   // The triangle contacts the drift's collision tests found at the substep's
-  // end, (n x n_triangle_walls) in the particle order after compact and emit,
-  // and whether each particle's are still its contacts there: no triangle
-  // wall moved it after its queries (the next density pass, at the same
-  // position and time, reads them instead of querying again).
+  // end, (n_drifted x n_triangle_walls) in the drift's particle order, and
+  // for each particle after compact and emit the row of its contacts, or -1
+  // where a triangle wall moved it after its queries (or it is new). The next
+  // density pass, at the same position and time, reads them instead of
+  // querying again. Removals move the rows' indices, not the contacts.
   std::vector<Contact> end_contacts;
-  std::vector<std::uint8_t> end_valid;
+  std::vector<std::int32_t> end_row;
   BigLists big;                        // the full lists of the substep's overflowed particles
 
   std::int32_t n() const { return static_cast<std::int32_t>(s.id.size()); }
@@ -1275,10 +1276,10 @@ struct Stepper {
     const std::size_t ntw = walls.n_triangle_walls();  // the triangle contacts are cached for the force pass
     contact_cache.resize(ntw * static_cast<std::size_t>(c.n));
     // the last drift's contacts, by the particles' order before the sort
-    const bool reuse = ntw > 0 && f.params.reuse_wall_contacts && end_valid.size() == static_cast<std::size_t>(c.n);
+    const bool reuse = ntw > 0 && f.params.reuse_wall_contacts && end_row.size() == static_cast<std::size_t>(c.n);
     if (reuse) {
       std::int64_t k = 0;
-      for (std::int32_t i = 0; i < c.n; ++i) k += end_valid[static_cast<std::size_t>(c.g->order[i])];
+      for (const std::int32_t r : end_row) k += r >= 0;
       s.counters.contacts_reused += k;
     }
     const std::int32_t* order = c.g->order.data();
@@ -1295,9 +1296,9 @@ struct Stepper {
               const std::int32_t* hint = ntw > 0 ? s.scratch.wall_hint.data() + static_cast<std::size_t>(i) * ntw : nullptr;
               const bool near = walls.maybe_near(p);
               c.near[i] = near;
-              const bool cached = reuse && near && end_valid[static_cast<std::size_t>(order[i])];
-              if (cached)
-                std::copy_n(end_contacts.data() + static_cast<std::size_t>(order[i]) * ntw, ntw, cache);
+              const std::int32_t row = reuse && near ? end_row[static_cast<std::size_t>(order[i])] : -1;
+              const bool cached = row >= 0;
+              if (cached) std::copy_n(end_contacts.data() + static_cast<std::size_t>(row) * ntw, ntw, cache);
               const Real rho =
                   mk * c.ksum[i] + (near ? rho0 * wall_fraction(f, walls, p, c.tau, cache, cached, hint) : Real(0));
               Real pr = eos_pressure(f.eos, rho, rho0, f.c0, gamma);
@@ -1404,7 +1405,7 @@ struct Stepper {
     walls.frames_at(tau + h);
     const std::size_t ntw_all = walls.n_triangle_walls();
     end_contacts.resize(static_cast<std::size_t>(np) * ntw_all);
-    end_valid.assign(ntw_all > 0 ? static_cast<std::size_t>(np) : 0, 0);
+    end_row.assign(ntw_all > 0 ? static_cast<std::size_t>(np) : 0, -1);
     const Vec3 g = vec(f.params.gravity);
     const Real damp = 1 / (1 + f.params.damping * h);
     const Real dmin = f.params.collision_distance * f.params.spacing;
@@ -1502,7 +1503,7 @@ struct Stepper {
               for (std::size_t k = 0; k < walls.surfaces.size(); ++k)
                 mesh_collide(walls.surfaces[k], s.surfaces[k].grid, s.surfaces[k].wall, s.surfaces[k].two_sided,
                              static_cast<int>(k), &walls.surface_frames[k], walls.meshes.size() + k);
-            if (ntw > 0) end_valid[static_cast<std::size_t>(i)] = !moved;
+            if (ntw > 0) end_row[static_cast<std::size_t>(i)] = moved ? -1 : i;
             // domain
             bool out = false;
             const Real q2[3] = {x.x, x.y, x.z};
@@ -1577,18 +1578,12 @@ struct Stepper {
         s.p[w] = s.p[i];
         s.id[w] = s.id[i];
         for (std::size_t t = 0; t < ntw; ++t) hint[static_cast<std::size_t>(w) * ntw + t] = hint[static_cast<std::size_t>(i) * ntw + t];
-        if (end_valid.size() == static_cast<std::size_t>(np)) {
-          end_valid[w] = end_valid[i];
-          std::copy_n(end_contacts.data() + static_cast<std::size_t>(i) * ntw, ntw, end_contacts.data() + static_cast<std::size_t>(w) * ntw);
-        }
+        if (end_row.size() == static_cast<std::size_t>(np)) end_row[w] = end_row[i];
       }
       ++w;
     }
     hint.resize(static_cast<std::size_t>(w) * ntw);
-    if (end_valid.size() == static_cast<std::size_t>(np)) {
-      end_valid.resize(static_cast<std::size_t>(w));
-      end_contacts.resize(static_cast<std::size_t>(w) * ntw);
-    }
+    if (end_row.size() == static_cast<std::size_t>(np)) end_row.resize(static_cast<std::size_t>(w));
     for (int a = 0; a < 3; ++a) {
       s.x[a].resize(w);
       s.v[a].resize(w);
@@ -1654,10 +1649,8 @@ struct Stepper {
     }
     if (total > 0 && s.scratch.wall_hint.size() == (s.id.size() - static_cast<std::size_t>(total)) * walls.n_triangle_walls())
       s.scratch.wall_hint.resize(s.id.size() * walls.n_triangle_walls(), -1);  // new particles: no guess
-    if (total > 0 && end_valid.size() == s.id.size() - static_cast<std::size_t>(total)) {
-      end_valid.resize(s.id.size(), 0);  // new particles: no contacts
-      end_contacts.resize(s.id.size() * walls.n_triangle_walls());
-    }
+    if (total > 0 && end_row.size() == s.id.size() - static_cast<std::size_t>(total))
+      end_row.resize(s.id.size(), -1);  // new particles: no contacts
     s.counters.emitted += total;
     s.counters.emitted_volume += static_cast<Real>(total) * f.volume;
     return total;

@@ -19,6 +19,13 @@ nlohmann::json substep_limits(const runtime::FluidCounters& c) {
   return j;
 }
 
+
+// triangle grids built for the fluid's moving surfaces (the other steps reused one)
+std::int64_t surface_grid_builds(const runtime::FluidState& fs) {
+  std::int64_t n = 0;
+  for (const auto& sf : fs.surfaces) n += sf.grid.builds;
+  return n;
+}
 }  // namespace
 
 void add_run_command(CLI::App& app) {
@@ -126,6 +133,8 @@ void add_run_command(CLI::App& app) {
                       {"substeps", fs->counters.substeps},
                       {"substeps_set_by", substep_limits(fs->counters)},
                       {"collisions", fs->counters.collisions},
+                      {"contacts_reused", fs->counters.contacts_reused},
+                      {"surface_grid_builds", surface_grid_builds(*fs)},
                       {"spacing_m", fl.params.spacing},
                       {"sound_speed_m_s", fl.c0},
                       {"physx_stiffness", fl.physx_stiffness},

@@ -77,6 +77,10 @@ TEST_F(RunCli, BleedsAndReportsTheFluid) {
   for (const char* k : {"step", "cfl", "force", "viscous", "max_substep"}) sum += f["substeps_set_by"][k].get<long>();
   EXPECT_EQ(sum, f["substeps"].get<long>());
   EXPECT_GE(f["substeps"].get<long>(), 12);  // at least one a step
+  // the work savers' counts: a grid for the first step at least, at most one a step
+  EXPECT_GE(f["surface_grid_builds"].get<long>(), 1);
+  EXPECT_LE(f["surface_grid_builds"].get<long>(), 12);
+  EXPECT_GT(f["contacts_reused"].get<long>(), 0) << f.dump();
 }
 
 TEST_F(RunCli, BadScenesExitTwoWithOneLine) {
