@@ -328,18 +328,30 @@ bool triangle_grid_holds(const TriangleSource& src, Real duration, const Triangl
       g.vertex_box.size() != 6 * static_cast<std::size_t>(src.n_vertices))
     return false;
   if (nt > 0 && std::memcmp(g.triangles.data(), src.tri, 3 * nt * sizeof(std::int32_t)) != 0) return false;
-  for (std::int32_t i = 0; i < src.n_vertices; ++i) {
-    const Real* B = g.vertex_box.data() + 6 * static_cast<std::size_t>(i);
-    Vec3 p = load3(src.x, i);
-    for (int end = 0; end < 2; ++end) {
-      if (!(p.x >= B[0] && p.y >= B[1] && p.z >= B[2] && p.x <= B[3] && p.y <= B[4] && p.z <= B[5])) return false;
-      if (!src.v) break;
-      p += duration * load3(src.v, i);
+  auto vertices_hold = [&](std::int32_t b, std::int32_t e) {
+    for (std::int32_t i = b; i < e; ++i) {
+      const Real* B = g.vertex_box.data() + 6 * static_cast<std::size_t>(i);
+      Vec3 p = load3(src.x, i);
+      for (int end = 0; end < 2; ++end) {
+        if (!(p.x >= B[0] && p.y >= B[1] && p.z >= B[2] && p.x <= B[3] && p.y <= B[4] && p.z <= B[5])) return false;
+        if (!src.v) break;
+        p += duration * load3(src.v, i);
+      }
     }
-  }
-  for (std::int32_t t = 0; t < src.n_triangles; ++t)
-    if (static_cast<bool>(g.listed[static_cast<std::size_t>(t)]) != binnable(src, t, duration)) return false;
-  return true;
+    return true;
+  };
+  auto listing_holds = [&](std::int32_t b, std::int32_t e) {
+    for (std::int32_t t = b; t < e; ++t)
+      if (static_cast<bool>(g.listed[static_cast<std::size_t>(t)]) != binnable(src, t, duration)) return false;
+    return true;
+  };
+  auto all = [](std::int32_t n, auto&& part) {
+    return tbb::parallel_reduce(
+        tbb::blocked_range<std::int32_t>(0, n, 1024), true,
+        [&](const tbb::blocked_range<std::int32_t>& r, bool ok) { return ok && part(r.begin(), r.end()); },
+        [](bool a, bool b) { return a && b; });
+  };
+  return all(src.n_vertices, vertices_hold) && all(src.n_triangles, listing_holds);
 }
 
 // The candidates of the grid cell containing p: [begin, end) of g.items (empty outside).
@@ -376,23 +388,26 @@ struct TriFrame {
     valid = true;
     tri.resize(static_cast<std::size_t>(src.n_triangles));
     cull.resize(static_cast<std::size_t>(src.n_triangles));
-    for (std::int32_t k = 0; k < src.n_triangles; ++k) {
-      auto& T = tri[static_cast<std::size_t>(k)];
-      auto& C = cull[static_cast<std::size_t>(k)];
-      if (!src.valid(k)) {
-        T.fill(0);
-        C = Cull{};
-        continue;
+    // each triangle's entries from its own vertices: any split gives the same frame
+    tbb::parallel_for(tbb::blocked_range<std::int32_t>(0, src.n_triangles, 512), [&](const auto& range) {
+      for (std::int32_t k = range.begin(); k < range.end(); ++k) {
+        auto& T = tri[static_cast<std::size_t>(k)];
+        auto& C = cull[static_cast<std::size_t>(k)];
+        if (!src.valid(k)) {
+          T.fill(0);
+          C = Cull{};
+          continue;
+        }
+        const Vec3 a = src.vertex(k, 0, t), b = src.vertex(k, 1, t), c = src.vertex(k, 2, t);
+        const Vec3 m = (Real(1) / 3) * (a + b + c);
+        const Real r = std::sqrt(std::max({dot(a - m, a - m), dot(b - m, b - m), dot(c - m, c - m)}));
+        Vec3 nrm = cross(b - a, c - a);
+        const Real ln = norm(nrm);
+        nrm = ln > 0 ? (1 / ln) * nrm : Vec3{};
+        T = {a.x, a.y, a.z, b.x, b.y, b.z, c.x, c.y, c.z};
+        C = Cull{{m.x, m.y, m.z}, r * (1 + 1e-9) + 1e-15, {nrm.x, nrm.y, nrm.z}, 0};
       }
-      const Vec3 a = src.vertex(k, 0, t), b = src.vertex(k, 1, t), c = src.vertex(k, 2, t);
-      const Vec3 m = (Real(1) / 3) * (a + b + c);
-      const Real r = std::sqrt(std::max({dot(a - m, a - m), dot(b - m, b - m), dot(c - m, c - m)}));
-      Vec3 nrm = cross(b - a, c - a);
-      const Real ln = norm(nrm);
-      nrm = ln > 0 ? (1 / ln) * nrm : Vec3{};
-      T = {a.x, a.y, a.z, b.x, b.y, b.z, c.x, c.y, c.z};
-      C = Cull{{m.x, m.y, m.z}, r * (1 + 1e-9) + 1e-15, {nrm.x, nrm.y, nrm.z}, 0};
-    }
+    });
   }
 };
 
