@@ -7,6 +7,7 @@
 //   sph_bench --kernel-radii [--settled]  the dam break for H / dx = 1.5 ... 3 at 8 ... 32 per width
 //                                   (--settled: the column settles behind the gate first)
 //   sph_bench --scene [--threads=2] the integrated paper scene (39x9x4 tissue + 5 000 particles + a bleeding cut)
+//             [--slack=F] [--requery]  with surface_grid_slack F (default 0.125), without the contacts' reuse
 //   sph_bench --benchmark_filter=.  the Google Benchmark timings (BM_FluidStep)
 // One "step" is one SPH substep: grid rebuild and sort, density pass, force
 // pass, integration with walls (fluid_step with dt at the CFL limit, so one
@@ -268,7 +269,13 @@ struct PaperScene {
   std::array<std::int64_t, 5> limits{};  // timed substeps by the limit that set them (FluidCounters::substep_limit)
 };
 
-PaperScene paper_scene(double dt, std::int64_t particles, int steps, int threads) {
+// the triangle walls' work savers (FluidParams; both exact): for the trade-off's figures
+struct SceneKnobs {
+  double slack = rt::FluidParams{}.surface_grid_slack;
+  bool reuse_contacts = true;
+};
+
+PaperScene paper_scene(double dt, std::int64_t particles, int steps, int threads, const SceneKnobs& knobs = {}) {
   namespace ts = orthosim::runtime::testing;
   const auto block = ts::make_layered_block(39, 9, 4);
   rt::Model m = rt::model_from_layers(block.layers, block.sets);
@@ -287,6 +294,8 @@ PaperScene paper_scene(double dt, std::int64_t particles, int steps, int threads
   def.fluid.enabled = true;
   def.fluid.params.spacing = 0.002;
   def.fluid.params.physx_stiffness = 20;
+  def.fluid.params.surface_grid_slack = knobs.slack;
+  def.fluid.params.reuse_wall_contacts = knobs.reuse_contacts;
   def.fluid.margin = 0.02;
   def.fluid.max_particles = 4 * particles;
   rt::ToolDef cut;
@@ -331,13 +340,13 @@ PaperScene paper_scene(double dt, std::int64_t particles, int steps, int threads
   return r;
 }
 
-void print_paper_scene(int threads, std::int64_t particles) {
+void print_paper_scene(int threads, std::int64_t particles, const SceneKnobs& knobs) {
   std::printf("Integrated paper scene: 39x9x4 lattice (implicit), PhysX blood (stiffness 20, dx = 2 mm), a cut vein emitting,\n"
               "two-way coupled layer quads; one step = tissue step + fluid advanced by dt\n");
   std::printf("%9s %7s %12s %10s %14s %14s %12s %10s %12s %11s\n", "dt ms", "threads", "particles", "steps/s",
               "sim s/wall s", "fluid substeps", "fluid share", "neighbours", "max drho %", "warm-up s");
   for (double dt : {1e-3, 0.5e-3}) {
-    const PaperScene r = paper_scene(dt, particles, 200, threads);
+    const PaperScene r = paper_scene(dt, particles, 200, threads, knobs);
     std::printf("%9.2f %7d %5.0f-%-6.0f %10.1f %14.3f %14.2f %11.0f%% %10.1f %12.1f %11.1f\n", 1e3 * r.dt, threads,
                 r.particles0, r.particles1, r.steps_per_s, r.steps_per_s * r.dt, r.substeps, 100 * r.fluid_share,
                 r.neighbours, 100 * r.compression, r.warmup_s);
@@ -507,6 +516,7 @@ int main(int argc, char** argv) {
   std::vector<std::int64_t> sizes{1000, 5000, 20000, 100000};
   std::vector<int> threads{1, 2};
   bool dam = false, full = false, gbench = false, scene = false, sizes_given = false, kernels = false, settled = false;
+  SceneKnobs knobs;
   double min_seconds = 2;
   std::vector<char*> rest{argv[0]};
   for (int i = 1; i < argc; ++i) {
@@ -528,6 +538,10 @@ int main(int argc, char** argv) {
       settled = true;
     } else if (std::strcmp(a, "--scene") == 0) {
       scene = true;
+    } else if (std::strncmp(a, "--slack=", 8) == 0) {
+      knobs.slack = std::stod(a + 8);
+    } else if (std::strcmp(a, "--requery") == 0) {
+      knobs.reuse_contacts = false;
     } else if (std::strcmp(a, "--full") == 0) {
       full = true;
     } else {
@@ -541,7 +555,7 @@ int main(int argc, char** argv) {
     benchmark::RunSpecifiedBenchmarks();
     return 0;
   }
-  if (scene) print_paper_scene(threads.size() == 1 ? threads[0] : 2, sizes_given ? sizes[0] : 5000);
+  if (scene) print_paper_scene(threads.size() == 1 ? threads[0] : 2, sizes_given ? sizes[0] : 5000, knobs);
   else if (kernels) print_kernel_radii(settled);
   else if (dam) print_dam_break(full);
   else print_table(sizes, threads, min_seconds);
