@@ -938,6 +938,60 @@ TEST(SphBoundaries, WallHintsNeverChangeTheResult) {
   }
 }
 
+// A moving surface keeps its triangle grid only while the grid still serves
+// it: the same triangles, every vertex (at the step's start and end) inside
+// the box it was binned with, every triangle's listing unchanged. Each other
+// change makes the next step bin the surface again.
+TEST(SphBoundaries, SurfaceGridIsRebuiltWhenItNoLongerServes) {
+  FluidParams p;
+  p.spacing = 0.003;
+  const Fluid f = make_fluid(p);  // H = 6 mm, slack 0.75 mm
+  const FluidBoundaries b = open_box(0.2);
+  FluidState s = make_fluid_state();
+  fill_box(f, s, {-0.006, 0.003, -0.006}, {0.006, 0.009, 0.006});
+  FluidSurface sheet;
+  bumpy_sheet(4, 0.03, 0, 0.001, sheet.x, sheet.triangles);
+  // and a small triangle of its own (0.2 mm), away from the fluid
+  const auto nv = static_cast<std::int32_t>(sheet.x.size() / 3);
+  sheet.x.insert(sheet.x.end(), {0.02, 0.001, 0.02, 0.0202, 0.001, 0.02, 0.0201, 0.001, 0.0202});
+  sheet.triangles.insert(sheet.triangles.end(), {nv, nv + 2, nv + 1});
+  sheet.v.assign(sheet.x.size(), 0);
+  s.surfaces.push_back(sheet);
+  const Real dt = 1e-4;
+  auto step = [&] {
+    fluid_step(f, s, dt, b);
+    return s.surfaces[0].grid.builds;
+  };
+  FluidSurface& sf = s.surfaces[0];
+  EXPECT_EQ(step(), 1);  // the first step bins it
+  EXPECT_EQ(step(), 1);  // at rest: kept
+  sf.x[1] += 0.0005;     // a vertex moves within the slack
+  EXPECT_EQ(step(), 1);
+  sf.x[1] += 0.0005;     // and beyond it (1 mm from where it was binned)
+  EXPECT_EQ(step(), 2);
+  for (std::size_t k = 1; k < sf.v.size(); k += 3) sf.v[k] = 0.5 * 0.0005 / dt;  // the step's end 0.25 mm on: in the box
+  EXPECT_EQ(step(), 2);
+  for (std::size_t k = 1; k < sf.v.size(); k += 3) sf.v[k] = 4 * 0.0005 / dt;  // 2 mm on: beyond it
+  EXPECT_EQ(step(), 3);  // binned with the motion over the step
+  EXPECT_EQ(step(), 3);  // kept: the same motion
+  std::fill(sf.v.begin(), sf.v.end(), 0);
+  EXPECT_EQ(step(), 3);  // at rest at the start of that motion: still in the boxes
+  std::swap(sf.triangles[0], sf.triangles[1]);  // the same count, other triangles
+  EXPECT_EQ(step(), 4);
+  EXPECT_EQ(step(), 4);
+  // the small triangle made degenerate by a 0.1 mm move (within the slack):
+  // its listing changes
+  sf.x[3 * (nv + 2) + 2] = 0.02;
+  EXPECT_EQ(step(), 5);
+  EXPECT_EQ(step(), 5);
+  sf.triangles.insert(sf.triangles.end(), {0, 1, 2});  // one more triangle
+  EXPECT_EQ(step(), 6);
+  EXPECT_EQ(sf.grid.reuses + sf.grid.builds, 13);  // one or the other every step
+  EXPECT_EQ(sf.grid.listed.back(), 1);
+  EXPECT_EQ(sf.grid.listed[sf.grid.listed.size() - 2], 0);  // the degenerate one is left out
+  EXPECT_TRUE(all_finite(s));
+}
+
 // ---- emitters and drains -----------------------------------------------------------------
 
 TEST(SphSources, EmitterMatchesRequestedFlow) {
