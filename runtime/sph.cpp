@@ -1415,17 +1415,15 @@ struct Stepper {
     const std::int32_t np = n();
     FluidScratch& sc = s.scratch;
     sc.dead.assign(np, kAlive);
-    if (sc.wall_hint.size() != static_cast<std::size_t>(np) * walls.n_triangle_walls())
-      sc.wall_hint.assign(static_cast<std::size_t>(np) * walls.n_triangle_walls(), -1);
+    const std::size_t ntw = walls.n_triangle_walls();
+    if (sc.wall_hint.size() != static_cast<std::size_t>(np) * ntw) sc.wall_hint.assign(static_cast<std::size_t>(np) * ntw, -1);
     walls.frames_at(tau + h);
-    const std::size_t ntw_all = walls.n_triangle_walls();
-    end_contacts.resize(static_cast<std::size_t>(np) * ntw_all);
-    end_row.assign(ntw_all > 0 ? static_cast<std::size_t>(np) : 0, -1);
+    end_contacts.resize(static_cast<std::size_t>(np) * ntw);
+    end_row.assign(ntw > 0 ? static_cast<std::size_t>(np) : 0, -1);
     const Vec3 g = vec(f.params.gravity);
     const Real damp = 1 / (1 + f.params.damping * h);
     const Real dmin = f.params.collision_distance * f.params.spacing;
     const bool any_surface = !walls.surfaces.empty();
-    const std::size_t ntw = walls.n_triangle_walls();
     tbb::enumerable_thread_specific<std::vector<Reaction>> local;
     auto res = tbb::parallel_reduce(
         tbb::blocked_range<std::int32_t>(0, np, 1024), std::array<std::int64_t, 2>{0, 0},
@@ -1475,8 +1473,7 @@ struct Stepper {
             bool moved = false;  // by a triangle wall (after the queries before it)
             auto mesh_collide = [&](const TriangleSource& src, const TriangleGrid& grid, const WallParams& wall,
                                     bool two_sided, int surface, const TriFrame* frame, std::size_t slot) {
-              Contact& ct = end[slot];
-              ct = Contact{};
+              Contact& ct = end[slot];  // the query fills it when it finds a contact
               const bool found = triangle_contact(src, grid, x, tau + h, f.H, wall, two_sided, ct, frame, cached ? cached[slot].tri : -1);
               hint[slot] = found ? ct.tri : -1;
               if (!found) {

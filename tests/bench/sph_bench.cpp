@@ -27,6 +27,7 @@
 #include <chrono>
 #include <cmath>
 #include <cstdio>
+#include <cstdlib>
 #include <cstring>
 #include <fstream>
 #include <numbers>
@@ -539,7 +540,12 @@ int main(int argc, char** argv) {
     } else if (std::strcmp(a, "--scene") == 0) {
       scene = true;
     } else if (std::strncmp(a, "--slack=", 8) == 0) {
-      knobs.slack = std::stod(a + 8);
+      char* end = nullptr;
+      knobs.slack = std::strtod(a + 8, &end);
+      if (end == a + 8 || *end != '\0' || !(knobs.slack >= 0 && knobs.slack <= 1)) {
+        std::fprintf(stderr, "sph_bench: --slack must be a number in [0, 1] (got '%s')\n", a + 8);
+        return 2;
+      }
     } else if (std::strcmp(a, "--requery") == 0) {
       knobs.reuse_contacts = false;
     } else if (std::strcmp(a, "--full") == 0) {
