@@ -507,6 +507,18 @@ void results(const std::string& path, bool quick) {
   out.write(path);
 }
 
+// A whole argument as a number, NaN when it is not one.
+double number(const char* s) {
+  char* end = nullptr;
+  const double v = std::strtod(s, &end);
+  return end == s || *end != '\0' ? std::nan("") : v;
+}
+
+int usage_error(const char* what, const char* got) {
+  std::fprintf(stderr, "sph_bench: %s (got '%s')\n", what, got);
+  return 2;
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -526,11 +538,19 @@ int main(int argc, char** argv) {
       sizes.clear();
       sizes_given = true;
       std::stringstream ss(a + 8);
-      for (std::string t; std::getline(ss, t, ',');) sizes.push_back(std::stoll(t));
+      for (std::string t; std::getline(ss, t, ',');) {
+        const double v = number(t.c_str());
+        if (!(v >= 1 && v <= 1e8 && v == std::floor(v))) return usage_error("--sizes must be whole particle counts in [1, 1e8], comma-separated", a + 8);
+        sizes.push_back(static_cast<std::int64_t>(v));
+      }
+      if (sizes.empty()) return usage_error("--sizes must be whole particle counts in [1, 1e8], comma-separated", a + 8);
     } else if (std::strncmp(a, "--threads=", 10) == 0) {
-      threads = {std::atoi(a + 10)};
+      const double v = number(a + 10);
+      if (!(v >= 1 && v <= 256 && v == std::floor(v))) return usage_error("--threads must be a whole number in [1, 256]", a + 10);
+      threads = {static_cast<int>(v)};
     } else if (std::strncmp(a, "--seconds=", 10) == 0) {
-      min_seconds = std::atof(a + 10);
+      min_seconds = number(a + 10);
+      if (!(min_seconds > 0 && min_seconds <= 3600)) return usage_error("--seconds must be a number in (0, 3600]", a + 10);
     } else if (std::strcmp(a, "--dam-break") == 0) {
       dam = true;
     } else if (std::strcmp(a, "--kernel-radii") == 0) {
@@ -540,12 +560,8 @@ int main(int argc, char** argv) {
     } else if (std::strcmp(a, "--scene") == 0) {
       scene = true;
     } else if (std::strncmp(a, "--slack=", 8) == 0) {
-      char* end = nullptr;
-      knobs.slack = std::strtod(a + 8, &end);
-      if (end == a + 8 || *end != '\0' || !(knobs.slack >= 0 && knobs.slack <= 1)) {
-        std::fprintf(stderr, "sph_bench: --slack must be a number in [0, 1] (got '%s')\n", a + 8);
-        return 2;
-      }
+      knobs.slack = number(a + 8);
+      if (!(knobs.slack >= 0 && knobs.slack <= 1)) return usage_error("--slack must be a number in [0, 1]", a + 8);
     } else if (std::strcmp(a, "--requery") == 0) {
       knobs.reuse_contacts = false;
     } else if (std::strcmp(a, "--full") == 0) {
