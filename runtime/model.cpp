@@ -90,33 +90,30 @@ void Model::finalize() {
     for (std::size_t s = 0; s < ns; ++s) b_spring[static_cast<std::size_t>(fill[spring_b[s]]++)] = static_cast<std::int32_t>(s);
   }
 
-  // node-neighbour rows and edges (a < b for every spring)
+  // node-neighbour rows
   nbr_first.assign(n + 1, 0);
   nbr.clear();
-  nbr_edge.clear();
-  spring_edge.assign(ns, 0);
-  n_edges = 0;
+  slot_a.assign(ns, 0);
+  slot_b.assign(ns, 0);
   {
     std::vector<std::int32_t> row;
-    auto entry = [&](std::size_t i, std::int32_t j) {  // entry of neighbour j in built row i
-      const auto* b = nbr.data() + nbr_first[i];
-      const auto* e = nbr.data() + nbr_first[i + 1];
-      return static_cast<std::size_t>(std::lower_bound(b, e, j) - nbr.data());
-    };
     for (std::size_t i = 0; i < n; ++i) {
       row.clear();
       for (std::int32_t q = a_first[i]; q < a_first[i + 1]; ++q) row.push_back(spring_b[static_cast<std::size_t>(q)]);
       for (std::int32_t q = b_first[i]; q < b_first[i + 1]; ++q) row.push_back(spring_a[static_cast<std::size_t>(b_spring[static_cast<std::size_t>(q)])]);
       std::sort(row.begin(), row.end());
       row.erase(std::unique(row.begin(), row.end()), row.end());
+      const auto base = static_cast<std::int32_t>(nbr.size());
       nbr.insert(nbr.end(), row.begin(), row.end());
       nbr_first[i + 1] = static_cast<std::int32_t>(nbr.size());
-      // lower neighbours' edges were numbered with their rows; higher ones get new numbers
-      for (const std::int32_t j : row)
-        nbr_edge.push_back(static_cast<std::size_t>(j) < i ? nbr_edge[entry(static_cast<std::size_t>(j), static_cast<std::int32_t>(i))]
-                                                            : n_edges++);
-      for (std::int32_t q = a_first[i]; q < a_first[i + 1]; ++q)
-        spring_edge[static_cast<std::size_t>(q)] = nbr_edge[entry(i, spring_b[static_cast<std::size_t>(q)])];
+      auto slot = [&](std::int32_t j) {
+        return base + static_cast<std::int32_t>(std::lower_bound(row.begin(), row.end(), j) - row.begin());
+      };
+      for (std::int32_t q = a_first[i]; q < a_first[i + 1]; ++q) slot_a[static_cast<std::size_t>(q)] = slot(spring_b[static_cast<std::size_t>(q)]);
+      for (std::int32_t q = b_first[i]; q < b_first[i + 1]; ++q) {
+        const auto sq = static_cast<std::size_t>(b_spring[static_cast<std::size_t>(q)]);
+        slot_b[sq] = slot(spring_a[sq]);
+      }
     }
   }
 

@@ -65,15 +65,12 @@ struct Model {
   std::vector<std::int32_t> b_spring;  // (n_springs) springs with b == i, ascending
 
   // ---- node-neighbour rows (built by finalize), for the implicit matrix
-  // Row i lists node i's distinct neighbours ascending. The springs between
-  // two nodes (a biphasic pair) form one edge and share one symmetric 3x3
-  // block, stored once per edge: both rows read it. Edges are numbered by
-  // (a, b), a < b, so node i's edges to higher neighbours are consecutive.
+  // Row i lists node i's distinct neighbours ascending; the springs between
+  // i and a neighbour (a biphasic pair) share one 3x3 block.
   std::vector<std::int32_t> nbr_first;  // (n_nodes + 1) offsets into nbr
   std::vector<std::int32_t> nbr;        // (n_entries) neighbour ids
-  std::vector<std::int32_t> nbr_edge;   // (n_entries) edge of each entry
-  std::vector<std::int32_t> spring_edge;  // (n_springs) edge of spring s
-  std::int32_t n_edges = 0;
+  std::vector<std::int32_t> slot_a;     // (n_springs) entry of spring s in row a: neighbour b
+  std::vector<std::int32_t> slot_b;     // (n_springs) entry of spring s in row b: neighbour a
 
   // ---- deterministic work partition (built by finalize)
   // Parallel loops run over chunks of `chunk` consecutive nodes; reductions

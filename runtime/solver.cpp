@@ -70,12 +70,12 @@ void ensure_scratch(const Model& m, State& s, bool implicit) {
   if (s.f.size() != n3) s.f.assign(n3, 0);
   if (s.warm.size() != n3) s.warm.assign(n3, 0);
   if (implicit) {
-    const auto ne = static_cast<std::size_t>(m.n_edges);
+    const auto ne = m.nbr.size();
     if (sc.offdiag.size() != 6 * ne) sc.offdiag.assign(6 * ne, 0);
     if (sc.diag.size() != 2 * n3) sc.diag.assign(2 * n3, 0);
     if (sc.precond.size() != 2 * n3) sc.precond.assign(2 * n3, 0);
     if (sc.attach_f.size() != n3) sc.attach_f.assign(n3, 0);
-    for (auto* v : {&sc.rhs, &sc.r, &sc.z, &sc.p, &sc.q, &sc.vnew})
+    for (auto* v : {&sc.rhs, &sc.r, &sc.z, &sc.p, &sc.p_next, &sc.q, &sc.vnew})
       if (v->size() != n3) v->assign(n3, 0);
   }
 }
@@ -242,28 +242,38 @@ inline void sym_add(Real* a, std::int64_t k, const Sym3& s) {
   b[0] += s.xx, b[1] += s.yy, b[2] += s.zz, b[3] += s.xy, b[4] += s.xz, b[5] += s.yz;
 }
 
+// How apply_matrix reads its vector: p itself, or the PCG direction update
+// p_next = z + beta p fused into the read (beta == 0: z alone).
+enum class Read { plain, fused_first, fused };
+
 // y = A p on the free nodes (constrained rows zero), one pass over the
-// node-neighbour rows: y_i = D_i p_i - sum_j O_ij p_j, each O_ij read from its
-// edge. Returns p.y.
-Real apply_matrix(const Model& m, State& s, const Real* p, Real* y) {
+// node-neighbour rows: y_i = D_i p_i - sum_j O_ij p_j. The fused modes also
+// write p_next for each node. Returns p.y (of p_next when fused).
+template <Read kRead>
+Real apply_matrix(const Model& m, State& s, const Real* p, const Real* z, Real beta, Real* p_next, Real* y) {
   Scratch& sc = s.scratch;
   const Real* D = sc.diag.data();
   const Real* O = sc.offdiag.data();
   const std::int32_t* nbr_first = m.nbr_first.data();
   const std::int32_t* nbr = m.nbr.data();
-  const std::int32_t* edge = m.nbr_edge.data();
   const Real* w = s.inv_mass.data();
   Real* partial = sc.partial.data();
+  auto dir = [&](std::int32_t j) {
+    if constexpr (kRead == Read::plain) return load3(p, j);
+    else if constexpr (kRead == Read::fused_first) return load3(z, j);
+    else return load3(z, j) + beta * load3(p, j);
+  };
   for_chunks(m, [&](int ch) {
     Real pq = 0;
     for (std::int32_t i = chunk_begin(m, ch), e = chunk_end(m, ch); i < e; ++i) {
+      const Vec3 pi = dir(i);
+      if constexpr (kRead != Read::plain) store3(p_next, i, pi);
       if (w[i] == 0) {
         store3(y, i, Vec3{});
         continue;
       }
-      const Vec3 pi = load3(p, i);
       Vec3 yi = sym_at(D, i) * pi;
-      for (std::int32_t k = nbr_first[i], ke = nbr_first[i + 1]; k < ke; ++k) yi -= sym_at(O, edge[k]) * load3(p, nbr[k]);
+      for (std::int32_t k = nbr_first[i], ke = nbr_first[i + 1]; k < ke; ++k) yi -= sym_at(O, k) * dir(nbr[k]);
       store3(y, i, yi);
       pq += dot(pi, yi);
     }
@@ -311,7 +321,9 @@ Check implicit_substep(const Model& m, State& s, Real t, Real h, const SolverOpt
   const std::int32_t* b_spring = m.b_spring.data();
   const std::int32_t* sa = m.spring_a.data();
   const std::int32_t* sb = m.spring_b.data();
-  const std::int32_t* spring_edge = m.spring_edge.data();
+  const std::int32_t* slot_a = m.slot_a.data();
+  const std::int32_t* slot_b = m.slot_b.data();
+  const std::int32_t* nbr_first = m.nbr_first.data();
   const Real* rest = m.spring_rest.data();
   const Real* k = m.spring_k.data();
   const Real* c = m.spring_c.data();
@@ -337,14 +349,12 @@ Check implicit_substep(const Model& m, State& s, Real t, Real h, const SolverOpt
       const Vec3 xi = load3(x, i);
       Vec3 fi{};
       Sym3 Di;
-      // springs are sorted by (a, b): a biphasic pair is adjacent in both lists and shares its
-      // geometry and its edge; the first end writes the edge's block (the same values as the
-      // second end's, whose direction is exactly negated)
+      for (std::int32_t kk = nbr_first[i]; kk < nbr_first[i + 1]; ++kk) sym_store(O, kk, Sym3{});
+      // springs are sorted by (a, b): a biphasic pair is adjacent in both lists and shares its geometry
       std::int32_t prev = -1;
       SpringGeometry geo{};
       for (std::int32_t q = a_first[i], qe = a_first[i + 1]; q < qe; ++q) {
-        const bool first = sb[q] != prev;
-        if (first) {
+        if (sb[q] != prev) {
           prev = sb[q];
           geo = spring_geometry(load3(x, prev) - xi, Vec3{});
         }
@@ -352,8 +362,7 @@ Check implicit_substep(const Model& m, State& s, Real t, Real h, const SolverOpt
         fi += sf.f;
         u += sf.energy;
         Di += sf.block;
-        if (first) sym_store(O, spring_edge[q], sf.block);
-        else sym_add(O, spring_edge[q], sf.block);
+        sym_add(O, slot_a[q], sf.block);
       }
       prev = -1;
       for (std::int32_t qq = b_first[i], qe = b_first[i + 1]; qq < qe; ++qq) {
@@ -365,6 +374,7 @@ Check implicit_substep(const Model& m, State& s, Real t, Real h, const SolverOpt
         const SpringForceBlock sf = spring_force_block(geo, rest[q], k[q], c[q], ten[q] != 0, h);
         fi -= sf.f;
         Di += sf.block;
+        sym_add(O, slot_b[q], sf.block);
       }
       fi += load3(fext, i);
       if (w[i] == 0) {
@@ -405,7 +415,7 @@ Check implicit_substep(const Model& m, State& s, Real t, Real h, const SolverOpt
   Real* r = sc.r.data();
   Real* z = sc.z.data();
   Real* q = sc.q.data();
-  apply_matrix(m, s, vnew, q);
+  apply_matrix<Read::plain>(m, s, vnew, nullptr, 0, nullptr, q);
   for_chunks(m, [&](int ch) {
     Real rz = 0, rr = 0;
     for (std::int32_t i = chunk_begin(m, ch), e = chunk_end(m, ch); i < e; ++i) {
@@ -426,15 +436,9 @@ Check implicit_substep(const Model& m, State& s, Real t, Real h, const SolverOpt
   bool converged = rr <= thresh;
   Real beta = 0;
   while (!converged && it < o.cg_max_iterations) {
-    // direction p = z + beta p, a pass of its own: the product reads each p_j from
-    // every neighbour's row, so forming it there would repeat the update ~26 times
-    Real* pw = sc.p.data();
-    const bool restart = it == 0;
-    for_chunks(m, [&](int ch) {
-      for (std::int32_t i = chunk_begin(m, ch), e = chunk_end(m, ch); i < e; ++i)
-        store3(pw, i, restart ? load3(z, i) : load3(z, i) + beta * load3(pw, i));
-    });
-    const Real pq = apply_matrix(m, s, pw, q);
+    const Real pq = it == 0 ? apply_matrix<Read::fused_first>(m, s, sc.p.data(), z, 0, sc.p_next.data(), q)
+                            : apply_matrix<Read::fused>(m, s, sc.p.data(), z, beta, sc.p_next.data(), q);
+    sc.p.swap(sc.p_next);
     ++it;
     if (!(pq > 0) || !std::isfinite(pq)) break;  // not positive definite or not finite: stop here
     const Real alpha = rz / pq;

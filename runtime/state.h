@@ -59,10 +59,10 @@ struct Counters {
 // Scratch the solver resizes on demand (never read across steps).
 struct Scratch {
   std::vector<Real> fs;        // (n_springs x 3) N: per-spring force on end a / PCG products
-  std::vector<Real> offdiag;   // (n_edges x 6) implicit matrix: coupling block of each edge (node pair)
+  std::vector<Real> offdiag;   // (n_entries x 6) implicit matrix: coupling block of each node-neighbour entry
   std::vector<Real> diag;      // (n_nodes x 6) implicit matrix: diagonal blocks
   std::vector<Real> precond;   // (n_nodes x 6) inverse diagonal blocks (or inverse diagonals)
-  std::vector<Real> rhs, r, z, p, q, vnew;  // (n_nodes x 3)
+  std::vector<Real> rhs, r, z, p, p_next, q, vnew;  // (n_nodes x 3)
   std::vector<Real> x0, v0;    // (n_nodes x 3) step start, for redo
   std::vector<Real> partial;   // (n_chunks x 4) per-chunk partial sums
   std::vector<Real> attach_k;  // (n_nodes) N/m: spring-attachment stiffness per node

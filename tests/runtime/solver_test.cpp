@@ -367,40 +367,6 @@ TEST(Solver, DeterministicAcrossRunsAndThreadCounts) {
   }
 }
 
-// The implicit matrix keeps one block per edge (node pair), read by both rows:
-// every row entry and every spring of a pair must name the same edge, each pair
-// one edge of its own, a node's edges to higher neighbours consecutive.
-TEST(Solver, EdgesNumberEachNodePairOnce) {
-  // springs given with ends in either order, a biphasic pair, a node with no springs
-  const Model m = make_model({0, 0, 0, 1, 0, 0, 0, 1, 0, 1, 1, 0, 2, 2, 2},
-                             {1, 1, 1, 1, 1},
-                             {{2, 0, 1, 1, 0, false}, {0, 1, 1, 1, 0, false}, {0, 1, 1.1, 2, 0, true},
-                              {3, 1, 1, 1, 0, false}, {2, 3, 1, 1, 0, false}, {0, 3, 1.4, 1, 0, false}});
-  ASSERT_EQ(m.n_edges, 5);
-  ASSERT_EQ(m.nbr_edge.size(), m.nbr.size());
-  const auto entry = [&](std::int32_t i, std::int32_t j) {
-    for (auto k = m.nbr_first[i]; k < m.nbr_first[i + 1]; ++k)
-      if (m.nbr[k] == j) return k;
-    ADD_FAILURE() << "no entry " << j << " in row " << i;
-    return std::int32_t{0};
-  };
-  std::vector<int> uses(5, 0);
-  for (std::int32_t s = 0; s < m.n_springs; ++s) {
-    const auto a = m.spring_a[s], b = m.spring_b[s];
-    EXPECT_EQ(m.nbr_edge[entry(a, b)], m.spring_edge[s]);
-    EXPECT_EQ(m.nbr_edge[entry(b, a)], m.spring_edge[s]);
-  }
-  std::int32_t next = 0;
-  for (std::int32_t i = 0; i < m.n_nodes; ++i)
-    for (auto k = m.nbr_first[i]; k < m.nbr_first[i + 1]; ++k) {
-      ++uses[static_cast<std::size_t>(m.nbr_edge[k])];
-      if (m.nbr[k] > i) EXPECT_EQ(m.nbr_edge[k], next++) << "row " << i << ": higher neighbours' edges in order";
-    }
-  EXPECT_EQ(next, 5);
-  for (int u : uses) EXPECT_EQ(u, 2) << "each edge read by its two rows";
-  EXPECT_EQ(m.nbr_first[5] - m.nbr_first[4], 0);
-}
-
 // ---- pins and attachments ----------------------------------------------------------
 
 TEST(Solver, FixedAndKinematicNodes) {
