@@ -59,7 +59,7 @@ struct SolverOptions {
   int max_substeps = 1 << 20;  // cap on substeps per step (automatic or after redos)
   int max_retries = 8;     // redos of one step, each doubling its substeps
   Real energy_growth = 10; // blow-up threshold on kinetic energy (see above), > 1
-  Real cg_tolerance = 1e-6;    // implicit: relative residual |r| / |rhs|
+  Real cg_tolerance = 1e-6;    // implicit: |r| / the size of the right-hand side's terms (docs/runtime.md)
   int cg_max_iterations = 200; // implicit: per solve
   Preconditioner preconditioner = Preconditioner::block_jacobi;
   bool warm_start = true;  // implicit: start PCG from v + the last velocity change

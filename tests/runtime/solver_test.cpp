@@ -367,6 +367,38 @@ TEST(Solver, DeterministicAcrossRunsAndThreadCounts) {
   }
 }
 
+// The PCG stops relative to the size of the right-hand side's terms (momentum,
+// spring, gravity and external forces), not to the right-hand side itself,
+// which vanishes at equilibrium where the terms cancel. A block at rest in its
+// static equilibrium then needs no iterations and stays put; a test relative
+// to |b| would iterate on round-off.
+TEST(Solver, PcgAtEquilibriumDoesNotIterateOnRoundOff) {
+  const auto b = make_layered_block(13, 5, 4);
+  const Model m = model_from_layers(b.layers, b.sets);
+  State s = make_state(m);
+  fix_nodes(m, s, m.set("fixed"));
+  const State rest = s;
+  SolverOptions settle;
+  settle.integrator = Integrator::implicit_euler;
+  settle.cg_tolerance = 1e-12;
+  settle.cg_max_iterations = 1000;
+  settle.mass_damping = 50;  // 1/s: critically damps the slowest modes within the settling time
+  for (int k = 0; k < 600; ++k) step(m, s, 1.0 / 60, settle);
+  std::fill(s.v.begin(), s.v.end(), 0.0);
+  std::fill(s.warm.begin(), s.warm.end(), 0.0);
+  const Real sag = max_node_distance(s.x, rest.x);
+  ASSERT_GT(sag, 1e-5);
+  const State settled = s;
+  SolverOptions o;  // the defaults
+  o.integrator = Integrator::implicit_euler;
+  const auto c0 = s.counters;
+  for (int k = 0; k < 10; ++k) step(m, s, 1.0 / 60, o);
+  const Real its = static_cast<Real>(s.counters.cg_iterations - c0.cg_iterations) / 10;
+  EXPECT_LE(its, 2) << "iterations a step at rest in equilibrium";
+  EXPECT_EQ(s.counters.cg_unconverged, c0.cg_unconverged);
+  EXPECT_LT(max_node_distance(s.x, settled.x), 1e-6 * sag) << "the equilibrium is kept";
+}
+
 // ---- pins and attachments ----------------------------------------------------------
 
 TEST(Solver, FixedAndKinematicNodes) {
