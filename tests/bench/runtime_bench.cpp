@@ -4,6 +4,8 @@
 //   runtime_bench --tables=DIR [--quick]           write DIR/runtime_tables.md: the run-time
 //                                                  against error table, the stress sweep, the Bullet
 //                                                  comparison (when built with ORTHOSIM_WITH_BULLET_PEER)
+//   runtime_bench --cg-tolerance                   the PCG's stopping tolerance against its solve error
+//                                                  and the integrator's (39x9x4 lattice settling, 1 thread)
 //   runtime_bench --results=FILE.json [--quick]    the harness rows (orthosim bench, tests/bench/bench_results.h):
 //     - integrator error against dt: 13x5x4 block pulled for 0.05 s, error = max position error / max
 //       motion against symplectic Euler at 2e-6 s (full: 1e-7 s); goal <= 0.2 for symplectic with
@@ -656,6 +658,51 @@ void results(const std::string& path, bool quick) {
 
 }  // namespace
 
+// The implicit solve's error against the integrator's: the 39x9x4 lattice
+// released under gravity for 0.5 s, 1 thread. Solve error: positions at the
+// end against the same dt solved to 1e-12; integrator error: that run against
+// dt = 0.125 ms; both over the largest motion.
+void print_cg_tolerance_table() {
+  const Lattice& L = lattice(39, 9, 4);
+  const Real T = 0.5;
+  struct Run {
+    std::vector<Real> x;
+    double its = 0, us = 0;
+  };
+  auto run = [&](Real dt, Real tol) {
+    rt::State s = L.rest;
+    rt::SolverOptions o;
+    o.integrator = rt::Integrator::implicit_euler;
+    o.cg_tolerance = tol;
+    o.cg_max_iterations = 2000;
+    o.gravity = {0, 9.81, 0};
+    tbb::task_arena arena(1);
+    const long n = std::lround(T / dt);
+    const auto t0 = std::chrono::steady_clock::now();
+    for (long k = 0; k < n; ++k) arena.execute([&] { rt::step(L.model, s, dt, o); });
+    const double w = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+    return Run{s.x, static_cast<double>(s.counters.cg_iterations) / static_cast<double>(s.counters.cg_solves),
+               1e6 * w / static_cast<double>(n)};
+  };
+  auto dist = [](const std::vector<Real>& a, const std::vector<Real>& b) {
+    Real e = 0;
+    for (std::size_t i = 0; i + 2 < a.size(); i += 3) e = std::max(e, std::hypot(a[i] - b[i], a[i + 1] - b[i + 1], a[i + 2] - b[i + 2]));
+    return e;
+  };
+  const Run ref = run(0.125e-3, 1e-12);
+  const Real motion = dist(ref.x, L.rest.x);
+  std::printf("39x9x4 lattice under gravity for %.1f s, 1 thread; errors over the largest motion (%.3g m)\n", T, motion);
+  std::printf("%10s %10s %16s %12s %12s %14s\n", "dt s", "tolerance", "iterations/step", "us/step", "solve error", "integ. error");
+  for (Real dt : {1.0 / 60, 1e-3, 0.5e-3}) {
+    const Run tight = run(dt, 1e-12);
+    const Real integ = dist(tight.x, ref.x) / motion;
+    for (Real tol : {1e-3, 1e-4, 1e-5, 1e-6}) {
+      const Run r = run(dt, tol);
+      std::printf("%10.3g %10.0e %16.2f %12.1f %12.2e %14.2e\n", dt, tol, r.its, r.us, dist(r.x, tight.x) / motion, integ);
+    }
+  }
+}
+
 int main(int argc, char** argv) {
   ob::CommonArgs common = ob::parse_common(argc, argv);
   if (!common.results.empty()) {
@@ -667,7 +714,10 @@ int main(int argc, char** argv) {
   std::vector<char*> args;
   for (char* arg : common.rest) {
     if (std::strncmp(arg, "--tables=", 9) == 0) tables = arg + 9;
-    else args.push_back(arg);
+    else if (std::strcmp(arg, "--cg-tolerance") == 0) {
+      print_cg_tolerance_table();
+      return 0;
+    } else args.push_back(arg);
   }
   if (!tables.empty()) {
     std::ostringstream md;
