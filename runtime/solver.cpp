@@ -442,8 +442,8 @@ Check implicit_substep(const Model& m, State& s, Real t, Real h, const SolverOpt
   Real rr = partial_sum(m, sc, 2);
   // Stop at |r| <= tol x the size of b's terms (root sum of squares), not of b
   // itself: near equilibrium the terms cancel, |b| -> 0, and a test relative to
-  // |b| would iterate to round-off (130 iterations a step for a settled lattice
-  // at 1/60 s, against 38). A poor first guess (|r0| > both) sets the scale.
+  // |b| iterates on round-off (139 iterations a step for a block at rest in its
+  // equilibrium, now 0-2). A poor first guess (|r0| larger than both) sets the scale.
   const Real thresh = o.cg_tolerance * o.cg_tolerance * std::max({terms2, rhs2, rr});
   int it = 0;
   bool converged = rr <= thresh;

@@ -656,8 +656,6 @@ void results(const std::string& path, bool quick) {
   out.write(path);
 }
 
-}  // namespace
-
 // The implicit solve's error against the integrator's: the 39x9x4 lattice
 // released under gravity for 0.5 s, 1 thread. Solve error: positions at the
 // end against the same dt solved to 1e-12; integrator error: that run against
@@ -686,7 +684,8 @@ void print_cg_tolerance_table() {
   };
   auto dist = [](const std::vector<Real>& a, const std::vector<Real>& b) {
     Real e = 0;
-    for (std::size_t i = 0; i + 2 < a.size(); i += 3) e = std::max(e, std::hypot(a[i] - b[i], a[i + 1] - b[i + 1], a[i + 2] - b[i + 2]));
+    for (std::size_t i = 0; i + 2 < a.size(); i += 3)
+      e = std::max(e, std::hypot(a[i] - b[i], a[i + 1] - b[i + 1], a[i + 2] - b[i + 2]));
     return e;
   };
   const Run ref = run(0.125e-3, 1e-12);
@@ -702,6 +701,8 @@ void print_cg_tolerance_table() {
     }
   }
 }
+
+}  // namespace
 
 int main(int argc, char** argv) {
   ob::CommonArgs common = ob::parse_common(argc, argv);
