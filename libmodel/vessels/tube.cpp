@@ -427,7 +427,7 @@ void separate_touching(const Forest& f, const std::vector<std::vector<double>>& 
   const double margin = 0.05;
   for (std::size_t a = 0; a < nb; ++a)
     for (std::size_t b = a; b < nb; ++b) {
-      Eigen::Vector3d jp;
+      Eigen::Vector3d jp = Eigen::Vector3d::Zero();
       const bool related = a != b && shared_junction(a, b, &jp);
       for (std::size_t i = 0; i < xs[a].size(); ++i)
         for (std::size_t j = a == b ? i + 1 : 0; j < xs[b].size(); ++j) {
