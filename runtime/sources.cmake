@@ -15,7 +15,8 @@ target_compile_options(orthosim_runtime PRIVATE -fno-math-errno)
 add_library(orthosim_runtime_testing STATIC
   ${CMAKE_CURRENT_LIST_DIR}/testing/lattice.cpp
   ${CMAKE_CURRENT_LIST_DIR}/testing/newton.cpp
-  ${CMAKE_CURRENT_LIST_DIR}/testing/stress.cpp)
+  ${CMAKE_CURRENT_LIST_DIR}/testing/stress.cpp
+  ${CMAKE_CURRENT_LIST_DIR}/testing/fluid_ball.cpp)
 target_link_libraries(orthosim_runtime_testing PUBLIC orthosim_runtime orthosim_format orthosim_flags Eigen3::Eigen)
 
 # orthosim_lattice: writes a layered lattice block as a model file (a runnable

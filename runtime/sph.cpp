@@ -1912,6 +1912,20 @@ std::int64_t fill_box(const Fluid& f, FluidState& s, const std::array<Real, 3>& 
   return n[0] * n[1] * n[2];
 }
 
+std::int64_t fill_ball(const Fluid& f, FluidState& s, const std::array<Real, 3>& c, Real r) {
+  const Real dx = f.params.spacing;
+  const auto m = static_cast<std::int64_t>(std::ceil(r / dx)) + 1;
+  std::vector<Real> xyz;
+  for (std::int64_t k = -m; k <= m; ++k)
+    for (std::int64_t j = -m; j <= m; ++j)
+      for (std::int64_t i = -m; i <= m; ++i) {
+        const Real q[3] = {(i + 0.5) * dx, (j + 0.5) * dx, (k + 0.5) * dx};
+        if (q[0] * q[0] + q[1] * q[1] + q[2] * q[2] <= r * r) xyz.insert(xyz.end(), {c[0] + q[0], c[1] + q[1], c[2] + q[2]});
+      }
+  add_particles(f, s, xyz);
+  return static_cast<std::int64_t>(xyz.size() / 3);
+}
+
 std::int32_t NeighbourGrid::cell_of(Real x, Real y, Real z) const {
   const Real q[3] = {x, y, z};
   std::int32_t idx[3];

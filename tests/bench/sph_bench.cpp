@@ -8,6 +8,8 @@
 //                                   (--settled: the column settles behind the gate first)
 //   sph_bench --scene [--threads=2] the integrated paper scene (39x9x4 tissue + 5 000 particles + a bleeding cut)
 //             [--slack=F] [--requery]  with surface_grid_slack F (default 0.125), without the contacts' reuse
+//   sph_bench --surface             the blood surface (colour field, Eq. 4-6) of a ball against its sphere:
+//                                   error and time by ball radius and marching-grid cell
 //   sph_bench --benchmark_filter=.  the Google Benchmark timings (BM_FluidStep)
 // One "step" is one SPH substep: grid rebuild and sort, density pass, force
 // pass, integration with walls (fluid_step with dt at the CFL limit, so one
@@ -16,6 +18,7 @@
 #include "runtime/scene.h"
 #include "runtime/sph.h"
 #include "runtime/sph_surface.h"
+#include "runtime/testing/fluid_ball.h"
 #include "runtime/testing/lattice.h"
 #include "tests/bench/bench_results.h"
 
@@ -221,6 +224,33 @@ void print_kernel_radii(bool settled) {
                   static_cast<long long>(r.particles), r.wall_s, 100 * r.max_error, r.speed_ratio, r.lead_T,
                   100 * r.max_error_lead);
       std::fflush(stdout);
+    }
+}
+
+// The blood surface against the truth (runtime/testing/fluid_ball.h), one
+// thread: errors in particle spacings, time of the extraction (median of 5).
+void print_surface_table() {
+  rt::FluidParams p;
+  p.spacing = 0.002;
+  const rt::Fluid f = rt::make_fluid(p);
+  tbb::task_arena arena(1);
+  std::printf("Blood surface of a ball at rest (dx = 2 mm, H = 2 dx) against the sphere of its particles' volume, 1 thread\n");
+  std::printf("%10s %9s %10s %10s %12s %12s %12s %10s\n", "radius/dx", "cell/dx", "particles", "triangles", "mean off/dx",
+              "max err/dx", "volume ratio", "ms");
+  for (double radius : {4.0, 8.0, 16.0})
+    for (double cell : {1.0, 0.5, 0.25}) {
+      rt::FluidSurfaceOptions o;
+      o.cell = cell;
+      std::vector<double> times;
+      rt::testing::BallSurfaceError e;
+      for (int k = 0; k < 5; ++k) {
+        arena.execute([&] { e = rt::testing::ball_surface_error(f, radius, o); });
+        times.push_back(e.seconds);
+      }
+      std::nth_element(times.begin(), times.begin() + 2, times.end());
+      std::printf("%10.0f %9.2f %10lld %10lld %+12.3f %12.3f %12.3f %10.2f\n", radius, cell, static_cast<long long>(e.particles),
+                  static_cast<long long>(e.triangles), e.mean_offset / p.spacing, e.max_error / p.spacing, e.volume_ratio,
+                  1e3 * times[2]);
     }
 }
 
@@ -528,7 +558,8 @@ int main(int argc, char** argv) {
   }
   std::vector<std::int64_t> sizes{1000, 5000, 20000, 100000};
   std::vector<int> threads{1, 2};
-  bool dam = false, full = false, gbench = false, scene = false, sizes_given = false, kernels = false, settled = false;
+  bool dam = false, full = false, gbench = false, scene = false, sizes_given = false, kernels = false, settled = false,
+       surface = false;
   SceneKnobs knobs;
   double min_seconds = 2;
   std::vector<char*> rest{argv[0]};
@@ -559,6 +590,8 @@ int main(int argc, char** argv) {
       settled = true;
     } else if (std::strcmp(a, "--scene") == 0) {
       scene = true;
+    } else if (std::strcmp(a, "--surface") == 0) {
+      surface = true;
     } else if (std::strncmp(a, "--slack=", 8) == 0) {
       knobs.slack = number(a + 8);
       if (!(knobs.slack >= 0 && knobs.slack <= 1)) return usage_error("--slack must be a number in [0, 1]", a + 8);
@@ -577,7 +610,8 @@ int main(int argc, char** argv) {
     benchmark::RunSpecifiedBenchmarks();
     return 0;
   }
-  if (scene) print_paper_scene(threads.size() == 1 ? threads[0] : 2, sizes_given ? sizes[0] : 5000, knobs);
+  if (surface) print_surface_table();
+  else if (scene) print_paper_scene(threads.size() == 1 ? threads[0] : 2, sizes_given ? sizes[0] : 5000, knobs);
   else if (kernels) print_kernel_radii(settled);
   else if (dam) print_dam_break(full);
   else print_table(sizes, threads, min_seconds);

@@ -2,7 +2,7 @@
 # column, dam break (Martin & Moyce 1952), Poiseuille start-up (Morris et al.
 # 1997), conservation, determinism, robustness, emitters, drains, walls,
 # two-way coupling, the colour-field surface and its .vtp output.
-orthosim_add_test(runtime_sph_test SOURCES runtime/sph_test.cpp LIBS orthosim_runtime)
+orthosim_add_test(runtime_sph_test SOURCES runtime/sph_test.cpp LIBS orthosim_runtime orthosim_runtime_testing)
 
 # steps per second against particle count (the paper's Fig. 3b), neighbour
 # counts and density error; --dam-break: the resolution study; --scene: the
@@ -21,7 +21,7 @@ add_library(orthosim_sph_O0 OBJECT ${CMAKE_SOURCE_DIR}/runtime/sph.cpp)
 target_link_libraries(orthosim_sph_O0 PRIVATE orthosim_format orthosim_flags Eigen3::Eigen TBB::tbb)
 target_compile_options(orthosim_sph_O0 PRIVATE -O0 -fno-math-errno -Wno-psabi)
 add_executable(runtime_sph_O0_test runtime/sph_test.cpp $<TARGET_OBJECTS:orthosim_sph_O0>)
-target_link_libraries(runtime_sph_O0_test PRIVATE orthosim_core orthosim_runtime orthosim_flags GTest::gtest
+target_link_libraries(runtime_sph_O0_test PRIVATE orthosim_core orthosim_runtime orthosim_runtime_testing orthosim_flags GTest::gtest
                       GTest::gtest_main)
 target_compile_definitions(runtime_sph_O0_test PRIVATE ORTHOSIM_BINARY="${CMAKE_BINARY_DIR}/tools/orthosim"
                            ORTHOSIM_SHARED_DIR="${CMAKE_SOURCE_DIR}/../shared")
