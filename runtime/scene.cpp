@@ -287,6 +287,7 @@ SceneDef parse_scene(const std::string& text, const std::string& file) {
     fd.surface = f.boolean("surface", fd.surface);
     fd.particles = f.boolean("particles", fd.particles);
     fd.surface_cell = f.number("surface_cell", fd.surface_cell, 0, 2, true);
+    fd.surface_volume_passes = static_cast<int>(f.integer("surface_volume_passes", fd.surface_volume_passes, 0, 64));
     f.finish();
   }
   d.fixed = o.strings("fixed");
@@ -760,6 +761,7 @@ void Scene::write_fluid_frame() {
   if (def_.fluid.surface) {
     FluidSurfaceOptions so;
     so.cell = def_.fluid.surface_cell;
+    so.volume_passes = def_.fluid.surface_volume_passes;
     const FluidSurfaceMesh mesh = extract_fluid_surface(fr.fluid, fr.state, so);
     write_fluid_surface_vtp(dir + "/" + name + "_blood_" + tag + ".vtp", mesh, def_.output.vtk.binary, t);
     fr.summary.surface_triangles = mesh.n_triangles();

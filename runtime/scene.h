@@ -103,6 +103,7 @@ struct FluidDef {
   bool surface = true;                // write the blood surface (Eq. 4-6, marching tetrahedra) per frame
   bool particles = false;             // write the particles per frame
   Real surface_cell = 0.5;            // blood surface grid cell / particle spacing
+  int surface_volume_passes = 0;      // blood surface: FluidSurfaceOptions::volume_passes
 };
 
 // The flow out of a cut vessel of radius r (m) driven by `pressure` (Pa):

@@ -1912,8 +1912,8 @@ std::int64_t fill_box(const Fluid& f, FluidState& s, const std::array<Real, 3>& 
   return n[0] * n[1] * n[2];
 }
 
-std::int64_t fill_ball(const Fluid& f, FluidState& s, const std::array<Real, 3>& c, Real r) {
-  const Real dx = f.params.spacing;
+std::int64_t fill_ball(const Fluid& f, FluidState& s, const std::array<Real, 3>& c, Real r, Real lattice) {
+  const Real dx = lattice > 0 ? lattice : f.params.spacing;
   const auto m = static_cast<std::int64_t>(std::ceil(r / dx)) + 1;
   std::vector<Real> xyz;
   for (std::int64_t k = -m; k <= m; ++k)

@@ -493,9 +493,10 @@ void add_particles(const Fluid& f, FluidState& s, std::span<const Real> xyz, std
 std::int64_t fill_box(const Fluid& f, FluidState& s, const std::array<Real, 3>& lo, const std::array<Real, 3>& hi,
                       const std::array<Real, 3>& velocity = {0, 0, 0});
 
-// Fills the ball of radius r about c with the cubic lattice of spacing dx at
-// c + (i + 1/2) dx, at rest. Returns the number of particles added.
-std::int64_t fill_ball(const Fluid& f, FluidState& s, const std::array<Real, 3>& c, Real r);
+// Fills the ball of radius r about c with the cubic lattice at c + (i + 1/2) a,
+// at rest; a = lattice (0: the fluid's spacing; smaller: compressed). Returns
+// the number of particles added.
+std::int64_t fill_ball(const Fluid& f, FluidState& s, const std::array<Real, 3>& c, Real r, Real lattice = 0);
 
 // Advances the state by dt (s) with substeps inside; never throws.
 FluidStepInfo fluid_step(const Fluid& f, FluidState& s, Real dt, const FluidBoundaries& b);

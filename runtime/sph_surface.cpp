@@ -20,7 +20,7 @@ struct Cloud {
   std::vector<Real> x, y, z, vol;
   Real H = 0, gfac = 0;
 
-  Cloud(const Fluid& f, const FluidState& s) : H(f.H) {
+  Cloud(const Fluid& f, const FluidState& s, int volume_passes = 0) : H(f.H) {
     const std::int64_t n = s.size();
     build_neighbour_grid(s.x[0].data(), s.x[1].data(), s.x[2].data(), n, f.H, {0, 0, 0}, {0, 0, 0}, {false, false, false}, g);
     x.resize(n), y.resize(n), z.resize(n), vol.resize(n);
@@ -31,6 +31,36 @@ struct Cloud {
       const Real rho = have_rho && s.rho[i] > 0 ? s.rho[i] : f.params.rest_density;
       vol[k] = f.mass / rho;
     }
+    // Shepard passes (FluidSurfaceOptions::volume_passes): each reads the last
+    // pass's volumes only, so the result does not depend on the threads
+    std::vector<Real> next(volume_passes > 0 ? n : 0);
+    for (int pass = 0; pass < volume_passes; ++pass) {
+      tbb::parallel_for(tbb::blocked_range<std::int64_t>(0, n, 512), [&](const auto& r) {
+        for (std::int64_t k = r.begin(); k < r.end(); ++k) {
+          Real mass_sum = 0, volume_sum = 0;  // sum m W, sum V W
+          for_neighbours({x[k], y[k], z[k]}, [&](std::int32_t j, Real len, const Vec3&) {
+            const Real w = wendland_w(len, H);
+            mass_sum += f.mass * w;
+            volume_sum += vol[j] * w;
+          });
+          next[k] = mass_sum > 0 ? f.mass * volume_sum / mass_sum : vol[k];
+        }
+      });
+      vol.swap(next);
+    }
+  }
+
+  // fn(j, |p - x_j|, p - x_j) for every particle j within H of p
+  template <class Fn>
+  void for_neighbours(const Vec3& p, Fn&& fn) const {
+    NeighbourRun runs[27];
+    const int nr = neighbour_runs(g, g.cell_of(p.x, p.y, p.z), runs);
+    for (int r = 0; r < nr; ++r)
+      for (std::int32_t j = runs[r].begin; j < runs[r].end; ++j) {
+        const Vec3 rv{p.x - x[j], p.y - y[j], p.z - z[j]};
+        const Real len = norm(rv);
+        if (len < H) fn(j, len, rv);
+      }
   }
 
   // d(p) and grad d(p)
@@ -39,18 +69,12 @@ struct Cloud {
       if (grad) *grad = {};
       return 0;
     }
-    NeighbourRun runs[27];
-    const int nr = neighbour_runs(g, g.cell_of(p.x, p.y, p.z), runs);
     Real d = 0;
     Vec3 gr;
-    for (int r = 0; r < nr; ++r)
-      for (std::int32_t j = runs[r].begin; j < runs[r].end; ++j) {
-        const Vec3 rv{p.x - x[j], p.y - y[j], p.z - z[j]};
-        const Real len = norm(rv);
-        if (!(len < H)) continue;
-        d += vol[j] * wendland_w(len, H);
-        if (grad) gr -= (vol[j] * wendland_grad_factor(len, H)) * rv;
-      }
+    for_neighbours(p, [&](std::int32_t j, Real len, const Vec3& rv) {
+      d += vol[j] * wendland_w(len, H);
+      if (grad) gr -= (vol[j] * wendland_grad_factor(len, H)) * rv;
+    });
     if (grad) *grad = gr;
     return d;
   }
@@ -89,10 +113,11 @@ SurfaceParticles surface_particles(const Fluid& f, const FluidState& s, Real thr
 FluidSurfaceMesh extract_fluid_surface(const Fluid& f, const FluidState& s, const FluidSurfaceOptions& o) {
   if (!(o.cell > 0 && o.cell <= 2)) throw Error("", "fluid surface: cell must be in (0, 2] spacings");
   if (!(o.iso > 0 && o.iso < 1)) throw Error("", "fluid surface: iso must be in (0, 1)");
+  if (!(o.volume_passes >= 0 && o.volume_passes <= 64)) throw Error("", "fluid surface: volume_passes must be in [0, 64]");
   FluidSurfaceMesh mesh;
   const std::int64_t n = s.size();
   if (n == 0) return mesh;
-  const Cloud cloud(f, s);
+  const Cloud cloud(f, s, o.volume_passes);
   const Real c = o.cell * f.params.spacing, H = f.H;
   // global node lattice: node (i, j, k) at origin + (i, j, k) c
   Real lo[3] = {HUGE_VAL, HUGE_VAL, HUGE_VAL}, hi[3] = {-HUGE_VAL, -HUGE_VAL, -HUGE_VAL};

@@ -41,6 +41,13 @@ SurfaceParticles surface_particles(const Fluid& f, const FluidState& s, Real thr
 struct FluidSurfaceOptions {
   Real cell = 0.5;  // grid cell size / particle spacing, (0, 2]
   Real iso = 0.5;   // level of the colour field taken as the surface, (0, 1)
+  // The particle volumes V_j of d = sum V_j W. 0: the paper's m / rho_j (Eq. 4).
+  // k > 0: k passes of the fixed point rho_j <- sum_k m W_jk / sum_k V_k W_jk,
+  // V_j = m / rho_j (a Shepard-normalised density: rho at a full
+  // neighbourhood, uniform compression kept, not short at the free surface,
+  // where m / rho_j overstates the volume and puts the surface about 0.1
+  // spacing outside; docs/sph.md). [0, 64].
+  int volume_passes = 0;
 };
 
 // A closed, consistently oriented triangle mesh (every edge shared by two

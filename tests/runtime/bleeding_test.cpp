@@ -230,12 +230,16 @@ TEST(Bleeding, SceneFileFluidAndDrainErrors) {
   bad(R"({"model": "m.h5", "fluid": {"colour": "red"}})", "unknown key 'colour'");
   bad(R"({"model": "m.h5", "fluid": {"physx_stiffness": 20, "sound_speed": 3}})", "not both");
   bad(R"({"model": "m.h5", "fluid": {"eos": "ideal"}})", "eos");
-  const SceneDef d = parse_scene(R"({"model": "m.h5", "fluid": {"physx_stiffness": 20, "max_particles": 500},
+  bad(R"({"model": "m.h5", "fluid": {"surface_volume_passes": 65}})", "surface_volume_passes must be in [0, 64]");
+  bad(R"({"model": "m.h5", "fluid": {"surface_volume_passes": 2.5}})", "surface_volume_passes must be an integer");
+  const SceneDef d = parse_scene(R"({"model": "m.h5", "fluid": {"physx_stiffness": 20, "max_particles": 500,
+      "surface_volume_passes": 8},
       "tools": [{"name": "s", "type": "drain", "center": [0, 0, 0], "radius": 0.01, "path": [[0, 0, 0, 0], [1, 0.01, 0, 0]]}]})",
                                  "scene.json");
   EXPECT_TRUE(d.fluid.enabled);
   EXPECT_EQ(d.fluid.params.physx_stiffness, 20);
   EXPECT_EQ(d.fluid.max_particles, 500);
+  EXPECT_EQ(d.fluid.surface_volume_passes, 8);
   ASSERT_EQ(d.tools.size(), 1u);
   EXPECT_EQ(d.tools[0].type, ToolType::drain);
   EXPECT_EQ(d.tools[0].path.t.size(), 2u);

@@ -1176,18 +1176,20 @@ TEST(SphSurface, MarchingTetrahedraMeshIsClosedAndEnclosesTheFluid) {
   EXPECT_EQ(m.triangles, m2.triangles);
 }
 
-// The surface of a ball of blood against the sphere of the particles' volume
-// (runtime/testing/fluid_ball.h). The lattice-filled ball is itself a
+// The surface of a ball of blood against the sphere of the space its particles
+// fill (runtime/testing/fluid_ball.h). The lattice-filled ball is itself a
 // staircase up to about half a spacing off a sphere, so the mesh should be
-// within one spacing everywhere and less than half of one on average. It lies
-// outside: the paper's weights m / rho_j count the surface particles, whose
-// densities fall short of rho0, at more than their volume (0.14 / 0.21 / 0.30
-// spacings for radii of 4 / 8 / 16, `sph_bench --surface`: towards a flat
-// face's offset). A finer marching grid brings the worst vertex closer.
+// within one spacing everywhere and less than half of one on average. With
+// the paper's weights m / rho_j it lies about 0.1 spacing outside (the surface
+// particles' densities fall short of rho0, so their volumes count more;
+// `sph_bench --surface`); the Shepard volume passes take that out. A finer
+// marching grid brings the worst vertex closer.
 TEST(SphSurface, BallSurfaceLiesWithinASpacingOfTheSphere) {
   FluidParams p;
   p.spacing = 0.002;
   const Fluid f = make_fluid(p);
+  FluidSurfaceOptions shepard;
+  shepard.volume_passes = 8;
   for (Real radius : {4.0, 8.0}) {
     SCOPED_TRACE(radius);
     const testing::BallSurfaceError e = testing::ball_surface_error(f, radius);
@@ -1199,7 +1201,35 @@ TEST(SphSurface, BallSurfaceLiesWithinASpacingOfTheSphere) {
     FluidSurfaceOptions coarse;
     coarse.cell = 1;
     EXPECT_LT(e.max_error, testing::ball_surface_error(f, radius, coarse).max_error);
+    // the Shepard volumes: the offset and the volume's excess mostly gone
+    const testing::BallSurfaceError s = testing::ball_surface_error(f, radius, shepard);
+    EXPECT_LT(std::abs(s.mean_offset), 0.05 * p.spacing);
+    EXPECT_LT(std::abs(s.volume_ratio - 1), 0.01);
+    EXPECT_LT(s.max_error, e.max_error);
   }
+}
+
+// The Shepard volumes keep a uniform compression: a ball packed at 0.8 of the
+// spacing (density about 1.95 rho0) keeps its surface on its own sphere. The
+// rest volumes m / rho0 would not (d ~ rho / rho0 inside: the level 0.5 moves
+// out), nor would a passes count that drifted towards them.
+TEST(SphSurface, ShepardVolumesKeepACompressedBall) {
+  FluidParams p;
+  p.spacing = 0.002;
+  const Fluid f = make_fluid(p);
+  FluidSurfaceOptions shepard;
+  shepard.volume_passes = 8;
+  const testing::BallSurfaceError e = testing::ball_surface_error(f, 8, shepard, 0.8);
+  const Real a = 0.8 * p.spacing;
+  EXPECT_LT(std::abs(e.mean_offset), 0.1 * a);
+  EXPECT_LT(std::abs(e.volume_ratio - 1), 0.02);
+  EXPECT_LT(e.max_error, a);
+  // out-of-range passes are refused
+  FluidState s = make_fluid_state();
+  fill_ball(f, s, {0, 0, 0}, 3 * p.spacing);
+  FluidSurfaceOptions bad;
+  bad.volume_passes = 65;
+  EXPECT_THROW(extract_fluid_surface(f, s, bad), Error);
 }
 
 TEST(SphSurface, WritesVtp) {
