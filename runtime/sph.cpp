@@ -1914,6 +1914,7 @@ std::int64_t fill_box(const Fluid& f, FluidState& s, const std::array<Real, 3>& 
 
 std::int64_t fill_ball(const Fluid& f, FluidState& s, const std::array<Real, 3>& c, Real r, Real lattice) {
   const Real dx = lattice > 0 ? lattice : f.params.spacing;
+  if (!(std::isfinite(r) && r >= 0 && std::isfinite(dx) && r / dx < 1e4)) return 0;  // nothing for a bad ball
   const auto m = static_cast<std::int64_t>(std::ceil(r / dx)) + 1;
   std::vector<Real> xyz;
   for (std::int64_t k = -m; k <= m; ++k)
@@ -1922,8 +1923,9 @@ std::int64_t fill_ball(const Fluid& f, FluidState& s, const std::array<Real, 3>&
         const Real q[3] = {(i + 0.5) * dx, (j + 0.5) * dx, (k + 0.5) * dx};
         if (q[0] * q[0] + q[1] * q[1] + q[2] * q[2] <= r * r) xyz.insert(xyz.end(), {c[0] + q[0], c[1] + q[1], c[2] + q[2]});
       }
-  add_particles(f, s, xyz);
-  return static_cast<std::int64_t>(xyz.size() / 3);
+  const std::size_t n0 = s.id.size();
+  add_particles(f, s, xyz);  // leaves out what is not finite (a non-finite centre)
+  return static_cast<std::int64_t>(s.id.size() - n0);
 }
 
 std::int32_t NeighbourGrid::cell_of(Real x, Real y, Real z) const {

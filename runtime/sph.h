@@ -495,7 +495,8 @@ std::int64_t fill_box(const Fluid& f, FluidState& s, const std::array<Real, 3>& 
 
 // Fills the ball of radius r about c with the cubic lattice at c + (i + 1/2) a,
 // at rest; a = lattice (0: the fluid's spacing; smaller: compressed). Returns
-// the number of particles added.
+// the number of particles added: none for a negative or non-finite radius or
+// one of 10^4 spacings or more.
 std::int64_t fill_ball(const Fluid& f, FluidState& s, const std::array<Real, 3>& c, Real r, Real lattice = 0);
 
 // Advances the state by dt (s) with substeps inside; never throws.

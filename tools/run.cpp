@@ -19,7 +19,6 @@ nlohmann::json substep_limits(const runtime::FluidCounters& c) {
   return j;
 }
 
-
 // triangle grids built for the fluid's moving surfaces (the other steps reused one)
 std::int64_t surface_grid_builds(const runtime::FluidState& fs) {
   std::int64_t n = 0;

@@ -1216,9 +1216,15 @@ TEST(SphSurface, BallSurfaceLiesWithinASpacingOfTheSphere) {
   EXPECT_LT(std::abs(e.mean_offset), 0.1 * a);
   EXPECT_LT(std::abs(e.volume_ratio - 1), 0.02);
   EXPECT_LT(e.max_error, a);
-  // out-of-range passes are refused
+  // out-of-range passes are refused; a bad ball adds nothing
   FluidState s = make_fluid_state();
-  fill_ball(f, s, {0, 0, 0}, 3 * p.spacing);
+  EXPECT_EQ(fill_ball(f, s, {0, 0, 0}, std::nan("")), 0);
+  EXPECT_EQ(fill_ball(f, s, {0, 0, 0}, -p.spacing), 0);
+  EXPECT_EQ(fill_ball(f, s, {std::nan(""), 0, 0}, 3 * p.spacing), 0);
+  EXPECT_EQ(s.size(), 0);
+  const std::int64_t added = fill_ball(f, s, {0, 0, 0}, 3 * p.spacing);
+  EXPECT_EQ(added, s.size());
+  EXPECT_GT(added, 100);
   FluidSurfaceOptions bad;
   bad.volume_passes = 65;
   EXPECT_THROW(extract_fluid_surface(f, s, bad), Error);
