@@ -261,6 +261,16 @@ SceneDef parse_scene(const std::string& text, const std::string& file) {
     if (eos == "tait") p.eos = Eos::tait;
     else if (eos == "linear") p.eos = Eos::linear;
     else f.fail("eos must be tait or linear (got '" + eos + "')");
+    const std::string solver = f.string("pressure_solver", "eos");
+    if (solver == "eos") p.pressure_solver = PressureSolver::eos;
+    else if (solver == "pcisph") p.pressure_solver = PressureSolver::pcisph;
+    else f.fail("pressure_solver must be eos or pcisph (got '" + solver + "')");
+    for (const char* k : {"pcisph_tolerance", "pcisph_target_iterations", "pcisph_max_iterations"})
+      if (f.has(k) && p.pressure_solver != PressureSolver::pcisph) f.fail(std::string(k) + " given with pressure_solver '" + solver + "'");
+    p.pcisph_tolerance = f.number("pcisph_tolerance", p.pcisph_tolerance, 0, 0.5, true);
+    p.pcisph_max_iterations = static_cast<int>(f.integer("pcisph_max_iterations", p.pcisph_max_iterations, 1, 1000));
+    p.pcisph_target_iterations =
+        static_cast<int>(f.integer("pcisph_target_iterations", p.pcisph_target_iterations, 1, p.pcisph_max_iterations));
     const std::string rheology = f.string("rheology", "newtonian");
     if (rheology == "newtonian") p.rheology = Rheology::newtonian;
     else if (rheology == "carreau") p.rheology = Rheology::carreau;

@@ -862,6 +862,39 @@ void density_cell(const Pass& c, std::int32_t cell) {
   }
 }
 
+// pcisph: the kernel sums S_i = sum_j (1 - q)^4 (1 + 4 q) (self included) of
+// the particles of one cell at the predicted positions (px, py, pz), over the
+// substep's lists, as density_cell sums them at the current ones.
+ORTHOSIM_SPH_CLONES
+void predicted_sum_cell(const Pass& c, const Real* px, const Real* py, const Real* pz, std::int32_t cell, Real* out) {
+  const Real invH = 1 / c.f->H;
+  const V zero = {0, 0, 0, 0}, one = {1, 1, 1, 1}, lane = {0, 1, 2, 3};
+  const bool periodic = c.period[0] > 0 || c.period[1] > 0 || c.period[2] > 0;
+  for (std::int32_t i = c.g->start[cell]; i < c.g->start[cell + 1]; ++i) {
+    const std::int32_t cnt = c.count[i];
+    const std::int32_t* list = list_of(c, i);  // padded with i past cnt
+    V acc = zero;
+    const Real xi = px[i], yi = py[i], zi = pz[i];
+    for (std::int32_t b = 0; b < cnt; b += 4) {
+      const std::int32_t* j = list + b;
+      auto gather = [&](const Real* a) ORTHOSIM_SPH_LAMBDA { return V{a[j[0]], a[j[1]], a[j[2]], a[j[3]]}; };
+      V dx = xi - gather(px), dy = yi - gather(py), dz = zi - gather(pz);
+      if (periodic) {
+        dx = minimum_image(dx, c.period[0]);
+        dy = minimum_image(dy, c.period[1]);
+        dz = minimum_image(dz, c.period[2]);
+      }
+      const V mask = (lane + static_cast<Real>(b)) < static_cast<Real>(cnt) ? one : zero;
+      const V q = vsqrt(dx * dx + dy * dy + dz * dz) * invH;
+      V t = 1 - q;
+      t = t > 0 ? t * mask : zero;
+      const V t2 = t * t;
+      acc += t2 * t2 * (1 + 4 * q);
+    }
+    out[i] = 1 + hsum(acc);
+  }
+}
+
 // Pair accelerations (without the mass factor):
 //   a_i = m sum_j g_ij [ (P_i + P_j + Pi_ij) r_ij - 2 mu / (rho_i rho_j) r_ij^2 / (r_ij^2 + eta^2) v_ij ]
 // with grad_i W_ij = -g_ij r_ij (Wendland C2), P = p / rho^2 (Monaghan 1992),
@@ -1288,6 +1321,7 @@ struct Stepper {
     const Real rho0 = f.params.rest_density;
     const int gamma = f.params.tait_gamma;
     const bool clamp = f.params.clamp_negative_pressure;
+    const bool pci = f.params.pressure_solver == PressureSolver::pcisph;
     const std::size_t ntw = walls.n_triangle_walls();  // the triangle contacts are cached for the force pass
     contact_cache.resize(ntw * static_cast<std::size_t>(c.n));
     // the last drift's contacts, by the particles' order before the sort
@@ -1316,7 +1350,7 @@ struct Stepper {
               if (cached) std::copy_n(end_contacts.data() + static_cast<std::size_t>(row) * ntw, ntw, cache);
               const Real rho =
                   mk * c.ksum[i] + (near ? rho0 * wall_fraction(f, walls, p, c.tau, cache, cached, hint) : Real(0));
-              Real pr = eos_pressure(f.eos, rho, rho0, f.c0, gamma);
+              Real pr = pci ? 0 : eos_pressure(f.eos, rho, rho0, f.c0, gamma);  // pcisph: its solver starts from 0
               if (clamp) pr = std::max(Real(0), pr);
               c.rho[i] = rho;
               c.p[i] = pr;
@@ -1385,10 +1419,14 @@ struct Stepper {
     return res;
   }
 
-  // the substep limit and which one it is (FluidCounters::substep_limit's index)
+  // the substep limit and which one it is (FluidCounters::substep_limit's index);
+  // pcisph: without the sound speed (the force limit sees the accelerations
+  // without pressure), and at most the substep its solver asked for last (fluid_step)
   std::pair<Real, int> limit(const std::array<Real, 2>& maxima) const {
+    const bool pci = f.params.pressure_solver == PressureSolver::pcisph;
     const Real vmax = std::sqrt(maxima[1]), amax = std::sqrt(maxima[0]);
-    Real h = f.params.cfl * f.h / (f.c0 + vmax);
+    const Real speed = (pci ? 0 : f.c0) + vmax;
+    Real h = speed > 0 ? f.params.cfl * f.h / speed : HUGE_VAL;
     int which = 1;
     auto take = [&](Real l, int k) {
       if (l < h) h = l, which = k;
@@ -1396,7 +1434,95 @@ struct Stepper {
     if (amax > 0) take(f.params.force_cfl * std::sqrt(f.h / amax), 2);
     take(f.viscous_limit, 3);
     if (f.params.max_substep > 0) take(f.params.max_substep, 4);
+    if (pci && s.pressure_substep > 0) take(s.pressure_substep, 5);
     return {h, which};
+  }
+
+  // pcisph: the pass's pressures (and their pack entries) back to 0
+  void zero_pressure(const Pass& c) {
+    tbb::parallel_for(tbb::blocked_range<std::int32_t>(0, c.n, 4096), [&](const auto& r) {
+      for (std::int32_t i = r.begin(); i < r.end(); ++i) {
+        c.p[i] = 0;
+        c.pack[8 * static_cast<std::int64_t>(i) + 3] = 0;
+      }
+    });
+  }
+
+  // pcisph (PressureSolver): corrects the pass's pressures (0 on entry, with
+  // the pass's accelerations at those) for a substep of h until the largest
+  // predicted compression is within the tolerance. Leaves the accelerations of
+  // the last pressures in the pass, with their reactions; sets the corrections
+  // made, the last predicted compression and the first (without pressure).
+  void pcisph(const Pass& c, Real h, std::vector<Reaction>& reactions, int* iterations, Real* compression, Real* first) {
+    const std::int32_t np = c.n;
+    FluidScratch& sc = s.scratch;
+    for (int k = 0; k < 3; ++k) sc.pred[k].resize(static_cast<std::size_t>(np));
+    sc.pred_sum.resize(static_cast<std::size_t>(np));
+    Real* px = sc.pred[0].data();
+    Real* py = sc.pred[1].data();
+    Real* pz = sc.pred[2].data();
+    const FluidParams& fp = f.params;
+    const Real rho0 = fp.rest_density;
+    // the pressure a full neighbourhood needs for a compression rho* - rho0 in one substep
+    const Real delta = rho0 * rho0 / (2 * h * h * f.mass * f.mass * f.gradient_scale * f.lattice_grad2);
+    const Real mk = f.mass * Real(21) / (2 * kPi * f.H * f.H * f.H);
+    const Vec3 g = vec(fp.gravity);
+    const Real damp = 1 / (1 + fp.damping * h);
+    const std::size_t ntw = walls.n_triangle_walls();
+    int it = 0;
+    Real err = 0;
+    for (;;) {
+      // positions as the drift would move them, the walls' projections aside
+      tbb::parallel_for(tbb::blocked_range<std::int32_t>(0, np, 1024), [&](const auto& r) {
+        for (std::int32_t i = r.begin(); i < r.end(); ++i) {
+          const Vec3 v = damp * (Vec3{c.vx[i], c.vy[i], c.vz[i]} + h * (Vec3{c.ax[i], c.ay[i], c.az[i]} + g));
+          px[i] = c.x[i] + h * v.x, py[i] = c.y[i] + h * v.y, pz[i] = c.z[i] + h * v.z;
+        }
+      });
+      // density there (over the substep's lists: a pair that comes within H
+      // meanwhile adds W ~ 0), the pressure's correction
+      const auto& occ = c.g->occupied;
+      Real* sums = sc.pred_sum.data();
+      err = tbb::parallel_reduce(
+          tbb::blocked_range<std::size_t>(0, occ.size(), 16), Real(-HUGE_VAL),
+          [&](const tbb::blocked_range<std::size_t>& r, Real best) {
+            for (std::size_t k = r.begin(); k < r.end(); ++k) {
+              const std::int32_t cell = occ[k];
+              predicted_sum_cell(c, px, py, pz, cell, sums);
+              for (std::int32_t i = c.g->start[cell]; i < c.g->start[cell + 1]; ++i) {
+                const Vec3 p{px[i], py[i], pz[i]};
+                Real rho = mk * sums[i];
+                if (walls.maybe_near(p)) {
+                  // box faces and planes at the predicted position; a triangle wall
+                  // by the substep's contact (the density pass's), its distance moved
+                  // along the contact normal by the particle's and the wall's motion
+                  // (the closest triangle kept over the substep, in which a particle
+                  // moves at most cfl H / 2)
+                  const Vec3 moved = p - Vec3{c.x[i], c.y[i], c.z[i]};
+                  Real share = 0;
+                  walls.contacts(p, c.tau, [&](const Contact& w) {
+                    const Real d = w.tri >= 0 ? std::max(Real(0), w.d + dot(moved - h * w.u, w.n)) : w.d;
+                    share += WallTables::at(f.walls.f0, f.walls.n, d / f.H);
+                  }, ntw > 0 ? contact_cache.data() + static_cast<std::size_t>(i) * ntw : nullptr, true);
+                  rho += rho0 * share;
+                }
+                const Real pr = std::max(Real(0), c.p[i] + delta * (rho - rho0));
+                c.p[i] = pr;
+                c.pack[8 * static_cast<std::int64_t>(i) + 3] = static_cast<float>(f.gradient_scale * pr * c.ir[i] * c.ir[i]);
+                best = std::max(best, rho / rho0 - 1);
+              }
+            }
+            return best;
+          },
+          [](Real a, Real b2) { return std::max(a, b2); });
+      if (it == 0) *first = err;
+      ++it;
+      reactions.clear();
+      forces(c, reactions);
+      if ((err <= fp.pcisph_tolerance && it >= fp.pcisph_min_iterations) || it >= fp.pcisph_max_iterations) break;
+    }
+    *iterations = it;
+    *compression = err;
   }
 
   void add_reaction(const Reaction& r, Real weight) {
@@ -1675,9 +1801,10 @@ struct Stepper {
 
 const char* to_string(Eos e) { return e == Eos::linear ? "linear" : "tait"; }
 const char* to_string(Rheology r) { return r == Rheology::carreau ? "carreau" : "newtonian"; }
+const char* to_string(PressureSolver p) { return p == PressureSolver::pcisph ? "pcisph" : "eos"; }
 const char* substep_limit_name(int k) {
-  static const char* const names[5] = {"step", "cfl", "force", "viscous", "max_substep"};
-  return k >= 0 && k < 5 ? names[k] : "?";
+  static const char* const names[6] = {"step", "cfl", "force", "viscous", "max_substep", "pressure"};
+  return k >= 0 && k < 6 ? names[k] : "?";
 }
 
 Real carreau_viscosity(const Carreau& c, Real shear_rate) {
@@ -1777,6 +1904,17 @@ void validate(const FluidParams& p) {
   if (p.max_substeps < 1) fail("max_substeps must be >= 1 (got " + str(p.max_substeps) + ")");
   if (!(p.surface_grid_slack >= 0 && p.surface_grid_slack <= 1))
     fail("surface_grid_slack must be in [0, 1] (got " + str(p.surface_grid_slack) + ")");
+  if (p.pressure_solver == PressureSolver::pcisph) {
+    if (p.physx_stiffness > 0) fail("pressure_solver pcisph needs the physical mode (physx_stiffness 0)");
+    if (p.pcisph_target_iterations < 1 || p.pcisph_target_iterations > p.pcisph_max_iterations)
+      fail("pcisph_target_iterations must be in [1, pcisph_max_iterations] (got " + str(p.pcisph_target_iterations) + ")");
+    if (!(p.pcisph_tolerance > 0 && p.pcisph_tolerance <= 0.5))
+      fail("pcisph_tolerance must be in (0, 0.5] (got " + str(p.pcisph_tolerance) + ")");
+    if (p.pcisph_max_iterations < 1 || p.pcisph_max_iterations > 1000)
+      fail("pcisph_max_iterations must be in [1, 1000] (got " + str(p.pcisph_max_iterations) + ")");
+    if (p.pcisph_min_iterations < 1 || p.pcisph_min_iterations > p.pcisph_max_iterations)
+      fail("pcisph_min_iterations must be in [1, pcisph_max_iterations] (got " + str(p.pcisph_min_iterations) + ")");
+  }
 }
 
 Fluid make_fluid(const FluidParams& p) {
@@ -1791,17 +1929,19 @@ Fluid make_fluid(const FluidParams& p) {
   // to 1 (Wendland C2 at H = 2 dx: 0.95 and ~0.95)
   const Real ratio = p.support_ratio, eta2 = 0.01 * (ratio / 2) * (ratio / 2);
   const int m = static_cast<int>(std::ceil(ratio)) + 1;
-  Real sum = 0, grad = 0, lap = 0;
+  Real sum = 0, grad = 0, lap = 0, grad2 = 0;
   for (int k = -m; k <= m; ++k)
     for (int j = -m; j <= m; ++j)
       for (int i = -m; i <= m; ++i) {
         const Real r2 = Real(i * i + j * j + k * k), r = std::sqrt(r2);
         sum += wendland_w(r, ratio);
         grad += wendland_grad_factor(r, ratio) * i * i;
+        grad2 += wendland_grad_factor(r, ratio) * wendland_grad_factor(r, ratio) * r2;
         lap += wendland_grad_factor(r, ratio) * r2 * i * i / (r2 + eta2);
       }
   f.gradient_scale = sum / grad;
   f.viscous_scale = sum / lap;
+  f.lattice_grad2 = grad2 / std::pow(p.spacing, 8);
   sum /= p.spacing * p.spacing * p.spacing;
   f.lattice_sum = sum;
   f.mass = p.rest_density / sum;
@@ -2064,6 +2204,7 @@ FluidStepInfo fluid_step(const Fluid& f, FluidState& s, Real dt, const FluidBoun
     return info;
   }
   Stepper st(f, s, b, dt);
+  const bool pci = f.params.pressure_solver == PressureSolver::pcisph;
   Real tau = 0;
   info.min_substep = HUGE_VAL;
   info.max_compression = -HUGE_VAL;
@@ -2076,9 +2217,10 @@ FluidStepInfo fluid_step(const Fluid& f, FluidState& s, Real dt, const FluidBoun
     }
     Real h;
     int which;
+    Pass c;
     if (st.n() > 0) {
       st.sort();
-      const Pass c = st.pass(tau);
+      c = st.pass(tau);
       info.max_compression = std::max(info.max_compression, st.density(c));
       reactions.clear();
       const auto maxima = st.forces(c, reactions);
@@ -2090,6 +2232,41 @@ FluidStepInfo fluid_step(const Fluid& f, FluidState& s, Real dt, const FluidBoun
     const Real rest = dt - tau;
     if (h >= rest) h = rest, which = 0;
     else h = rest / std::ceil(rest / h);
+    if (pci && st.n() > 0) {
+      // Not converged: again from 0 at half the substep (at most 10 times).
+      // The next substep is the one that would take about
+      // pcisph_target_iterations corrections, the corrections growing as h^2
+      // (a solve builds its pressure from 0 in steps of delta ~ 1/h^2), within
+      // 0.5x ... 1.25x of this one.
+      Real first_before = HUGE_VAL;
+      for (int retry = 0;; ++retry) {
+        int it = 0;
+        Real err = 0, first = 0;
+        st.pcisph(c, h, reactions, &it, &err, &first);
+        ++s.counters.pressure_solves;
+        s.counters.pressure_iterations += it;
+        info.pressure_iterations += it;
+        const bool ok = err <= f.params.pcisph_tolerance;
+        // halving helps where the compression comes from the motion over the
+        // substep; where the fluid is compressed already (the first prediction,
+        // without pressure, no longer shrinks), the solve is taken as it is
+        const bool hopeless = first > Real(0.7) * first_before;
+        first_before = first;
+        if (ok || retry == 10 || hopeless) {
+          if (!ok) ++s.counters.pressure_unconverged;
+          info.max_predicted_compression = std::max(info.max_predicted_compression, err);
+          s.pressure_substep =
+              h * std::clamp(std::sqrt(Real(f.params.pcisph_target_iterations) / std::max(it, 1)), Real(0.5), Real(1.25));
+          break;
+        }
+        ++s.counters.pressure_retries;
+        h /= 2;
+        which = 5;
+        st.zero_pressure(c);
+        reactions.clear();
+        st.forces(c, reactions);
+      }
+    }
     ++s.counters.substep_limit[static_cast<std::size_t>(which)];
     for (const Reaction& r : reactions) st.add_reaction(r, h / dt);
     impulses.clear();

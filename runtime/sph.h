@@ -144,6 +144,28 @@ Real carreau_pipe_flow_rate(Real radius, Real pressure_drop, Real length, const 
 enum class Rheology { newtonian, carreau };
 const char* to_string(Rheology r);
 
+// How the pressure is found:
+// - eos: weakly compressible SPH, p from the equation of state; the substep
+//   is bound by the sound speed, cfl h / (c0 + |v|max);
+// - pcisph: predictive-corrective incompressible SPH (Solenthaler & Pajarola
+//   2009). Each substep starts from p = 0 and iterates: predict every
+//   particle's position from its current accelerations, sum the density
+//   there (over the substep's lists, walls included), raise its pressure by
+//   delta (rho* - rho0) (clamped at 0), recompute the accelerations; until the
+//   largest predicted compression rho*/rho0 - 1 is at most pcisph_tolerance
+//   (and at least pcisph_min_iterations corrections). delta is
+//   rho0^2 / (2 h^2 m^2 gradient_scale sum |grad W|^2) over the rest lattice.
+//   The sound speed leaves the CFL limit, cfl h / |v|max; the substep also
+//   follows the solver: a solve that does not converge in
+//   pcisph_max_iterations is redone at half the substep (while that shrinks
+//   the compression predicted without pressure: an already compressed fluid
+//   is not helped by it, and its solve is taken as it is), and the next
+//   substep is sized for about pcisph_target_iterations corrections. c0 still
+//   sets the artificial viscosity. The pressures are a partly converged
+//   iterate: their noise is about delta rho0 tolerance (docs/sph.md).
+enum class PressureSolver { eos, pcisph };
+const char* to_string(PressureSolver p);
+
 struct FluidParams {
   Real rest_density = 1060;   // kg/m^3, rho0 (blood, reference/tissues.md)
   Real viscosity = 0.003;     // Pa s, dynamic viscosity mu (3 cP, the paper), >= 0; newtonian rheology
@@ -164,6 +186,13 @@ struct FluidParams {
   // PhysX-compatible mode (> 0): linear EOS with c0 = physx_stiffness_to_sound_speed(physx_stiffness, spacing);
   // sound_speed must then be 0. The paper's value is 20.
   Real physx_stiffness = 0;
+  // Pressure solver (see PressureSolver); pcisph needs the physical mode
+  // (physx_stiffness == 0).
+  PressureSolver pressure_solver = PressureSolver::eos;
+  Real pcisph_tolerance = 0.01;    // largest predicted rho*/rho0 - 1 a substep accepts, (0, 0.5]
+  int pcisph_min_iterations = 3;   // [1, pcisph_max_iterations]
+  int pcisph_target_iterations = 20;  // corrections the substep is sized for, [1, pcisph_max_iterations]
+  int pcisph_max_iterations = 100; // [1, 1000]; beyond, the solve is redone at half the substep
   Real artificial_viscosity = 0.02;  // alpha of Monaghan (1992), [0, 1]; 0 = physical viscosity only
   Real damping = 0;           // 1/s, velocity damping v /= 1 + damping h per substep (settling), >= 0
   bool clamp_negative_pressure = true;  // p = max(p, 0): no tension at free surfaces
@@ -231,6 +260,7 @@ struct Fluid {
   Real gradient_scale = 1;
   Real viscous_scale = 1;
   Real viscous_limit = 0;  // s, viscous_cfl h^2 / nu (inf when nu = 0)
+  Real lattice_grad2 = 0;  // 1/m^8, sum |grad W|^2 over the rest lattice (pcisph's delta)
   WallTables walls;
 };
 
@@ -414,19 +444,24 @@ struct FluidCounters {
   std::int64_t truncated_steps = 0;  // steps that hit max_substeps (the rest of the step skipped)
   std::int64_t invalid_steps = 0;    // refused: dt not finite or <= 0
   std::int64_t contacts_reused = 0;  // particle-substeps whose density pass read the drift's triangle contacts
+  std::int64_t pressure_solves = 0;       // pcisph: solves, the redone ones included
+  std::int64_t pressure_iterations = 0;   // pcisph: corrections, all substeps
+  std::int64_t pressure_unconverged = 0;  // pcisph: substeps taken unconverged (after 10 halvings, or where halving no longer helps)
+  std::int64_t pressure_retries = 0;      // pcisph: solves redone at half the substep (not converged)
   // substeps by the limit that set their length (fluid_step spreads the rest
   // of a step evenly, so a substep is shorter than the limit, never longer):
   // [0] none (the rest of the step fits), [1] CFL, sound and flow speed
   // (cfl h / (c0 + |v|max)), [2] force (force_cfl sqrt(h / |a|max)),
-  // [3] viscous (viscous_limit), [4] max_substep
-  std::array<std::int64_t, 5> substep_limit{};
+  // [3] viscous (viscous_limit), [4] max_substep,
+  // [5] pressure (pcisph: the length its solver asked for, or a halving)
+  std::array<std::int64_t, 6> substep_limit{};
   Real emitted_volume = 0;           // m^3
   Real drained_volume = 0;           // m^3
   Real lost_volume = 0;              // m^3, left the domain or non-finite
 };
 
 // What one step did.
-// Names of FluidCounters::substep_limit's entries: "step", "cfl", "force", "viscous", "max_substep".
+// Names of FluidCounters::substep_limit's entries: "step", "cfl", "force", "viscous", "max_substep", "pressure".
 const char* substep_limit_name(int k);
 
 struct FluidStepInfo {
@@ -434,6 +469,8 @@ struct FluidStepInfo {
   bool truncated = false;
   Real min_substep = 0, max_substep = 0;  // s
   Real max_compression = 0;   // max (rho / rho0 - 1) over particles and substeps
+  Real max_predicted_compression = 0;  // pcisph: the largest last predicted rho*/rho0 - 1 of the substeps
+  std::int64_t pressure_iterations = 0;  // pcisph: corrections in this step
   Real mean_neighbours = 0;   // particles within H, self included, last substep
   Real max_speed = 0;         // m/s, at the end
   std::int64_t removed = 0;   // particles removed in this step
@@ -447,6 +484,8 @@ struct FluidScratch {
   std::vector<std::int64_t> tmp_id;     // (n)
   std::array<std::vector<Real>, 3> a;   // (3)(n) m/s^2, particle forces / mass
   std::array<std::vector<Real>, 3> aw;  // (3)(n) m/s^2, of which from walls
+  std::array<std::vector<Real>, 3> pred; // (3)(n) m, pcisph: predicted positions
+  std::vector<Real> pred_sum;           // (n) pcisph: kernel sums there
   std::vector<std::uint8_t> near;       // (n) 1 where a wall may be within H
   std::vector<Real> psum;               // (n) Pa, the walls' Shepard pressure sums (where near)
   std::vector<Real> inv_rho;            // (n) 1 / rho
@@ -472,6 +511,7 @@ struct FluidState {
   std::array<std::vector<Real>, 3> v;     // (3)(n) m/s, velocities
   std::vector<Real> rho;                  // (n) kg/m^3, density of the last substep
   std::vector<Real> p;                    // (n) Pa, pressure of the last substep
+  Real pressure_substep = 0;              // s, pcisph: the substep its solver asked for last (0: none yet)
   std::vector<std::int64_t> id;           // (n) stable particle ids (order changes every substep)
   std::int64_t next_id = 0;
   std::vector<FluidEmitter> emitters;

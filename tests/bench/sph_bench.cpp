@@ -8,6 +8,8 @@
 //                                   (--settled: the column settles behind the gate first)
 //   sph_bench --scene [--threads=2] the integrated paper scene (39x9x4 tissue + 5 000 particles + a bleeding cut)
 //             [--slack=F] [--requery]  with surface_grid_slack F (default 0.125), without the contacts' reuse
+//   sph_bench --pressure-solvers    the EOS against PCISPH: time and error on the dam break and the
+//                                   hydrostatic column at three density errors each (medians of 3)
 //   sph_bench --surface             the blood surface (colour field, Eq. 4-6) of a ball against its sphere:
 //                                   error and time by ball radius, marching-grid cell and volume passes
 //   sph_bench --benchmark_filter=.  the Google Benchmark timings (BM_FluidStep)
@@ -127,13 +129,17 @@ struct DamBreak {
   double wall_s = 0;
   Real max_error = 0, speed_ratio = 0, lead_T = 0, max_error_lead = 0;
   std::vector<std::array<Real, 3>> points;
+  std::int64_t substeps = 0, corrections = 0;
+  Real mean_compression = 0;  // the mean over the steps of each step's largest rho / rho0 - 1
 };
+
+using Tweak = void (*)(rt::FluidParams&, Real);  // changes the fluid's parameters (a setting's value)
 
 // per_a particles across the column's width; support: the kernel radius H / dx;
 // settled: the column first settles under gravity behind the experiment's gate
 // (a wall at x = a), which is then removed at t = 0; else it starts on the
 // lattice at rest density
-DamBreak dam_break(int per_a, Real support = 2, bool settled = false) {
+DamBreak dam_break(int per_a, Real support = 2, bool settled = false, Tweak tweak = nullptr, Real value = 0) {
   const Real a = 0.05715, g = 9.81;
   rt::FluidParams p;
   p.support_ratio = support;
@@ -141,6 +147,7 @@ DamBreak dam_break(int per_a, Real support = 2, bool settled = false) {
   p.viscosity = 1e-3;
   p.spacing = a / per_a;
   p.max_speed = std::sqrt(2 * g * 2 * a);
+  if (tweak) tweak(p, value);
   const rt::Fluid f = rt::make_fluid(p);
   const Real thick = 3 * f.H + 1e-12;
   rt::FluidBoundaries b = rt::make_box_boundaries({0, 0, 0}, {4 * a, 3 * a, thick});
@@ -169,6 +176,7 @@ DamBreak dam_break(int per_a, Real support = 2, bool settled = false) {
   r.particles = s.size();
   std::ifstream in(std::string(ORTHOSIM_SHARED_DIR) + "/reference/dam-break-martin-moyce-1952-n2.csv");
   std::string line;
+  int steps = 0;
   const auto t0 = clock_type::now();
   while (std::getline(in, line)) {
     if (line.empty() || line[0] == '#' || line[0] == 'Z') continue;
@@ -177,13 +185,20 @@ DamBreak dam_break(int per_a, Real support = 2, bool settled = false) {
     std::istringstream ls(line);
     if (!(ls >> Z >> comma >> T) || Z > 3.01) continue;
     const Real t = T / std::sqrt(2 * g / a);
-    while (s.time < t - 1e-12) rt::fluid_step(f, s, std::min(0.005, t - s.time), b);
+    while (s.time < t - 1e-12) {
+      rt::fluid_step(f, s, std::min(0.005, t - s.time), b);
+      r.mean_compression += s.last.max_compression;
+      ++steps;
+    }
     Real front = 0;
     for (std::size_t i = 0; i < s.id.size(); ++i)
       if (s.x[1][i] < 3 * p.spacing) front = std::max(front, s.x[0][i]);
     r.points.push_back({T, front / a, Z});
   }
   r.wall_s = seconds_since(t0);
+  r.substeps = s.counters.substeps;
+  r.corrections = s.counters.pressure_iterations;
+  r.mean_compression /= std::max(1, steps);
   std::vector<std::array<Real, 3>> q;
   for (const auto& pt : r.points)
     if (pt[2] >= 1.3) q.push_back(pt);
@@ -225,6 +240,96 @@ void print_kernel_radii(bool settled) {
                   100 * r.max_error_lead);
       std::fflush(stdout);
     }
+}
+
+// The hydrostatic column of tests/runtime/sph_test.cpp (blood, dx = 4 mm, 10 cm
+// deep, 6 dx wide and periodic, damped at 40 1/s, 0.4 s in steps of 10 ms):
+// the bottom layer's pressure against the weight per area.
+struct Column {
+  double wall_s = 0;
+  std::int64_t substeps = 0, corrections = 0;
+  Real pressure_error = 0, compression = 0;
+};
+
+Column hydrostatic_column(Tweak tweak, Real value) {
+  rt::FluidParams p;
+  p.spacing = 0.004;
+  const Real depth = 0.1, width = 6 * p.spacing;
+  p.eos = rt::Eos::linear;
+  p.max_speed = std::sqrt(9.81 * depth);
+  p.damping = 40;
+  tweak(p, value);
+  const rt::Fluid f = rt::make_fluid(p);
+  rt::FluidBoundaries b = rt::make_box_boundaries({0, 0, 0}, {width, 2 * depth, width});
+  b.faces = {rt::Face::periodic, rt::Face::periodic, rt::Face::wall, rt::Face::open, rt::Face::periodic, rt::Face::periodic};
+  rt::FluidState s = rt::make_fluid_state();
+  rt::fill_box(f, s, {0, 0, 0}, {width, depth, width});
+  Column c;
+  const auto t0 = clock_type::now();
+  while (s.time < 0.4 - 1e-12) rt::fluid_step(f, s, 0.01, b);
+  c.wall_s = seconds_since(t0);
+  Real psum = 0;
+  int nb = 0;
+  for (std::size_t i = 0; i < s.id.size(); ++i)
+    if (s.x[1][i] < p.spacing) psum += s.p[i], ++nb;
+  const Real w = f.mass * static_cast<Real>(s.size()) * 9.81 / (width * width);
+  c.pressure_error = nb > 0 ? psum / nb / w - 1 : HUGE_VAL;
+  c.substeps = s.counters.substeps;
+  c.corrections = s.counters.pressure_iterations;
+  c.compression = s.last.max_compression;
+  return c;
+}
+
+// The two pressure solvers on the dam break (16 per a) and the hydrostatic
+// column, at three density errors each: the EOS by its sound speed (10, 18
+// and 32 x max_speed: (v / c0)^2 = 1, 0.3, 0.1 %), pcisph by its tolerance
+// (1, 0.3, 0.1 %). Medians of `reps` runs.
+void print_pressure_solvers(int reps) {
+  struct Setting {
+    const char* name;
+    Tweak tweak;
+    Real value;
+  };
+  const Tweak eos = [](rt::FluidParams& p, Real x) { p.sound_speed = x * p.max_speed; };
+  const Tweak pci = [](rt::FluidParams& p, Real tol) {
+    p.pressure_solver = rt::PressureSolver::pcisph;
+    p.pcisph_tolerance = tol;
+  };
+  const Setting settings[] = {{"eos c0 = 10 v", eos, 10}, {"eos c0 = 18 v", eos, 18}, {"eos c0 = 32 v", eos, 32},
+                              {"pcisph 1 %", pci, 0.01},  {"pcisph 0.3 %", pci, 0.003}, {"pcisph 0.1 %", pci, 0.001}};
+  auto median = [](std::vector<double> v) {
+    std::sort(v.begin(), v.end());
+    return v[v.size() / 2];
+  };
+  std::printf("Pressure solvers: weakly compressible (EOS) and PCISPH, medians of %d runs\n", reps);
+  std::printf("Dam break, 16 per a (3 072 particles), to Z = 3 (0.135 s):\n");
+  std::printf("%16s %8s %10s %12s %16s %18s %12s\n", "setting", "wall s", "substeps", "corrections", "mean max drho %",
+              "error after lead %", "speed ratio");
+  for (const Setting& st : settings) {
+    std::vector<double> t;
+    DamBreak r;
+    for (int k = 0; k < reps; ++k) {
+      r = dam_break(16, 2, false, st.tweak, st.value);
+      t.push_back(r.wall_s);
+    }
+    std::printf("%16s %8.3f %10lld %12lld %16.3f %18.1f %12.3f\n", st.name, median(t), static_cast<long long>(r.substeps),
+                static_cast<long long>(r.corrections), 100 * r.mean_compression, 100 * r.max_error_lead, r.speed_ratio);
+    std::fflush(stdout);
+  }
+  std::printf("Hydrostatic column, 900 particles, 0.4 s:\n");
+  std::printf("%16s %8s %10s %12s %16s %22s\n", "setting", "wall s", "substeps", "corrections", "max drho %",
+              "bottom pressure error %");
+  for (const Setting& st : settings) {
+    std::vector<double> t;
+    Column c;
+    for (int k = 0; k < reps; ++k) {
+      c = hydrostatic_column(st.tweak, st.value);
+      t.push_back(c.wall_s);
+    }
+    std::printf("%16s %8.3f %10lld %12lld %16.3f %+22.2f\n", st.name, median(t), static_cast<long long>(c.substeps),
+                static_cast<long long>(c.corrections), 100 * c.compression, 100 * c.pressure_error);
+    std::fflush(stdout);
+  }
 }
 
 // The blood surface against the truth (runtime/testing/fluid_ball.h), one
@@ -287,10 +392,10 @@ void print_dam_break(bool full) {
 // The particles are emitted up to `particles`, then the timed steps run with
 // the emitter still active.
 // the share of the substeps each limit set (FluidCounters::substep_limit's order)
-std::array<double, 5> limit_shares(const std::array<std::int64_t, 5>& limits) {
+std::array<double, 6> limit_shares(const std::array<std::int64_t, 6>& limits) {
   std::int64_t all = 0;
   for (auto v : limits) all += v;
-  std::array<double, 5> share{};
+  std::array<double, 6> share{};
   for (std::size_t k = 0; k < limits.size(); ++k) share[k] = all > 0 ? static_cast<double>(limits[k]) / static_cast<double>(all) : 0;
   return share;
 }
@@ -299,7 +404,7 @@ struct PaperScene {
   double dt = 0, steps_per_s = 0, fluid_share = 0, substeps = 0, neighbours = 0, compression = 0;
   double particles0 = 0, particles1 = 0, warmup_s = 0;
   double grid_builds = 0;  // the tissue surface's triangle grid: builds per timed step
-  std::array<std::int64_t, 5> limits{};  // timed substeps by the limit that set them (FluidCounters::substep_limit)
+  std::array<std::int64_t, 6> limits{};  // timed substeps by the limit that set them (FluidCounters::substep_limit)
 };
 
 // the triangle walls' work savers (FluidParams; both exact): for the trade-off's figures
@@ -516,6 +621,39 @@ void results(const std::string& path, bool quick) {
                  {"max_error_raw", r.max_error}, {"support_ratio", support}};
     out.add(row);
   }
+  // PCISPH against the EOS at about the same density error (print_pressure_solvers):
+  // the dam break at 16 per a, ours and the peer in alternation
+  {
+    const Tweak eos = [](rt::FluidParams& p, Real x) { p.sound_speed = x * p.max_speed; };
+    const Tweak pci = [](rt::FluidParams& p, Real tol) {
+      p.pressure_solver = rt::PressureSolver::pcisph;
+      p.pcisph_tolerance = tol;
+    };
+    const std::vector<std::pair<Real, Real>> pairs =
+        quick ? std::vector<std::pair<Real, Real>>{{0.01, 10}} : std::vector<std::pair<Real, Real>>{{0.01, 10}, {0.003, 18}, {0.001, 32}};
+    for (const auto& [tol, c0x] : pairs) {
+      ob::Row row;
+      DamBreak ours, peer;
+      for (int k = 0; k < (quick ? 1 : 3); ++k) {
+        ours = dam_break(16, 2, false, pci, tol);
+        peer = dam_break(16, 2, false, eos, c0x);
+        row.seconds.push_back(ours.wall_s);
+        row.peer_seconds.push_back(peer.wall_s);
+      }
+      row.workload = "dam break 16 per a: PCISPH against the weakly compressible EOS at about the same density error";
+      char set[96];
+      std::snprintf(set, sizeof set, "pcisph tolerance %g %% vs eos c0 = %g max_speed", 100 * tol, c0x);
+      row.setting = set;
+      row.peer = "eos (this solver's weakly compressible mode)";
+      row.error("max front error after lead", ours.max_error_lead, "<=", 0.05);
+      row.peer_error = peer.max_error_lead;
+      row.x = tol;
+      row.extra = {{"mean_max_compression", ours.mean_compression}, {"peer_mean_max_compression", peer.mean_compression},
+                   {"substeps", ours.substeps}, {"corrections", ours.corrections}, {"peer_substeps", peer.substeps},
+                   {"speed_ratio", ours.speed_ratio}, {"peer_speed_ratio", peer.speed_ratio}};
+      out.add(row);
+    }
+  }
   // the integrated paper scene (paper_scene above), 2 threads: time per scene step
   for (double dt : quick ? std::vector<double>{1e-3} : std::vector<double>{1e-3, 0.5e-3}) {
     const std::int64_t particles = quick ? 1000 : 5000;
@@ -561,7 +699,7 @@ int main(int argc, char** argv) {
   std::vector<std::int64_t> sizes{1000, 5000, 20000, 100000};
   std::vector<int> threads{1, 2};
   bool dam = false, full = false, gbench = false, scene = false, sizes_given = false, kernels = false, settled = false,
-       surface = false;
+       surface = false, solvers = false;
   SceneKnobs knobs;
   double min_seconds = 2;
   std::vector<char*> rest{argv[0]};
@@ -594,6 +732,8 @@ int main(int argc, char** argv) {
       scene = true;
     } else if (std::strcmp(a, "--surface") == 0) {
       surface = true;
+    } else if (std::strcmp(a, "--pressure-solvers") == 0) {
+      solvers = true;
     } else if (std::strncmp(a, "--slack=", 8) == 0) {
       knobs.slack = number(a + 8);
       if (!(knobs.slack >= 0 && knobs.slack <= 1)) return usage_error("--slack must be a number in [0, 1]", a + 8);
@@ -612,7 +752,8 @@ int main(int argc, char** argv) {
     benchmark::RunSpecifiedBenchmarks();
     return 0;
   }
-  if (surface) print_surface_table();
+  if (solvers) print_pressure_solvers(3);
+  else if (surface) print_surface_table();
   else if (scene) print_paper_scene(threads.size() == 1 ? threads[0] : 2, sizes_given ? sizes[0] : 5000, knobs);
   else if (kernels) print_kernel_radii(settled);
   else if (dam) print_dam_break(full);
