@@ -134,6 +134,12 @@ struct DamBreak {
 };
 
 using Tweak = void (*)(rt::FluidParams&, Real);  // changes the fluid's parameters (a setting's value)
+// the EOS with c0 = x max_speed; PCISPH with the tolerance tol
+void eos_sound_speed(rt::FluidParams& p, Real x) { p.sound_speed = x * p.max_speed; }
+void pcisph_tolerance(rt::FluidParams& p, Real tol) {
+  p.pressure_solver = rt::PressureSolver::pcisph;
+  p.pcisph_tolerance = tol;
+}
 
 // per_a particles across the column's width; support: the kernel radius H / dx;
 // settled: the column first settles under gravity behind the experiment's gate
@@ -290,11 +296,7 @@ void print_pressure_solvers(int reps) {
     Tweak tweak;
     Real value;
   };
-  const Tweak eos = [](rt::FluidParams& p, Real x) { p.sound_speed = x * p.max_speed; };
-  const Tweak pci = [](rt::FluidParams& p, Real tol) {
-    p.pressure_solver = rt::PressureSolver::pcisph;
-    p.pcisph_tolerance = tol;
-  };
+  const Tweak eos = eos_sound_speed, pci = pcisph_tolerance;
   const Setting settings[] = {{"eos c0 = 10 v", eos, 10}, {"eos c0 = 18 v", eos, 18}, {"eos c0 = 32 v", eos, 32},
                               {"pcisph 1 %", pci, 0.01},  {"pcisph 0.3 %", pci, 0.003}, {"pcisph 0.1 %", pci, 0.001}};
   auto median = [](std::vector<double> v) {
@@ -624,11 +626,7 @@ void results(const std::string& path, bool quick) {
   // PCISPH against the EOS at about the same density error (print_pressure_solvers):
   // the dam break at 16 per a, ours and the peer in alternation
   {
-    const Tweak eos = [](rt::FluidParams& p, Real x) { p.sound_speed = x * p.max_speed; };
-    const Tweak pci = [](rt::FluidParams& p, Real tol) {
-      p.pressure_solver = rt::PressureSolver::pcisph;
-      p.pcisph_tolerance = tol;
-    };
+    const Tweak eos = eos_sound_speed, pci = pcisph_tolerance;
     const std::vector<std::pair<Real, Real>> pairs =
         quick ? std::vector<std::pair<Real, Real>>{{0.01, 10}} : std::vector<std::pair<Real, Real>>{{0.01, 10}, {0.003, 18}, {0.001, 32}};
     for (const auto& [tol, c0x] : pairs) {
