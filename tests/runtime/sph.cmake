@@ -1,4 +1,4 @@
-# weakly compressible SPH blood (issue 9): kernels, neighbour grid, hydrostatic
+# SPH blood (issue 9; the EOS and PCISPH): kernels, neighbour grid, hydrostatic
 # column, dam break (Martin & Moyce 1952), Poiseuille start-up (Morris et al.
 # 1997), conservation, determinism, robustness, emitters, drains, walls,
 # two-way coupling, the colour-field surface and its .vtp output.
@@ -15,8 +15,8 @@ orthosim_add_bench(sph_bench SOURCES bench/sph_bench.cpp LIBS orthosim_runtime o
 # reads its arguments from the wrong place, which only an unoptimised build
 # shows (the code of 2026-11-25 crashed at -O0). Here sph.cpp at -O0 replaces
 # the library's copy (an object file given to the linker wins over the
-# archive member) and the conservation, crowded-list and determinism
-# (Newtonian and Carreau) tests run on it (~20 s).
+# archive member) and the conservation (EOS and PCISPH), crowded-list and
+# determinism (Newtonian and Carreau) tests run on it (~20 s).
 add_library(orthosim_sph_O0 OBJECT ${CMAKE_SOURCE_DIR}/runtime/sph.cpp)
 target_link_libraries(orthosim_sph_O0 PRIVATE orthosim_format orthosim_flags Eigen3::Eigen TBB::tbb)
 target_compile_options(orthosim_sph_O0 PRIVATE -O0 -fno-math-errno -Wno-psabi)

@@ -1,4 +1,4 @@
-// Weakly compressible SPH (runtime/sph.h, runtime/sph_surface.h): kernels,
+// SPH blood, weakly compressible and PCISPH (runtime/sph.h, runtime/sph_surface.h): kernels,
 // neighbour grid, analytic and experimental references, conservation,
 // determinism, robustness, emitters, drains, walls, surface extraction.
 #include "runtime/sph.h"
