@@ -1367,10 +1367,12 @@ struct Stepper {
         [](Real a, Real b2) { return std::max(a, b2); });
   }
 
-  // accelerations (pair + walls); returns (max |a|^2, max |v|^2) and the reactions
-  std::array<Real, 2> forces(const Pass& c, std::vector<Reaction>& reactions) {
+  // accelerations (pair + walls); returns (max |a|^2, max |v|^2) and the reactions.
+  // shear: the Carreau viscosities first (pcisph's corrections keep the velocities, so
+  // they keep their viscosities too)
+  std::array<Real, 2> forces(const Pass& c, std::vector<Reaction>& reactions, bool shear = true) {
     const auto& occ = c.g->occupied;
-    if (c.mu)
+    if (c.mu && shear)
       tbb::parallel_for(tbb::blocked_range<std::size_t>(0, occ.size(), 16), [&](const tbb::blocked_range<std::size_t>& r) {
         for (std::size_t k = r.begin(); k < r.end(); ++k) shear_viscosity_cell(c, occ[k]);
       });
@@ -1518,7 +1520,7 @@ struct Stepper {
       if (it == 0) *first = err;
       ++it;
       reactions.clear();
-      forces(c, reactions);
+      forces(c, reactions, false);
       if ((err <= fp.pcisph_tolerance && it >= fp.pcisph_min_iterations) || it >= fp.pcisph_max_iterations) break;
     }
     *iterations = it;
@@ -2264,7 +2266,7 @@ FluidStepInfo fluid_step(const Fluid& f, FluidState& s, Real dt, const FluidBoun
         which = 5;
         st.zero_pressure(c);
         reactions.clear();
-        st.forces(c, reactions);
+        st.forces(c, reactions, false);
       }
     }
     ++s.counters.substep_limit[static_cast<std::size_t>(which)];

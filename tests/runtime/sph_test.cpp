@@ -790,7 +790,8 @@ TEST_P(SphRobustness, ExtremeTimeStepsNeverLeaveNaN) {
 INSTANTIATE_TEST_SUITE_P(Rheologies, SphRobustness,
                          ::testing::Values(std::pair{Rheology::newtonian, PressureSolver::eos},
                                            std::pair{Rheology::carreau, PressureSolver::eos},
-                                           std::pair{Rheology::newtonian, PressureSolver::pcisph}),
+                                           std::pair{Rheology::newtonian, PressureSolver::pcisph},
+                                           std::pair{Rheology::carreau, PressureSolver::pcisph}),
                          [](const auto& info) {
                            return std::string(to_string(info.param.first)) + (info.param.second == PressureSolver::pcisph ? "_pcisph" : "");
                          });
