@@ -1454,8 +1454,11 @@ struct Stepper {
   // the pass's accelerations at those) for a substep of h until the largest
   // predicted compression is within the tolerance. Leaves the accelerations of
   // the last pressures in the pass, with their reactions; sets the corrections
-  // made, the last predicted compression and the first (without pressure).
-  void pcisph(const Pass& c, Real h, std::vector<Reaction>& reactions, int* iterations, Real* compression, Real* first) {
+  // made, the last predicted compression and the first (without pressure), and
+  // whether the particle of the last one was compressed beyond the tolerance
+  // at the substep's start.
+  void pcisph(const Pass& c, Real h, std::vector<Reaction>& reactions, int* iterations, Real* compression, Real* first,
+              bool* compressed_before) {
     const std::int32_t np = c.n;
     FluidScratch& sc = s.scratch;
     for (int k = 0; k < 3; ++k) sc.pred[k].resize(static_cast<std::size_t>(np));
@@ -1485,9 +1488,12 @@ struct Stepper {
       // meanwhile adds W ~ 0), the pressure's correction
       const auto& occ = c.g->occupied;
       Real* sums = sc.pred_sum.data();
-      err = tbb::parallel_reduce(
-          tbb::blocked_range<std::size_t>(0, occ.size(), 16), Real(-HUGE_VAL),
-          [&](const tbb::blocked_range<std::size_t>& r, Real best) {
+      // the largest predicted compression, and its particle (the lowest index of a tie)
+      using Worst = std::pair<Real, std::int32_t>;
+      auto worse = [](const Worst& a, const Worst& b2) { return a.first != b2.first ? a.first > b2.first : a.second < b2.second; };
+      const Worst worst = tbb::parallel_reduce(
+          tbb::blocked_range<std::size_t>(0, occ.size(), 16), Worst{-HUGE_VAL, -1},
+          [&](const tbb::blocked_range<std::size_t>& r, Worst best) {
             for (std::size_t k = r.begin(); k < r.end(); ++k) {
               const std::int32_t cell = occ[k];
               predicted_sum_cell(c, px, py, pz, cell, sums);
@@ -1511,12 +1517,17 @@ struct Stepper {
                 const Real pr = std::max(Real(0), c.p[i] + delta * (rho - rho0));
                 c.p[i] = pr;
                 c.pack[8 * static_cast<std::int64_t>(i) + 3] = static_cast<float>(f.gradient_scale * pr * c.ir[i] * c.ir[i]);
-                best = std::max(best, rho / rho0 - 1);
+                const Worst here{rho / rho0 - 1, i};
+                if (worse(here, best)) best = here;
               }
             }
             return best;
           },
-          [](Real a, Real b2) { return std::max(a, b2); });
+          [&](const Worst& a, const Worst& b2) { return worse(a, b2) ? a : b2; });
+      err = worst.first;
+      // compressed beyond the tolerance already at the substep's start: a shorter
+      // substep cannot bring it back within it
+      *compressed_before = worst.second >= 0 && c.rho[worst.second] / rho0 - 1 > fp.pcisph_tolerance;
       if (it == 0) *first = err;
       ++it;
       reactions.clear();
@@ -2244,15 +2255,17 @@ FluidStepInfo fluid_step(const Fluid& f, FluidState& s, Real dt, const FluidBoun
       for (int retry = 0;; ++retry) {
         int it = 0;
         Real err = 0, first = 0;
-        st.pcisph(c, h, reactions, &it, &err, &first);
+        bool compressed_before = false;
+        st.pcisph(c, h, reactions, &it, &err, &first, &compressed_before);
         ++s.counters.pressure_solves;
         s.counters.pressure_iterations += it;
         info.pressure_iterations += it;
         const bool ok = err <= f.params.pcisph_tolerance;
         // halving helps where the compression comes from the motion over the
-        // substep; where the fluid is compressed already (the first prediction,
-        // without pressure, no longer shrinks), the solve is taken as it is
-        const bool hopeless = first > Real(0.7) * first_before;
+        // substep; where the fluid is compressed already (the worst particle was
+        // at the substep's start, or the first prediction, without pressure, no
+        // longer shrinks), the solve is taken as it is
+        const bool hopeless = compressed_before || first > Real(0.7) * first_before;
         first_before = first;
         if (ok || retry == 10 || hopeless) {
           if (!ok) ++s.counters.pressure_unconverged;

@@ -157,11 +157,12 @@ const char* to_string(Rheology r);
 //   rho0^2 / (2 h^2 m^2 gradient_scale sum |grad W|^2) over the rest lattice.
 //   The sound speed leaves the CFL limit, cfl h / |v|max; the substep also
 //   follows the solver: a solve that does not converge in
-//   pcisph_max_iterations is redone at half the substep (while that shrinks
-//   the compression predicted without pressure: an already compressed fluid
-//   is not helped by it, and its solve is taken as it is), and the next
-//   substep is sized for about pcisph_target_iterations corrections. c0 still
-//   sets the artificial viscosity. The pressures are a partly converged
+//   pcisph_max_iterations is redone at half the substep, unless the fluid was
+//   compressed already (its worst particle at the substep's start, or the
+//   compression predicted without pressure no longer shrinks): then the solve
+//   is taken as it is and counted. The next substep is sized for about
+//   pcisph_target_iterations corrections. c0 still sets the artificial
+//   viscosity. The pressures are a partly converged
 //   iterate: their noise is about delta rho0 tolerance (docs/sph.md).
 enum class PressureSolver { eos, pcisph };
 const char* to_string(PressureSolver p);
@@ -446,7 +447,7 @@ struct FluidCounters {
   std::int64_t contacts_reused = 0;  // particle-substeps whose density pass read the drift's triangle contacts
   std::int64_t pressure_solves = 0;       // pcisph: solves, the redone ones included
   std::int64_t pressure_iterations = 0;   // pcisph: corrections, all substeps
-  std::int64_t pressure_unconverged = 0;  // pcisph: substeps taken unconverged (after 10 halvings, or where halving no longer helps)
+  std::int64_t pressure_unconverged = 0;  // pcisph: solves taken unconverged (after 10 halvings, or where halving cannot help)
   std::int64_t pressure_retries = 0;      // pcisph: solves redone at half the substep (not converged)
   // substeps by the limit that set their length (fluid_step spreads the rest
   // of a step evenly, so a substep is shorter than the limit, never longer):
