@@ -57,30 +57,46 @@ TEST_F(RunCli, PullsTheSkinAndReports) {
 }
 
 // A cut across the model's artery bleeds; the report counts the blood and
-// says which limit set the fluid's substeps.
+// says which limit set the fluid's substeps, with either pressure solver.
 TEST_F(RunCli, BleedsAndReportsTheFluid) {
   runtime::testing::write_model_file(model, runtime::testing::make_layered_block(39, 9, 4), true);  // with the artery
-  const auto s = scene(R"({
-    "model": "model.h5", "fixed": ["fixed"], "gravity": [0, 9.81, 0], "integrator": "implicit",
-    "dt": 0.005, "duration": 0.06, "vessels": ["artery"],
-    "fluid": {"spacing": 0.002, "sound_speed": 3, "bleed_pressure": 500, "margin": 0.01},
-    "tools": [{"name": "scalpel", "type": "cut", "polyline": [[0.0, 0, 0.01], [0.03, 0, 0.01]], "depth": 0.008,
-               "direction": [0, 1, 0], "snap": false, "start": 0}]
-  })");
-  const auto r = run_cli("run " + s + " --report " + (dir / "r.json") + " --threads 2 --no-output --quiet");
-  ASSERT_EQ(r.code, 0) << r.err;
-  const auto j = nlohmann::json::parse(test::read_file(dir / "r.json"));
-  const auto& f = j["metrics"]["fluid"];
-  EXPECT_GE(f["bleeding_vessels"].get<int>(), 1);
-  EXPECT_GT(f["particles_emitted"].get<long>(), 0);
-  long sum = 0;
-  for (const char* k : {"step", "cfl", "force", "viscous", "max_substep"}) sum += f["substeps_set_by"][k].get<long>();
-  EXPECT_EQ(sum, f["substeps"].get<long>());
-  EXPECT_GE(f["substeps"].get<long>(), 12);  // at least one a step
-  // the work savers' counts: a grid for the first step at least, at most one a step
-  EXPECT_GE(f["surface_grid_builds"].get<long>(), 1);
-  EXPECT_LE(f["surface_grid_builds"].get<long>(), 12);
-  EXPECT_GT(f["contacts_reused"].get<long>(), 0) << f.dump();
+  long eos_substeps = 0;
+  for (const std::string solver : {"eos", "pcisph"}) {
+    SCOPED_TRACE(solver);
+    const auto s = scene(R"({
+      "model": "model.h5", "fixed": ["fixed"], "gravity": [0, 9.81, 0], "integrator": "implicit",
+      "dt": 0.005, "duration": 0.06, "vessels": ["artery"],
+      "fluid": {"spacing": 0.002, "sound_speed": 3, "bleed_pressure": 500, "margin": 0.01, "pressure_solver": ")" +
+                         solver + R"("},
+      "tools": [{"name": "scalpel", "type": "cut", "polyline": [[0.0, 0, 0.01], [0.03, 0, 0.01]], "depth": 0.008,
+                 "direction": [0, 1, 0], "snap": false, "start": 0}]
+    })");
+    const auto r = run_cli("run " + s + " --report " + (dir / "r.json") + " --threads 2 --no-output --quiet");
+    ASSERT_EQ(r.code, 0) << r.err;
+    const auto j = nlohmann::json::parse(test::read_file(dir / "r.json"));
+    const auto& f = j["metrics"]["fluid"];
+    EXPECT_GE(f["bleeding_vessels"].get<int>(), 1);
+    EXPECT_GT(f["particles_emitted"].get<long>(), 0);
+    long sum = 0;
+    for (const char* k : {"step", "cfl", "force", "viscous", "max_substep", "pressure"}) sum += f["substeps_set_by"][k].get<long>();
+    EXPECT_EQ(sum, f["substeps"].get<long>());
+    EXPECT_GE(f["substeps"].get<long>(), 12);  // at least one a step
+    // the work savers' counts: a grid for the first step at least, at most one a step
+    EXPECT_GE(f["surface_grid_builds"].get<long>(), 1);
+    EXPECT_LE(f["surface_grid_builds"].get<long>(), 12);
+    EXPECT_GT(f["contacts_reused"].get<long>(), 0) << f.dump();
+    EXPECT_EQ(f["pressure_solver"], solver);
+    if (solver == "eos") {
+      eos_substeps = f["substeps"].get<long>();
+      EXPECT_EQ(f["pressure_iterations"].get<long>(), 0);
+    } else {  // the corrections are counted (none before the cut emits), and the sound speed no longer sets the substeps
+      EXPECT_GT(f["pressure_iterations"].get<long>(), 0);
+      EXPECT_TRUE(f["pressure_retries"].is_number_integer() && f["pressure_unconverged"].is_number_integer()) << f.dump();
+      EXPECT_LT(f["substeps"].get<long>(), eos_substeps);
+    }
+    EXPECT_EQ(j["metrics"]["stability"]["failed_steps"], 0);
+    EXPECT_EQ(f["particles_nonfinite"].get<long>(), 0);
+  }
 }
 
 TEST_F(RunCli, BadScenesExitTwoWithOneLine) {
