@@ -820,6 +820,40 @@ inline const std::int32_t* list_of(const Pass& c, std::int32_t i) {
   return c.count[i] <= kMaxList ? c.list + static_cast<std::int64_t>(i) * kListStride : c.big->list(i);
 }
 
+// Over particle i's list of cnt neighbours (padded with i past cnt), at the
+// positions (x, y, z): the lanes of the kernel sum sum_j (1 - q)^4 (1 + 4 q)
+// and of the count within H, self excluded. 4 lanes in double; the density
+// pass sums at the current positions, pcisph at the predicted ones.
+struct KernelSums {
+  V acc, within;
+};
+ORTHOSIM_SPH_INLINE KernelSums kernel_sums(const Pass& c, const std::int32_t* list, std::int32_t cnt, std::int32_t i,
+                                           const Real* x, const Real* y, const Real* z) {
+  const Real invH = 1 / c.f->H;
+  const V zero = {0, 0, 0, 0}, one = {1, 1, 1, 1}, lane = {0, 1, 2, 3};
+  const bool periodic = c.period[0] > 0 || c.period[1] > 0 || c.period[2] > 0;
+  KernelSums k{zero, zero};
+  const Real xi = x[i], yi = y[i], zi = z[i];
+  for (std::int32_t b = 0; b < cnt; b += 4) {
+    const std::int32_t* j = list + b;
+    auto gather = [&](const Real* a) ORTHOSIM_SPH_LAMBDA { return V{a[j[0]], a[j[1]], a[j[2]], a[j[3]]}; };
+    V dx = xi - gather(x), dy = yi - gather(y), dz = zi - gather(z);
+    if (periodic) {
+      dx = minimum_image(dx, c.period[0]);
+      dy = minimum_image(dy, c.period[1]);
+      dz = minimum_image(dz, c.period[2]);
+    }
+    const V mask = (lane + static_cast<Real>(b)) < static_cast<Real>(cnt) ? one : zero;
+    const V q = vsqrt(dx * dx + dy * dy + dz * dz) * invH;
+    V t = 1 - q;
+    t = t > 0 ? t * mask : zero;
+    const V t2 = t * t;
+    k.acc += t2 * t2 * (1 + 4 * q);
+    k.within += t > 0 ? one : zero;
+  }
+  return k;
+}
+
 // Density pass of the particles of one cell: the list of the neighbours
 // within the search radius (self excluded; found in float, see scan_run),
 // then in double over the list the kernel sums S_i = sum_j (1 - q)^4 (1 + 4 q)
@@ -829,36 +863,15 @@ ORTHOSIM_SPH_CLONES
 void density_cell(const Pass& c, std::int32_t cell) {
   NeighbourRun runs[27];
   const int nr = neighbour_runs(*c.g, cell, runs);
-  const Real invH = 1 / c.f->H;
-  const V zero = {0, 0, 0, 0}, one = {1, 1, 1, 1}, lane = {0, 1, 2, 3};
-  const bool periodic = c.period[0] > 0 || c.period[1] > 0 || c.period[2] > 0;
   kScan.cell(c, runs, nr, c.g->start[cell], c.g->start[cell + 1]);
   for (std::int32_t i = c.g->start[cell]; i < c.g->start[cell + 1]; ++i) {
     const std::int32_t cnt = c.count[i];
     std::int32_t* list =
         cnt <= kMaxList ? c.list + static_cast<std::int64_t>(i) * kListStride : c.big->fill(c, runs, nr, i, cnt);
     for (int k = cnt; k < cnt + 8; ++k) list[k] = i;  // padding of the last group (4 here, 8 in the force pass)
-    V acc = zero, within = zero;
-    const Real xi = c.x[i], yi = c.y[i], zi = c.z[i];
-    for (std::int32_t b = 0; b < cnt; b += 4) {
-      const std::int32_t* j = list + b;
-      auto gather = [&](const Real* a) ORTHOSIM_SPH_LAMBDA { return V{a[j[0]], a[j[1]], a[j[2]], a[j[3]]}; };
-      V dx = xi - gather(c.x), dy = yi - gather(c.y), dz = zi - gather(c.z);
-      if (periodic) {
-        dx = minimum_image(dx, c.period[0]);
-        dy = minimum_image(dy, c.period[1]);
-        dz = minimum_image(dz, c.period[2]);
-      }
-      const V mask = (lane + static_cast<Real>(b)) < static_cast<Real>(cnt) ? one : zero;
-      const V q = vsqrt(dx * dx + dy * dy + dz * dz) * invH;
-      V t = 1 - q;
-      t = t > 0 ? t * mask : zero;
-      const V t2 = t * t;
-      acc += t2 * t2 * (1 + 4 * q);
-      within += t > 0 ? one : zero;
-    }
-    c.ksum[i] = 1 + hsum(acc);
-    c.nb[i] = 1 + hsum(within);
+    const KernelSums sums = kernel_sums(c, list, cnt, i, c.x, c.y, c.z);
+    c.ksum[i] = 1 + hsum(sums.acc);
+    c.nb[i] = 1 + hsum(sums.within);
   }
 }
 
@@ -867,32 +880,8 @@ void density_cell(const Pass& c, std::int32_t cell) {
 // substep's lists, as density_cell sums them at the current ones.
 ORTHOSIM_SPH_CLONES
 void predicted_sum_cell(const Pass& c, const Real* px, const Real* py, const Real* pz, std::int32_t cell, Real* out) {
-  const Real invH = 1 / c.f->H;
-  const V zero = {0, 0, 0, 0}, one = {1, 1, 1, 1}, lane = {0, 1, 2, 3};
-  const bool periodic = c.period[0] > 0 || c.period[1] > 0 || c.period[2] > 0;
-  for (std::int32_t i = c.g->start[cell]; i < c.g->start[cell + 1]; ++i) {
-    const std::int32_t cnt = c.count[i];
-    const std::int32_t* list = list_of(c, i);  // padded with i past cnt
-    V acc = zero;
-    const Real xi = px[i], yi = py[i], zi = pz[i];
-    for (std::int32_t b = 0; b < cnt; b += 4) {
-      const std::int32_t* j = list + b;
-      auto gather = [&](const Real* a) ORTHOSIM_SPH_LAMBDA { return V{a[j[0]], a[j[1]], a[j[2]], a[j[3]]}; };
-      V dx = xi - gather(px), dy = yi - gather(py), dz = zi - gather(pz);
-      if (periodic) {
-        dx = minimum_image(dx, c.period[0]);
-        dy = minimum_image(dy, c.period[1]);
-        dz = minimum_image(dz, c.period[2]);
-      }
-      const V mask = (lane + static_cast<Real>(b)) < static_cast<Real>(cnt) ? one : zero;
-      const V q = vsqrt(dx * dx + dy * dy + dz * dz) * invH;
-      V t = 1 - q;
-      t = t > 0 ? t * mask : zero;
-      const V t2 = t * t;
-      acc += t2 * t2 * (1 + 4 * q);
-    }
-    out[i] = 1 + hsum(acc);
-  }
+  for (std::int32_t i = c.g->start[cell]; i < c.g->start[cell + 1]; ++i)
+    out[i] = 1 + hsum(kernel_sums(c, list_of(c, i), c.count[i], i, px, py, pz).acc);  // lists padded with i past the count
 }
 
 // Pair accelerations (without the mass factor):
