@@ -15,6 +15,7 @@
 #endif
 
 #include <algorithm>
+#include <atomic>
 #include <cmath>
 #include <cstdint>
 #include <cstring>
@@ -795,12 +796,16 @@ struct BigLists {
   tbb::enumerable_thread_specific<std::vector<std::int32_t>> buf;
   std::vector<std::pair<std::vector<std::int32_t>*, std::int64_t>> where;  // (n) valid where count > kMaxList
 
+  std::atomic<bool> used{false};  // a list overflowed in this build
+
   void reset(std::size_t n) {
     for (auto& b : buf) b.clear();
     where.resize(n);
+    used = false;
   }
   // lists particle i (count known: cnt) into the calling thread's buffer
   std::int32_t* fill(const Pass& c, const NeighbourRun* runs, int nr, std::int32_t i, std::int32_t cnt) {
+    used.store(true, std::memory_order_relaxed);
     std::vector<std::int32_t>& b = buf.local();
     const auto off = static_cast<std::int64_t>(b.size());
     b.resize(static_cast<std::size_t>(off + cnt + 8));  // 8 past the count: the vector stores and the padding
@@ -860,15 +865,20 @@ ORTHOSIM_SPH_INLINE KernelSums kernel_sums(const Pass& c, const std::int32_t* li
 // (self included) and the number of particles within H. A particle with more
 // than kMaxList neighbours is listed again into a list of its own (BigLists).
 ORTHOSIM_SPH_CLONES
-void density_cell(const Pass& c, std::int32_t cell) {
+void density_cell(const Pass& c, std::int32_t cell, bool scan) {
   NeighbourRun runs[27];
-  const int nr = neighbour_runs(*c.g, cell, runs);
-  kScan.cell(c, runs, nr, c.g->start[cell], c.g->start[cell + 1]);
+  int nr = 0;
+  if (scan) {
+    nr = neighbour_runs(*c.g, cell, runs);
+    kScan.cell(c, runs, nr, c.g->start[cell], c.g->start[cell + 1]);
+  }
   for (std::int32_t i = c.g->start[cell]; i < c.g->start[cell + 1]; ++i) {
     const std::int32_t cnt = c.count[i];
-    std::int32_t* list =
-        cnt <= kMaxList ? c.list + static_cast<std::int64_t>(i) * kListStride : c.big->fill(c, runs, nr, i, cnt);
-    for (int k = cnt; k < cnt + 8; ++k) list[k] = i;  // padding of the last group (4 here, 8 in the force pass)
+    std::int32_t* list = c.list + static_cast<std::int64_t>(i) * kListStride;
+    if (scan) {  // kept lists (no overflow) are padded already
+      if (cnt > kMaxList) list = c.big->fill(c, runs, nr, i, cnt);
+      for (int k = cnt; k < cnt + 8; ++k) list[k] = i;  // padding of the last group (4 here, 8 in the force pass)
+    }
     const KernelSums sums = kernel_sums(c, list, cnt, i, c.x, c.y, c.z);
     c.ksum[i] = 1 + hsum(sums.acc);
     c.nb[i] = 1 + hsum(sums.within);
@@ -1206,14 +1216,72 @@ struct Stepper {
   std::vector<Contact> end_contacts;
   std::vector<std::int32_t> end_row;
   BigLists big;                        // the full lists of the substep's overflowed particles
+  bool built = true;                   // this substep sorted the particles and builds the lists (else keeps them)
 
   std::int32_t n() const { return static_cast<std::int32_t>(s.id.size()); }
+
+  // The substep's particle order and neighbour lists: kept from the last
+  // build where they still hold (lists_hold), else sorted and built afresh.
+  void prepare() {
+    if (lists_hold()) {
+      built = false;
+      ++s.counters.list_reuses;
+      // the single-precision positions (relative to the build's grid origin) at the new positions
+      FluidScratch& sc = s.scratch;
+      const std::array<Real, 3> o = sc.grid.origin;
+      tbb::parallel_for(tbb::blocked_range<std::int32_t>(0, n(), 2048), [&](const auto& r) {
+        for (int k = 0; k < 3; ++k) {
+          const Real* x = s.x[k].data();
+          float* xf = sc.xf[k].data();
+          for (std::int32_t i = r.begin(); i < r.end(); ++i) xf[i] = static_cast<float>(x[i] - o[k]);
+        }
+      });
+    } else {
+      sort();
+    }
+  }
+
+  // The last build's lists hold every pair within H while the particles are
+  // the same ones in the same order and none has moved more than half the
+  // skin since: a pair left out was at least (1 + skin) H apart then (the
+  // grid's cells are that wide, the search reaches 1.005 (1 + skin) H), and
+  // two displacements below skin / 2 cannot bring it within H.
+  bool lists_hold() const {
+    const FluidScratch& sc = s.scratch;
+    const Real skin = f.params.neighbour_skin * f.H;
+    if (!sc.list_reusable || !(sc.list_skin > 0) || sc.list_skin != skin || sc.list_H != f.H) return false;
+    for (int a = 0; a < 3; ++a)
+      if (sc.grid.period[a] != (periodic[a] ? b.hi[a] - b.lo[a] : 0)) return false;
+    if (sc.list_id != s.id) return false;
+    const std::int32_t np = n();
+    const Real* x0[3] = {sc.list_x[0].data(), sc.list_x[1].data(), sc.list_x[2].data()};
+    const Real d2 = tbb::parallel_reduce(
+        tbb::blocked_range<std::int32_t>(0, np, 2048), Real(0),
+        [&](const tbb::blocked_range<std::int32_t>& r, Real m) {
+          for (std::int32_t i = r.begin(); i < r.end(); ++i) {
+            const Real dx = s.x[0][i] - x0[0][i], dy = s.x[1][i] - x0[1][i], dz = s.x[2][i] - x0[2][i];
+            const Real q = dx * dx + dy * dy + dz * dz;
+            m = q > m || q != q ? q : m;  // a NaN fails the test below
+          }
+          return m;
+        },
+        [](Real a, Real b2) { return a > b2 || a != a ? a : b2; });
+    return d2 < Real(0.25) * skin * skin;
+  }
 
   // counting sort into cell order; every particle array permuted alike
   void sort() {
     const std::int32_t np = n();
     NeighbourGrid& g = s.scratch.grid;
-    build_neighbour_grid(s.x[0].data(), s.x[1].data(), s.x[2].data(), np, f.H, b.lo, b.hi, periodic, g);
+    built = true;
+    ++s.counters.list_builds;
+    // the skin, unless it cannot pay: particles came or went since the last
+    // build (an emitter or a drain at work: the next substep rebuilds
+    // anyway), or the fastest particle moved more than a quarter of the skin
+    // over the last substep (the lists would not outlast two substeps)
+    const Real full = f.params.neighbour_skin * f.H;
+    const Real skin = s.scratch.set_changed || s.scratch.substep_motion > full / 4 ? 0 : full;
+    build_neighbour_grid(s.x[0].data(), s.x[1].data(), s.x[2].data(), np, f.H + skin, b.lo, b.hi, periodic, g);
     // one pass permutes positions, velocities and ids into cell order and
     // makes the single-precision positions (relative to the grid origin, 8
     // entries of padding far away); rho and p are not permuted: the density
@@ -1260,6 +1328,14 @@ struct Stepper {
     s.id.swap(tid);
     s.rho.resize(nz);
     s.p.resize(nz);
+    sc.list_H = f.H;
+    sc.list_skin = skin;
+    sc.list_reusable = skin > 0;  // until a list overflows (density)
+    sc.set_changed = false;
+    if (skin > 0) {
+      for (int k = 0; k < 3; ++k) sc.list_x[k] = s.x[k];
+      sc.list_id = s.id;
+    }
   }
 
   Pass pass(Real tau) {
@@ -1297,7 +1373,8 @@ struct Stepper {
     c.wx = sc.aw[0].data(), c.wy = sc.aw[1].data(), c.wz = sc.aw[2].data();
     c.xf = sc.xf[0].data(), c.yf = sc.xf[1].data(), c.zf = sc.xf[2].data();
     c.origin = sc.grid.origin;
-    c.search_r2 = static_cast<float>(1.005 * 1.005 * f.H * f.H);
+    const Real reach = 1.005 * (f.H + sc.list_skin);
+    c.search_r2 = static_cast<float>(reach * reach);
     c.tau = tau;
     walls.frames_at(tau);
     return c;
@@ -1320,21 +1397,21 @@ struct Stepper {
       for (const std::int32_t r : end_row) k += r >= 0;
       s.counters.contacts_reused += k;
     }
-    const std::int32_t* order = c.g->order.data();
-    big.reset(static_cast<std::size_t>(c.n));
-    return tbb::parallel_reduce(
+    const std::int32_t* order = built ? c.g->order.data() : nullptr;  // kept lists: the drift's order
+    if (built) big.reset(static_cast<std::size_t>(c.n));
+    const Real worst = tbb::parallel_reduce(
         tbb::blocked_range<std::size_t>(0, occ.size(), 16), Real(-HUGE_VAL),
         [&](const tbb::blocked_range<std::size_t>& r, Real best) {
           for (std::size_t k = r.begin(); k < r.end(); ++k) {
             const std::int32_t cell = occ[k];
-            density_cell(c, cell);
+            density_cell(c, cell, built);
             for (std::int32_t i = c.g->start[cell]; i < c.g->start[cell + 1]; ++i) {
               const Vec3 p{c.x[i], c.y[i], c.z[i]};
               Contact* cache = ntw > 0 ? contact_cache.data() + static_cast<std::size_t>(i) * ntw : nullptr;
               const std::int32_t* hint = ntw > 0 ? s.scratch.wall_hint.data() + static_cast<std::size_t>(i) * ntw : nullptr;
               const bool near = walls.maybe_near(p);
               c.near[i] = near;
-              const std::int32_t row = reuse && near ? end_row[static_cast<std::size_t>(order[i])] : -1;
+              const std::int32_t row = reuse && near ? end_row[static_cast<std::size_t>(order ? order[i] : i)] : -1;
               const bool cached = row >= 0;
               if (cached) std::copy_n(end_contacts.data() + static_cast<std::size_t>(row) * ntw, ntw, cache);
               const Real rho =
@@ -1354,6 +1431,8 @@ struct Stepper {
           return best;
         },
         [](Real a, Real b2) { return std::max(a, b2); });
+    if (built && big.used) s.scratch.list_reusable = false;  // the full lists live in this Stepper only
+    return worst;
   }
 
   // accelerations (pair + walls); returns (max |a|^2, max |v|^2) and the reactions.
@@ -1722,6 +1801,7 @@ struct Stepper {
       }
       ++w;
     }
+    s.scratch.set_changed = true;
     hint.resize(static_cast<std::size_t>(w) * ntw);
     if (end_row.size() == static_cast<std::size_t>(np)) end_row.resize(static_cast<std::size_t>(w));
     for (int a = 0; a < 3; ++a) {
@@ -1791,6 +1871,7 @@ struct Stepper {
       s.scratch.wall_hint.resize(s.id.size() * walls.n_triangle_walls(), -1);  // new particles: no guess
     if (total > 0 && end_row.size() == s.id.size() - static_cast<std::size_t>(total))
       end_row.resize(s.id.size(), -1);  // new particles: no contacts
+    if (total > 0) s.scratch.set_changed = true;
     s.counters.emitted += total;
     s.counters.emitted_volume += static_cast<Real>(total) * f.volume;
     return total;
@@ -1906,6 +1987,8 @@ void validate(const FluidParams& p) {
   if (p.max_substeps < 1) fail("max_substeps must be >= 1 (got " + str(p.max_substeps) + ")");
   if (!(p.surface_grid_slack >= 0 && p.surface_grid_slack <= 1))
     fail("surface_grid_slack must be in [0, 1] (got " + str(p.surface_grid_slack) + ")");
+  if (!(p.neighbour_skin >= 0 && p.neighbour_skin <= 1))
+    fail("neighbour_skin must be in [0, 1] (got " + str(p.neighbour_skin) + ")");
   if (p.pressure_solver == PressureSolver::pcisph) {
     if (p.physx_stiffness > 0) fail("pressure_solver pcisph needs the physical mode (physx_stiffness 0)");
     if (p.pcisph_target_iterations < 1 || p.pcisph_target_iterations > p.pcisph_max_iterations)
@@ -2035,6 +2118,7 @@ void add_particles(const Fluid& f, FluidState& s, std::span<const Real> xyz, std
     s.p.push_back(0);
     s.id.push_back(s.next_id++);
   }
+  if (!xyz.empty()) s.scratch.set_changed = true;
 }
 
 std::int64_t fill_box(const Fluid& f, FluidState& s, const std::array<Real, 3>& lo, const std::array<Real, 3>& hi,
@@ -2185,13 +2269,13 @@ int neighbour_runs(const NeighbourGrid& g, std::int32_t cell, NeighbourRun* runs
 
 void fluid_update_density(const Fluid& f, FluidState& s, const FluidBoundaries& b) {
   Stepper st(f, s, b, 0);
-  st.sort();
+  st.prepare();
   st.density(st.pass(0));
 }
 
 Real fluid_substep_limit(const Fluid& f, FluidState& s, const FluidBoundaries& b) {
   Stepper st(f, s, b, 0);
-  st.sort();
+  st.prepare();
   const Pass c = st.pass(0);
   st.density(c);
   std::vector<Reaction> rec;
@@ -2219,14 +2303,16 @@ FluidStepInfo fluid_step(const Fluid& f, FluidState& s, Real dt, const FluidBoun
     }
     Real h;
     int which;
+    Real vtop = 0;  // m/s, the force pass's top speed
     Pass c;
     if (st.n() > 0) {
-      st.sort();
+      st.prepare();
       c = st.pass(tau);
       info.max_compression = std::max(info.max_compression, st.density(c));
       reactions.clear();
       const auto maxima = st.forces(c, reactions);
       std::tie(h, which) = st.limit(maxima);
+      vtop = std::sqrt(maxima[1]);
     } else {
       std::tie(h, which) = st.limit({0, 0});
     }
@@ -2272,6 +2358,7 @@ FluidStepInfo fluid_step(const Fluid& f, FluidState& s, Real dt, const FluidBoun
       }
     }
     ++s.counters.substep_limit[static_cast<std::size_t>(which)];
+    s.scratch.substep_motion = vtop * h;
     for (const Reaction& r : reactions) st.add_reaction(r, h / dt);
     impulses.clear();
     if (st.n() > 0) {

@@ -214,6 +214,19 @@ struct FluidParams {
   // the density pass reads the triangle contacts the drift's collision tests
   // found at the same position and time (false: it queries again).
   bool reuse_wall_contacts = true;
+  // Verlet neighbour lists: the lists are built out to (1 + neighbour_skin) H
+  // and kept through later substeps (and steps) while no particle has moved
+  // more than neighbour_skin H / 2 since, and the particles are the same ones
+  // in the same order; [0, 1], 0 = rebuilt every substep. The same pairs
+  // within H as a fresh build, summed in another order, and the force pass's
+  // float positions are relative to the build's grid origin: its pair terms
+  // round differently (~1e-7 of themselves, as for any other origin). A build
+  // lists without the skin where it cannot pay: right after particles were
+  // added or removed (an active emitter, a drain: the next substep rebuilds
+  // anyway), or where the fastest particle moved more than a quarter of the
+  // skin over the last substep (a jet in the soft PhysX fluid, whose CFL
+  // substep lets it move ~0.2 H).
+  Real neighbour_skin = 0.1;
 };
 
 // Wall sums for a particle at distance d = q H from a plane wall, tabulated
@@ -445,6 +458,8 @@ struct FluidCounters {
   std::int64_t truncated_steps = 0;  // steps that hit max_substeps (the rest of the step skipped)
   std::int64_t invalid_steps = 0;    // refused: dt not finite or <= 0
   std::int64_t contacts_reused = 0;  // particle-substeps whose density pass read the drift's triangle contacts
+  std::int64_t list_builds = 0;      // substeps that sorted the particles and built the neighbour lists
+  std::int64_t list_reuses = 0;      // substeps that kept the last lists (neighbour_skin)
   std::int64_t pressure_solves = 0;       // pcisph: solves, the redone ones included
   std::int64_t pressure_iterations = 0;   // pcisph: corrections, all substeps
   std::int64_t pressure_unconverged = 0;  // pcisph: solves taken unconverged (after 10 halvings, or where halving cannot help)
@@ -499,6 +514,15 @@ struct FluidScratch {
                                         // precision: the neighbour search and the force pass's pack
   std::vector<std::int32_t> list;       // (n x 100) neighbour lists of the density pass
   std::vector<std::int32_t> count;      // (n) their lengths
+  // the lists' build (FluidParams::neighbour_skin): the positions and ids
+  // then, the kernel support and the skin (m) they were built for; reusable
+  // is false where none may be kept (no skin, a list overflowed)
+  std::array<std::vector<Real>, 3> list_x;
+  std::vector<std::int64_t> list_id;
+  Real list_H = 0, list_skin = 0;
+  bool list_reusable = false;
+  bool set_changed = false;             // particles were added or removed since the last build
+  Real substep_motion = 0;              // m, |v|max h of the last substep (its force pass's top speed)
   std::vector<std::uint8_t> dead;       // (n) removal reason, 0 = alive
   std::vector<std::int32_t> wall_hint;  // (n x triangle walls) each particle's closest triangle at its last
                                         // collision test, or -1: the next query's first guess (speed only)
@@ -513,7 +537,7 @@ struct FluidState {
   std::vector<Real> rho;                  // (n) kg/m^3, density of the last substep
   std::vector<Real> p;                    // (n) Pa, pressure of the last substep
   Real pressure_substep = 0;              // s, pcisph: the substep its solver asked for last (0: none yet)
-  std::vector<std::int64_t> id;           // (n) stable particle ids (order changes every substep)
+  std::vector<std::int64_t> id;           // (n) stable particle ids (the order may change at any substep)
   std::int64_t next_id = 0;
   std::vector<FluidEmitter> emitters;
   std::vector<FluidDrain> drains;

@@ -133,6 +133,7 @@ void add_run_command(CLI::App& app) {
                       {"substeps_set_by", substep_limits(fs->counters)},
                       {"collisions", fs->counters.collisions},
                       {"contacts_reused", fs->counters.contacts_reused},
+                      {"neighbour_lists_kept", fs->counters.list_reuses},
                       {"pressure_solver", runtime::to_string(fl.params.pressure_solver)},
                       {"pressure_iterations", fs->counters.pressure_iterations},
                       {"pressure_retries", fs->counters.pressure_retries},

@@ -8,8 +8,10 @@
 //                                   (--settled: the column settles behind the gate first)
 //   sph_bench --scene [--threads=2] the integrated paper scene (39x9x4 tissue + 5 000 particles + a bleeding cut)
 //             [--slack=F] [--requery]  with surface_grid_slack F (default 0.125), without the contacts' reuse
+//             [--cfl=F]             with the fluid's CFL number F (default 0.4)
 //   sph_bench --pressure-solvers    the EOS against PCISPH: time and error on the dam break and the
 //                                   hydrostatic column at three density errors each (medians of 3)
+//   sph_bench --skins               Verlet neighbour lists: the dam break's time per substep at neighbour_skin 0 ... 0.3
 //   sph_bench --surface             the blood surface (colour field, Eq. 4-6) of a ball against its sphere:
 //                                   error and time by ball radius, marching-grid cell and volume passes
 //   sph_bench --benchmark_filter=.  the Google Benchmark timings (BM_FluidStep)
@@ -60,9 +62,10 @@ struct Scenario {
   Real dt = 0;  // one substep at the CFL limit of the expected speed
 };
 
-Scenario make_scenario(std::int64_t n, bool carreau = false) {
+Scenario make_scenario(std::int64_t n, bool carreau = false, double skin = rt::FluidParams{}.neighbour_skin) {
   rt::FluidParams p;
   p.spacing = 0.002;
+  p.neighbour_skin = skin;
   if (carreau) p.rheology = rt::Rheology::carreau;  // the blood of reference/tissues.md
   const int m = std::max(2, static_cast<int>(std::lround(std::cbrt(n / 2.0))));
   const int k = std::max(2, static_cast<int>(std::lround(static_cast<double>(n) / (2.0 * m * m))));
@@ -382,6 +385,71 @@ void print_dam_break(bool full) {
   for (const auto& pt : all.back().points) std::printf("%6.2f %8.3f %8.2f\n", pt[0], pt[1], pt[2]);
 }
 
+// ---- Verlet neighbour lists (FluidParams::neighbour_skin) --------------------------------
+// The dam break of make_scenario at each skin, 2 threads, alternated in rounds
+// (each skin's own state advances by the same steps, so all stay at the same
+// stage of the collapse): median time per substep, the share of substeps that
+// kept their lists, the speed-up over rebuilding every substep (skin 0).
+struct SkinTiming {
+  std::vector<double> seconds;
+  double kept = 0;
+  double compression = 0;  // max density deviation over the timed steps
+};
+std::vector<SkinTiming> time_skins(std::int64_t n, const std::vector<double>& skins, int threads, int rounds, double batch_s) {
+  std::vector<Scenario> sc;
+  for (double k : skins) sc.push_back(make_scenario(n, false, k));
+  std::vector<SkinTiming> out(skins.size());
+  tbb::task_arena arena(threads);
+  arena.execute([&] {
+    for (auto& c : sc)
+      for (int k = 0; k < 20; ++k) rt::fluid_step(c.fluid, c.state, c.dt, c.bounds);  // the column starts to fall
+    long batch = 1, sizing = 0;  // sized on the first skin's steps; the others take as many
+    for (auto t0 = clock_type::now();; t0 = clock_type::now()) {
+      rt::fluid_step(sc[0].fluid, sc[0].state, sc[0].dt, sc[0].bounds);
+      ++sizing;
+      if (seconds_since(t0) * static_cast<double>(batch) >= batch_s || batch >= 4096) break;
+      batch *= 2;
+    }
+    for (std::size_t i = 1; i < sc.size(); ++i)
+      for (long k = 0; k < sizing; ++k) rt::fluid_step(sc[i].fluid, sc[i].state, sc[i].dt, sc[i].bounds);
+    std::vector<std::int64_t> b0(sc.size()), r0(sc.size());
+    for (std::size_t i = 0; i < sc.size(); ++i) b0[i] = sc[i].state.counters.list_builds, r0[i] = sc[i].state.counters.list_reuses;
+    for (int r = 0; r < rounds; ++r)
+      for (std::size_t i = 0; i < sc.size(); ++i) {
+        const auto t0 = clock_type::now();
+        for (long k = 0; k < batch; ++k)
+          out[i].compression = std::max(out[i].compression,
+                                        static_cast<double>(rt::fluid_step(sc[i].fluid, sc[i].state, sc[i].dt, sc[i].bounds).max_compression));
+        out[i].seconds.push_back(seconds_since(t0) / static_cast<double>(batch));
+      }
+    for (std::size_t i = 0; i < sc.size(); ++i) {
+      const auto kept = sc[i].state.counters.list_reuses - r0[i], all = kept + sc[i].state.counters.list_builds - b0[i];
+      out[i].kept = all > 0 ? static_cast<double>(kept) / static_cast<double>(all) : 0;
+    }
+  });
+  return out;
+}
+
+double median_of(std::vector<double> v) {
+  std::sort(v.begin(), v.end());
+  return v.empty() ? 0 : v[v.size() / 2];
+}
+
+void print_skins() {
+  const std::vector<double> skins{0, 0.05, 0.1, 0.15, 0.2, 0.3};
+  std::printf("Verlet neighbour lists: the dam break at each neighbour_skin (x H), 2 threads, 5 rounds alternated\n");
+  std::printf("%10s %7s %14s %12s %16s\n", "particles", "skin", "ms / substep", "lists kept", "speed-up vs 0");
+  for (std::int64_t n : {5000, 100000}) {
+    const auto t = time_skins(n, skins, 2, 5, n > 20000 ? 0.5 : 0.2);
+    const double base = median_of(t[0].seconds);
+    for (std::size_t i = 0; i < skins.size(); ++i) {
+      const double m = median_of(t[i].seconds);
+      std::printf("%10lld %7.2f %14.3f %11.0f%% %15.2fx\n", static_cast<long long>(n), skins[i], 1e3 * m, 100 * t[i].kept, base / m);
+    }
+    std::fflush(stdout);
+  }
+}
+
 // ---- the integrated paper scene ---------------------------------------------------------
 // The paper's 39 x 9 x 4 mass-spring lattice (runtime/testing/lattice.h: 1 404
 // nodes, 4 mm grid, skin on top: gravity +y points from the skin to the fixed
@@ -406,6 +474,7 @@ struct PaperScene {
   double dt = 0, steps_per_s = 0, fluid_share = 0, substeps = 0, neighbours = 0, compression = 0;
   double particles0 = 0, particles1 = 0, warmup_s = 0;
   double grid_builds = 0;  // the tissue surface's triangle grid: builds per timed step
+  double kept_lists = 0;   // share of the timed substeps that kept the last neighbour lists
   std::array<std::int64_t, 6> limits{};  // timed substeps by the limit that set them (FluidCounters::substep_limit)
 };
 
@@ -413,6 +482,7 @@ struct PaperScene {
 struct SceneKnobs {
   double slack = rt::FluidParams{}.surface_grid_slack;
   bool reuse_contacts = true;
+  double cfl = rt::FluidParams{}.cfl;
 };
 
 PaperScene paper_scene(double dt, std::int64_t particles, int steps, int threads, const SceneKnobs& knobs = {}) {
@@ -436,6 +506,7 @@ PaperScene paper_scene(double dt, std::int64_t particles, int steps, int threads
   def.fluid.params.physx_stiffness = 20;
   def.fluid.params.surface_grid_slack = knobs.slack;
   def.fluid.params.reuse_wall_contacts = knobs.reuse_contacts;
+  def.fluid.params.cfl = knobs.cfl;
   def.fluid.margin = 0.02;
   def.fluid.max_particles = 4 * particles;
   rt::ToolDef cut;
@@ -462,6 +533,7 @@ PaperScene paper_scene(double dt, std::int64_t particles, int steps, int threads
   const std::int64_t sub0 = fs.counters.substeps;
   const std::int64_t builds0 = fs.surfaces.empty() ? 0 : fs.surfaces[0].grid.builds;
   const auto lim0 = fs.counters.substep_limit;
+  const std::int64_t lb0 = fs.counters.list_builds, lr0 = fs.counters.list_reuses;
   const auto t1 = clock_type::now();
   for (int k = 0; k < steps; ++k) {
     scene.simulate(dt);
@@ -477,6 +549,8 @@ PaperScene paper_scene(double dt, std::int64_t particles, int steps, int threads
   r.neighbours /= steps;
   r.grid_builds = fs.surfaces.empty() ? 0 : static_cast<double>(fs.surfaces[0].grid.builds - builds0) / steps;
   r.particles1 = static_cast<double>(fs.size());
+  const auto kept = fs.counters.list_reuses - lr0, all = kept + fs.counters.list_builds - lb0;
+  r.kept_lists = all > 0 ? static_cast<double>(kept) / static_cast<double>(all) : 0;
   return r;
 }
 
@@ -494,7 +568,8 @@ void print_paper_scene(int threads, std::int64_t particles, const SceneKnobs& kn
     std::printf("          substeps set by:");
     for (std::size_t k = 0; k < share.size(); ++k)
       if (share[k] > 0) std::printf(" %s %.0f%%", rt::substep_limit_name(static_cast<int>(k)), 100 * share[k]);
-    std::printf("; surface grid built in %.0f%% of the steps\n", 100 * r.grid_builds);
+    std::printf("; surface grid built in %.0f%% of the steps; neighbour lists kept in %.0f%% of the substeps\n",
+                100 * r.grid_builds, 100 * r.kept_lists);
     std::fflush(stdout);
   }
 }
@@ -510,6 +585,9 @@ void BM_FluidStep(benchmark::State& st) {
   });
   st.counters["particles"] = static_cast<double>(sc.state.size());
   st.counters["neighbours"] = sc.state.last.mean_neighbours;
+  // share of the substeps that kept the last neighbour lists (FluidParams::neighbour_skin)
+  const auto& k = sc.state.counters;
+  st.counters["kept_lists"] = static_cast<double>(k.list_reuses) / static_cast<double>(std::max<std::int64_t>(1, k.list_builds + k.list_reuses));
   st.SetItemsProcessed(st.iterations() * sc.state.size());
 }
 BENCHMARK(BM_FluidStep)->ArgsProduct({{1000, 5000, 20000, 100000}, {1, 2}})->Unit(benchmark::kMillisecond);
@@ -594,6 +672,24 @@ void results(const std::string& path, bool quick) {
                    {"steps_per_s", 1 / ob::median(row.seconds)}, {"dt_s", sc.dt}};
       out.add(row);
     }
+  // Verlet neighbour lists (print_skins): the default skin against lists rebuilt every substep, alternated
+  for (std::int64_t n : quick ? std::vector<std::int64_t>{5000} : std::vector<std::int64_t>{5000, 100000}) {
+    const double skin = rt::FluidParams{}.neighbour_skin;
+    const auto t = time_skins(n, {skin, 0.0}, 2, quick ? 3 : 5, quick ? 0.05 : 0.3);
+    ob::Row row;
+    row.workload = "SPH substep with Verlet neighbour lists (kept while no particle moved skin / 2) against lists rebuilt every substep, dam break, 2 threads";
+    char set[64];
+    std::snprintf(set, sizeof set, "%lld particles, skin %g H", static_cast<long long>(n), skin);
+    row.setting = set;
+    row.seconds = t[0].seconds;
+    row.peer_seconds = t[1].seconds;
+    row.peer = "neighbour_skin 0 (this solver, lists rebuilt every substep)";
+    row.error("max density deviation", t[0].compression, "<=", 0.03);
+    row.peer_error = t[1].compression;
+    row.x = static_cast<double>(n);
+    row.extra = {{"kept_lists", t[0].kept}, {"skin_H", skin}};
+    out.add(row);
+  }
   const std::vector<int> res = quick ? std::vector<int>{8, 16} : std::vector<int>{8, 12, 16, 24, 32};
   for (int per_a : res) {
     const DamBreak r = dam_break(per_a);
@@ -697,7 +793,7 @@ int main(int argc, char** argv) {
   std::vector<std::int64_t> sizes{1000, 5000, 20000, 100000};
   std::vector<int> threads{1, 2};
   bool dam = false, full = false, gbench = false, scene = false, sizes_given = false, kernels = false, settled = false,
-       surface = false, solvers = false;
+       surface = false, solvers = false, skins = false;
   SceneKnobs knobs;
   double min_seconds = 2;
   std::vector<char*> rest{argv[0]};
@@ -732,9 +828,14 @@ int main(int argc, char** argv) {
       surface = true;
     } else if (std::strcmp(a, "--pressure-solvers") == 0) {
       solvers = true;
+    } else if (std::strcmp(a, "--skins") == 0) {
+      skins = true;
     } else if (std::strncmp(a, "--slack=", 8) == 0) {
       knobs.slack = number(a + 8);
       if (!(knobs.slack >= 0 && knobs.slack <= 1)) return usage_error("--slack must be a number in [0, 1]", a + 8);
+    } else if (std::strncmp(a, "--cfl=", 6) == 0) {
+      knobs.cfl = number(a + 6);
+      if (!(knobs.cfl > 0 && knobs.cfl <= 2)) return usage_error("--cfl must be a number in (0, 2]", a + 6);
     } else if (std::strcmp(a, "--requery") == 0) {
       knobs.reuse_contacts = false;
     } else if (std::strcmp(a, "--full") == 0) {
@@ -750,7 +851,8 @@ int main(int argc, char** argv) {
     benchmark::RunSpecifiedBenchmarks();
     return 0;
   }
-  if (solvers) print_pressure_solvers(3);
+  if (skins) print_skins();
+  else if (solvers) print_pressure_solvers(3);
   else if (surface) print_surface_table();
   else if (scene) print_paper_scene(threads.size() == 1 ? threads[0] : 2, sizes_given ? sizes[0] : 5000, knobs);
   else if (kernels) print_kernel_radii(settled);

@@ -85,6 +85,8 @@ TEST_F(RunCli, BleedsAndReportsTheFluid) {
     EXPECT_GE(f["surface_grid_builds"].get<long>(), 1);
     EXPECT_LE(f["surface_grid_builds"].get<long>(), 12);
     EXPECT_GT(f["contacts_reused"].get<long>(), 0) << f.dump();
+    EXPECT_GE(f["neighbour_lists_kept"].get<long>(), 0);
+    EXPECT_LT(f["neighbour_lists_kept"].get<long>(), f["substeps"].get<long>());  // the first substep builds
     EXPECT_EQ(f["pressure_solver"], solver);
     if (solver == "eos") {
       eos_substeps = f["substeps"].get<long>();
