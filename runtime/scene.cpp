@@ -265,10 +265,11 @@ SceneDef parse_scene(const std::string& text, const std::string& file) {
     if (solver == "eos") p.pressure_solver = PressureSolver::eos;
     else if (solver == "pcisph") p.pressure_solver = PressureSolver::pcisph;
     else f.fail("pressure_solver must be eos or pcisph (got '" + solver + "')");
-    for (const char* k : {"pcisph_tolerance", "pcisph_target_iterations", "pcisph_max_iterations"})
+    for (const char* k : {"pcisph_tolerance", "pcisph_target_iterations", "pcisph_max_iterations", "pcisph_stall_repeats"})
       if (f.has(k) && p.pressure_solver != PressureSolver::pcisph) f.fail(std::string(k) + " given with pressure_solver '" + solver + "'");
     p.pcisph_tolerance = f.number("pcisph_tolerance", p.pcisph_tolerance, 0, 0.5, true);
     p.pcisph_max_iterations = static_cast<int>(f.integer("pcisph_max_iterations", p.pcisph_max_iterations, 1, 1000));
+    p.pcisph_stall_repeats = static_cast<int>(f.integer("pcisph_stall_repeats", p.pcisph_stall_repeats, 0, 1000));
     p.pcisph_target_iterations =
         static_cast<int>(f.integer("pcisph_target_iterations", p.pcisph_target_iterations, 1, p.pcisph_max_iterations));
     const std::string rheology = f.string("rheology", "newtonian");

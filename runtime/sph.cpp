@@ -1524,9 +1524,16 @@ struct Stepper {
   // the last pressures in the pass, with their reactions; sets the corrections
   // made, the last predicted compression and the first (without pressure), and
   // whether the particle of the last one was compressed beyond the tolerance
-  // at the substep's start.
+  // at the substep's start. Stops early, stalled, where the largest
+  // predicted compression has repeated itself every second correction
+  // (within 1e-3 of itself) pcisph_stall_repeats times in a row: a particle whose
+  // response to its own pressure is more than twice the lattice's (delta's)
+  // overshoots, and with the clamp at 0 it cycles between two states (seen
+  // beside the two-sided tissue surface of the physical-mode bleeding scene);
+  // more corrections change nothing. (A solve still building its pressure
+  // changes its largest compression from one correction to the next.)
   void pcisph(const Pass& c, Real h, std::vector<Reaction>& reactions, int* iterations, Real* compression, Real* first,
-              bool* compressed_before) {
+              bool* compressed_before, bool* stalled) {
     const std::int32_t np = c.n;
     FluidScratch& sc = s.scratch;
     for (int k = 0; k < 3; ++k) sc.pred[k].resize(static_cast<std::size_t>(np));
@@ -1542,8 +1549,9 @@ struct Stepper {
     const Vec3 g = vec(fp.gravity);
     const Real damp = 1 / (1 + fp.damping * h);
     const std::size_t ntw = walls.n_triangle_walls();
-    int it = 0;
-    Real err = 0;
+    int it = 0, repeats = 0;
+    Real err = 0, back1 = HUGE_VAL, back2 = HUGE_VAL;  // the last two errors
+    *stalled = false;
     for (;;) {
       // positions as the drift would move them, the walls' projections aside
       tbb::parallel_for(tbb::blocked_range<std::int32_t>(0, np, 1024), [&](const auto& r) {
@@ -1597,10 +1605,16 @@ struct Stepper {
       // substep cannot bring it back within it
       *compressed_before = worst.second >= 0 && c.rho[worst.second] / rho0 - 1 > fp.pcisph_tolerance;
       if (it == 0) *first = err;
+      repeats = std::abs(err - back2) <= Real(1e-3) * std::abs(err) ? repeats + 1 : 0;
+      back2 = back1, back1 = err;
       ++it;
       reactions.clear();
       forces(c, reactions, false);
       if ((err <= fp.pcisph_tolerance && it >= fp.pcisph_min_iterations) || it >= fp.pcisph_max_iterations) break;
+      if (fp.pcisph_stall_repeats > 0 && repeats >= fp.pcisph_stall_repeats) {
+        *stalled = true;
+        break;
+      }
     }
     *iterations = it;
     *compression = err;
@@ -1997,6 +2011,8 @@ void validate(const FluidParams& p) {
       fail("pcisph_tolerance must be in (0, 0.5] (got " + str(p.pcisph_tolerance) + ")");
     if (p.pcisph_max_iterations < 1 || p.pcisph_max_iterations > 1000)
       fail("pcisph_max_iterations must be in [1, 1000] (got " + str(p.pcisph_max_iterations) + ")");
+    if (p.pcisph_stall_repeats < 0 || p.pcisph_stall_repeats > 1000)
+      fail("pcisph_stall_repeats must be in [0, 1000] (got " + str(p.pcisph_stall_repeats) + ")");
     if (p.pcisph_min_iterations < 1 || p.pcisph_min_iterations > p.pcisph_max_iterations)
       fail("pcisph_min_iterations must be in [1, pcisph_max_iterations] (got " + str(p.pcisph_min_iterations) + ")");
   }
@@ -2330,8 +2346,8 @@ FluidStepInfo fluid_step(const Fluid& f, FluidState& s, Real dt, const FluidBoun
       for (int retry = 0;; ++retry) {
         int it = 0;
         Real err = 0, first = 0;
-        bool compressed_before = false;
-        st.pcisph(c, h, reactions, &it, &err, &first, &compressed_before);
+        bool compressed_before = false, stalled = false;
+        st.pcisph(c, h, reactions, &it, &err, &first, &compressed_before, &stalled);
         ++s.counters.pressure_solves;
         s.counters.pressure_iterations += it;
         info.pressure_iterations += it;
@@ -2340,7 +2356,10 @@ FluidStepInfo fluid_step(const Fluid& f, FluidState& s, Real dt, const FluidBoun
         // substep; where the fluid is compressed already (the worst particle was
         // at the substep's start, or the first prediction, without pressure, no
         // longer shrinks), the solve is taken as it is
+        // (a stalled solve, Stepper::pcisph, is redone at half the substep like one
+        // that ran out of corrections: the shorter motion may bring its particle in)
         const bool hopeless = compressed_before || first > Real(0.7) * first_before;
+        if (stalled) ++s.counters.pressure_stalled;
         first_before = first;
         if (ok || retry == 10 || hopeless) {
           if (!ok) ++s.counters.pressure_unconverged;

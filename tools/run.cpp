@@ -138,6 +138,7 @@ void add_run_command(CLI::App& app) {
                       {"pressure_iterations", fs->counters.pressure_iterations},
                       {"pressure_retries", fs->counters.pressure_retries},
                       {"pressure_unconverged", fs->counters.pressure_unconverged},
+                      {"pressure_stalled", fs->counters.pressure_stalled},
                       {"surface_grid_builds", surface_grid_builds(*fs)},
                       {"spacing_m", fl.params.spacing},
                       {"sound_speed_m_s", fl.c0},

@@ -236,14 +236,18 @@ TEST(Bleeding, SceneFileFluidAndDrainErrors) {
   bad(R"({"model": "m.h5", "fluid": {"pcisph_tolerance": 0.01}})", "pcisph_tolerance given with pressure_solver 'eos'");
   bad(R"({"model": "m.h5", "fluid": {"physx_stiffness": 20, "pressure_solver": "pcisph"}})", "physical mode");
   bad(R"({"model": "m.h5", "fluid": {"pressure_solver": "pcisph", "pcisph_tolerance": 0}})", "pcisph_tolerance");
+  bad(R"({"model": "m.h5", "fluid": {"pressure_solver": "pcisph", "pcisph_stall_repeats": -1}})", "pcisph_stall_repeats");
+  bad(R"({"model": "m.h5", "fluid": {"pcisph_stall_repeats": 4}})", "pcisph_stall_repeats given with pressure_solver 'eos'");
   bad(R"({"model": "m.h5", "fluid": {"pressure_solver": "pcisph", "pcisph_max_iterations": 10,
       "pcisph_target_iterations": 20}})", "pcisph_target_iterations");
   const SceneDef pc = parse_scene(R"({"model": "m.h5", "fluid": {"sound_speed": 3, "pressure_solver": "pcisph",
-      "pcisph_tolerance": 0.003, "pcisph_target_iterations": 15, "pcisph_max_iterations": 60}})", "scene.json");
+      "pcisph_tolerance": 0.003, "pcisph_target_iterations": 15, "pcisph_max_iterations": 60,
+      "pcisph_stall_repeats": 0}})", "scene.json");
   EXPECT_EQ(pc.fluid.params.pressure_solver, PressureSolver::pcisph);
   EXPECT_EQ(pc.fluid.params.pcisph_tolerance, 0.003);
   EXPECT_EQ(pc.fluid.params.pcisph_target_iterations, 15);
   EXPECT_EQ(pc.fluid.params.pcisph_max_iterations, 60);
+  EXPECT_EQ(pc.fluid.params.pcisph_stall_repeats, 0);
   const SceneDef d = parse_scene(R"({"model": "m.h5", "fluid": {"physx_stiffness": 20, "max_particles": 500,
       "surface_volume_passes": 8},
       "tools": [{"name": "s", "type": "drain", "center": [0, 0, 0], "radius": 0.01, "path": [[0, 0, 0, 0], [1, 0.01, 0, 0]]}]})",

@@ -396,6 +396,49 @@ TEST(SphPhysics, DamBreakSurgeFront) {
 
 // The same dam break with the incompressible solver: the same front at the
 // same resolution, in far fewer substeps (the sound speed leaves the CFL limit).
+// A solve that cycles between two states (its largest predicted compression
+// repeating every second correction) stops after pcisph_stall_repeats repeats
+// instead of running to pcisph_max_iterations, and is redone at half the
+// substep like any unconverged solve. A block squeezed to a fifth of its
+// spacing, dropped into a settled fluid, makes one: with the detection the
+// same steps end as well converged as without it, on fewer corrections.
+TEST(SphPcisph, CyclingSolvesStopEarly) {
+  struct Out {
+    std::int64_t corrections, stalled, unconverged, retries;
+    Real worst;  // the largest accepted predicted compression
+  };
+  auto run = [](int repeats) {
+    FluidParams p;
+    p.pressure_solver = PressureSolver::pcisph;
+    p.pcisph_stall_repeats = repeats;
+    const Fluid f = make_fluid(p);
+    const FluidBoundaries b = make_box_boundaries({0, 0, 0}, {0.04, 0.04, 0.04});
+    FluidState s = make_fluid_state();
+    fill_box(f, s, {0, 0, 0}, {0.02, 0.02, 0.02});
+    for (int k = 0; k < 20; ++k) fluid_step(f, s, 1e-3, b);
+    std::vector<Real> squeezed;
+    for (int k = 0; k < 5; ++k)
+      for (int j = 0; j < 5; ++j)
+        for (int i = 0; i < 5; ++i) squeezed.insert(squeezed.end(), {0.03 + 0.2 * p.spacing * i, 0.03 + 0.2 * p.spacing * j, 0.01 + 0.2 * p.spacing * k});
+    add_particles(f, s, squeezed);
+    Out o{0, 0, 0, 0, 0};
+    for (int k = 0; k < 20; ++k) o.worst = std::max(o.worst, fluid_step(f, s, 1e-3, b).max_predicted_compression);
+    EXPECT_TRUE(all_finite(s));
+    o.corrections = s.counters.pressure_iterations, o.stalled = s.counters.pressure_stalled;
+    o.unconverged = s.counters.pressure_unconverged, o.retries = s.counters.pressure_retries;
+    return o;
+  };
+  const Out with = run(FluidParams{}.pcisph_stall_repeats), without = run(0);
+  EXPECT_GE(with.stalled, 1);
+  EXPECT_EQ(without.stalled, 0);
+  EXPECT_LT(with.corrections, without.corrections);
+  EXPECT_GE(with.retries, 1);  // the stalled solve, redone at half the substep
+  EXPECT_EQ(with.unconverged, 0);
+  EXPECT_EQ(without.unconverged, 0);
+  EXPECT_LE(with.worst, FluidParams{}.pcisph_tolerance);
+  EXPECT_LE(without.worst, FluidParams{}.pcisph_tolerance);
+}
+
 TEST(SphPcisph, DamBreakSurgeFront) {
   const DamBreakResult r = dam_break(16, 0.02, PressureSolver::pcisph);
   for (const auto& q : r.points) std::printf("  T %.2f  Z %.3f  (Martin & Moyce %.2f)\n", q[0], q[1], q[2]);
@@ -1251,6 +1294,9 @@ TEST(SphParams, ValidationNamesTheField) {
   p.pcisph_target_iterations = p.pcisph_max_iterations + 1;
   EXPECT_NE(message(p).find("pcisph_target_iterations"), std::string::npos) << message(p);
   p.pcisph_target_iterations = 20;
+  p.pcisph_stall_repeats = -1;
+  EXPECT_NE(message(p).find("pcisph_stall_repeats"), std::string::npos) << message(p);
+  p.pcisph_stall_repeats = 4;
   p.pcisph_min_iterations = 0;
   EXPECT_NE(message(p).find("pcisph_min_iterations"), std::string::npos) << message(p);
   FluidBoundaries b = make_box_boundaries({0, 0, 0}, {1, 1, 1});
