@@ -787,7 +787,8 @@ TEST(SphPhysics, KeptNeighbourListsHoldEveryPairWithinH) {
 // The trajectories with kept lists follow those rebuilt every substep to the
 // force pass's single precision (its float positions are relative to the
 // build's grid origin, so its pair terms round differently, ~1e-7 of
-// themselves), and a particle added forces a rebuild.
+// themselves), are bitwise the same on 1 and 2 threads, and a particle added
+// forces a rebuild.
 TEST(SphPhysics, KeptNeighbourListsFollowTheRebuiltTrajectories) {
   FluidParams p = weightless();
   const Fluid f = make_fluid(p);
@@ -816,6 +817,16 @@ TEST(SphPhysics, KeptNeighbourListsFollowTheRebuiltTrajectories) {
   }
   EXPECT_GT(moved, 0.3 * f.H);
   EXPECT_LT(worst, 1e-6 * moved);
+  auto on = [&](int threads) {
+    FluidState r = compressed_block(f, 10, 12, 1.0);
+    tbb::task_arena arena(threads);
+    arena.execute([&] {
+      for (int k = 0; k < 20; ++k) fluid_step(f, r, 2e-4, b);
+    });
+    EXPECT_EQ(r.counters.list_reuses, s.counters.list_reuses);
+    return fluid_state_hash(r);
+  };
+  EXPECT_EQ(on(1), on(2));
   // a particle added between steps: the next substep builds its lists
   const std::int64_t builds = s.counters.list_builds;
   const std::vector<Real> one{0.5 * f.params.spacing, 0.5 * f.params.spacing, -0.5 * f.params.spacing};
