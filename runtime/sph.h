@@ -163,7 +163,8 @@ const char* to_string(Rheology r);
 //   is taken as it is and counted. A solve that cycles between two states
 //   (a particle beside walls whose response to its own pressure is more than
 //   twice delta overshoots; with the clamp at 0 it flips back and forth) stops
-//   after pcisph_stall_repeats repeats and is taken as it is. The next substep is sized for about
+//   after pcisph_stall_repeats repeats and is treated as one not converged.
+//   The next substep is sized for about
 //   pcisph_target_iterations corrections. c0 still sets the artificial
 //   viscosity. The pressures are a partly converged
 //   iterate: their noise is about delta rho0 tolerance (docs/sph.md).
@@ -198,9 +199,9 @@ struct FluidParams {
   int pcisph_target_iterations = 20;  // corrections the substep is sized for, [1, pcisph_max_iterations]
   int pcisph_max_iterations = 100; // [1, 1000]; beyond, the solve is redone at half the substep
   // A solve whose largest predicted compression repeats the one two corrections
-  // before (within 1e-3 of itself) this many times in a row cycles and stops,
-  // taken as it is (counted as stalled and unconverged, not redone); [0, 1000],
-  // 0 = never (the solve runs to pcisph_max_iterations).
+  // before (within 1e-3 of itself) this many times in a row cycles: it stops
+  // (counted as stalled) and is redone at half the substep like one that ran
+  // out of corrections; [0, 1000], 0 = never (it runs to pcisph_max_iterations).
   int pcisph_stall_repeats = 4;
   Real artificial_viscosity = 0.02;  // alpha of Monaghan (1992), [0, 1]; 0 = physical viscosity only
   Real damping = 0;           // 1/s, velocity damping v /= 1 + damping h per substep (settling), >= 0
@@ -472,7 +473,7 @@ struct FluidCounters {
   std::int64_t pressure_iterations = 0;   // pcisph: corrections, all substeps
   std::int64_t pressure_unconverged = 0;  // pcisph: solves taken unconverged (after 10 halvings, or where halving cannot help)
   std::int64_t pressure_retries = 0;      // pcisph: solves redone at half the substep (not converged)
-  std::int64_t pressure_stalled = 0;      // pcisph: unconverged solves stopped early: cycling between two states
+  std::int64_t pressure_stalled = 0;      // pcisph: solves stopped early, cycling between two states (then redone or taken)
   // substeps by the limit that set their length (fluid_step spreads the rest
   // of a step evenly, so a substep is shorter than the limit, never longer):
   // [0] none (the rest of the step fits), [1] CFL, sound and flow speed

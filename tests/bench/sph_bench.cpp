@@ -302,10 +302,7 @@ void print_pressure_solvers(int reps) {
   const Tweak eos = eos_sound_speed, pci = pcisph_tolerance;
   const Setting settings[] = {{"eos c0 = 10 v", eos, 10}, {"eos c0 = 18 v", eos, 18}, {"eos c0 = 32 v", eos, 32},
                               {"pcisph 1 %", pci, 0.01},  {"pcisph 0.3 %", pci, 0.003}, {"pcisph 0.1 %", pci, 0.001}};
-  auto median = [](std::vector<double> v) {
-    std::sort(v.begin(), v.end());
-    return v[v.size() / 2];
-  };
+  using orthosim::bench::median;
   std::printf("Pressure solvers: weakly compressible (EOS) and PCISPH, medians of %d runs\n", reps);
   std::printf("Dam break, 16 per a (3 072 particles), to Z = 3 (0.135 s):\n");
   std::printf("%16s %8s %10s %12s %16s %18s %12s\n", "setting", "wall s", "substeps", "corrections", "mean max drho %",
@@ -435,20 +432,15 @@ std::vector<SkinTiming> time_skins(std::int64_t n, const std::vector<double>& sk
   return out;
 }
 
-double median_of(std::vector<double> v) {
-  std::sort(v.begin(), v.end());
-  return v.empty() ? 0 : v[v.size() / 2];
-}
-
 void print_skins() {
   const std::vector<double> skins{0, 0.05, 0.1, 0.15, 0.2, 0.3};
   std::printf("Verlet neighbour lists: the dam break at each neighbour_skin (x H), 2 threads, 5 rounds alternated\n");
   std::printf("%10s %7s %14s %12s %16s\n", "particles", "skin", "ms / substep", "lists kept", "speed-up vs 0");
   for (std::int64_t n : {5000, 100000}) {
     const auto t = time_skins(n, skins, 2, 5, n > 20000 ? 0.5 : 0.2);
-    const double base = median_of(t[0].seconds);
+    const double base = orthosim::bench::median(t[0].seconds);
     for (std::size_t i = 0; i < skins.size(); ++i) {
-      const double m = median_of(t[i].seconds);
+      const double m = orthosim::bench::median(t[i].seconds);
       std::printf("%10lld %7.2f %14.3f %11.0f%% %15.2fx\n", static_cast<long long>(n), skins[i], 1e3 * m, 100 * t[i].kept, base / m);
     }
     std::fflush(stdout);
