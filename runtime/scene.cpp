@@ -166,8 +166,10 @@ ToolDef parse_tool(const json& j, std::size_t index, const std::string& file) {
     t.has_center = true;
     t.radius = o.number("radius", 0, 0, 1e3, true);
     if (!o.has("radius")) o.fail("radius is required with center");
+    t.nearest = o.boolean("nearest", false);
   } else {
     if (o.has("radius")) o.fail("radius needs a center");
+    if (o.has("nearest")) o.fail("nearest needs a center");
     if (t.nodes.empty() && t.type != ToolType::cut && t.type != ToolType::drain) o.fail("needs a center and radius, or a node set in 'nodes'");
   }
   if (t.type == ToolType::cut) {
@@ -527,20 +529,28 @@ void Scene::init(const std::string& model_file) {
       continue;
     }
     if (t.has_center && t.center_relative) {
-      const auto [lo, hi] = rest_box(m, candidates);
       if (candidates.empty()) throw Error(file, "tool '" + t.name + "' has no candidate node");
+      const auto [lo, hi] = rest_box(m, candidates);
       const auto& f = t.center_fraction;
       run.def.center = {lo.x + f[0] * (hi.x - lo.x), lo.y + f[1] * (hi.y - lo.y), lo.z + f[2] * (hi.z - lo.z)};
     }
     if (t.type == ToolType::drain) {
       // a point tool: it takes no node
     } else if (t.has_center) {
+      if (candidates.empty()) throw Error(file, "tool '" + t.name + "' has no candidate node");
       const Vec3 c{run.def.center[0], run.def.center[1], run.def.center[2]};
-      for (auto i : candidates)
-        if (norm(load3(m.rest_x.data(), i) - c) <= t.radius) run.nodes.push_back(i);
+      Real closest = HUGE_VAL;
+      std::int32_t nearest = -1;
+      for (auto i : candidates) {
+        const Real d = norm(load3(m.rest_x.data(), i) - c);
+        if (d <= t.radius) run.nodes.push_back(i);
+        if (d < closest) closest = d, nearest = i;  // ties: the first candidate (candidates are in index order)
+      }
+      if (run.nodes.empty() && t.nearest && nearest >= 0) run.nodes.push_back(nearest);
       if (run.nodes.empty())
         throw Error(file, "tool '" + t.name + "' takes no node: no " + (t.nodes.empty() ? "free node" : "node of set '" + t.nodes + "'") +
-                              " lies within " + fmt(t.radius) + " m of (" + fmt(c.x) + ", " + fmt(c.y) + ", " + fmt(c.z) + ")");
+                              " lies within " + fmt(t.radius) + " m of (" + fmt(c.x) + ", " + fmt(c.y) + ", " + fmt(c.z) +
+                              ") (the nearest is " + fmt(closest) + " m away; \"nearest\": true takes it)");
     } else {
       run.nodes = candidates;
       if (run.nodes.empty()) throw Error(file, "tool '" + t.name + "': node set '" + t.nodes + "' has no free node in the loaded layers");

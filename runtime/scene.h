@@ -58,6 +58,10 @@ struct ToolDef {
   bool center_relative = false;
   std::array<Real, 3> center_fraction{0.5, 0.5, 0.5};
   Real radius = 0;                       // m, > 0 when has_center
+  // With a center: when no candidate node lies within radius, take the
+  // nearest one instead of failing (a grasper closing on the surface), so a
+  // scene with center_in_box also fits coarser models (a 15 x 5 grid).
+  bool nearest = false;
   // pull: displacement of the tool point from center over time (s, m);
   // held before the first and after the last time. Empty: stays at center.
   Path path;

@@ -207,6 +207,42 @@ TEST_F(SceneTest, PullToolDragsItsNodesAlongThePath) {
   EXPECT_EQ(s.counters().failed, 0);
 }
 
+// "nearest": a tool point between the nodes (1 mm above the skin node (5, 2),
+// radius 0.5 mm) takes that node alone; without it the scene fails, naming
+// the nearest node's distance; a node within the radius is taken as before.
+TEST_F(SceneTest, NearestTakesTheClosestNodeWhenNoneIsWithinTheRadius) {
+  SceneDef d;
+  d.model = model;
+  d.fixed = {"fixed"};
+  ToolDef t;
+  t.name = "grasper";
+  t.nodes = "skin";
+  const auto c = skin_point();
+  t.center = {c[0] + 0.3e-3, c[1] - 1e-3, c[2]};
+  t.has_center = true;
+  t.radius = 0.5e-3;
+  d.tools = {t};
+  const std::string err = error_of([&] { Scene s(d); });
+  EXPECT_NE(err.find("takes no node"), std::string::npos) << err;
+  EXPECT_NE(err.find("the nearest is 0.00104403 m away"), std::string::npos) << err;
+  d.tools[0].nearest = true;
+  Scene s(d);
+  const auto nodes = s.tool_nodes(0);
+  ASSERT_EQ(nodes.size(), 1u);
+  const auto g = static_cast<std::size_t>(nodes[0]);
+  for (int a = 0; a < 3; ++a) EXPECT_NEAR(s.model().rest_x[3 * g + a], c[static_cast<std::size_t>(a)], 1e-12);
+  // within the radius: every node there, nearest or not
+  d.tools[0].center = c;
+  d.tools[0].radius = 4.5e-3;
+  EXPECT_EQ(Scene(d).tool_nodes(0).size(), 5u);
+  EXPECT_NE(error_of([&] { parse_scene_file(scene_file(R"({"model": "model.h5", "tools": [{"type": "pull", "nodes": "skin", "nearest": true}]})")); })
+                .find("nearest needs a center"),
+            std::string::npos);
+  EXPECT_TRUE(parse_scene_file(scene_file(R"({"model": "model.h5", "tools": [{"type": "pull", "center": [0, 0, 0], "radius": 0.001, "nearest": true}]})"))
+                  .tools[0]
+                  .nearest);
+}
+
 TEST_F(SceneTest, HookHoldsAndPressurePushes) {
   SceneDef d;
   d.model = model;
