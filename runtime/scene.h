@@ -202,6 +202,8 @@ class Scene {
   bool in_step() const { return in_step_; }
 
   // ---- results (valid after fetch_results)
+  // the model as the cuts left it: a cut replaces it (copy on write), so a
+  // reference taken before a step may dangle after it; take it anew
   const Model& model() const { return *model_; }
   const State& state() const { return state_; }
   std::span<const Real> positions() const { return state_.x; }  // (n_nodes x 3) m

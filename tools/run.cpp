@@ -63,7 +63,7 @@ void add_run_command(CLI::App& app) {
     }
     report.input(scene_file);
     report.input(def.model);
-    const runtime::Model& m = scene->model();
+    const runtime::Model& m0 = scene->model();  // a cut replaces the model: not used after the steps
     auto& par = report.parameters();
     par["model"] = def.model;
     par["layers"] = def.layers;
@@ -76,7 +76,7 @@ void add_run_command(CLI::App& app) {
     par["mass_damping"] = def.solver.mass_damping;
     par["output"] = def.output.enabled ? def.output.dir : "";
     if (!common.quiet)
-      std::cerr << "run: " << m.n_nodes << " nodes (" << m.n_anchors << " anchors), " << m.n_springs
+      std::cerr << "run: " << m0.n_nodes << " nodes (" << m0.n_anchors << " anchors), " << m0.n_springs
                 << " linear springs, " << n_steps << " steps of " << def.dt << " s, "
                 << runtime::to_string(def.solver.integrator) << "\n";
 
@@ -87,6 +87,7 @@ void add_run_command(CLI::App& app) {
       r = runtime::run(*scene, n_steps, [&](long done) { progress.update(done); });
     }
     const auto& c = scene->counters();
+    const runtime::Model& m = scene->model();  // after the cuts
     auto& met = report.metrics();
     const auto& st = scene->read_stats();
     met["nodes"] = m.n_nodes;

@@ -61,6 +61,16 @@ TEST_F(RunCli, PullsTheSkinAndReports) {
 TEST_F(RunCli, BleedsAndReportsTheFluid) {
   runtime::testing::write_model_file(model, runtime::testing::make_layered_block(39, 9, 4), true);  // with the artery
   long eos_substeps = 0;
+  long uncut_springs = 0, uncut_anchors = 0;
+  {
+    const auto r = run_cli("run " + scene(R"({"model": "model.h5", "fixed": ["fixed"], "integrator": "implicit", "dt": 0.005})") +
+                           " --steps 1 --no-output --report " + (dir / "r0.json") + " --quiet");
+    ASSERT_EQ(r.code, 0) << r.err;
+    const auto j = nlohmann::json::parse(test::read_file(dir / "r0.json"));
+    uncut_springs = j["metrics"]["springs"].get<long>();
+    uncut_anchors = j["metrics"]["anchors"].get<long>();
+    ASSERT_GT(uncut_springs, 0);
+  }
   for (const std::string solver : {"eos", "pcisph"}) {
     SCOPED_TRACE(solver);
     const auto s = scene(R"({
@@ -98,6 +108,14 @@ TEST_F(RunCli, BleedsAndReportsTheFluid) {
     }
     EXPECT_EQ(j["metrics"]["stability"]["failed_steps"], 0);
     EXPECT_EQ(f["particles_nonfinite"].get<long>(), 0);
+    // the counts of the model as the cut left it (the cut replaces the model: they were read from the freed one)
+    const auto& m = j["metrics"];
+    EXPECT_EQ(m["nodes"].get<long>(), 39 * 9 * 4) << m.dump();
+    EXPECT_EQ(m["layers_loaded"].get<long>(), 4);
+    EXPECT_EQ(m["vessels_loaded"].get<long>(), 1);
+    EXPECT_EQ(m["anchors"].get<long>(), uncut_anchors);
+    EXPECT_GT(m["springs"].get<long>(), 0.9 * uncut_springs);
+    EXPECT_LT(m["springs"].get<long>(), uncut_springs) << "the cut removed springs";
   }
 }
 
