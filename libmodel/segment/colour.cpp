@@ -172,7 +172,11 @@ struct Samples {
   std::vector<double> u, v;       // position relative to the centre, in image sizes
 };
 
-Samples grid_samples(const std::uint8_t* rgb, int nx, int ny, int stride) {
+// The pixels on a grid of the given stride. median3: each sample is the
+// per-channel median of its 3 x 3 neighbourhood (clipped at the border):
+// the calibration's samples, whose noise it cuts to ~0.4 sigma (a tissue's
+// mean colour is what calibration estimates) while keeping edges.
+Samples grid_samples(const std::uint8_t* rgb, int nx, int ny, int stride, bool median3 = false) {
   Samples s;
   const int off = stride / 2;
   const int x0 = std::min(off, nx - 1), y0 = std::min(off, ny - 1);
@@ -181,7 +185,19 @@ Samples grid_samples(const std::uint8_t* rgb, int nx, int ny, int stride) {
   for (int y = y0; y < ny; y += stride)
     for (int x = x0; x < nx; x += stride) {
       const std::uint8_t* p = rgb + (static_cast<std::size_t>(y) * nx + x) * 3;
-      s.rgb.insert(s.rgb.end(), p, p + 3);
+      if (median3) {
+        for (int c = 0; c < 3; ++c) {
+          std::array<std::uint8_t, 9> w{};
+          int k = 0;
+          for (int yy = std::max(0, y - 1); yy <= std::min(ny - 1, y + 1); ++yy)
+            for (int xx = std::max(0, x - 1); xx <= std::min(nx - 1, x + 1); ++xx)
+              w[static_cast<std::size_t>(k++)] = rgb[(static_cast<std::size_t>(yy) * nx + xx) * 3 + c];
+          std::nth_element(w.begin(), w.begin() + k / 2, w.begin() + k);
+          s.rgb.push_back(w[static_cast<std::size_t>(k / 2)]);
+        }
+      } else {
+        s.rgb.insert(s.rgb.end(), p, p + 3);
+      }
       s.u.push_back((x - 0.5 * (nx - 1)) / nx);
       s.v.push_back((y - 0.5 * (ny - 1)) / ny);
     }
@@ -334,7 +350,7 @@ void calibrate(ColourModel& m, const std::vector<std::vector<std::uint8_t>>& sli
   const int nb = m.n_background();
   const int stride = std::max(1, o.sample_stride);
   std::vector<Samples> samples;
-  for (const auto& s : slices) samples.push_back(grid_samples(s.data(), nx, ny, stride));
+  for (const auto& s : slices) samples.push_back(grid_samples(s.data(), nx, ny, stride, /*median3=*/true));
 
   // 1. reference background colours: medians of the raw background pixels
   m.bg_reference.clear();
@@ -384,29 +400,70 @@ void calibrate(ColourModel& m, const std::vector<std::vector<std::uint8_t>>& sli
     i = j;
   }
 
-  // 3. k-means seeded by the prototypes, shrunk towards them (a conjugate
-  // prior of weight n0 samples per prototype), moves clamped
+  // 3. EM for a mixture of isotropic Gaussians (one per prototype, a shared
+  // variance, mixing weights), seeded by the prototypes, each mean shrunk
+  // towards its prototype (a conjugate prior of weight n0 samples per
+  // prototype), moves clamped. Plain k-means (equal weights, no variance) lets
+  // a rare tissue's prototype run off into the noise tail of a common one
+  // next to it (the vein into the blue gel at 8-bit noise sigma 8: the gel's
+  // tail is nearer the vein than the gel and outnumbers the vein's own
+  // pixels); the weights keep the tail with the common tissue. Where the
+  // clusters are tight against their separation (low noise), the posteriors
+  // are hard and this is k-means.
   const std::size_t C = m.centres.size(), N = lab.size();
   const double n0 = o.refine_prior * static_cast<double>(keys.size()) / static_cast<double>(C);
   constexpr std::size_t kChunk = 4096;
   const std::size_t chunks = (N + kChunk - 1) / kChunk;
-  std::vector<std::vector<std::array<double, 4>>> part(chunks, std::vector<std::array<double, 4>>(C));
-  for (int it = 0; it < o.refine_iterations; ++it) {
+  // per chunk and centre: weighted sums of L, a, b, the weight, and of the
+  // squared distances (for the variance)
+  std::vector<std::vector<std::array<double, 5>>> part(chunks, std::vector<std::array<double, 5>>(C));
+  std::vector<double> log_pi(C, 0.0);  // log mixing weights (the first pass: hard, nearest)
+  double inv2var = 0;                  // 1 / (2 sigma^2); 0 before the first pass: hard assignments
+  auto reduce = [&](std::size_t c) {
+    std::array<double, 5> sum{0, 0, 0, 0, 0};
+    for (std::size_t k = 0; k < chunks; ++k)  // fixed order: deterministic
+      for (int j = 0; j < 5; ++j) sum[j] += part[k][c][j];
+    return sum;
+  };
+  // pass 0 (when refining): hard nearest assignments to the table's colours
+  // give the first weights and variance and move nothing; passes 1.. are EM
+  for (int it = o.refine_iterations > 0 ? -1 : 0; it < o.refine_iterations; ++it) {
+    const bool hard = it < 0;
     tbb::parallel_for(std::size_t(0), chunks, [&](std::size_t k) {
       auto& acc = part[k];
-      for (auto& a : acc) a = {0, 0, 0, 0};
+      for (auto& a : acc) a = {0, 0, 0, 0, 0};
+      std::vector<double> d2(C), lp(C);
       for (std::size_t i = k * kChunk; i < std::min(N, (k + 1) * kChunk); ++i) {
-        const int c = m.nearest(lab[i]);
-        auto& a = acc[static_cast<std::size_t>(c)];
         const double w = weight[i];
-        a[0] += w * lab[i][0], a[1] += w * lab[i][1], a[2] += w * lab[i][2], a[3] += w;
+        if (hard) {
+          const int c = m.nearest(lab[i]);
+          auto& a = acc[static_cast<std::size_t>(c)];
+          a[0] += w * lab[i][0], a[1] += w * lab[i][1], a[2] += w * lab[i][2], a[3] += w;
+          a[4] += w * m.dist2(lab[i], m.centres[static_cast<std::size_t>(c)].lab);
+          continue;
+        }
+        double top = -1e300;
+        for (std::size_t c = 0; c < C; ++c) {
+          d2[c] = m.dist2(lab[i], m.centres[c].lab);
+          lp[c] = log_pi[c] - d2[c] * inv2var;
+          top = std::max(top, lp[c]);
+        }
+        double z = 0;
+        for (std::size_t c = 0; c < C; ++c) z += (lp[c] = std::exp(lp[c] - top));
+        for (std::size_t c = 0; c < C; ++c) {
+          const double r = w * lp[c] / z;
+          if (r == 0) continue;
+          auto& a = acc[c];
+          a[0] += r * lab[i][0], a[1] += r * lab[i][1], a[2] += r * lab[i][2], a[3] += r, a[4] += r * d2[c];
+        }
       }
     });
-    double moved = 0;
+    double moved = 0, total = 0, spread = 0;
     for (std::size_t c = 0; c < C; ++c) {
-      std::array<double, 4> sum{0, 0, 0, 0};
-      for (std::size_t k = 0; k < chunks; ++k)  // fixed order: deterministic
-        for (int j = 0; j < 4; ++j) sum[j] += part[k][c][j];
+      const std::array<double, 5> sum = reduce(c);
+      total += sum[3];
+      spread += sum[4];
+      if (it < 0) continue;
       Centre& ce = m.centres[c];
       std::array<double, 3> next;
       for (int j = 0; j < 3; ++j) next[j] = (sum[j] + n0 * ce.table_lab[j]) / (sum[3] + n0 + 1e-300);
@@ -417,9 +474,15 @@ void calibrate(ColourModel& m, const std::vector<std::vector<std::uint8_t>>& sli
         for (int j = 0; j < 3; ++j) next[j] = ce.table_lab[j] + (next[j] - ce.table_lab[j]) * o.refine_max_shift / d;
       for (int j = 0; j < 3; ++j) moved = std::max(moved, std::abs(next[j] - ce.lab[j]));
       ce.lab = next;
-      ce.samples = static_cast<std::int64_t>(sum[3]);
+      ce.samples = static_cast<std::int64_t>(std::llround(sum[3]));
     }
-    if (moved < 0.01) break;
+    // the mixing weights (with the prior's samples, so none reaches 0) and the
+    // shared variance per axis (floored at 0.25 CIE76 units: 8-bit rounding)
+    for (std::size_t c = 0; c < C; ++c)
+      log_pi[c] = std::log((reduce(c)[3] + n0 + 1e-300) / (total + static_cast<double>(C) * n0 + 1e-300));
+    const double var = std::max(0.0625, spread / (3 * std::max(total, 1e-300)));
+    inv2var = 1 / (2 * var);
+    if (it >= 0 && moved < 0.01) break;
   }
   m.reset_table();
 }

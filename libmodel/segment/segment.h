@@ -7,11 +7,14 @@
 //  1. Calibration. A few slices spread over the stack (calibration_slices) are
 //     read first. Their background (the embedding medium, the table's
 //     background prototypes) gives the stack's reference background colour,
-//     and a k-means in CIELAB over their pixels, seeded by the table's colour
-//     prototypes, moves each prototype to where its tissue really is in this
-//     stack (a Bayesian shrinkage towards the prototype, at most
+//     and an EM fit in CIELAB over their pixels (each sample the per-channel
+//     median of its 3 x 3 neighbourhood) of a mixture of isotropic Gaussians
+//     seeded by the table's colour prototypes, with mixing weights and a
+//     shared variance, moves each prototype to where its tissue really is in
+//     this stack (a Bayesian shrinkage towards the prototype, at most
 //     refine_max_shift CIE76 units away). The table's colours only need to be
-//     roughly right.
+//     roughly right; the weights keep a rare tissue's prototype out of the
+//     noise tail of a common one (plain k-means let it run off there).
 //  2. Per slice: normalisation against the background. A per-channel gain
 //     field (constant or a plane across the slice) maps the slice's background
 //     onto the reference: illumination drift along and across slices goes.
@@ -134,8 +137,8 @@ struct SegmentOptions {
   // table's background prototypes; without them it is off.
   enum class Normalise { none, gain, plane };
   Normalise normalise = Normalise::plane;
-  // k-means iterations over the calibration pixels (0 = the table's colours
-  // as they are), 0..100.
+  // EM iterations of the calibration (0 = the table's colours as they
+  // are), 0..100.
   int refine_iterations = 8;
   // Prior weight of each prototype, as a fraction of the calibration samples
   // per prototype: a prototype with few pixels moves little. >= 0.
