@@ -1865,6 +1865,10 @@ struct Stepper {
         e.travelled[k] += u * h;
         int guard = 0;
         while (e.travelled[k] >= spacing_along && guard++ < 1 << 16) {
+          if (s.max_particles > 0 && s.size() >= s.max_particles) {
+            e.travelled[k] = std::min(e.travelled[k], spacing_along);  // held back: one particle due at most
+            break;
+          }
           e.travelled[k] -= spacing_along;
           const Vec3 pos = c + pts[k][0] * e1 + pts[k][1] * e2 + e.travelled[k] * d;
           const Vec3 vel = u * d;

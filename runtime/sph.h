@@ -550,6 +550,9 @@ struct FluidState {
   std::vector<std::int64_t> id;           // (n) stable particle ids (the order may change at any substep)
   std::int64_t next_id = 0;
   std::vector<FluidEmitter> emitters;
+  // Emitters stop at this many particles, within a substep (0 = no cap); a
+  // point of an emitter that is held back keeps at most one particle due.
+  std::int64_t max_particles = 0;
   std::vector<FluidDrain> drains;
   std::vector<FluidSurface> surfaces;
   FluidCounters counters;

@@ -1235,6 +1235,36 @@ TEST(SphSources, EmitterMatchesRequestedFlow) {
   EXPECT_NEAR(poiseuille_flow_rate(0.001, 1000, 0.003, 0.1), kPi * 1e-12 * 1000 / (8 * 0.003 * 0.1), 1e-18);
 }
 
+// FluidState::max_particles caps the emitters inside a step (the scene's
+// pause acts between steps only: one step of a fine jet overshot it ~5x),
+// and a held-back emitter owes at most one particle per point afterwards.
+TEST(SphSources, EmittersStopAtTheCapWithinAStep) {
+  FluidParams p = weightless();
+  p.spacing = 0.002;
+  p.max_speed = 0.3;
+  const Fluid f = make_fluid(p);
+  const FluidBoundaries b = open_box(1);
+  FluidState s = make_fluid_state();
+  FluidEmitter e;
+  e.center = {0, 0, 0};
+  e.direction = {0, 0, 1};
+  e.radius = 0.006;  // 29 lattice points
+  e.flow_rate = poiseuille_flow_rate(0.0012, 2000, p.viscosity, 0.02);
+  s.emitters.push_back(e);
+  s.max_particles = 100;
+  fluid_step(f, s, 0.2, b);  // uncapped: ~675 particles in this one step
+  EXPECT_EQ(s.size(), 100);
+  EXPECT_EQ(s.counters.emitted, 100);
+  const Real l = 29 * f.volume / (kPi * e.radius * e.radius);  // the emitter's spacing along the jet
+  for (Real t : s.emitters[0].travelled) EXPECT_LE(t, l * (1 + 1e-12));
+  // room again: at most one particle a point comes at once, then the flow resumes at its rate
+  s.max_particles = 0;
+  fluid_step(f, s, 1e-5, b);
+  EXPECT_LE(s.counters.emitted, 100 + 29);
+  EXPECT_GT(s.counters.emitted, 100);
+  EXPECT_TRUE(all_finite(s));
+}
+
 TEST(SphSources, DrainCountsRemovedVolume) {
   const Fluid f = make_fluid(weightless());
   const FluidBoundaries b = open_box(1);
