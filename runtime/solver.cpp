@@ -612,7 +612,7 @@ StepInfo step(const Model& m, State& s, Real dt, const SolverOptions& o) {
       const Real t = t0 + h * static_cast<Real>(k);
       int its = 0;
       last = implicit ? implicit_substep(m, s, t, h, o, &budget.w_tool, &its)
-                      : symplectic_substep(m, s, t, h, o, &budget.w_tool, budget.u0 < 0);
+                      : symplectic_substep(m, s, t, h, o, &budget.w_tool, budget.u0 < 0 || k == n_sub - 1);
       cg_its += its;
       ++done;
       if (budget.u0 < 0) budget.u0 = std::isfinite(last.u) ? last.u : 0;
