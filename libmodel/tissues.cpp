@@ -7,6 +7,7 @@
 #include <cctype>
 #include <cmath>
 #include <fstream>
+#include <map>
 #include <set>
 #include <sstream>
 
@@ -138,8 +139,13 @@ TissueTable parse_tissue_table(const std::string& text, const std::string& path)
   t.path = path;
   if (j.contains("background")) {
     const auto& b = j["background"];
+    if (!b.is_object()) throw Error(path, "'background' must be an object like {\"rgb\": [[r, g, b]]}");
     check_keys(b, {"name", "rgb", "note"}, path, "background");
-    if (b.contains("name")) t.background_name = b["name"].get<std::string>();
+    if (b.contains("name")) {
+      if (!b["name"].is_string() || b["name"].get<std::string>().empty())
+        throw Error(path, "background: 'name' must be a non-empty string");
+      t.background_name = b["name"].get<std::string>();
+    }
     if (b.contains("rgb")) t.background_rgb = colours(b["rgb"], path, "background");
   }
   if (!j.contains("tissues") || !j["tissues"].is_array() || j["tissues"].empty())
@@ -160,10 +166,12 @@ TissueTable parse_tissue_table(const std::string& text, const std::string& path)
       if (!(std::isalnum(static_cast<unsigned char>(c)) || c == '_' || c == '-'))
         throw Error(path, where + ": names may use letters, digits, '_' and '-' only");
     if (!names.insert(ts.name).second) throw Error(path, "duplicate tissue name '" + ts.name + "'");
-    if (!e.contains("label") || !e["label"].is_number_integer()) throw Error(path, where + ": missing integer 'label'");
-    int label = e["label"];
+    if (!e.contains("label")) throw Error(path, where + ": missing 'label'");
+    if (!e["label"].is_number_integer())
+      throw Error(path, where + ": 'label' must be an integer in 1..255, not " + e["label"].dump());
+    const std::int64_t label = e["label"].get<std::int64_t>();
     if (label < 1 || label > 255) throw Error(path, where + ": label must be in 1..255 (0 is background)");
-    if (!labels.insert(label).second) throw Error(path, "duplicate label " + std::to_string(label));
+    if (!labels.insert(static_cast<int>(label)).second) throw Error(path, "duplicate label " + std::to_string(label));
     ts.label = static_cast<std::uint8_t>(label);
     if (!e.contains("rgb")) throw Error(path, where + ": missing 'rgb'");
     ts.rgb = colours(e["rgb"], path, where);
@@ -183,11 +191,25 @@ TissueTable parse_tissue_table(const std::string& text, const std::string& path)
     t.tissues.push_back(ts);
   }
   for (const auto& ts : t.tissues) {
+    if (ts.inside == ts.name) throw Error(path, "tissue '" + ts.name + "': 'inside' names the tissue itself (a cycle)");
     if (!ts.inside.empty() && !t.find(ts.inside))
       throw Error(path, "tissue '" + ts.name + "': 'inside' names unknown tissue '" + ts.inside + "'");
     if (t.depth(ts) > static_cast<int>(t.tissues.size()))
       throw Error(path, "tissue '" + ts.name + "': 'inside' forms a cycle");
   }
+  // a colour prototype belongs to one tissue (or the background): the same
+  // colour under two names would split that tissue's voxels between them
+  std::map<std::array<std::uint8_t, 3>, std::pair<std::string, std::string>> owner;  // colour -> name, "tissue 'x'"
+  auto claim = [&](const std::array<std::uint8_t, 3>& c, const std::string& name, const std::string& what) {
+    const auto [it, fresh] = owner.emplace(c, std::make_pair(name, what));
+    if (!fresh && it->second.first != name)
+      throw Error(path, it->second.second + " and " + what + " have the same colour prototype [" + std::to_string(c[0]) +
+                            ", " + std::to_string(c[1]) + ", " + std::to_string(c[2]) +
+                            "]: each colour must belong to one tissue");
+  };
+  for (const auto& c : t.background_rgb) claim(c, t.background_name, "background '" + t.background_name + "'");
+  for (const auto& ts : t.tissues)
+    for (const auto& c : ts.rgb) claim(c, ts.name, "tissue '" + ts.name + "'");
   return t;
 }
 
@@ -197,6 +219,13 @@ TissueTable load_tissue_table(const std::string& path) {
   std::stringstream s;
   s << in.rdbuf();
   return parse_tissue_table(s.str(), path);
+}
+
+void require_background_colour(const TissueTable& table) {
+  if (table.background_rgb.empty())
+    throw Error(table.path,
+                "no background colour: segmentation needs \"background\": {\"rgb\": [[r, g, b], ...]}, the colour of the "
+                "embedding medium around the body");
 }
 
 std::string to_json(const TissueTable& table) {

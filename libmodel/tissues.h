@@ -56,11 +56,20 @@ struct TissueTable {
   int depth(const Tissue& t) const;
 };
 
-// Parses and validates. Throws Error(path, ...) on unknown keys, duplicate
-// names or labels, out-of-range or inconsistent values (K2 < K1, turning
-// strain <= 0 or >= 1, negative density), unknown "inside" or cycles.
+// Parses and validates. Throws Error(path, ...) on unknown keys, values of the
+// wrong type, duplicate names or labels, out-of-range or inconsistent values
+// (K2 < K1, turning strain <= 0 or >= 1, negative density), unknown "inside"
+// or cycles (a tissue inside itself included), and one colour prototype
+// given to two tissues (or a tissue and the background). "background" and its
+// "rgb" are optional here (build and tune use no colours); segmentation
+// requires the background's colour (require_background_colour).
 TissueTable parse_tissue_table(const std::string& json_text, const std::string& path);
 TissueTable load_tissue_table(const std::string& path);
+// Segmentation needs the embedding medium's colour (background.rgb): without
+// it every pixel is some tissue, and the background normalisation, the hole
+// filling and the body's outline have nothing to work from. Throws
+// Error(table.path, ...) when the table has none.
+void require_background_colour(const TissueTable& table);
 std::string to_json(const TissueTable& table);  // kPa in the file, as read
 
 }  // namespace orthosim

@@ -83,6 +83,49 @@ TEST(Tissues, RejectsBadTables) {
                "cycle");
 }
 
+TEST(Tissues, WrongTypesSayWhatIsExpected) {
+  // a label given as a string is there, just of the wrong type
+  expect_error(replace(kGood, "\"label\": 2", "\"label\": \"2\""), "tissue 'fat': 'label' must be an integer in 1..255, not \"2\"");
+  expect_error(replace(kGood, "\"label\": 2", "\"label\": 2.5"), "'label' must be an integer");
+  expect_error(replace(kGood, "\"label\": 2, ", ""), "tissue 'fat': missing 'label'");
+  expect_error(replace(kGood, "\"background\": {\"rgb\"", "\"background\": {\"name\": 7, \"rgb\""),
+               "background: 'name' must be a non-empty string");
+  expect_error(replace(kGood, "\"background\": {\"rgb\": [[90, 110, 140]]}", "\"background\": [90, 110, 140]"),
+               "'background' must be an object");
+}
+
+TEST(Tissues, RejectsATissueInsideItself) {
+  expect_error(replace(kGood, "\"inside\": \"skin\"", "\"inside\": \"fat\""),
+               "tissue 'fat': 'inside' names the tissue itself");
+}
+
+TEST(Tissues, RejectsOneColourForTwoTissues) {
+  // the same prototype on two tissues, among others of theirs
+  expect_error(replace(kGood, "\"rgb\": [[230, 225, 210]]", "\"rgb\": [[1, 2, 3], [205, 160, 140]]"),
+               "tissue 'skin' and tissue 'bone' have the same colour prototype [205, 160, 140]");
+  // a tissue with the background's colour
+  expect_error(replace(kGood, "\"rgb\": [230, 200, 120]", "\"rgb\": [90, 110, 140]"),
+               "background 'background' and tissue 'fat' have the same colour prototype [90, 110, 140]");
+  // the same colour twice in one tissue splits nothing: accepted
+  EXPECT_NO_THROW(parse_tissue_table(replace(kGood, "\"rgb\": [[230, 225, 210]]", "\"rgb\": [[230, 225, 210], [230, 225, 210]]"),
+                                     "t.json"));
+}
+
+// The background and its colour are optional in the table (build and tune
+// use no colours); orthosim segment requires the colour (cli_test).
+TEST(Tissues, BackgroundIsOptionalInTheTable) {
+  const auto t = parse_tissue_table(replace(kGood, "\"background\": {\"rgb\": [[90, 110, 140]]},", ""), "t.json");
+  EXPECT_TRUE(t.background_rgb.empty());
+  EXPECT_EQ(t.background_name, "background");
+  try {
+    require_background_colour(t);
+    ADD_FAILURE() << "segmentation without a background colour";
+  } catch (const Error& e) {
+    EXPECT_EQ(std::string(e.what()).rfind("t.json: no background colour: segmentation needs", 0), 0u) << e.what();
+  }
+  EXPECT_NO_THROW(require_background_colour(parse_tissue_table(kGood, "t.json")));
+}
+
 TEST(Tissues, MissingFileIsAClearError) {
   try {
     load_tissue_table("/nonexistent/tissues.json");
