@@ -16,6 +16,7 @@
 // A program that is not built is skipped with a note (not an error). Exit
 // status: 0 when every program that ran succeeded and every accuracy goal
 // was met; 1 otherwise (the report is still written); 2 for bad usage.
+// --report FILE.json gets the usual summary (parameters, --out, goals).
 #include "libmodel/format/atomic.h"
 #include "tools/common.h"
 
@@ -441,6 +442,8 @@ void add_bench_command(CLI::App& app) {
   sub->callback([] {
     bench_failed = false;
     const int rc = guarded("bench", [] {
+    check_common_options(a.common);
+    Report report("bench");
     if (!a.render.empty()) {
       json j;
       try {
@@ -455,6 +458,10 @@ void add_bench_command(CLI::App& app) {
       write_text_file(out.temp_path("results.csv"), to_csv(j["rows"]));
       write_text_file(out.temp_path("summary.md"), summary(j));
       out.commit();
+      report.input(a.render);
+      report.parameters() = {{"render", a.render}};
+      report.output(a.out);
+      report.write(a.common.report);
       return;
     }
     std::vector<const Stage*> stages;
@@ -615,6 +622,11 @@ void add_bench_command(CLI::App& app) {
                 << std::fixed << std::setprecision(0) << j["seconds"].get<double>() << " s; wrote " << a.out
                 << "/{results.json,results.csv,summary.md}\n";
     bench_failed = failed || !goals_ok;
+    // --report: the run's summary (results.json in --out has everything)
+    report.parameters() = {{"quick", a.quick}, {"only", a.only}, {"limit_s", limit}};
+    report.output(a.out);
+    report.metrics() = {{"rows", j["rows"].size()}, {"goals", j["goals"]}, {"programs_failed", failed}};
+    report.write(a.common.report);
     });
     exit_code() = rc != 0 ? rc : bench_failed ? 1 : 0;
   });

@@ -109,7 +109,7 @@ void add_build_command(CLI::App& app) {
   sub->add_flag("--no-intersection-check", no_intersection_check,
                 "skip the exact surface-surface intersection test (the thickness and inversion checks remain)");
   add_common_options(sub, common);
-  on_run(sub, "build", [] {
+  on_run(sub, "build", common, [] {
     Report report("build");
     if (!(min_thickness_mm >= 0)) throw UsageError("--min-thickness-mm must be >= 0");
     opt.min_thickness_m = min_thickness_mm * 1e-3;

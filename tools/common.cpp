@@ -27,6 +27,10 @@ void add_common_options(CLI::App* sub, CommonOptions& o) {
   sub->add_flag("--quiet,-q", o.quiet, "no progress or summary on stderr/stdout");
 }
 
+void check_common_options(const CommonOptions& o) {
+  if (!o.report.empty()) check_output_file(o.report);
+}
+
 Report::Report(std::string command) : start_(std::chrono::steady_clock::now()) {
   j_["command"] = std::move(command);
   j_["version"] = version_string();
@@ -97,8 +101,13 @@ int guarded(const std::string& command, const std::function<void()>& body) {
   }
 }
 
-void on_run(CLI::App* sub, const std::string& command, std::function<void()> body) {
-  sub->callback([command, body = std::move(body)] { exit_code() = guarded(command, body); });
+void on_run(CLI::App* sub, const std::string& command, const CommonOptions& common, std::function<void()> body) {
+  sub->callback([command, &common, body = std::move(body)] {
+    exit_code() = guarded(command, [&] {
+      check_common_options(common);  // before any work: a run never ends on an unwritable report
+      body();
+    });
+  });
 }
 
 std::vector<int> parse_size(const std::string& text, int n, const std::string& flag) {

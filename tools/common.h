@@ -32,6 +32,10 @@ struct CommonOptions {
   bool quiet = false;  // --quiet
 };
 void add_common_options(CLI::App* sub, CommonOptions& o);
+// Throws Error(report, ...) when --report names a file that cannot be written
+// (its folder missing, or a folder itself). on_run calls it before the body,
+// so a bad report path fails before any work and any output.
+void check_common_options(const CommonOptions& o);
 
 // The machine-readable summary written by --report: command, version,
 // inputs with their hashes, parameters, per-phase wall times, metrics.
@@ -85,9 +89,11 @@ class Progress {
 int guarded(const std::string& command, const std::function<void()>& body);
 // The process exit code main() returns (set by on_run).
 int& exit_code();
-// Registers `body` as the subcommand's callback, run through guarded():
-//   on_run(sub, "phantom", [&] { ... });
-void on_run(CLI::App* sub, const std::string& command, std::function<void()> body);
+// Registers `body` as the subcommand's callback, run through guarded()
+// after check_common_options(common):
+//   on_run(sub, "phantom", a.common, [&] { ... });
+// `common` must outlive the app (the subcommands keep theirs static).
+void on_run(CLI::App* sub, const std::string& command, const CommonOptions& common, std::function<void()> body);
 
 // Parses "AxBxC" (e.g. "256x256x128") into n positive integers.
 std::vector<int> parse_size(const std::string& text, int n, const std::string& flag);

@@ -123,7 +123,7 @@ void add_inspect_command(CLI::App& app) {
   sub->add_option("file", file, "model file (.h5)")->required();
   sub->add_flag("--json", as_json, "print the summary as JSON");
   add_common_options(sub, common);
-  on_run(sub, "inspect", [] {
+  on_run(sub, "inspect", common, [] {
     Report report("inspect");
     ModelReader m(file);
     report.input(file);

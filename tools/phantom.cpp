@@ -32,7 +32,7 @@ void add_phantom_command(CLI::App& app) {
   sub->add_option("--seed", a.seed, "seed of texture, illumination and noise")->capture_default_str();
   add_common_options(sub, a.common);
 
-  on_run(sub, "phantom", [] {
+  on_run(sub, "phantom", a.common, [] {
     PhantomOptions o;
     const std::vector<int> n = parse_size(a.size, 3, "--size");
     o.nx = n[0], o.ny = n[1], o.nz = n[2];

@@ -269,8 +269,10 @@ int run_pipeline(Args a) {
   if (!fs::is_directory(a.stack, ec)) throw Error(a.stack, "not a folder of slices");
   if (fs::is_directory(a.out, ec)) throw Error(a.out, "is a folder; --out names a model file");
   check_output_file(a.out);
+  check_output_dir(a.work);
   if (!a.export_dir.empty()) check_output_dir(a.export_dir);
   const TissueTable table = load_tissue_table(a.tissues);
+  require_background_colour(table);  // the segment stage's, before any stage runs
   const SceneNeeds scene = read_scene(a.scene);
   report.input(a.stack);
   report.input(a.tissues);
@@ -490,7 +492,10 @@ void add_pipeline_command(CLI::App& app) {
   add_common_options(sub, a.common);
   sub->callback([] {
     int stage_code = 0;
-    const int code = guarded("pipeline", [&] { stage_code = run_pipeline(a); });
+    const int code = guarded("pipeline", [&] {
+      check_common_options(a.common);  // before any stage runs
+      stage_code = run_pipeline(a);
+    });
     exit_code() = code != 0 ? code : stage_code;
   });
 }

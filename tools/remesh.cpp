@@ -86,7 +86,7 @@ void add_remesh_command(CLI::App& app) {
   sub->add_option("--texture-depth", a.depth_mm, "sample the colour this far inside the surface, mm (default: one voxel)");
   add_common_options(sub, a.common);
 
-  on_run(sub, "remesh", [] {
+  on_run(sub, "remesh", a.common, [] {
     // ---- flags, before any work -----------------------------------------------
     RemeshOptions o;
     {

@@ -35,17 +35,19 @@ void add_run_command(CLI::App& app) {
   static bool no_output = false;
   static CommonOptions common;
   sub->add_option("scene", scene_file, "scene file (.json); see docs/runtime.md")->required();
-  sub->add_option("--steps", steps, "number of steps of the scene's dt (default: duration / dt)");
+  CLI::Option* const steps_flag =
+      sub->add_option("--steps", steps, "number of steps of the scene's dt, >= 1 (default: duration / dt)");
   sub->add_option("--threads", threads, "worker threads (default: the scene's, 0 = all cores)");
   sub->add_option("--model", model_override, "model file, instead of the scene's");
   sub->add_option("--out", out_override, "output directory, instead of the scene's");
   sub->add_flag("--no-output", no_output, "write no ParaView series");
   add_common_options(sub, common);
-  on_run(sub, "run", [] {
+  on_run(sub, "run", common, [steps_flag] {
     Report report("run");
-    if (steps < 0) throw UsageError("--steps must be >= 0");
+    const bool steps_given = steps_flag->count() > 0;
+    if (steps_given && steps < 1)
+      throw UsageError("--steps must be >= 1, got " + std::to_string(steps) + " (leave it out to run the scene's duration)");
     if (threads < -1 || threads > 1024) throw UsageError("--threads must be in 0..1024");
-    if (!common.report.empty()) check_output_file(common.report);
     runtime::SceneDef def = runtime::parse_scene_file(scene_file);
     if (!model_override.empty()) def.model = model_override;
     if (!out_override.empty()) {
@@ -54,7 +56,7 @@ void add_run_command(CLI::App& app) {
     }
     if (no_output) def.output.enabled = false;
     if (threads >= 0) def.threads = threads;
-    const long n_steps = steps > 0 ? steps : std::max(1L, std::lround(def.duration / def.dt));
+    const long n_steps = steps_given ? steps : std::max(1L, std::lround(def.duration / def.dt));
 
     std::unique_ptr<runtime::Scene> scene;
     {

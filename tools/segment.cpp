@@ -1,6 +1,7 @@
 // orthosim segment --stack DIR --tissues T.json --spacing X,Y,Z --out labels.h5:
 // classifies a colour slice stack into the tissue table's labels
 // (libmodel/segment/segment.h, docs/segment-surface.md).
+#include "libmodel/format/model.h"
 #include "libmodel/segment/segment.h"
 #include "tools/common.h"
 
@@ -60,7 +61,7 @@ void add_segment_command(CLI::App& app) {
   sub->add_option("--threads", a.threads, "worker threads (0: all cores)")->capture_default_str();
   add_common_options(sub, a.common);
 
-  on_run(sub, "segment", [] {
+  on_run(sub, "segment", a.common, [] {
     SegmentOptions o;
     const std::vector<double> s = parse_list(a.spacing, 3, "--spacing", true);
     const std::vector<double> org = parse_list(a.origin, 3, "--origin", false);
@@ -94,9 +95,28 @@ void add_segment_command(CLI::App& app) {
 
     // inputs first: nothing is written unless all of them are good
     const TissueTable table = load_tissue_table(a.tissues);
+    require_background_colour(table);
     check_output_file(a.out);
     if (!a.nrrd.empty()) check_output_file(a.nrrd);
-    if (!a.truth.empty()) ModelReader check_truth(a.truth);
+    if (!a.truth.empty()) {
+      // the truth must match the stack voxel for voxel: checked here, since
+      // the Dice comes after --out is written
+      const SliceSource src = stack_source(a.stack);
+      ModelReader truth(a.truth);
+      const std::string ds = "/volume/labels";
+      if (!truth.has(ds)) throw Error(a.truth, "missing dataset /volume/labels (no truth volume)");
+      if (!truth.h5().has_attr("/volume", "label_names")) throw Error(a.truth, "/volume has no label_names");
+      const auto d = truth.h5().dims(ds);
+      const std::vector<std::uint64_t> want = {static_cast<std::uint64_t>(src.nz), static_cast<std::uint64_t>(src.ny),
+                                               static_cast<std::uint64_t>(src.nx)};
+      if (d != want) {
+        std::ostringstream m;
+        m << "truth volume is ";
+        for (std::size_t k = d.size(); k-- > 0;) m << d[k] << (k ? "x" : "");
+        m << " voxels, the stack " << a.stack << " is " << src.nx << "x" << src.ny << "x" << src.nz;
+        throw Error(a.truth, m.str());
+      }
+    }
 
     Report report("segment");
     report.input(a.stack);

@@ -72,7 +72,7 @@ void add_surface_command(CLI::App& app) {
   sub->add_option("--threads", a.threads, "worker threads (0: all cores)")->capture_default_str();
   add_common_options(sub, a.common);
 
-  on_run(sub, "surface", [] {
+  on_run(sub, "surface", a.common, [] {
     // ---- flags -----------------------------------------------------------------------
     SurfaceOptions o;
     o.sigma_vox = a.sigma;
@@ -102,7 +102,6 @@ void add_surface_command(CLI::App& app) {
       check_output_file(a.model);
       if (std::filesystem::exists(a.model)) ModelReader check(a.model);  // refuse a file that is not ours
     }
-    if (!a.common.report.empty()) check_output_file(a.common.report);
     Report report("surface");
     Volume v;
     {

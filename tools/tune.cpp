@@ -160,7 +160,7 @@ void add_tune_command(CLI::App& app) {
   sub->add_option("--out", out, "tuned tissue table (JSON)");
   sub->add_option("--plot", plot_dir, "directory for one stress-strain PNG per tissue");
   add_common_options(sub, common);
-  on_run(sub, "tune", [] {
+  on_run(sub, "tune", common, [] {
     Report report("tune");
     try {
       tune::validate(opt);
@@ -210,8 +210,12 @@ void add_tune_command(CLI::App& app) {
         }
       }
     }
+    // outputs: checked before any work, so that a bad path does not fail
+    // after the model was updated
+    if (!out.empty()) check_output_file(out);
     if (!plot_dir.empty() && std::filesystem::exists(plot_dir) && !std::filesystem::is_directory(plot_dir))
       throw Error(plot_dir, "--plot must name a directory");
+    if (!plot_dir.empty()) check_output_dir(plot_dir);
 
     json params = {{"method", opt.method},         {"polish", opt.polish},       {"polish_share", opt.polish_share},
                    {"seed", opt.seed},             {"budget_s", opt.budget_s},   {"max_evaluations", opt.max_evaluations},

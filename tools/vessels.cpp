@@ -126,7 +126,7 @@ void add_vessels_command(CLI::App& app) {
   sub->add_option("--threads", a.threads, "worker threads (0: all cores)")->capture_default_str();
   add_common_options(sub, a.common);
 
-  on_run(sub, "vessels", [] {
+  on_run(sub, "vessels", a.common, [] {
     // ---- flags, before any work -------------------------------------------------
     VesselOptions o;
     if (!std::isfinite(a.tolerance_mm) || a.tolerance_mm < 0) throw UsageError("--tolerance: must be >= 0 (mm)");

@@ -165,6 +165,15 @@ TEST(TuneCli, TunesABuiltModel) {
   const tune::SpringParams tuned2 = tune::params_of(ModelReader(model).tuning("skin"));
   for (Eigen::Index s = 0; s < again.k1.size(); ++s)
     EXPECT_NEAR(again.k1(s), before.k1(s) * tuned2[again.spring_class(s)].k1_pa / 100.0, 1e-9 * again.k1(s));
+  // an --out that cannot be written fails before any work: the model is left
+  // as it was (it was updated, then --out failed)
+  const std::string bytes = test::read_file(model);
+  const auto r3 = test::run_cli("tune --tissues " + kTable + " --tissue skin --model " + model +
+                                " --max-evaluations 4000 --quiet --out " + (d / "nodir/t.json"));
+  EXPECT_EQ(r3.code, 2) << r3.err;
+  EXPECT_NE(r3.err.find((d / "nodir/t.json") + ": output directory " + (d / "nodir") + " does not exist"), std::string::npos)
+      << r3.err;
+  EXPECT_EQ(test::read_file(model), bytes) << "the model was changed";
 }
 
 TEST(TuneCli, BadInputIsOneLineExit2AndWritesNothing) {

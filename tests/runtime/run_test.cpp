@@ -142,6 +142,15 @@ TEST_F(RunCli, BadScenesExitTwoWithOneLine) {
   EXPECT_NE(r.err.find("scene file not found"), std::string::npos) << r.err;
   const auto ok = scene(R"({"model": "model.h5"})");
   EXPECT_EQ(run_cli("run " + ok + " --steps -3").code, 2);
+  // --steps 0 is a usage error (it ran the scene's whole duration)
+  const auto z = run_cli("run " + ok + " --steps 0 --out " + (dir / "never") + " --report " + (dir / "never.json"));
+  EXPECT_EQ(z.code, 2) << z.err;
+  EXPECT_EQ(test::count_lines(z.err), 1) << z.err;
+  EXPECT_NE(z.err.find("orthosim run: error: --steps must be >= 1, got 0"), std::string::npos) << z.err;
+  EXPECT_FALSE(fs::exists(dir / "never"));
+  EXPECT_FALSE(fs::exists(dir / "never.json"));
+  const auto help = run_cli("run --help");
+  EXPECT_NE(help.out.find(">= 1"), std::string::npos) << help.out;
 }
 
 }  // namespace

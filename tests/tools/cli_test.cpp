@@ -1,5 +1,7 @@
 // The CLI conventions: --version, --help, one-line errors with exit 2,
-// inspect on good and bad files, nothing written on failure.
+// inspect on good and bad files, nothing written on failure: a bad --report
+// path fails every subcommand before any work, and segment checks its
+// --truth and the table's background colour before writing.
 #include "libmodel/format/model.h"
 #include "tests/test_util.h"
 
@@ -9,6 +11,7 @@
 #include <filesystem>
 
 using namespace orthosim;
+namespace fs = std::filesystem;
 
 namespace {
 Provenance make_provenance_for_test() {
@@ -31,6 +34,19 @@ std::string make_model(const test::TempDir& dir) {
   v.labels.assign(8, 1);
   v.label_names = {"background", "skin"};
   w.write(v);
+  Surface s;
+  s.vertices = MatX3d::Zero(4, 3);
+  s.faces.resize(4, 3);
+  s.faces << 0, 1, 2, 0, 2, 3, 0, 3, 1, 1, 3, 2;
+  w.write("skin", s);
+  w.write("test", make_provenance_for_test());
+  w.commit();
+  return p;
+}
+// a valid model file with a surface and no /volume
+std::string make_model_without_volume(const test::TempDir& dir) {
+  const std::string p = dir / "novol.h5";
+  ModelWriter w(p, ModelWriter::Start::fresh);
   Surface s;
   s.vertices = MatX3d::Zero(4, 3);
   s.faces.resize(4, 3);
@@ -100,5 +116,111 @@ TEST(Cli, InspectBadInputsAreOneLineExit2) {
     EXPECT_EQ(r.code, 2) << name << ": " << r.err;
     EXPECT_EQ(test::count_lines(r.err), 1) << name << ": " << r.err;
     EXPECT_NE(r.err.find(dir / name), std::string::npos) << r.err;
+  }
+}
+
+namespace {
+
+// A small phantom stack with its truth and table (made once) in `dir`.
+struct PhantomStack {
+  test::TempDir dir{"cli-ph"};
+  std::string slices = dir / "ph/slices", tissues = dir / "ph/tissues.json", truth = dir / "ph/truth.h5";
+  PhantomStack() {
+    const auto r = test::run_cli("phantom --out " + (dir / "ph") + " --size 64x64x8 --spacing 1,1,2 --seed 3 --quiet");
+    EXPECT_EQ(r.code, 0) << r.err;
+  }
+};
+const PhantomStack& phantom_stack() {
+  static PhantomStack s;
+  return s;
+}
+
+// exit 2, one line naming `file` and saying `what`
+void expect_refused(const test::RunResult& r, const std::string& file, const std::string& what) {
+  EXPECT_EQ(r.code, 2) << r.err;
+  EXPECT_EQ(test::count_lines(r.err), 1) << r.err;
+  EXPECT_NE(r.err.find(file + ": " + what), std::string::npos) << r.err;
+}
+
+}  // namespace
+
+// --report into a folder that does not exist: every subcommand says so before
+// doing any work, so nothing else is written (segment, phantom and pipeline
+// did all their work, wrote --out, and only then failed).
+TEST(Cli, ReportPathIsCheckedBeforeAnyWork) {
+  const PhantomStack& ph = phantom_stack();
+  test::TempDir d("cli-report");
+  const std::string report = d / "nodir/r.json";
+  const std::string what = "output directory " + (d / "nodir") + " does not exist";
+  const std::string stack = " --stack " + ph.slices + " --tissues " + ph.tissues + " --spacing 1,1,2";
+  const std::vector<std::pair<std::string, std::string>> cases = {
+      // good inputs: each would write its outputs (the second string) without the check
+      {"phantom --out " + (d / "ph") + " --size 16x16x4", d / "ph"},
+      {"segment" + stack + " --out " + (d / "labels.h5"), d / "labels.h5"},
+      {"pipeline" + stack + " --out " + (d / "model.h5"), d / "model.h5.work"},
+      {"surface --labels " + ph.truth + " --out " + (d / "surfaces") + " --tissues skin", d / "surfaces"},
+      {"vessels --labels " + ph.truth + " --tissue artery --model " + (d / "vessels.h5"), d / "vessels.h5"},
+      {"inspect " + ph.truth, ""},
+      // inputs that are bad too: the report is the first thing checked
+      {"remesh --surface " + (d / "none.stl") + " --out " + (d / "quads"), d / "quads"},
+      {"build --model " + (d / "none.h5") + " --tissues " + ph.tissues, ""},
+      {"tune --tissues " + ph.tissues + " --out " + (d / "tuned.json"), d / "tuned.json"},
+      {"run " + (d / "none.json") + " --out " + (d / "series"), d / "series"},
+      {"bench --render " + (d / "none.json") + " --out " + (d / "bench"), d / "bench"},
+  };
+  for (const auto& [args, out] : cases) {
+    SCOPED_TRACE(args);
+    const auto r = test::run_cli(args + " --quiet --report " + report);
+    expect_refused(r, report, what);
+    EXPECT_EQ(r.err.rfind("orthosim " + args.substr(0, args.find(' ')) + ": error: ", 0), 0u) << r.err;
+    if (!out.empty()) EXPECT_FALSE(fs::exists(out)) << out;
+  }
+  EXPECT_FALSE(fs::exists(d / "model.h5"));
+  EXPECT_FALSE(fs::exists(d / "nodir"));
+}
+
+// --truth of another size than the stack: refused before --out is written
+// (segment wrote --out, then failed on the Dice).
+TEST(Cli, SegmentChecksTheTruthBeforeWriting) {
+  const PhantomStack& ph = phantom_stack();
+  test::TempDir d("cli-truth");
+  ASSERT_EQ(test::run_cli("phantom --out " + (d / "other") + " --size 48x64x8 --spacing 1,1,2 --quiet").code, 0);
+  const std::string truth = d / "other/truth.h5";
+  const std::string args = "segment --stack " + ph.slices + " --tissues " + ph.tissues + " --spacing 1,1,2 --quiet --out " +
+                           (d / "labels.h5") + " --nrrd " + (d / "labels.nrrd") + " --report " + (d / "r.json");
+  auto r = test::run_cli(args + " --truth " + truth);
+  expect_refused(r, truth, "truth volume is 48x64x8 voxels, the stack " + ph.slices + " is 64x64x8");
+  for (const char* f : {"labels.h5", "labels.nrrd", "r.json"}) EXPECT_FALSE(fs::exists(d / f)) << f;
+  // a model file without a volume is no truth either
+  r = test::run_cli(args + " --truth " + make_model_without_volume(d));
+  expect_refused(r, d / "novol.h5", "missing dataset /volume/labels");
+  for (const char* f : {"labels.h5", "labels.nrrd", "r.json"}) EXPECT_FALSE(fs::exists(d / f)) << f;
+  // the right size: the Dice is reported
+  r = test::run_cli(args + " --truth " + ph.truth);
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_TRUE(nlohmann::json::parse(test::read_file(d / "r.json"))["metrics"].contains("dice"));
+}
+
+// Segmentation needs the background's colour: a table without it is refused
+// by segment and pipeline before any work (it classified the embedding
+// medium as tissue).
+TEST(Cli, SegmentNeedsTheBackgroundColour) {
+  const PhantomStack& ph = phantom_stack();
+  test::TempDir d("cli-bg");
+  auto table = nlohmann::json::parse(test::read_file(ph.tissues));
+  for (const bool entry : {false, true}) {
+    SCOPED_TRACE(entry ? "background without rgb" : "no background");
+    if (entry) table["background"] = {{"name", "gel"}};
+    else table.erase("background");
+    const std::string t = d / "t.json";
+    test::write_file(t, table.dump(1));
+    const std::string common = " --stack " + ph.slices + " --tissues " + t + " --spacing 1,1,2 --quiet";
+    auto r = test::run_cli("segment" + common + " --out " + (d / "labels.h5"));
+    expect_refused(r, t, "no background colour: segmentation needs \"background\": {\"rgb\"");
+    EXPECT_FALSE(fs::exists(d / "labels.h5"));
+    r = test::run_cli("pipeline" + common + " --out " + (d / "model.h5"));
+    expect_refused(r, t, "no background colour");
+    EXPECT_FALSE(fs::exists(d / "model.h5"));
+    EXPECT_FALSE(fs::exists(d / "model.h5.work"));
   }
 }
