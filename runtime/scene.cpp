@@ -45,6 +45,11 @@ std::string fmt(Real x) {
   return s.str();
 }
 
+// A message of the SPH library about the scene's fluid, for Error(scene file,
+// ...): its validators already say what they are about ("fluid: ...",
+// "fluid boundaries: ..."), so "fluid: " is added only to the others.
+std::string fluid_message(const std::string& m) { return m.rfind("fluid", 0) == 0 ? m : "fluid: " + m; }
+
 // Reads typed values out of one JSON object, rejecting unknown keys.
 class Obj {
  public:
@@ -410,7 +415,7 @@ void validate(const SceneDef& d) {
     try {
       validate(p);
     } catch (const Error& e) {
-      fail("fluid: " + e.message());
+      fail(fluid_message(e.message()));
     }
   }
 }
@@ -662,7 +667,7 @@ void Scene::init_fluid() {
   try {
     fr.fluid = make_fluid(p);
   } catch (const Error& e) {
-    throw Error(def_.file, "fluid: " + e.message());
+    throw Error(def_.file, fluid_message(e.message()));
   }
   // the domain: the loaded nodes' rest bounding box grown by the margin
   std::vector<std::int32_t> all(static_cast<std::size_t>(m.n_nodes));
@@ -681,7 +686,7 @@ void Scene::init_fluid() {
   try {
     validate(fr.bounds, fr.fluid);
   } catch (const Error& e) {
-    throw Error(def_.file, "fluid: " + e.message());
+    throw Error(def_.file, fluid_message(e.message()));
   }
   // the tissue surface: every node a vertex, the loaded layers' quads as
   // two-sided triangles (blood meets the skin outside and the wound inside)

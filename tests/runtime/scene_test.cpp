@@ -106,6 +106,9 @@ TEST_F(SceneTest, BadScenesAreOneLineErrorsBeforeAnyStep) {
       {R"({"model": "model.h5", "fluid": {"rheology": "carreau", "carreau": {"n": 1.5}}})", "fluid: carreau: n must be"},
       {R"({"model": "model.h5", "fluid": {"rheology": "carreau", "carreau": {"mu0": 0.01, "mu_inf": 0.02}}})",
        "carreau.mu_inf must be in [0, mu0]"},
+      // the SPH validator's own "fluid: " prefix, not doubled by the scene's
+      {R"({"model": "model.h5", "fluid": {"sound_speed": 3, "physx_stiffness": 20}})",
+       "scene.json: fluid: give either sound_speed (physical) or physx_stiffness"},
       {R"({"model": "model.h5", "tools": [{"type": "pull", "center": [0, 0, 0]}]})", "radius is required"},
       {R"({"model": "model.h5", "tools": [{"type": "pressure", "center": [0, 0, 0], "radius": 0.01, "pressure": 5}]})",
        "direction must be a non-zero"},
@@ -122,6 +125,7 @@ TEST_F(SceneTest, BadScenesAreOneLineErrorsBeforeAnyStep) {
     EXPECT_NE(e.find(c.expect), std::string::npos) << c.json << " -> " << e;
     EXPECT_EQ(e.find('\n'), std::string::npos) << e;
     EXPECT_EQ(e.rfind(p, 0), 0u) << "the error names the scene file: " << e;
+    EXPECT_EQ(e.find("fluid: fluid"), std::string::npos) << "a doubled prefix: " << e;
   }
   // a bad tool never creates the output directory
   const auto p = scene_file(R"({"model": "model.h5", "output": {"dir": "never"},
