@@ -589,6 +589,15 @@ void Scene::init(const std::string& model_file) {
     std::error_code ec;
     fs::create_directories(def_.output.dir, ec);
     if (ec) throw Error(def_.output.dir, "cannot create the output directory: " + ec.message());
+    // an earlier run into the same folder under the same name: its frames
+    // go, so that the folder holds only this run's (a shorter run would leave
+    // the later frames of the earlier one beside the new .pvd)
+    const std::string& dir = def_.output.dir;
+    const std::string& name = def_.output.name;
+    remove_series_frames(dir, name + "_", ".vtu", name + ".pvd");
+    if (def_.fluid.enabled && def_.fluid.surface) remove_series_frames(dir, name + "_blood_", ".vtp", name + "_blood.pvd");
+    if (def_.fluid.enabled && def_.fluid.particles)
+      remove_series_frames(dir, name + "_particles_", ".vtp", name + "_particles.pvd");
     vtk_ = std::make_unique<VtkSeries>(m, def_.output.dir, def_.output.name, def_.output.vtk);
     write_vessels();
   }

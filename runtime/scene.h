@@ -130,6 +130,12 @@ Real bleeding_flow_rate(Real radius, Real pressure, const FluidParams& p, Real l
 // energy the pressure can supply.
 EmitterProfile bleeding_profile(Real radius, Real pressure, const FluidParams& p, Real length);
 
+// The series a scene writes into `dir`: <name>_NNNNNN.vtu frames and
+// <name>.pvd (tissue), with fluid <name>_blood_K.vtp / <name>_blood.pvd and
+// <name>_particles_K.vtp / <name>_particles.pvd, and the vessels once
+// (<name>_vessels.vtp, <name>_centrelines.vtp). The frames and .pvd of an
+// earlier run of the same series in `dir` are removed when the scene is
+// created (after validation), so that no stale frame outlives a shorter run.
 struct OutputDef {
   bool enabled = false;
   std::string dir;            // created after validation

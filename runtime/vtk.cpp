@@ -5,6 +5,7 @@
 #include <bit>
 #include <cmath>
 #include <cstdio>
+#include <filesystem>
 #include <fstream>
 #include <iomanip>
 #include <sstream>
@@ -163,6 +164,29 @@ void VtkSeries::write(const Model& m, const State& s) {
   files_.emplace_back(s.time, file);
 
   write_pvd(pvd_path(), files_);
+}
+
+int remove_series_frames(const std::string& dir, const std::string& prefix, const std::string& extension,
+                         const std::string& pvd) {
+  namespace fs = std::filesystem;
+  auto is_frame = [&](const std::string& f) {
+    if (f.size() <= prefix.size() + extension.size() || f.compare(0, prefix.size(), prefix) != 0 ||
+        f.compare(f.size() - extension.size(), extension.size(), extension) != 0)
+      return false;
+    for (std::size_t i = prefix.size(); i < f.size() - extension.size(); ++i)
+      if (f[i] < '0' || f[i] > '9') return false;
+    return true;
+  };
+  std::vector<fs::path> stale;
+  std::error_code ec;
+  for (fs::directory_iterator it(dir, ec), end; !ec && it != end; it.increment(ec)) {
+    const std::string f = it->path().filename().string();
+    if ((is_frame(f) || (!pvd.empty() && f == pvd)) && it->is_regular_file(ec)) stale.push_back(it->path());
+  }
+  if (ec) throw Error(dir, "cannot list the output directory: " + ec.message());
+  for (const auto& p : stale)
+    if (!fs::remove(p, ec) && ec) throw Error(p.string(), "cannot remove a frame of an earlier run: " + ec.message());
+  return static_cast<int>(stale.size());
 }
 
 void write_pvd(const std::string& path, const std::vector<std::pair<double, std::string>>& files) {

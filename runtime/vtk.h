@@ -57,6 +57,15 @@ class VtkSeries {
 // Writes a ParaView collection (.pvd) listing (time, file) pairs, atomically.
 void write_pvd(const std::string& path, const std::vector<std::pair<double, std::string>>& files);
 
+// Removes the frames of an earlier series from `dir`: the regular files named
+// exactly <prefix><digits><extension> (e.g. prefix "tissue_", extension
+// ".vtu": tissue_000012.vtu, not tissue_a.vtu, tissue_12.vtp or
+// other_000012.vtu), and <pvd> when it is not empty (a file name in `dir`).
+// Nothing else is touched. Returns how many files were removed; throws
+// Error(file, ...) when a matching file cannot be removed.
+int remove_series_frames(const std::string& dir, const std::string& prefix, const std::string& extension,
+                         const std::string& pvd = "");
+
 // ---- PolyData (.vtp), added for the fluid (issue 9) --------------------------
 
 // One point-data array of write_vtp: (n_points x components) values.

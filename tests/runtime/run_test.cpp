@@ -5,6 +5,7 @@
 #include <gtest/gtest.h>
 #include <nlohmann/json.hpp>
 
+#include <cstdio>
 #include <filesystem>
 
 namespace orthosim {
@@ -151,6 +152,45 @@ TEST_F(RunCli, BadScenesExitTwoWithOneLine) {
   EXPECT_FALSE(fs::exists(dir / "never.json"));
   const auto help = run_cli("run --help");
   EXPECT_NE(help.out.find(">= 1"), std::string::npos) << help.out;
+}
+
+// A second run into the same folder with fewer frames leaves only its own
+// frames: the earlier run's later ones go, files of other names stay.
+TEST_F(RunCli, ARerunRemovesTheEarlierRunsStaleFrames) {
+  const auto s = scene(R"({"model": "model.h5", "fixed": ["fixed"], "integrator": "implicit", "dt": 0.01,
+                           "output": {"dir": "series"}})");
+  ASSERT_EQ(run_cli("run " + s + " --steps 6 --quiet").code, 0);
+  ASSERT_TRUE(fs::exists(dir / "series/tissue_000006.vtu"));
+  // other files in the folder: none of them is a frame of the series
+  const std::vector<std::string> others = {"tissue_notes.vtu", "tissue_000009.vtp", "other_000009.vtu", "tissue_12a.vtu",
+                                           "tissue_.vtu", "xtissue_000009.vtu", "tissue_blood_3.vtp", "notes.txt"};
+  for (const auto& f : others) test::write_file(dir / ("series/" + f), "keep");
+  const auto r = run_cli("run " + s + " --steps 2 --quiet");
+  ASSERT_EQ(r.code, 0) << r.err;
+  for (int k = 0; k <= 6; ++k) {
+    char f[32];
+    std::snprintf(f, sizeof f, "series/tissue_%06d.vtu", k);
+    EXPECT_EQ(fs::exists(dir / f), k <= 2) << f;
+  }
+  const std::string pvd = test::read_file(dir / "series/tissue.pvd");
+  EXPECT_NE(pvd.find("tissue_000002.vtu"), std::string::npos) << pvd;
+  EXPECT_EQ(pvd.find("tissue_000003.vtu"), std::string::npos) << pvd;
+  for (const auto& f : others) EXPECT_EQ(test::read_file(dir / ("series/" + f)), "keep") << f;
+
+  // the blood series likewise (its frames are numbered without padding)
+  const auto b = scene(R"({"model": "model.h5", "fixed": ["fixed"], "integrator": "implicit", "dt": 0.005,
+                           "fluid": {"spacing": 0.002, "sound_speed": 3}, "output": {"dir": "series"}})");
+  test::write_file(dir / "series/tissue_blood_7.vtp", "stale");
+  test::write_file(dir / "series/tissue_blood.pvd", "stale");
+  const auto rb = run_cli("run " + b + " --steps 1 --quiet");
+  ASSERT_EQ(rb.code, 0) << rb.err;
+  EXPECT_FALSE(fs::exists(dir / "series/tissue_blood_7.vtp"));
+  EXPECT_TRUE(fs::exists(dir / "series/tissue_blood_1.vtp"));
+  EXPECT_EQ(test::read_file(dir / "series/tissue_blood.pvd").find("tissue_blood_7"), std::string::npos);
+  EXPECT_FALSE(fs::exists(dir / "series/tissue_000002.vtu")) << "the tissue frames of the run before";
+  EXPECT_FALSE(fs::exists(dir / "series/tissue_blood_3.vtp")) << "a blood frame, not listed by the new .pvd";
+  EXPECT_EQ(test::read_file(dir / "series/other_000009.vtu"), "keep");
+  EXPECT_EQ(test::read_file(dir / "series/tissue_notes.vtu"), "keep");
 }
 
 }  // namespace
