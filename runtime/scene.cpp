@@ -749,7 +749,8 @@ void Scene::fluid_step_now(Real dt, std::span<const Real> x_start) {
     const Vec3 c = tools_[i].def.path.at(state_.time - dt);
     d.center = {c.x, c.y, c.z};
   }
-  // emitters pause while the fluid is full
+  // emitters pause while the fluid is full, and stop within the step at the cap
+  fr.state.max_particles = fd.max_particles;
   const bool full = fr.state.size() >= fd.max_particles;
   bool any = false;
   for (auto& e : fr.state.emitters) {

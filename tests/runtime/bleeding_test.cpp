@@ -168,6 +168,24 @@ TEST(Bleeding, ACutVesselEmitsItsFlowAndParticlesAreConserved) {
   EXPECT_LT(mean_y, 0);
 }
 
+// The scene's max_particles holds within a step: at 60 steps/s the vein
+// emits ~34 particles a step, so a cap of 100 was overshot by up to a
+// step's emission before the emitter stopped inside the step.
+TEST(Bleeding, MaxParticlesIsACap) {
+  SceneDef def = bleeding_def(false);
+  def.fluid.max_particles = 100;
+  Scene scene(block_with_vessel(), def);
+  std::int64_t most = 0;
+  for (int i = 0; i < 20; ++i) {
+    run_steps(scene, 1);
+    most = std::max(most, scene.fluid_summary().particles);
+  }
+  EXPECT_EQ(most, 100);
+  const auto f = scene.fluid_summary();
+  EXPECT_GT(f.paused_steps, 0);
+  EXPECT_EQ(f.emitted, f.particles + f.drained + f.left_domain + f.nonfinite);
+}
+
 TEST(Bleeding, TheDrainRemovesBlood) {
   Scene without(block_with_vessel(), bleeding_def(false));
   Scene with(block_with_vessel(), bleeding_def(true));
