@@ -100,7 +100,7 @@ struct FluidDef {
   bool couple = true;                 // the blood's wall forces act on the tissue nodes
   Real margin = 0.02;                 // m, the domain: rest bounding box of the loaded nodes grown by this
   bool open_top = true;               // the box face against gravity is open (particles leaving are counted)
-  std::int64_t max_particles = 20000; // emitters pause while the fluid holds this many (counted)
+  std::int64_t max_particles = 20000; // a cap: emitters stop at this many, within a step (paused steps counted)
   Real bleed_pressure = 1330;         // Pa, pressure drop driving a cut vessel (10 mmHg: venous)
   Real bleed_length = 0.05;           // m, length over which it drops (Poiseuille)
   Real bleed_duration = std::numeric_limits<Real>::infinity();  // s a cut vessel bleeds
