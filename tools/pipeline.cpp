@@ -46,7 +46,11 @@ using nlohmann::json;
 struct Args {
   std::string stack, tissues, spacing, origin = "0,0,0", scene, grid = "39x9", work, out, export_dir;
   bool texture = true, tune = true;
-  double tune_budget_s = 30;
+  // virtual experiments per tuned tissue: the bound that keeps the pipeline
+  // reproducible; the wall-clock budget is only a safety cap (a run it cuts
+  // depends on the machine's speed, and tune warns)
+  std::int64_t tune_evaluations = 4000;
+  double tune_budget_s = 300;
   std::uint64_t seed = 1;
   CommonOptions common;
 };
@@ -262,6 +266,7 @@ int run_pipeline(Args a) {
   if (a.out.empty()) throw UsageError("--out: a model file path is required");
   if (a.work.empty()) a.work = a.out + ".work";
   if (!(a.tune_budget_s > 0)) throw UsageError("--tune-budget-s must be > 0");
+  if (a.tune_evaluations < 1) throw UsageError("--tune-evaluations must be >= 1");
   parse_size(a.grid, 2, "--grid");
   parse_list(a.spacing, 3, "--spacing", true);
   parse_list(a.origin, 3, "--origin", false);
@@ -279,7 +284,7 @@ int run_pipeline(Args a) {
   if (!a.scene.empty()) report.input(a.scene);
   report.parameters() = {{"grid", a.grid}, {"spacing_mm", a.spacing}, {"origin_mm", a.origin},
                          {"work", a.work}, {"texture", a.texture}, {"tune", a.tune},
-                         {"tune_budget_s", a.tune_budget_s}, {"seed", a.seed}, {"export", a.export_dir}};
+                         {"tune_budget_s", a.tune_budget_s}, {"tune_evaluations", a.tune_evaluations}, {"seed", a.seed}, {"export", a.export_dir}};
 
   // tissues of the layers (table order is outer to inner) and of the vessels
   std::vector<std::string> layered, vessels;
@@ -337,9 +342,13 @@ int run_pipeline(Args a) {
 
     // 3. surface: the layered tissues
     const auto surf = run.stage(
-        "surface", {seg.key, join(layered)}, run.command([&](const std::string& d) {
-          return std::vector<std::string>{"surface", "--labels", labels, "--out",     d,
-                                          "--tissues", join(layered), "--model", d + "/model.h5"};
+        // the nesting is the table's ('inside'), not inferred from the volume:
+        // on a real slice where the skin is missing in places (the arm touching
+        // the torso) the inference put the skin inside the fat
+        "surface", {seg.key, join(layered), table_hash, "table-nesting"}, run.command([&](const std::string& d) {
+          return std::vector<std::string>{"surface",   "--labels", labels,           "--out",   d,
+                                          "--tissues", join(layered), "--tissue-table", a.tissues, "--model",
+                                          d + "/model.h5"};
         }),
         [&] {
           std::vector<std::string> o{"model.h5"};
@@ -386,10 +395,12 @@ int run_pipeline(Args a) {
       } else {
         const std::string from = last;
         const auto tun = run.stage(
-            "tune", {last_key, table_hash, join(tuned), std::to_string(a.seed), std::to_string(a.tune_budget_s)},
+            "tune", {last_key, table_hash, join(tuned), std::to_string(a.seed), std::to_string(a.tune_budget_s),
+                     std::to_string(a.tune_evaluations)},
             run.command([&](const std::string& d) {
               std::vector<std::string> args{"tune",     "--tissues", a.tissues, "--model", d + "/model.h5", "--seed",
                                             std::to_string(a.seed), "--budget-s", std::to_string(a.tune_budget_s),
+                                            "--max-evaluations", std::to_string(a.tune_evaluations),
                                             "--out", d + "/tuned_tissues.json", "--plot", d + "/plots"};
               for (const auto& t : tuned) args.insert(args.end(), {"--tissue", t});
               return args;
@@ -487,7 +498,12 @@ void add_pipeline_command(CLI::App& app) {
                   "tuned table and plots, stage reports) into this folder");
   sub->add_flag("!--no-texture", a.texture, "skip the skin texture");
   sub->add_flag("!--no-tune", a.tune, "skip spring tuning");
-  sub->add_option("--tune-budget-s", a.tune_budget_s, "wall-clock budget per tuned tissue (s)")->capture_default_str();
+  sub->add_option("--tune-evaluations", a.tune_evaluations,
+                  "virtual experiments per tuned tissue: the bound that keeps the pipeline reproducible")
+      ->capture_default_str();
+  sub->add_option("--tune-budget-s", a.tune_budget_s,
+                  "wall-clock safety cap per tuned tissue (s); a tuning it cuts depends on the machine's speed")
+      ->capture_default_str();
   sub->add_option("--seed", a.seed, "seed of the tuning")->capture_default_str();
   add_common_options(sub, a.common);
   sub->callback([] {

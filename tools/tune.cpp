@@ -258,6 +258,10 @@ void add_tune_command(CLI::App& app) {
     for (std::size_t i = 0; i < jobs.size(); ++i) {
       Job& j = jobs[i];
       report.phase("tune." + j.tissue, seconds[i]);
+      if (j.result.stop == "budget")  // even with -q: the output is no longer reproducible
+        std::cerr << "tune: warning: " << j.tissue << " stopped on the wall-clock budget (--budget-s) after "
+                  << j.result.evaluations << " experiments: the result depends on this machine's speed; bound it by "
+                  << "--max-evaluations for a reproducible one\n";
       if (!j.layer_name.empty()) tune::apply_to_layer(j.layer, j.current, j.result.params);
       if (!common.quiet) {
         const auto& r = j.result;

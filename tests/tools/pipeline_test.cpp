@@ -10,6 +10,7 @@
 #include <nlohmann/json.hpp>
 
 #include <filesystem>
+#include <functional>
 #include <fstream>
 
 using namespace orthosim;
@@ -89,10 +90,15 @@ TEST(Pipeline, ColdWarmAndIncremental) {
       if (st["stage"] == "vessels") {
         EXPECT_TRUE(st.value("parallel", false));
       }
-    std::string seg_dir;
-    for (const auto& st : rep["stages"])
+    std::string seg_dir, surf_dir;
+    for (const auto& st : rep["stages"]) {
       if (st["stage"] == "segment") seg_dir = st["dir"];
+      if (st["stage"] == "surface") surf_dir = st["dir"];
+    }
     ASSERT_FALSE(seg_dir.empty());
+    // the surfaces nest as the table says, not as inferred from the volume
+    const auto srep = nlohmann::json::parse(test::read_file(surf_dir + "/report.json"));
+    EXPECT_EQ(srep["parameters"]["nesting"], "tissue table");
     const auto alone = test::run_cli("vessels --labels " + seg_dir + "/labels.h5 --tissue artery --tissue vein --model " +
                                      (s.dir / "alone.h5") + " --quiet");
     ASSERT_EQ(alone.code, 0) << alone.err;
@@ -145,6 +151,50 @@ TEST(Pipeline, ColdWarmAndIncremental) {
   ran = s.ran();
   EXPECT_TRUE(ran.count("build"));
   EXPECT_FALSE(ran.count("remesh"));
+}
+
+// The tuning is bounded by --tune-evaluations, not by the clock: a re-run
+// gives the same tuned table (it was cut by --tune-budget-s alone, so two
+// runs differed by up to 408 N/m in the skin's k2).
+TEST(Pipeline, TuningIsReproducible) {
+  const Sample& s = sample();
+  auto tune_dir = [&] {
+    const nlohmann::json rep = s.report();
+    for (const auto& st : rep["stages"])
+      if (st["stage"] == "tune") return st["dir"].get<std::string>();
+    return std::string();
+  };
+  // the tuned table without its timings
+  auto tuned = [&](const std::string& d) {
+    nlohmann::json t = nlohmann::json::parse(test::read_file(d + "/tuned_tissues.json"));
+    std::function<void(nlohmann::json&)> strip = [&](nlohmann::json& j) {
+      if (j.is_object()) {
+        j.erase("seconds");
+        j.erase("seconds_per_experiment");
+      }
+      if (j.is_object() || j.is_array())
+        for (auto& e : j) strip(e);
+    };
+    strip(t);
+    return t;
+  };
+  auto r = test::run_cli(s.args("--tune-evaluations 30"));
+  ASSERT_EQ(r.code, 0) << r.err;
+  const std::string d = tune_dir();
+  ASSERT_FALSE(d.empty());
+  EXPECT_TRUE(s.ran().count("tune"));
+  const nlohmann::json first = tuned(d);
+  const nlohmann::json rep = nlohmann::json::parse(test::read_file(d + "/report.json"));
+  ASSERT_FALSE(rep["metrics"]["tissues"].empty());
+  for (const auto& t : rep["metrics"]["tissues"]) {
+    EXPECT_LE(t["evaluations"].get<long>(), 30 + 1) << t.dump();  // + the untuned measurement
+    EXPECT_NE(t["stop"], "budget") << t.dump();
+  }
+  fs::remove_all(d);  // the cached tuning goes: it runs again
+  r = test::run_cli(s.args("--tune-evaluations 30"));
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_TRUE(s.ran().count("tune"));
+  EXPECT_EQ(tuned(tune_dir()), first);
 }
 
 TEST(Pipeline, ExportGathersEveryStagesOutputs) {
