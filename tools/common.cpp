@@ -103,10 +103,12 @@ int guarded(const std::string& command, const std::function<void()>& body) {
 
 void on_run(CLI::App* sub, const std::string& command, const CommonOptions& common, std::function<void()> body) {
   sub->callback([command, &common, body = std::move(body)] {
-    exit_code() = guarded(command, [&] {
+    exit_code() = 0;  // the body may set a code of its own (run: 3, steps failed)
+    const int code = guarded(command, [&] {
       check_common_options(common);  // before any work: a run never ends on an unwritable report
       body();
     });
+    if (code != 0) exit_code() = code;
   });
 }
 

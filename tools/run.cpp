@@ -184,6 +184,14 @@ void add_run_command(CLI::App& app) {
                 << c.events << " stability events, " << c.failed << " failed)"
                 << (scene->output() ? ", series " + scene->output()->pvd_path() : std::string()) << "\n";
     report.write(common.report);
+    if (c.failed > 0) {
+      // the run went to the end (outputs and report written; a failed step ends at rest, never
+      // NaN), but the solver gave up on steps: the scene is beyond its stability
+      std::cerr << "orthosim run: error: " << scene_file << ": " << c.failed << " of " << r.steps
+                << " steps failed (the solver gave up on them after " << def.solver.max_retries
+                << " retries; metrics.stability in the report)\n";
+      exit_code() = 3;
+    }
   });
 }
 

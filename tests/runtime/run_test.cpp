@@ -6,6 +6,7 @@
 #include <nlohmann/json.hpp>
 
 #include <cstdio>
+#include <cmath>
 #include <filesystem>
 
 namespace orthosim {
@@ -152,6 +153,22 @@ TEST_F(RunCli, BadScenesExitTwoWithOneLine) {
   EXPECT_FALSE(fs::exists(dir / "never.json"));
   const auto help = run_cli("run --help");
   EXPECT_NE(help.out.find(">= 1"), std::string::npos) << help.out;
+}
+
+// A run whose steps fail (the solver gives up: gravity 10^5 g with one retry)
+// goes to the end, writes its report, and exits 3 with one line (it exited 0).
+TEST_F(RunCli, FailedStepsExitThree) {
+  const auto s = scene(R"({"model": "model.h5", "fixed": ["fixed"], "integrator": "symplectic", "dt": 0.01,
+                           "substeps": 1, "gravity": [0, -1e6, 0], "stability": {"max_retries": 1}})");
+  const auto r = run_cli("run " + s + " --steps 3 --no-output --report " + (dir / "failed.json"));
+  EXPECT_EQ(r.code, 3) << r.err;
+  EXPECT_NE(r.err.find("orthosim run: error: " + s + ": 3 of 3 steps failed"), std::string::npos) << r.err;
+  const auto j = nlohmann::json::parse(test::read_file(dir / "failed.json"));
+  EXPECT_EQ(j["metrics"]["stability"]["failed_steps"], 3);
+  EXPECT_TRUE(std::isfinite(j["metrics"]["kinetic_energy_j"].get<double>()));
+  // the same scene at 1 g: 0
+  const auto ok = scene(R"({"model": "model.h5", "fixed": ["fixed"], "integrator": "symplectic", "dt": 0.01})");
+  EXPECT_EQ(run_cli("run " + ok + " --steps 3 --no-output --quiet").code, 0);
 }
 
 // A second run into the same folder with fewer frames leaves only its own
