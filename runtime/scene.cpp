@@ -663,6 +663,8 @@ Scene::FluidSummary Scene::fluid_summary() const {
   r.emitted_volume = c.emitted_volume;
   r.drained_volume = c.drained_volume;
   r.emitters = static_cast<int>(fluid_->state.emitters.size());
+  for (const FluidEmitter& e : fluid_->state.emitters) r.flow_rate += e.flow_rate;
+  r.particle_volume = fluid_->fluid.volume;
   return r;
 }
 

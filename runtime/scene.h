@@ -241,6 +241,8 @@ class Scene {
     std::int64_t particles = 0, emitted = 0, drained = 0, left_domain = 0, nonfinite = 0, paused_steps = 0;
     Real emitted_volume = 0, drained_volume = 0;  // m^3
     int emitters = 0;                              // cut vessels bleeding (ever)
+    Real flow_rate = 0;                            // m^3/s, their flows (bleeding_flow_rate) summed
+    Real particle_volume = 0;                      // m^3, the rest volume of one particle (spacing^3)
     Real max_compression = 0;                      // max rho/rho0 - 1 over steps
     std::int64_t surface_triangles = 0;            // of the last blood surface written
     double wall_s = 0;                             // in fluid steps

@@ -130,6 +130,7 @@ void add_run_command(CLI::App& app) {
                       {"emitted_volume_m3", f.emitted_volume},
                       {"drained_volume_m3", f.drained_volume},
                       {"bleeding_vessels", f.emitters},
+                      {"bleeding_flow_m3_s", f.flow_rate},
                       {"emitter_paused_steps", f.paused_steps},
                       {"max_compression", f.max_compression},
                       {"substeps", fs->counters.substeps},
@@ -183,6 +184,15 @@ void add_run_command(CLI::App& app) {
                 << met["steps_per_second"].get<double>() << " steps/s, " << c.substeps << " substeps, "
                 << c.events << " stability events, " << c.failed << " failed)"
                 << (scene->output() ? ", series " + scene->output()->pvd_path() : std::string()) << "\n";
+    if (const runtime::FluidState* fs = scene->fluid_state(); fs && scene->fluid_summary().emitters > 0) {
+      const auto f = scene->fluid_summary();
+      if (f.emitted == 0)  // a warning even with --quiet: the bleeding the scene asks for shows nothing
+        std::cerr << "orthosim run: warning: " << scene_file << ": " << f.emitters << " cut vessel(s) bleed "
+                  << f.flow_rate << " m^3/s in all, but no particle was emitted: one particle ("
+                  << f.particle_volume << " m^3) takes "
+                  << (f.flow_rate > 0 ? f.particle_volume / f.flow_rate : HUGE_VAL)
+                  << " s of that flow; a finer fluid spacing or a higher bleed_pressure shows it\n";
+    }
     report.write(common.report);
     if (c.failed > 0) {
       // the run went to the end (outputs and report written; a failed step ends at rest, never

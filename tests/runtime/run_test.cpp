@@ -121,6 +121,33 @@ TEST_F(RunCli, BleedsAndReportsTheFluid) {
   }
 }
 
+// A cut vessel whose flow is too small to emit one particle in the run is
+// named in a warning (it bled nothing, silently); the report has the flow.
+TEST_F(RunCli, ABleedingTooSmallToShowIsAWarning) {
+  runtime::testing::write_model_file(model, runtime::testing::make_layered_block(39, 9, 4), true);  // with the artery
+  auto bleed = [&](const std::string& pressure) {
+    return scene(R"({
+      "model": "model.h5", "fixed": ["fixed"], "integrator": "implicit", "dt": 0.005, "duration": 0.03,
+      "vessels": ["artery"], "fluid": {"spacing": 0.002, "sound_speed": 3, "bleed_pressure": )" + pressure + R"(, "margin": 0.01},
+      "tools": [{"name": "scalpel", "type": "cut", "polyline": [[0.0, 0, 0.01], [0.03, 0, 0.01]], "depth": 0.008,
+                 "direction": [0, 1, 0], "snap": false, "start": 0}]
+    })");
+  };
+  const auto s = bleed("1e-6");
+  const auto r = run_cli("run " + s + " --no-output --quiet --report " + (dir / "tiny.json"));
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_EQ(test::count_lines(r.err), 1) << r.err;
+  EXPECT_NE(r.err.find("orthosim run: warning: " + s + ": "), std::string::npos) << r.err;
+  EXPECT_NE(r.err.find(" cut vessel(s) bleed "), std::string::npos) << r.err;
+  const auto j = nlohmann::json::parse(test::read_file(dir / "tiny.json"));
+  EXPECT_EQ(j["metrics"]["fluid"]["particles_emitted"], 0);
+  EXPECT_GT(j["metrics"]["fluid"]["bleeding_flow_m3_s"].get<double>(), 0);
+  // a bleeding that shows: no warning
+  const auto shows = run_cli("run " + bleed("500") + " --no-output --quiet");
+  ASSERT_EQ(shows.code, 0) << shows.err;
+  EXPECT_EQ(shows.err, "");
+}
+
 TEST_F(RunCli, BadScenesExitTwoWithOneLine) {
   const std::vector<std::pair<std::string, std::string>> cases{
       {R"({"model": "missing.h5"})", "does not exist"},
