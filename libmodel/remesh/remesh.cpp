@@ -18,6 +18,7 @@
 #include <chrono>
 #include <cmath>
 #include <deque>
+#include <optional>
 #include <numeric>
 #include <sstream>
 
@@ -67,6 +68,7 @@ SweepPlane make_plane(const Vec3& c, const Vec3& n, const Vec3& e1_hint) {
 // ---- principal axis ----------------------------------------------------------
 struct Axis {
   Vec3 m = Vec3::Zero(), d = Vec3::UnitZ();
+  Vec3 others[2] = {Vec3::UnitX(), Vec3::UnitY()};  // the other principal directions, by falling variance
 };
 
 Axis principal_axis(const Surface& s) {
@@ -88,12 +90,16 @@ Axis principal_axis(const Surface& s) {
   Eigen::Matrix3d C = Eigen::Matrix3d::Zero();
   for (int f = 0; f < nf; ++f) C += a[f] * (c[f] - ax.m) * (c[f] - ax.m).transpose();
   Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> es(C);
-  Vec3 d = es.eigenvectors().col(2).normalized();
-  int big = 0;
-  for (int k = 1; k < 3; ++k)
-    if (std::abs(d(k)) > std::abs(d(big)) + 1e-12) big = k;
-  if (d(big) < 0) d = -d;
-  ax.d = d;
+  auto oriented = [](Vec3 d) {  // the largest component positive: a fixed sign
+    d.normalize();
+    int big = 0;
+    for (int k = 1; k < 3; ++k)
+      if (std::abs(d(k)) > std::abs(d(big)) + 1e-12) big = k;
+    return d(big) < 0 ? Vec3(-d) : d;
+  };
+  ax.d = oriented(es.eigenvectors().col(2));
+  ax.others[0] = oriented(es.eigenvectors().col(1));
+  ax.others[1] = oriented(es.eigenvectors().col(0));
   return ax;
 }
 
@@ -191,6 +197,57 @@ Cap detect_cap(const Surface& s, const Topology& t, const FaceData& fd, const Ve
     for (int k = 0; k < 3; ++k) cap.crease = std::max(cap.crease, (s.vertices.row(v[k]).transpose() - cap.q).dot(cap.n));
   }
   return cap;
+}
+
+// Whether the surface ends in a flat cap at both ends along d: each end's
+// planar patch (detect_cap) covers at least half the surface's shadow on the
+// plane normal to d (half the sum of a_f |n_f . d|: the section's area for a
+// convex tube, more for others).
+bool capped_along(const Surface& s, const Topology& t, const FaceData& fd, const Vec3& d, double angle_deg) {
+  double shadow = 0;
+  for (std::size_t f = 0; f < fd.area.size(); ++f) shadow += fd.area[f] * std::abs(fd.nrm[f].dot(d));
+  shadow *= 0.5;
+  double t0 = 1e300, t1 = -1e300;
+  for (Eigen::Index v = 0; v < s.vertices.rows(); ++v) {
+    const double x = s.vertices.row(v).dot(d);
+    t0 = std::min(t0, x), t1 = std::max(t1, x);
+  }
+  if (!(shadow > 0) || !(t1 > t0)) return false;
+  return detect_cap(s, t, fd, -d, angle_deg, t1 - t0).area >= 0.5 * shadow &&
+         detect_cap(s, t, fd, d, angle_deg, t1 - t0).area >= 0.5 * shadow;
+}
+
+// The sweep along capped_alternative's axis stands only if its ring planes
+// do not cross inside the tube; else the error of the principal axis, or one
+// naming the short tube.
+void check_alternative_sweep(const TubeSweep& sw, const RemeshOptions& o, const std::string& name,
+                             const std::exception_ptr& first) {
+  if (sw.plane_turn < o.max_plane_turn) return;
+  if (first) std::rethrow_exception(first);
+  std::ostringstream m;
+  m.precision(3);
+  m << "not tube-like: no flat cap ends the sweep along the largest extent, and along the axis of the flat caps ("
+    << sw.length_m * 1e3 << " mm: a stack shorter than the limb is wide?) the ring planes cross inside the tube "
+    << "(R |dn/ds| = " << sw.plane_turn << ", at most " << o.max_plane_turn << ")";
+  throw Error(name, m.str());
+}
+
+// Where the sweep along the principal axis (the largest extent) failed or
+// found no flat cap at either end: another principal direction along which
+// the surface is capped at both ends, if one is and the principal axis is
+// not. A stack shorter than the limb is wide has its largest extent across
+// the limb; its flat caps, at the stack's ends, still give the limb's axis.
+std::optional<Axis> capped_alternative(const Surface& s, const Topology& t, const Axis& ax, const RemeshOptions& o) {
+  const FaceData fd = face_data(s, t);
+  if (capped_along(s, t, fd, ax.d, o.cap_angle_deg)) return std::nullopt;
+  for (int k = 0; k < 2; ++k)
+    if (capped_along(s, t, fd, ax.others[k], o.cap_angle_deg)) {
+      Axis b = ax;
+      b.d = ax.others[k];
+      b.others[k] = ax.d;
+      return b;
+    }
+  return std::nullopt;
 }
 
 // ---- centreline: smoothed points, natural cubic spline, arc-length table ----
@@ -813,8 +870,15 @@ namespace {
 using remesh_detail::sample_loop;
 using remesh_detail::tube_loop;
 
+// cap_guard (the sweep along capped_alternative's axis): a refinement whose
+// sections reach a flat cap (a loop point within the cap's crease of its
+// plane) is undone and ends the refinement.
+// A short tube (shorter than it is wide) breaks the refinement's premise that
+// a tilted plane cuts a larger section: there a tilted plane leaves through
+// the caps and cuts a smaller one, and the centreline ran off across the
+// tube (64 -> 199 mm on a 64-slice stack of a 180 mm wide limb).
 TubeSweep sweep_impl(const Surface& s, const Topology& topo, const Slicer& sl, const Axis& ax,
-                     const RemeshOptions& o, const std::string& name) {
+                     const RemeshOptions& o, const std::string& name, bool cap_guard = false) {
   // extent along the principal axis
   double t0 = 1e300, t1 = -1e300;
   for (int v = 0; v < s.vertices.rows(); ++v) {
@@ -905,6 +969,7 @@ TubeSweep sweep_impl(const Surface& s, const Topology& topo, const Slicer& sl, c
   std::vector<double> prev_s, prev_a;
   double prev_total = std::numeric_limits<double>::infinity();
   for (int it = 0; it <= o.axis_iterations; ++it) {
+    bool beyond_cap = false;
     const NormalField nf = normal_field(curve, caps, radius);
     std::vector<Vec3> next;
     sec_s.clear(), sec_a.clear();
@@ -925,6 +990,16 @@ TubeSweep sweep_impl(const Surface& s, const Topology& topo, const Slicer& sl, c
           break;
         }
       if (!l) continue;
+      if (cap_guard)
+        for (int e = 0; e < 2 && !beyond_cap; ++e) {
+          if (!caps[e].flat) continue;
+          const double tol = std::max(caps[e].crease, 1e-3 * extent);
+          for (const Vec2& q : l->q)
+            if ((pl.centre + q.x() * pl.e1 + q.y() * pl.e2 - caps[e].q).dot(caps[e].n) < tol) {  // on the cap
+              beyond_cap = true;
+              break;
+            }
+        }
       next.push_back(pl.centre + l->centroid.x() * pl.e1 + l->centroid.y() * pl.e2);
       for (const Vec2& q : l->q) rmax = std::max(rmax, q.norm());
       sec_s.push_back(sk);
@@ -935,7 +1010,7 @@ TubeSweep sweep_impl(const Surface& s, const Topology& topo, const Slicer& sl, c
     double total = 0;
     for (double a : sec_a) total += a;
     total /= static_cast<double>(sec_a.size());
-    if (it > 0 && !(total < prev_total)) {
+    if (it > 0 && (!(total < prev_total) || beyond_cap)) {
       curve = prev_curve, sec_s = prev_s, sec_a = prev_a;
       break;
     }
@@ -1096,9 +1171,25 @@ SweepPlane sweep_plane(const TubeSweep& sw, double s) {
 TubeSweep find_tube_sweep(const Surface& outer, const RemeshOptions& o, const std::string& name) {
   validate(o);
   const Topology topo = remesh_detail::build_topology(outer, name, true);
-  const Axis ax = principal_axis(outer);
-  const Slicer sl(outer, topo, ax.m, ax.d);
-  TubeSweep sw = sweep_impl(outer, topo, sl, ax, o, name);
+  Axis ax = principal_axis(outer);
+  TubeSweep sw;
+  std::exception_ptr first;
+  try {
+    const Slicer sl(outer, topo, ax.m, ax.d);
+    sw = sweep_impl(outer, topo, sl, ax, o, name);
+  } catch (const Error&) {
+    first = std::current_exception();
+  }
+  if (first || (!sw.flat_cap[0] && !sw.flat_cap[1])) {
+    if (const auto alt = capped_alternative(outer, topo, ax, o)) {
+      ax = *alt;
+      const Slicer sl(outer, topo, ax.m, ax.d);
+      sw = sweep_impl(outer, topo, sl, ax, o, name, /*cap_guard=*/true);
+      check_alternative_sweep(sw, o, name, first);
+    } else if (first) {
+      std::rethrow_exception(first);
+    }
+  }
   sw.uncovered_m2 = {sw.flat_cap[0] ? 0.0 : area_behind(outer, sweep_plane(sw, 0)),
                      sw.flat_cap[1] ? 0.0 : [&] {
                        SweepPlane p = sweep_plane(sw, sw.length_m);
@@ -1283,14 +1374,34 @@ RemeshResult remesh_layers(const std::vector<NamedSurface>& layers, const Remesh
           // the inner layers' slicers, beside the axis and the checks (a layer
           // with a face id out of range or a non-finite vertex gets none: its
           // topology reports it)
-          for (int k = 1; k < nl; ++k)
-            if (const Surface& sk = layers[k].surface; sk.faces.size() > 0 && sk.faces.minCoeff() >= 0 &&
-                                                      sk.faces.maxCoeff() < sk.vertices.rows() && sk.vertices.allFinite())
-              inner_slicers.run([&, k] {
-                slicers[static_cast<std::size_t>(k)] = std::make_unique<Slicer>(layers[k].surface, topo[k], ax.m, ax.d);
-              });
-          slicers[0] = std::make_unique<Slicer>(layers[0].surface, topo[0], ax.m, ax.d);
-          res.sweep = sweep_impl(layers[0].surface, topo[0], *slicers[0], ax, o, layers[0].name);
+          auto slice_all_layers = [&] {
+            for (int k = 1; k < nl; ++k)
+              if (const Surface& sk = layers[k].surface; sk.faces.size() > 0 && sk.faces.minCoeff() >= 0 &&
+                                                        sk.faces.maxCoeff() < sk.vertices.rows() && sk.vertices.allFinite())
+                inner_slicers.run([&, k] {
+                  slicers[static_cast<std::size_t>(k)] = std::make_unique<Slicer>(layers[k].surface, topo[k], ax.m, ax.d);
+                });
+            slicers[0] = std::make_unique<Slicer>(layers[0].surface, topo[0], ax.m, ax.d);
+          };
+          slice_all_layers();
+          // the principal axis; another one where the surface is capped along it instead (capped_alternative)
+          std::exception_ptr first;
+          try {
+            res.sweep = sweep_impl(layers[0].surface, topo[0], *slicers[0], ax, o, layers[0].name);
+          } catch (const Error&) {
+            first = std::current_exception();
+          }
+          if (first || (!res.sweep.flat_cap[0] && !res.sweep.flat_cap[1])) {
+            if (const auto alt = capped_alternative(layers[0].surface, topo[0], ax, o)) {
+              inner_slicers.wait();  // they read ax
+              ax = *alt;
+              slice_all_layers();
+              res.sweep = sweep_impl(layers[0].surface, topo[0], *slicers[0], ax, o, layers[0].name, /*cap_guard=*/true);
+              check_alternative_sweep(res.sweep, o, layers[0].name, first);
+            } else if (first) {
+              std::rethrow_exception(first);
+            }
+          }
           const TubeSweep& sw = res.sweep;
           SweepPlane pa = sweep_plane(sw, 0), pb = sweep_plane(sw, sw.length_m);
           pb.normal = -pb.normal;

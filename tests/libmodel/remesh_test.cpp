@@ -134,6 +134,30 @@ TEST(RemeshOptionsTest, GridLimits) {
 
 // ---- analytic tubes -----------------------------------------------------------
 
+// A stack shorter than the limb is wide: the surface's largest extent is
+// across the limb, so the principal axis lies in the section plane and its
+// a sweep along it runs across the disc (silently before: 97 mm along x for
+// this 30 mm tube; on a segmented limb its ring planes cut the surface in two
+// loops). Without flat caps there, the sweep takes the principal direction
+// along which the surface is capped at both ends; a long tube is unchanged.
+TEST(Remesh, ShortWideTubeFindsItsAxis) {
+  const double L = 0.03;
+  const std::vector<NamedSurface> layers{{"skin", test::cylinder(0.05, L, 256, 16)},
+                                         {"fat", test::cylinder(0.04, L, 256, 16)}};
+  RemeshOptions o = grid(39, 9);
+  o.ends = EndRings::rim;
+  const auto r = remesh_layers(layers, o);
+  EXPECT_NEAR(std::abs(r.sweep.axis_direction.z()), 1, 1e-9);
+  EXPECT_NEAR(r.sweep.length_m, L, 1e-4 * L);
+  EXPECT_LT(r.sweep.plane_turn, o.max_plane_turn);
+  for (const QuadSurface& q : r.layers) {
+    ASSERT_EQ(q.vertices.rows(), 39 * 9);
+    for (int j = 0; j < 9; ++j)
+      for (int i = 0; i < 39; ++i) EXPECT_NEAR(q.vertices(j * 39 + i, 2), q.vertices(j * 39, 2), 1e-6) << "ring " << j;
+  }
+  EXPECT_NEAR(find_tube_sweep(layers[0].surface, o, "skin").length_m, L, 1e-4 * L);
+}
+
 TEST(Remesh, Cylinder39x9) {
   const double R = 0.03, L = 0.12;
   const Surface s = test::cylinder(R, L, 256, 64);
