@@ -1200,21 +1200,37 @@ TEST(SphBoundaries, SurfaceGridIsRebuiltWhenItNoLongerServes) {
 
 // ---- emitters and drains -----------------------------------------------------------------
 
+// A weightless fluid (2 mm spacing) in an open box and a jet along +z through
+// a 6 mm disc (29 lattice points) with the flow of a cut vessel by
+// Poiseuille's law (radius 1.2 mm, 2 cm long, 2 kPa drop, blood: 27 ml/s,
+// 0.24 m/s through the disc).
+struct Jet {
+  FluidParams p = [] {
+    FluidParams q = weightless();
+    q.spacing = 0.002;
+    q.max_speed = 0.3;
+    return q;
+  }();
+  Fluid f = make_fluid(p);
+  FluidBoundaries b = open_box(1);
+  FluidState s = make_fluid_state();
+  FluidEmitter e = [this] {
+    FluidEmitter j;
+    j.center = {0, 0, 0};
+    j.direction = {0, 0, 1};
+    j.radius = 0.006;
+    j.flow_rate = poiseuille_flow_rate(0.0012, 2000, p.viscosity, 0.02);
+    return j;
+  }();
+};
+
 TEST(SphSources, EmitterMatchesRequestedFlow) {
   for (EmitterProfile profile : {EmitterProfile::plug, EmitterProfile::parabolic}) {
-    FluidParams p = weightless();
-    p.spacing = 0.002;
-    p.max_speed = 0.3;
-    const Fluid f = make_fluid(p);
-    const FluidBoundaries b = open_box(1);
-    FluidState s = make_fluid_state();
-    FluidEmitter e;
-    e.center = {0, 0, 0};
-    e.direction = {0, 0, 1};
-    e.radius = 0.006;
-    // the flow of a cut vessel by Poiseuille's law (radius 1.2 mm, 2 cm long, 2 kPa
-    // drop, blood: 27 ml/s), emitted through the 6 mm disc at 0.24 m/s
-    e.flow_rate = poiseuille_flow_rate(0.0012, 2000, p.viscosity, 0.02);
+    Jet jet;
+    const Fluid& f = jet.f;
+    const FluidBoundaries& b = jet.b;
+    FluidState& s = jet.s;
+    FluidEmitter& e = jet.e;
     e.profile = profile;
     s.emitters.push_back(e);
     const Real T = 0.4;
@@ -1239,17 +1255,11 @@ TEST(SphSources, EmitterMatchesRequestedFlow) {
 // pause acts between steps only: one step of a fine jet overshot it ~5x),
 // and a held-back emitter owes at most one particle per point afterwards.
 TEST(SphSources, EmittersStopAtTheCapWithinAStep) {
-  FluidParams p = weightless();
-  p.spacing = 0.002;
-  p.max_speed = 0.3;
-  const Fluid f = make_fluid(p);
-  const FluidBoundaries b = open_box(1);
-  FluidState s = make_fluid_state();
-  FluidEmitter e;
-  e.center = {0, 0, 0};
-  e.direction = {0, 0, 1};
-  e.radius = 0.006;  // 29 lattice points
-  e.flow_rate = poiseuille_flow_rate(0.0012, 2000, p.viscosity, 0.02);
+  Jet jet;
+  const Fluid& f = jet.f;
+  const FluidBoundaries& b = jet.b;
+  FluidState& s = jet.s;
+  const FluidEmitter& e = jet.e;
   s.emitters.push_back(e);
   s.max_particles = 100;
   fluid_step(f, s, 0.2, b);  // uncapped: ~675 particles in this one step

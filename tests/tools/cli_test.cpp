@@ -24,6 +24,17 @@ Provenance make_provenance_for_test() {
   return p;
 }
 
+// a degenerate (zero-size) tetrahedron as /surfaces/skin, the provenance, and the commit
+void write_skin_and_commit(ModelWriter& w) {
+  Surface s;
+  s.vertices = MatX3d::Zero(4, 3);
+  s.faces.resize(4, 3);
+  s.faces << 0, 1, 2, 0, 2, 3, 0, 3, 1, 1, 3, 2;
+  w.write("skin", s);
+  w.write("test", make_provenance_for_test());
+  w.commit();
+}
+
 std::string make_model(const test::TempDir& dir) {
   const std::string p = dir / "m.h5";
   ModelWriter w(p, ModelWriter::Start::fresh);
@@ -34,26 +45,14 @@ std::string make_model(const test::TempDir& dir) {
   v.labels.assign(8, 1);
   v.label_names = {"background", "skin"};
   w.write(v);
-  Surface s;
-  s.vertices = MatX3d::Zero(4, 3);
-  s.faces.resize(4, 3);
-  s.faces << 0, 1, 2, 0, 2, 3, 0, 3, 1, 1, 3, 2;
-  w.write("skin", s);
-  w.write("test", make_provenance_for_test());
-  w.commit();
+  write_skin_and_commit(w);
   return p;
 }
 // a valid model file with a surface and no /volume
 std::string make_model_without_volume(const test::TempDir& dir) {
   const std::string p = dir / "novol.h5";
   ModelWriter w(p, ModelWriter::Start::fresh);
-  Surface s;
-  s.vertices = MatX3d::Zero(4, 3);
-  s.faces.resize(4, 3);
-  s.faces << 0, 1, 2, 0, 2, 3, 0, 3, 1, 1, 3, 2;
-  w.write("skin", s);
-  w.write("test", make_provenance_for_test());
-  w.commit();
+  write_skin_and_commit(w);
   return p;
 }
 }  // namespace
@@ -173,7 +172,9 @@ TEST(Cli, ReportPathIsCheckedBeforeAnyWork) {
     const auto r = test::run_cli(args + " --quiet --report " + report);
     expect_refused(r, report, what);
     EXPECT_EQ(r.err.rfind("orthosim " + args.substr(0, args.find(' ')) + ": error: ", 0), 0u) << r.err;
-    if (!out.empty()) EXPECT_FALSE(fs::exists(out)) << out;
+    if (!out.empty()) {
+      EXPECT_FALSE(fs::exists(out)) << out;
+    }
   }
   EXPECT_FALSE(fs::exists(d / "model.h5"));
   EXPECT_FALSE(fs::exists(d / "nodir"));
