@@ -208,6 +208,7 @@ struct NestingResult {
   std::int64_t moved = 0;          // vertices moved
   std::int64_t outside = 0;        // of those, outside outer before
   double max_move_m = 0;           // the largest move (m)
+  std::int64_t moved_again = 0;    // extra moves of vertices the first move carried through a shell thinner than the clearance
   std::int64_t still_outside = 0;  // vertices outside outer after (0 unless outer is very thin there)
   std::int64_t on_cap = 0;         // left on a border cap they share with outer (coplanar flat caps)
 };

@@ -160,6 +160,36 @@ NestingResult enforce_nesting(Surface& inner, const Surface& outer, double clear
   tbb::parallel_for(tbb::blocked_range<Eigen::Index>(1, n, 512), [&](const tbb::blocked_range<Eigen::Index>& r) {
     for (Eigen::Index i = r.begin(); i != r.end(); ++i) fix(i);
   });
+  // Where the outer shell is thinner than the clearance (a fin of a noisy
+  // segmentation), the move in by the clearance carries the vertex out
+  // through the far side: it is moved again from where it landed, in from
+  // the (far) face it is now closest to, by half the clearance, a quarter,
+  // ... until inside; such a vertex ends inside but closer than the
+  // clearance. Where that fails too (the offset leaves through a
+  // neighbouring face where the outer surface folds), moves by twice the
+  // clearance, four times, ... follow. Few vertices: serial, in index order.
+  for (Eigen::Index i = 0; i < n; ++i) {
+    const auto u = static_cast<std::size_t>(i);
+    if (!moved[u]) continue;
+    const Eigen::Vector3d start = inner.vertices.row(i).transpose();
+    Eigen::Vector3d at = start;
+    for (const double factor : {0.5, 2.0}) {
+      Point p(start.x(), start.y(), start.z());
+      at = start;
+      double gap = clearance_m;
+      for (int again = 0; again < 10 && side(p) == CGAL::ON_UNBOUNDED_SIDE; ++again) {
+        gap *= factor;
+        const auto [c, f] = tree.closest_point_and_primitive(p);
+        const auto nf = CGAL::Polygon_mesh_processing::compute_face_normal(f, m);
+        at = Eigen::Vector3d(c.x() - gap * nf.x(), c.y() - gap * nf.y(), c.z() - gap * nf.z());
+        p = Point(at.x(), at.y(), at.z());
+        ++res.moved_again;
+      }
+      if (side(p) != CGAL::ON_UNBOUNDED_SIDE) break;
+    }
+    move[u] += (at - start).norm();
+    inner.vertices.row(i) = at.transpose();
+  }
   for (Eigen::Index i = 0; i < n; ++i) {
     const auto u = static_cast<std::size_t>(i);
     if (!moved[u]) continue;

@@ -292,6 +292,40 @@ TEST(SurfaceNesting, EnforceNestingKeepsTheInnerSurfaceInside) {
   EXPECT_EQ(enforce_nesting(small, outer, clearance).moved, 0);
 }
 
+// Where the outer shell is thinner than the clearance (a 0.2 mm slab, 0.3 mm
+// clearance), the move in by the clearance carries a vertex out through the
+// far side; it is moved again, in by half the clearance and less, until
+// inside (the noisy phantom's fat stayed outside its skin: "6 vertices stay
+// outside the surface of skin").
+TEST(SurfaceNesting, AShellThinnerThanTheClearanceStillNests) {
+  auto box = [](const Eigen::Vector3d& lo, const Eigen::Vector3d& hi) {
+    Surface b;
+    b.vertices.resize(8, 3);
+    for (int k = 0; k < 8; ++k)
+      b.vertices.row(k) << (k & 1 ? hi.x() : lo.x()), (k & 2 ? hi.y() : lo.y()), (k & 4 ? hi.z() : lo.z());
+    b.faces.resize(12, 3);
+    b.faces << 0, 2, 3, 0, 3, 1,  // z = lo (outward -z)
+        4, 5, 7, 4, 7, 6,         // z = hi
+        0, 1, 5, 0, 5, 4,         // y = lo
+        2, 6, 7, 2, 7, 3,         // y = hi
+        0, 4, 6, 0, 6, 2,         // x = lo
+        1, 3, 7, 1, 7, 5;         // x = hi
+    return b;
+  };
+  const Surface outer = box({-5e-3, -5e-3, 0}, {5e-3, 5e-3, 0.2e-3});
+  ASSERT_TRUE(check_surface(outer, false).outward);
+  // the inner surface's top face 0.5 mm above the slab, its bottom inside it
+  Surface inner = box({-2e-3, -2e-3, 0.05e-3}, {2e-3, 2e-3, 0.7e-3});
+  const NestingResult n = enforce_nesting(inner, outer, 0.3e-3);
+  EXPECT_EQ(n.outside, 4);
+  EXPECT_EQ(n.still_outside, 0);
+  EXPECT_GT(n.moved_again, 0);
+  for (Eigen::Index i = 0; i < inner.vertices.rows(); ++i) {
+    EXPECT_GT(inner.vertices(i, 2), 0) << i;
+    EXPECT_LT(inner.vertices(i, 2), 0.2e-3) << i;
+  }
+}
+
 TEST(SurfaceNesting, FillHolesUsesTheLateralBorder) {
   // a shell open at both z ends: without nesting, fill_holes alone makes the
   // solid the whole tube (its inside reaches only the first and last slice)
