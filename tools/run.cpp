@@ -193,6 +193,10 @@ void add_run_command(CLI::App& app) {
                   << (f.flow_rate > 0 ? f.particle_volume / f.flow_rate : HUGE_VAL)
                   << " s of that flow; a finer fluid spacing or a higher bleed_pressure shows it\n";
     }
+    if (def.solver.integrator == runtime::Integrator::implicit_euler && c.cg_unconverged > 0)  // even with --quiet
+      std::cerr << "orthosim run: warning: " << scene_file << ": " << c.cg_unconverged << " of " << c.cg_solves
+                << " implicit solves stopped unconverged at cg_max_iterations (" << def.solver.cg_max_iterations
+                << "): the tissue is stiff for this dt (a smaller dt, a higher cg_max_iterations, or cg_tolerance)\n";
     report.write(common.report);
     if (c.failed > 0) {
       // the run went to the end (outputs and report written; a failed step ends at rest, never

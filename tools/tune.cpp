@@ -262,6 +262,11 @@ void add_tune_command(CLI::App& app) {
         std::cerr << "tune: warning: " << j.tissue << " stopped on the wall-clock budget (--budget-s) after "
                   << j.result.evaluations << " experiments: the result depends on this machine's speed; bound it by "
                   << "--max-evaluations for a reproducible one\n";
+      if (!j.result.reached)  // even with -q (the pipeline runs it so): the springs miss the table
+        std::cerr << "tune: warning: " << j.tissue << " missed its tolerance (" << 100 * opt.tolerance
+                  << " %): max error " << std::setprecision(3) << 100 * j.result.max_error << " % after "
+                  << j.result.evaluations << " experiments (stop: " << j.result.stop
+                  << "); more experiments (--max-evaluations, the pipeline's --tune-evaluations) or another --method\n";
       if (!j.layer_name.empty()) tune::apply_to_layer(j.layer, j.current, j.result.params);
       if (!common.quiet) {
         const auto& r = j.result;

@@ -104,6 +104,20 @@ TEST(TuneCli, TunesTheSampleTableWithTableReportAndPlots) {
   for (const char* n : {"skin", "fat", "muscle"}) EXPECT_TRUE(is_png(d / (std::string("plots/") + n + ".png"))) << n;
 }
 
+// A tissue whose tuning misses its tolerance gets a warning on stderr, also
+// with --quiet (the pipeline runs tune so, and it said nothing of a skin left
+// at 10 % error); one that reaches it gets none.
+TEST(TuneCli, AMissedToleranceIsAWarning) {
+  test::TempDir d("tune-cli-miss");
+  const auto miss = test::run_cli("tune --tissues " + kTable + " --tissue skin --max-evaluations 20 --quiet");
+  ASSERT_EQ(miss.code, 0) << miss.err;
+  EXPECT_EQ(test::count_lines(miss.err), 1) << miss.err;
+  EXPECT_EQ(miss.err.rfind("tune: warning: skin missed its tolerance (0.1 %): max error ", 0), 0u) << miss.err;
+  const auto hit = test::run_cli("tune --tissues " + kTable + " --tissue fat --max-evaluations 4000 --quiet");
+  ASSERT_EQ(hit.code, 0) << hit.err;
+  EXPECT_EQ(hit.err, "");
+}
+
 TEST(TuneCli, SameSeedSameTable) {
   test::TempDir d("tune-cli-seed");
   for (const char* o : {"a.json", "b.json"}) {

@@ -198,6 +198,22 @@ TEST_F(RunCli, FailedStepsExitThree) {
   EXPECT_EQ(run_cli("run " + ok + " --steps 3 --no-output --quiet").code, 0);
 }
 
+// Implicit solves stopped at their iteration cap are named in a warning line
+// (the summary said "0 stability events, 0 failed" with 60 of 60 unconverged).
+TEST_F(RunCli, UnconvergedSolvesAreAWarning) {
+  const auto s = scene(R"({"model": "model.h5", "fixed": ["fixed"], "integrator": "implicit", "dt": 0.01,
+                           "implicit": {"cg_tolerance": 1e-12, "cg_max_iterations": 1}})");
+  const auto r = run_cli("run " + s + " --steps 3 --no-output --quiet");
+  EXPECT_EQ(r.code, 0) << r.err;
+  EXPECT_EQ(test::count_lines(r.err), 1) << r.err;
+  EXPECT_NE(r.err.find("orthosim run: warning: " + s + ": 3 of 3 implicit solves stopped unconverged"), std::string::npos)
+      << r.err;
+  const auto ok = scene(R"({"model": "model.h5", "fixed": ["fixed"], "integrator": "implicit", "dt": 0.01})");
+  const auto q = run_cli("run " + ok + " --steps 3 --no-output --quiet");
+  EXPECT_EQ(q.code, 0) << q.err;
+  EXPECT_EQ(q.err, "");
+}
+
 // A second run into the same folder with fewer frames leaves only its own
 // frames: the earlier run's later ones go, files of other names stay.
 TEST_F(RunCli, ARerunRemovesTheEarlierRunsStaleFrames) {
