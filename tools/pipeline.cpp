@@ -290,8 +290,23 @@ int run_pipeline(Args a) {
   std::vector<std::string> layered, vessels;
   // The stack ends at the first rigid tissue: what lies inside it (marrow in
   // bone) moves with it and adds no layer.
+  // Outer to inner by the table's nesting ('inside': its depth), ties in table
+  // order: a table listing bone first still gives skin, fat, muscle, bone
+  // (table order alone refused it: "needs at least two layered tissues").
+  std::vector<const Tissue*> by_depth;
+  for (const auto& t : table.tissues) by_depth.push_back(&t);
+  auto depth = [&](const Tissue* t) {
+    int d = 0;
+    for (std::string in = t->inside; !in.empty() && d < 256; ++d) {
+      const Tissue* up = table.find(in);
+      in = up ? up->inside : "";
+    }
+    return d;
+  };
+  std::stable_sort(by_depth.begin(), by_depth.end(), [&](const Tissue* a, const Tissue* b) { return depth(a) < depth(b); });
   bool floor = false;
-  for (const auto& t : table.tissues) {
+  for (const Tissue* tp : by_depth) {
+    const Tissue& t = *tp;
     if (!floor && (t.layer == "tetra" || t.layer == "lattice" || t.layer == "rigid")) layered.push_back(t.name);
     floor = floor || t.layer == "rigid";
     if (t.layer == "vessel") vessels.push_back(t.name);

@@ -9,6 +9,7 @@
 #include <gtest/gtest.h>
 #include <nlohmann/json.hpp>
 
+#include <algorithm>
 #include <filesystem>
 #include <functional>
 #include <fstream>
@@ -195,6 +196,26 @@ TEST(Pipeline, TuningIsReproducible) {
   ASSERT_EQ(r.code, 0) << r.err;
   EXPECT_TRUE(s.ran().count("tune"));
   EXPECT_EQ(tuned(tune_dir()), first);
+}
+
+// The layers go outer to inner by the table's nesting ('inside'), not by the
+// order the table lists them in: bone and marrow listed first was refused
+// ("needs at least two layered tissues") and fat before skin failed in remesh.
+TEST(Pipeline, LayerOrderFollowsTheNestingNotTheTableOrder) {
+  const Sample& s = sample();
+  nlohmann::json t = nlohmann::json::parse(test::read_file(s.tissues));
+  auto& v = t["tissues"];
+  std::stable_partition(v.begin(), v.end(), [](const nlohmann::json& e) {
+    return e["name"] == "marrow" || e["name"] == "bone" || e["name"] == "fat";
+  });
+  ASSERT_EQ(v[0]["name"], "fat");
+  const std::string table = s.dir / "reordered.json";
+  test::write_file(table, t.dump(2));
+  const auto r = test::run_cli("pipeline --stack " + s.stack + " --tissues " + table + " --spacing 0.75,0.75,3 --work " +
+                               (s.dir / "work") + " --out " + (s.dir / "reordered.h5") + " --no-texture --no-tune --quiet");
+  ASSERT_EQ(r.code, 0) << r.err;
+  ModelReader m(s.dir / "reordered.h5");
+  for (const char* l : {"skin", "fat", "muscle"}) EXPECT_TRUE(m.h5().is_group(std::string("/layers/") + l)) << l;
 }
 
 TEST(Pipeline, ExportGathersEveryStagesOutputs) {
