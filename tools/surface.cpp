@@ -250,7 +250,9 @@ void add_surface_command(CLI::App& app) {
           if (nesting[i].still_outside > 0)
             throw Error(a.labels, names[i] + ": " + std::to_string(nesting[i].still_outside) +
                                       " vertices stay outside the surface of " + names[outer[i]] +
-                                      " (a shell thinner than --nest-clearance?)");
+                                      (clearance > 0 ? " (a shell thinner than --nest-clearance?)"
+                                                     : " (with --nest-clearance 0 a vertex on the surface may count as outside: "
+                                                       "give a clearance > 0)"));
           checks.run([&check, i] { check(i); });
         }
       } catch (...) {
