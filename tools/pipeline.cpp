@@ -295,15 +295,8 @@ int run_pipeline(Args a) {
   // (table order alone refused it: "needs at least two layered tissues").
   std::vector<const Tissue*> by_depth;
   for (const auto& t : table.tissues) by_depth.push_back(&t);
-  auto depth = [&](const Tissue* t) {
-    int d = 0;
-    for (std::string in = t->inside; !in.empty() && d < 256; ++d) {
-      const Tissue* up = table.find(in);
-      in = up ? up->inside : "";
-    }
-    return d;
-  };
-  std::stable_sort(by_depth.begin(), by_depth.end(), [&](const Tissue* a, const Tissue* b) { return depth(a) < depth(b); });
+  std::stable_sort(by_depth.begin(), by_depth.end(),
+                   [&](const Tissue* a, const Tissue* b) { return table.depth(*a) < table.depth(*b); });
   bool floor = false;
   for (const Tissue* tp : by_depth) {
     const Tissue& t = *tp;

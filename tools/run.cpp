@@ -184,9 +184,9 @@ void add_run_command(CLI::App& app) {
                 << met["steps_per_second"].get<double>() << " steps/s, " << c.substeps << " substeps, "
                 << c.events << " stability events, " << c.failed << " failed)"
                 << (scene->output() ? ", series " + scene->output()->pvd_path() : std::string()) << "\n";
-    if (const runtime::FluidState* fs = scene->fluid_state(); fs && scene->fluid_summary().emitters > 0) {
+    if (scene->fluid_state()) {
       const auto f = scene->fluid_summary();
-      if (f.emitted == 0)  // a warning even with --quiet: the bleeding the scene asks for shows nothing
+      if (f.emitters > 0 && f.emitted == 0)  // a warning even with --quiet: the bleeding the scene asks for shows nothing
         std::cerr << "orthosim run: warning: " << scene_file << ": " << f.emitters << " cut vessel(s) bleed "
                   << f.flow_rate << " m^3/s in all, but no particle was emitted: one particle ("
                   << f.particle_volume << " m^3) takes "

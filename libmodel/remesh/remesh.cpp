@@ -1168,28 +1168,44 @@ SweepPlane sweep_plane(const TubeSweep& sw, double s) {
   return make_plane(c, nn, e);
 }
 
-TubeSweep find_tube_sweep(const Surface& outer, const RemeshOptions& o, const std::string& name) {
-  validate(o);
-  const Topology topo = remesh_detail::build_topology(outer, name, true);
-  Axis ax = principal_axis(outer);
+namespace {
+
+// The sweep from the principal axis; where it fails or finds no flat cap at
+// either end, from capped_alternative's axis (check_alternative_sweep).
+// slice(axis) gives the outer surface's slicer along an axis, valid until the
+// next call (the layered remesh slices its inner layers there too).
+template <class Slice>
+TubeSweep sweep_from_axes(const Surface& s, const Topology& topo, const RemeshOptions& o, const std::string& name,
+                          Slice&& slice) {
+  const Axis ax = principal_axis(s);
   TubeSweep sw;
   std::exception_ptr first;
   try {
-    const Slicer sl(outer, topo, ax.m, ax.d);
-    sw = sweep_impl(outer, topo, sl, ax, o, name);
+    sw = sweep_impl(s, topo, slice(ax), ax, o, name);
   } catch (const Error&) {
     first = std::current_exception();
   }
   if (first || (!sw.flat_cap[0] && !sw.flat_cap[1])) {
-    if (const auto alt = capped_alternative(outer, topo, ax, o)) {
-      ax = *alt;
-      const Slicer sl(outer, topo, ax.m, ax.d);
-      sw = sweep_impl(outer, topo, sl, ax, o, name, /*cap_guard=*/true);
+    if (const auto alt = capped_alternative(s, topo, ax, o)) {
+      sw = sweep_impl(s, topo, slice(*alt), *alt, o, name, /*cap_guard=*/true);
       check_alternative_sweep(sw, o, name, first);
     } else if (first) {
       std::rethrow_exception(first);
     }
   }
+  return sw;
+}
+
+}  // namespace
+
+TubeSweep find_tube_sweep(const Surface& outer, const RemeshOptions& o, const std::string& name) {
+  validate(o);
+  const Topology topo = remesh_detail::build_topology(outer, name, true);
+  std::optional<Slicer> sl;
+  TubeSweep sw = sweep_from_axes(outer, topo, o, name, [&](const Axis& a) -> const Slicer& {
+    sl.emplace(outer, topo, a.m, a.d);
+    return *sl;
+  });
   sw.uncovered_m2 = {sw.flat_cap[0] ? 0.0 : area_behind(outer, sweep_plane(sw, 0)),
                      sw.flat_cap[1] ? 0.0 : [&] {
                        SweepPlane p = sweep_plane(sw, sw.length_m);
@@ -1370,11 +1386,12 @@ RemeshResult remesh_layers(const std::vector<NamedSurface>& layers, const Remesh
         if (topo_err[0]) return;
         const auto ta = std::chrono::steady_clock::now();
         capture(axis_err, [&] {
-          ax = principal_axis(layers[0].surface);
-          // the inner layers' slicers, beside the axis and the checks (a layer
-          // with a face id out of range or a non-finite vertex gets none: its
-          // topology reports it)
-          auto slice_all_layers = [&] {
+          // the inner layers' slicers along the sweep's axis, beside the
+          // sweep and the checks (a layer with a face id out of range or a
+          // non-finite vertex gets none: its topology reports it)
+          res.sweep = sweep_from_axes(layers[0].surface, topo[0], o, layers[0].name, [&](const Axis& a) -> const Slicer& {
+            inner_slicers.wait();  // the slicers of an earlier axis read ax
+            ax = a;
             for (int k = 1; k < nl; ++k)
               if (const Surface& sk = layers[k].surface; sk.faces.size() > 0 && sk.faces.minCoeff() >= 0 &&
                                                         sk.faces.maxCoeff() < sk.vertices.rows() && sk.vertices.allFinite())
@@ -1382,26 +1399,8 @@ RemeshResult remesh_layers(const std::vector<NamedSurface>& layers, const Remesh
                   slicers[static_cast<std::size_t>(k)] = std::make_unique<Slicer>(layers[k].surface, topo[k], ax.m, ax.d);
                 });
             slicers[0] = std::make_unique<Slicer>(layers[0].surface, topo[0], ax.m, ax.d);
-          };
-          slice_all_layers();
-          // the principal axis; another one where the surface is capped along it instead (capped_alternative)
-          std::exception_ptr first;
-          try {
-            res.sweep = sweep_impl(layers[0].surface, topo[0], *slicers[0], ax, o, layers[0].name);
-          } catch (const Error&) {
-            first = std::current_exception();
-          }
-          if (first || (!res.sweep.flat_cap[0] && !res.sweep.flat_cap[1])) {
-            if (const auto alt = capped_alternative(layers[0].surface, topo[0], ax, o)) {
-              inner_slicers.wait();  // they read ax
-              ax = *alt;
-              slice_all_layers();
-              res.sweep = sweep_impl(layers[0].surface, topo[0], *slicers[0], ax, o, layers[0].name, /*cap_guard=*/true);
-              check_alternative_sweep(res.sweep, o, layers[0].name, first);
-            } else if (first) {
-              std::rethrow_exception(first);
-            }
-          }
+            return *slicers[0];
+          });
           const TubeSweep& sw = res.sweep;
           SweepPlane pa = sweep_plane(sw, 0), pb = sweep_plane(sw, sw.length_m);
           pb.normal = -pb.normal;

@@ -459,8 +459,10 @@ void calibrate(ColourModel& m, const std::vector<std::vector<std::uint8_t>>& sli
       }
     });
     double moved = 0, total = 0, spread = 0;
+    std::vector<double> weight_of(C);
     for (std::size_t c = 0; c < C; ++c) {
       const std::array<double, 5> sum = reduce(c);
+      weight_of[c] = sum[3];
       total += sum[3];
       spread += sum[4];
       if (it < 0) continue;
@@ -479,7 +481,7 @@ void calibrate(ColourModel& m, const std::vector<std::vector<std::uint8_t>>& sli
     // the mixing weights (with the prior's samples, so none reaches 0) and the
     // shared variance per axis (floored at 0.25 CIE76 units: 8-bit rounding)
     for (std::size_t c = 0; c < C; ++c)
-      log_pi[c] = std::log((reduce(c)[3] + n0 + 1e-300) / (total + static_cast<double>(C) * n0 + 1e-300));
+      log_pi[c] = std::log((weight_of[c] + n0 + 1e-300) / (total + static_cast<double>(C) * n0 + 1e-300));
     const double var = std::max(0.0625, spread / (3 * std::max(total, 1e-300)));
     inv2var = 1 / (2 * var);
     if (it >= 0 && moved < 0.01) break;
