@@ -54,6 +54,8 @@ json metrics_json(const VesselMetrics& m) {
           {"closed_ends", closed},
           {"ends", ends},
           {"spurs_pruned", m.spurs_pruned},
+          {"children_pruned", m.children_pruned},
+          {"pruned_length_m", m.pruned_length_m},
           {"loops_broken", m.loops_broken},
           {"contacts_cut", m.contacts_cut},
           {"components_dropped", m.components_dropped},
@@ -100,8 +102,8 @@ void add_vessels_command(CLI::App& app) {
     std::string labels, model, out;
     std::vector<std::string> tissues, roots;
     double tolerance_mm = 0;
-    int ring_vertices = 24, threads = 0;
-    bool no_self_intersection_check = false;
+    int ring_vertices = 24, threads = 0, max_children = 3;
+    bool no_self_intersection_check = false, refuse_excess_children = false;
     CommonOptions common;
   };
   static Args a;
@@ -121,6 +123,11 @@ void add_vessels_command(CLI::App& app) {
   sub->add_option("--ring-vertices", a.ring_vertices, "vertices around each tube ring, a multiple of 4 in 8..256 "
                                                       "(and of 6 for trifurcations)")
       ->capture_default_str();
+  sub->add_option("--max-children", a.max_children,
+                  "most children a junction may have, 2..4 (4 needs --ring-vertices a multiple of 8)")
+      ->capture_default_str();
+  sub->add_flag("--refuse-excess-children", a.refuse_excess_children,
+                "refuse a junction with more children instead of dropping its shortest leaf children");
   sub->add_flag("--no-self-intersection-check", a.no_self_intersection_check,
                 "skip counting the tube's self-intersections (CGAL)");
   sub->add_option("--threads", a.threads, "worker threads (0: all cores)")->capture_default_str();
@@ -132,6 +139,8 @@ void add_vessels_command(CLI::App& app) {
     if (!std::isfinite(a.tolerance_mm) || a.tolerance_mm < 0) throw UsageError("--tolerance: must be >= 0 (mm)");
     o.tolerance_m = a.tolerance_mm * 1e-3;
     o.ring_vertices = a.ring_vertices;
+    o.max_children = a.max_children;
+    o.prune_excess_children = !a.refuse_excess_children;
     o.check_self_intersections = !a.no_self_intersection_check;
     for (const std::string& r : a.roots) {
       const std::vector<double> p = parse_list(r, 3, "--root", false);
@@ -142,6 +151,7 @@ void add_vessels_command(CLI::App& app) {
     } catch (const Error& e) {
       std::string m = e.message();
       if (m.rfind("ring_vertices", 0) == 0) m = "--ring-vertices" + m.substr(13);
+      if (m.rfind("max_children", 0) == 0) m = "--max-children" + m.substr(12);
       throw UsageError(m);
     }
     if (a.threads < 0) throw UsageError("--threads: must be >= 0");
@@ -250,6 +260,14 @@ void add_vessels_command(CLI::App& app) {
     j["tissues"] = json::object();
     for (std::size_t i = 0; i < tissues.size(); ++i) j["tissues"][tissues[i]] = metrics_json(results[i].metrics);
     report.write(a.common.report);
+    for (std::size_t i = 0; i < tissues.size(); ++i) {
+      const VesselMetrics& m = results[i].metrics;
+      if (m.children_pruned > 0)  // even with --quiet: the tree lost branches the labels show
+        std::cerr << "orthosim vessels: warning: " << a.labels << ": " << tissues[i] << ": dropped "
+                  << m.children_pruned << " leaf branch(es), " << std::fixed << std::setprecision(1)
+                  << 1e3 * m.pruned_length_m << " mm in all, at junctions with more than " << a.max_children
+                  << " children (--refuse-excess-children refuses instead)\n";
+    }
     if (!a.common.quiet) {
       for (std::size_t i = 0; i < tissues.size(); ++i) {
         const VesselMetrics& m = results[i].metrics;

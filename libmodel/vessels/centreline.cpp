@@ -297,6 +297,61 @@ void merge_into_parent(Forest& f, int e) {
   (void)kids;
 }
 
+// Removes branch e, a leaf (no children), from its junction and renumbers.
+// Its junction keeps at least two children (the caller's bound).
+void drop_leaf(Forest& f, int e) {
+  const int p = f.branches[e].parent;
+  for (Junction& J : f.junctions)
+    if (J.parent == p) J.children.erase(std::find(J.children.begin(), J.children.end(), e));
+  auto& pc = f.branches[p].children;
+  pc.erase(std::find(pc.begin(), pc.end(), e));
+  std::vector<int> map(f.branches.size());
+  for (int i = 0, k = 0; i < static_cast<int>(f.branches.size()); ++i) map[i] = i == e ? -1 : k++;
+  f.branches.erase(f.branches.begin() + e);
+  for (Branch& b : f.branches) {
+    if (b.parent >= 0) b.parent = map[b.parent];
+    for (int& c : b.children) c = map[c];
+  }
+  for (Junction& J : f.junctions) {
+    J.parent = map[J.parent];
+    for (int& c : J.children) c = map[c];
+  }
+}
+
+// Every junction with more than o.max_children children: its shortest leaf
+// children are dropped (o.prune_excess_children) until it fits, counted in
+// f.children_pruned. Refused with the position when that is off or when too
+// few of the children are leaves. Returns whether anything was dropped.
+bool prune_excess_children(Forest& f, const VesselOptions& o) {
+  for (const Junction& J : f.junctions) {
+    const int n = static_cast<int>(J.children.size());
+    if (n <= o.max_children) continue;
+    std::vector<std::pair<double, int>> leaves;  // (length, branch)
+    for (int c : J.children)
+      if (f.branches[c].children.empty()) leaves.push_back({arc(f.branches[c].x).back(), c});
+    if (!o.prune_excess_children || static_cast<int>(leaves.size()) < n - o.max_children) {
+      const Eigen::Vector3d x = 1e3 * f.branches[J.parent].x.back();
+      std::ostringstream m;
+      m.precision(4);
+      m << "a junction with " << n << " children at (" << x.x() << ", " << x.y() << ", " << x.z() << ") mm: at most "
+        << o.max_children << " are supported"
+        << (o.prune_excess_children ? " (too few of them end freely to be dropped)" : "");
+      throw Error("", m.str());
+    }
+    std::sort(leaves.begin(), leaves.end());
+    std::vector<int> drop;
+    for (int i = 0; i < n - o.max_children; ++i) {
+      drop.push_back(leaves[static_cast<std::size_t>(i)].second);
+      f.pruned_length_m += leaves[static_cast<std::size_t>(i)].first;
+    }
+    std::sort(drop.rbegin(), drop.rend());  // highest index first: the others keep theirs
+    for (int e : drop) drop_leaf(f, e);
+    f.children_pruned += static_cast<int>(drop.size());
+    return true;
+  }
+  return false;
+}
+
 }  // namespace
 
 void refine_centrelines(const Grid& g, const VesselOptions& o, Forest& f) {
@@ -401,31 +456,17 @@ void refine_centrelines(const Grid& g, const VesselOptions& o, Forest& f) {
         const std::vector<double> s = arc(P.x);
         const double room = s[zones[ji].q] - s[start];
         if (room < 0.5 * P.rho[start]) {
-          const std::size_t n = f.junctions[jk].children.size() + f.junctions[ji].children.size() - 1;
-          if (static_cast<int>(n) > o.max_children) {
-            const Eigen::Vector3d x = 1e3 * P.x[P.x.size() / 2];
-            std::ostringstream m;
-            m.precision(4);
-            m << "a junction with " << n << " children near (" << x.x() << ", " << x.y() << ", " << x.z()
-              << ") mm: at most " << o.max_children << " are supported";
-            throw Error("", m.str());
-          }
           merge_into_parent(f, p);
           again = true;
         }
         break;
       }
     }
+    // a junction with more children than the tube can join loses its
+    // shortest leaves (noisy labels grow short side branches near a junction;
+    // two merged junctions add theirs up); the zones are then found again
+    if (!again) again = prune_excess_children(f, o);
   }
-  for (const Junction& J : f.junctions)
-    if (static_cast<int>(J.children.size()) > o.max_children) {
-      const Eigen::Vector3d x = 1e3 * f.branches[J.parent].x.back();
-      std::ostringstream m;
-      m.precision(4);
-      m << "a junction with " << J.children.size() << " children at (" << x.x() << ", " << x.y() << ", " << x.z()
-        << ") mm: at most " << o.max_children << " are supported";
-      throw Error("", m.str());
-    }
 
   // ---- rebuild each junction region from the clean parts around it -----------------
   // deepest first: a junction rewrites its parent's tail and its children's

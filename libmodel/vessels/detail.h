@@ -122,6 +122,8 @@ struct Forest {
   std::vector<Branch> branches;  // parents before children
   std::vector<Junction> junctions;
   int trees = 0;
+  int children_pruned = 0;     // leaves dropped at junctions with too many children
+  double pruned_length_m = 0;  // their total length
 };
 
 struct GraphStats {

@@ -33,7 +33,8 @@ std::string vessel_parameters_json(const VesselOptions& o) {
   nlohmann::json j = {{"tolerance_m", o.tolerance_m},     {"spur_ratio", o.spur_ratio},
                       {"neck_ratio", o.neck_ratio},       {"min_length_ratio", o.min_length_ratio},
                       {"merge_ratio", o.merge_ratio},     {"patch_gap", o.patch_gap},
-                      {"max_children", o.max_children},   {"ring_vertices", o.ring_vertices},
+                      {"max_children", o.max_children},   {"prune_excess_children", o.prune_excess_children},
+                      {"ring_vertices", o.ring_vertices},
                       {"ring_spacing", o.ring_spacing},   {"check_self_intersections", o.check_self_intersections}};
   j["roots_m"] = nlohmann::json::array();
   for (const auto& p : o.roots_m) j["roots_m"].push_back({p.x(), p.y(), p.z()});
@@ -146,6 +147,8 @@ VesselResult extract_vessels(const Volume& v, const std::string& tissue, const V
 
   t0 = std::chrono::steady_clock::now();
   refine_centrelines(g, o, f);
+  M.children_pruned = f.children_pruned;
+  M.pruned_length_m = f.pruned_length_m;
   M.centreline_s = since(t0);
 
   t0 = std::chrono::steady_clock::now();

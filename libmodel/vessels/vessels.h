@@ -58,8 +58,12 @@ struct VesselOptions {
   // The children's tube rings start where their inscribed spheres are apart
   // by at least patch_gap x their mean radius (room for the crotch). >= 0.
   double patch_gap = 0.5;
-  // Most children a junction may have; more is refused with a message. 2..4.
+  // Most children a junction may have. 2..4.
   int max_children = 3;
+  // A junction with more children loses its shortest leaf children (counted
+  // in the metrics); false: refused with a message, as it is when too few of
+  // its children are leaves.
+  bool prune_excess_children = true;
   // Vertices around each tube ring: a multiple of 4 and, at a junction with
   // n children, of 2n (24 serves n = 2, 3, 4). 8..256.
   int ring_vertices = 24;
@@ -99,6 +103,8 @@ struct VesselMetrics {
   int trees = 0, branches = 0;
   int bifurcations = 0, trifurcations = 0;
   int spurs_pruned = 0;
+  int children_pruned = 0;            // leaves dropped at junctions with more than max_children
+  double pruned_length_m = 0;         // their total centreline length
   int loops_broken = 0, contacts_cut = 0;
   int components_dropped = 0;         // too small to be a vessel (specks)
   std::vector<VesselEnd> ends;
@@ -132,7 +138,7 @@ struct VesselResult {
 // component per tree). Deterministic for any thread count.
 // Throws Error("", ...) when the tissue is not in v.label_names, has no
 // voxels, leaves nothing after clean-up, or has a junction with more than
-// max_children children.
+// max_children children that pruning (prune_excess_children) cannot mend.
 VesselResult extract_vessels(const Volume& v, const std::string& tissue, const VesselOptions& o);
 
 // ---- Bezier evaluation -------------------------------------------------------------

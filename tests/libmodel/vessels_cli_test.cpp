@@ -192,6 +192,7 @@ TEST(VesselsCli, BadInputIsOneLineExit2AndWritesNothing) {
   expect_error(test::run_cli("vessels" + labels + " --tissue artery --root " + mm(mid) + tail), "no vessel end");
   expect_error(test::run_cli("vessels" + labels + " --tissue artery --tolerance -1" + tail), "--tolerance");
   expect_error(test::run_cli("vessels" + labels + " --tissue artery --ring-vertices 10" + tail), "--ring-vertices");
+  expect_error(test::run_cli("vessels" + labels + " --tissue artery --max-children 5" + tail), "--max-children");
   EXPECT_FALSE(fs::exists(model));
   EXPECT_FALSE(fs::exists(out));
 

@@ -262,14 +262,59 @@ TEST(Vessels, Trifurcation) {
   EXPECT_EQ(r.metrics.trifurcations, 1);
   expect_bezier(r.tree, r.metrics.tolerance_m);
   expect_tube(r, 1);
-  // refused clearly when only bifurcations are allowed
+  // refused clearly when only bifurcations are allowed and pruning is off
   VesselOptions o;
   o.max_children = 2;
+  o.prune_excess_children = false;
   try {
     extract_vessels(c.v, "artery", o);
     ADD_FAILURE() << "a trifurcation with max_children = 2 was accepted";
   } catch (const Error& err) {
     EXPECT_NE(std::string(err.what()).find("3 children"), std::string::npos) << err.what();
+  }
+}
+
+TEST(Vessels, JunctionWithMoreChildrenThanAllowedLosesItsShortestLeaf) {
+  // four children, one of them short (8 mm against 19 mm): with at most 3
+  // children the short one is dropped and counted, the rest is the
+  // trifurcation; with 4 allowed all are kept; with pruning off it is refused
+  const double h = 0.4e-3;
+  const Eigen::Vector3d a(16e-3, 16e-3, -1e-3), b(16e-3, 16e-3, 14e-3);
+  std::vector<TubeSpec> tubes{{test::segment(a, b), test::constant(2.2e-3), -1}};
+  std::vector<Eigen::Vector3d> ends;
+  for (int i = 0; i < 4; ++i) {
+    const double phi = 2 * kPi * i / 4 + 0.3, len = i == 2 ? 0.45 : 1.0;
+    ends.push_back(b + len * Eigen::Vector3d(10e-3 * std::cos(phi), 10e-3 * std::sin(phi), 16e-3));
+    tubes.push_back({test::segment(b, ends.back()), [](double t) { return 2.2e-3 - 0.6e-3 * std::min(1.0, 3 * t); }, 0});
+  }
+  Case c = make_case(80, 80, 90, {h, h, h}, tubes);
+  const VesselResult r = extract_vessels(c.v, "artery", {});
+  EXPECT_EQ(r.metrics.children_pruned, 1);
+  EXPECT_NEAR(r.metrics.pruned_length_m, (ends[2] - b).norm(), 4e-3) << "the short child was not the one dropped";
+  expect_topology(r.tree, {-1, 0, 0, 0});
+  EXPECT_EQ(r.metrics.trifurcations, 1);
+  // the kept children are the three long ones: each ends within 2 voxels of a long tube's end
+  for (int i : {0, 1, 3}) {
+    double best = 1e9;
+    for (const VesselEnd& e : r.metrics.ends) best = std::min(best, (e.position_m - ends[static_cast<std::size_t>(i)]).norm());
+    EXPECT_LT(best, 2 * h + 2.2e-3) << "child " << i;
+  }
+  expect_tube(r, 1);
+
+  VesselOptions four;
+  four.max_children = 4;
+  const VesselResult r4 = extract_vessels(c.v, "artery", four);
+  EXPECT_EQ(r4.metrics.children_pruned, 0);
+  expect_topology(r4.tree, {-1, 0, 0, 0, 0});
+  expect_tube(r4, 1);
+
+  VesselOptions strict;
+  strict.prune_excess_children = false;
+  try {
+    extract_vessels(c.v, "artery", strict);
+    ADD_FAILURE() << "a junction with 4 children was accepted with pruning off";
+  } catch (const Error& err) {
+    EXPECT_NE(std::string(err.what()).find("4 children"), std::string::npos) << err.what();
   }
 }
 
