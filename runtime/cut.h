@@ -61,6 +61,8 @@ struct CutReport {
   std::int32_t quads_removed = 0;      // surface quads removed
   std::vector<std::int32_t> detached;  // nodes left without any spring, ascending
   std::vector<VesselHit> vessel_hits;
+  std::string tool;                    // the scene tool that made it (set by Scene; empty for Scene::cut)
+  Real time = 0;                       // s, when it was made (set by Scene)
 };
 
 // The blade direction a CutDef resolves to on model `m` (unit).

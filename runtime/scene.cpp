@@ -346,6 +346,7 @@ SceneDef parse_scene(const std::string& text, const std::string& file) {
     else if (pc == "jacobi") d.solver.preconditioner = Preconditioner::jacobi;
     else s.fail("preconditioner must be jacobi or block_jacobi (got '" + pc + "')");
     d.solver.warm_start = s.boolean("warm_start", true);
+    d.solver.redo_unconverged = s.boolean("redo_unconverged", true);
     s.finish();
   }
   if (o.has("tools")) {
@@ -868,6 +869,7 @@ void Scene::update_tools(Real t) {
         cd.depth = d.depth;
         cd.direction = {d.direction[0], d.direction[1], d.direction[2]};
         apply_cut(cd);
+        cuts_.back().tool = d.name;
         tr.active = false;
         tr.done = true;
       }
@@ -901,6 +903,7 @@ CutReport Scene::apply_cut(const CutDef& def) {
       fluid_->state.emitters.push_back(e);
     }
   }
+  rep.time = state_.time;
   cuts_.push_back(rep);
   return rep;
 }

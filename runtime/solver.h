@@ -24,7 +24,9 @@
 // energy_growth times what the step could legitimately reach (kinetic +
 // elastic energy at its start + an upper bound of the work of gravity,
 // external forces and tools), or when a node would move farther than the
-// model's extent in one substep. After max_retries redos the state is
+// model's extent in one substep, and (implicit, redo_unconverged) when a
+// linear solve stops unconverged at cg_max_iterations (that attempt is kept
+// when it is the last). After max_retries redos the state is
 // restored to the start of the step with velocities zeroed and the failure is
 // counted: a NaN never stays in the State. Every event is counted in
 // State::counters.
@@ -63,6 +65,7 @@ struct SolverOptions {
   int cg_max_iterations = 200; // implicit: per solve
   Preconditioner preconditioner = Preconditioner::block_jacobi;
   bool warm_start = true;  // implicit: start PCG from v + the last velocity change
+  bool redo_unconverged = true;  // implicit: a step with a solve stopped at cg_max_iterations is redone with twice the substeps (up to max_retries)
 };
 
 // Throws Error("", ...) naming the first invalid option.

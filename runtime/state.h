@@ -53,7 +53,8 @@ struct Counters {
   std::int64_t cg_solves = 0;         // implicit: linear solves
   std::int64_t cg_iterations = 0;     // implicit: PCG iterations, all solves
   std::int64_t cg_max_iterations = 0; // implicit: most iterations in one solve
-  std::int64_t cg_unconverged = 0;    // implicit: solves stopped at the iteration cap
+  std::int64_t cg_unconverged = 0;    // implicit: solves stopped at the iteration cap, in accepted attempts
+  std::int64_t cg_redos = 0;          // implicit: attempts redone because a solve stopped at the cap
 };
 
 // Scratch the solver resizes on demand (never read across steps).

@@ -9,6 +9,7 @@
 #include "libmodel/remesh/texture.h"
 #include "tools/common.h"
 
+#include <cmath>
 #include <filesystem>
 #include <iomanip>
 #include <iostream>
@@ -56,6 +57,7 @@ void add_remesh_command(CLI::App& app) {
     std::string surface, inner, names, grid = "39x9", out, model, stack, spacing, origin, around = "arc";
     bool texture = false, uniform = false;
     double texel_mm = 0, depth_mm = -1;
+    CLI::Option* depth = nullptr;  // given or not (absent: one voxel)
     int arc_window = RemeshOptions{}.arc_window;
     std::string ends = "crease";
     CommonOptions common;
@@ -83,7 +85,7 @@ void add_remesh_command(CLI::App& app) {
   sub->add_option("--spacing", a.spacing, "voxel size of the stack in mm, X,Y,Z (default: the model's /volume)");
   sub->add_option("--origin", a.origin, "centre of voxel (0,0,0) in mm, X,Y,Z (default: the model's /volume, else 0,0,0)");
   sub->add_option("--texel", a.texel_mm, "texel size in mm (default: the in-plane voxel size)");
-  sub->add_option("--texture-depth", a.depth_mm, "sample the colour this far inside the surface, mm (default: one voxel)");
+  a.depth = sub->add_option("--texture-depth", a.depth_mm, "sample the colour this far inside the surface, mm (default: one voxel)");
   add_common_options(sub, a.common);
 
   on_run(sub, "remesh", a.common, [] {
@@ -134,6 +136,8 @@ void add_remesh_command(CLI::App& app) {
         if (names[i] == names[j]) throw UsageError("two surfaces are named '" + names[i] + "': use --names");
     if (a.texture && a.stack.empty()) throw UsageError("--texture needs --stack DIR");
     if (!(a.texel_mm >= 0)) throw UsageError("--texel must be >= 0");
+    if (a.depth->count() > 0 && !(a.depth_mm >= 0 && std::isfinite(a.depth_mm)))
+      throw UsageError("--texture-depth must be >= 0 mm (inside the surface), got " + a.depth->as<std::string>());
     check_output_dir(a.out);
     if (!a.model.empty()) check_output_file(a.model);
 
@@ -206,7 +210,7 @@ void add_remesh_command(CLI::App& app) {
       report.input(a.stack);
       TextureOptions to;
       to.texel_m = a.texel_mm * 1e-3;
-      to.depth_m = a.depth_mm < 0 ? -1 : a.depth_mm * 1e-3;
+      to.depth_m = a.depth->count() > 0 ? a.depth_mm * 1e-3 : -1;
       tex = bake_texture(in[0].surface, r.sweep, o.around, o.arc_window, st, to, names[0]);
       report.metrics()["texture"] = {{"width", tex.width}, {"height", tex.height}, {"outside", tex.outside}};
     }

@@ -118,7 +118,8 @@ void add_run_command(CLI::App& app) {
                    {"iterations", c.cg_iterations},
                    {"mean_iterations", c.cg_solves ? static_cast<double>(c.cg_iterations) / static_cast<double>(c.cg_solves) : 0.0},
                    {"max_iterations", c.cg_max_iterations},
-                   {"unconverged", c.cg_unconverged}};
+                   {"unconverged", c.cg_unconverged},
+                   {"redos", c.cg_redos}};
     if (const runtime::FluidState* fs = scene->fluid_state()) {
       const auto f = scene->fluid_summary();
       const runtime::Fluid& fl = *scene->fluid();
@@ -193,10 +194,17 @@ void add_run_command(CLI::App& app) {
                   << (f.flow_rate > 0 ? f.particle_volume / f.flow_rate : HUGE_VAL)
                   << " s of that flow; a finer fluid spacing or a higher bleed_pressure shows it\n";
     }
+    for (const auto& cr : scene->cuts())
+      if (cr.springs_cut == 0 && cr.quads_removed == 0)  // even with --quiet: the incision the scene asks for is not there
+        std::cerr << "orthosim run: warning: " << scene_file << ": the cut"
+                  << (cr.tool.empty() ? std::string() : " '" + cr.tool + "'") << " at t = " << cr.time
+                  << " s cut nothing: its polyline, swept along the blade to its depth, crosses no spring of the model\n";
     if (def.solver.integrator == runtime::Integrator::implicit_euler && c.cg_unconverged > 0)  // even with --quiet
       std::cerr << "orthosim run: warning: " << scene_file << ": " << c.cg_unconverged << " of " << c.cg_solves
                 << " implicit solves stopped unconverged at cg_max_iterations (" << def.solver.cg_max_iterations
-                << "): the tissue is stiff for this dt (a smaller dt, a higher cg_max_iterations, or cg_tolerance)\n";
+                << ") in the kept steps, after " << c.cg_redos
+                << " redos with more substeps: the tissue is stiff for this dt (a smaller dt, a higher "
+                   "cg_max_iterations, or cg_tolerance)\n";
     report.write(common.report);
     if (c.failed > 0) {
       // the run went to the end (outputs and report written; a failed step ends at rest, never

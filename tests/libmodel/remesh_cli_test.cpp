@@ -97,6 +97,10 @@ TEST(RemeshCli, TextureExports) {
   ASSERT_FALSE(t.empty());
   EXPECT_EQ(t.at<cv::Vec3b>(t.rows / 2, t.cols / 2), cv::Vec3b(140, 160, 205));
   expect_usage_error(test::run_cli("remesh --surface " + f / "skin.stl" + " --out " + f / "t2" + " --texture"), "--stack", f / "t2");
+  // a depth outside the surface (it was taken as "one voxel")
+  expect_usage_error(test::run_cli("remesh --surface " + f / "skin.stl" + " --out " + f / "t3" + " --stack " + f / "stack" +
+                                   " --texture --spacing 1,1,1 --texture-depth -1"),
+                     "--texture-depth must be >= 0", f / "t3");
 }
 
 TEST(RemeshCli, BadInputExitsTwoWithoutOutput) {

@@ -121,6 +121,28 @@ TEST_F(RunCli, BleedsAndReportsTheFluid) {
   }
 }
 
+// A cut that misses the model is named in a warning (it cut nothing, silently).
+TEST_F(RunCli, ACutThatMissesTheModelIsAWarning) {
+  auto cut_at = [&](const std::string& z) {
+    return scene(R"({
+      "model": "model.h5", "fixed": ["fixed"], "integrator": "implicit", "dt": 0.005, "duration": 0.01,
+      "tools": [{"name": "scalpel", "type": "cut", "polyline": [[0.0, 0, )" + z + R"(], [0.03, 0, )" + z + R"(]], "depth": 0.008,
+                 "direction": [0, 1, 0], "snap": false, "start": 0}]
+    })");
+  };
+  const auto s = cut_at("0.5");  // half a metre off the block
+  const auto r = run_cli("run " + s + " --no-output --quiet --report " + (dir / "miss.json"));
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_EQ(test::count_lines(r.err), 1) << r.err;
+  EXPECT_NE(r.err.find("orthosim run: warning: " + s + ": the cut 'scalpel' at t = 0 s cut nothing"), std::string::npos)
+      << r.err;
+  const auto j = nlohmann::json::parse(test::read_file(dir / "miss.json"));
+  EXPECT_EQ(j["metrics"]["cuts"][0]["springs_cut"], 0);
+  const auto hit = run_cli("run " + cut_at("0.01") + " --no-output --quiet");
+  ASSERT_EQ(hit.code, 0) << hit.err;
+  EXPECT_EQ(hit.err, "");
+}
+
 // A cut vessel whose flow is too small to emit one particle in the run is
 // named in a warning (it bled nothing, silently); the report has the flow.
 TEST_F(RunCli, ABleedingTooSmallToShowIsAWarning) {
@@ -202,12 +224,23 @@ TEST_F(RunCli, FailedStepsExitThree) {
 // (the summary said "0 stability events, 0 failed" with 60 of 60 unconverged).
 TEST_F(RunCli, UnconvergedSolvesAreAWarning) {
   const auto s = scene(R"({"model": "model.h5", "fixed": ["fixed"], "integrator": "implicit", "dt": 0.01,
-                           "implicit": {"cg_tolerance": 1e-12, "cg_max_iterations": 1}})");
+                           "implicit": {"cg_tolerance": 1e-12, "cg_max_iterations": 1, "redo_unconverged": false}})");
   const auto r = run_cli("run " + s + " --steps 3 --no-output --quiet");
   EXPECT_EQ(r.code, 0) << r.err;
   EXPECT_EQ(test::count_lines(r.err), 1) << r.err;
   EXPECT_NE(r.err.find("orthosim run: warning: " + s + ": 3 of 3 implicit solves stopped unconverged"), std::string::npos)
       << r.err;
+  // redone (the default) 8 times a step, each with twice the substeps: the
+  // last attempt's 256 solves a step are kept and counted
+  const auto d = scene(R"({"model": "model.h5", "fixed": ["fixed"], "integrator": "implicit", "dt": 0.01,
+                           "implicit": {"cg_tolerance": 1e-12, "cg_max_iterations": 1}})");
+  const auto rd = run_cli("run " + d + " --steps 3 --no-output --quiet");
+  EXPECT_EQ(rd.code, 0) << rd.err;
+  EXPECT_EQ(test::count_lines(rd.err), 1) << rd.err;
+  EXPECT_NE(rd.err.find(": 768 of 1533 implicit solves stopped unconverged at cg_max_iterations (1) in the kept steps, "
+                        "after 24 redos"),
+            std::string::npos)
+      << rd.err;
   const auto ok = scene(R"({"model": "model.h5", "fixed": ["fixed"], "integrator": "implicit", "dt": 0.01})");
   const auto q = run_cli("run " + ok + " --steps 3 --no-output --quiet");
   EXPECT_EQ(q.code, 0) << q.err;

@@ -433,6 +433,53 @@ TEST(Solver, PcgAtEquilibriumDoesNotIterateOnRoundOff) {
   EXPECT_LT(max_node_distance(s.x, settled.x), 1e-6 * sag) << "the equilibrium is kept";
 }
 
+// A solve stopped at cg_max_iterations is redone with shorter substeps
+// (redo_unconverged): a block whose skin cells are 0.1 mm thick under 4 mm
+// squares (the lattice of `build --through-cells 64`) needs far more PCG
+// iterations than the cap at dt = 1/60 s. Without the redo it drifts away
+// from the converged motion; with it every kept solve converges and the
+// motion is that of the converged solves at the substeps chosen.
+TEST(Solver, UnconvergedSolvesAreRedoneWithShorterSubsteps) {
+  testing::LayeredBlockOptions bo;
+  bo.nu = 13, bo.nv = 5, bo.layers = 4;
+  bo.thickness = {0.1e-3, 5e-3, 10e-3};
+  const auto b = make_layered_block(bo);
+  const Model m = model_from_layers(b.layers, b.sets);
+  auto run = [&](int cap, bool redo, int substeps) {
+    State s = make_state(m);
+    fix_nodes(m, s, m.set("fixed"));
+    SolverOptions o;
+    o.integrator = Integrator::implicit_euler;
+    o.mass_damping = 5;
+    o.cg_max_iterations = cap;
+    o.redo_unconverged = redo;
+    o.substeps = substeps;
+    int most = 0;
+    for (int k = 0; k < 30; ++k) most = std::max(most, step(m, s, 1.0 / 60, o).substeps);
+    return std::make_pair(s, most);
+  };
+  const auto [plain, plain_sub] = run(20, false, 0);
+  const auto [redone, sub] = run(20, true, 0);
+  EXPECT_GT(plain.counters.cg_unconverged, 0) << "the cap binds: the test needs it to";
+  EXPECT_EQ(redone.counters.cg_unconverged, 0);
+  EXPECT_GT(redone.counters.cg_redos, 0);
+  EXPECT_EQ(redone.counters.events, 0) << "a redo for the solver is not a stability event";
+  ASSERT_GT(sub, 1);
+  // the reference: converged solves at the most substeps the redo chose
+  const auto [ref, ref_sub] = run(100000, false, sub);
+  EXPECT_EQ(ref.counters.cg_unconverged, 0);
+  const State rest = make_state(m);
+  const Real sag = max_node_distance(ref.x, rest.x);
+  ASSERT_GT(sag, 1e-5);
+  const Real err_redo = max_node_distance(redone.x, ref.x), err_plain = max_node_distance(plain.x, ref.x);
+  std::printf("sag %.3g mm; substeps %d; off the converged motion: redone %.3g mm, plain %.3g mm\n", 1e3 * sag, sub,
+              1e3 * err_redo, 1e3 * err_plain);
+  EXPECT_LT(err_redo, 0.05 * sag);
+  EXPECT_GT(err_plain, err_redo);
+  (void)plain_sub;
+  (void)ref_sub;
+}
+
 // ---- pins and attachments ----------------------------------------------------------
 
 TEST(Solver, FixedAndKinematicNodes) {
