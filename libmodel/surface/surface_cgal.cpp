@@ -12,7 +12,7 @@
 #include <CGAL/Surface_mesh.h>
 #include <CGAL/Surface_mesh_simplification/Policies/Edge_collapse/Bounded_normal_change_placement.h>
 #include <CGAL/Surface_mesh_simplification/Policies/Edge_collapse/Count_stop_predicate.h>
-#include <CGAL/Surface_mesh_simplification/Policies/Edge_collapse/GarlandHeckbert_policies.h>
+#include <CGAL/Surface_mesh_simplification/Policies/Edge_collapse/GarlandHeckbert_plane_policies.h>
 #include <CGAL/Surface_mesh_simplification/Policies/Edge_collapse/LindstromTurk_cost.h>
 #include <CGAL/Surface_mesh_simplification/Policies/Edge_collapse/LindstromTurk_placement.h>
 #include <CGAL/Surface_mesh_simplification/edge_collapse.h>
@@ -70,6 +70,74 @@ Surface from_mesh(const Mesh& m) {
   return s;
 }
 
+// Garland-Heckbert plane quadrics made full rank. CGAL 5.5's plane policy
+// sums each face's plane quadric into its vertices; where the faces about an
+// edge are (nearly) coplanar, as on the smoothed staircases of a voxel
+// surface, that sum is (nearly) singular. Its test for a singular matrix is
+// an exact det == 0, so a nearly singular one is inverted and places the new
+// vertex far along the plane; the bounded-normal-change filter then refuses
+// the collapse, and the run crawls: the demo's skin (75 k faces) had not
+// reached 2 000 faces after 2 minutes, where Lindstrom-Turk takes 2 s (CGAL
+// issue 8988, fixed in CGAL 6.1 by adding line quadrics). Here each face also
+// adds `weight` times the point quadric of its centroid, |x - c|^2, so the
+// summed matrix has its tangential part bounded below by `weight` per face:
+// the optimum is unique and lies near the merged faces (weight 0.01, CGAL
+// 6.1's ratio of line to plane quadrics). Same units (m^2), so the cost stays
+// a squared distance; the normal offset is biased by 1 % towards the faces'
+// centroids (chords of a curved surface), far below a voxel.
+template <class TriangleMesh, class GeomTraits>
+class RegularisedPlaneQuadric {
+ public:
+  using Mat_4 = typename SMS::internal::GarlandHeckbert_matrix_types<GeomTraits>::Mat_4;
+  using Col_4 = typename SMS::internal::GarlandHeckbert_matrix_types<GeomTraits>::Col_4;
+  explicit RegularisedPlaneQuadric(double weight) : weight_(weight) {}
+
+  template <class VertexPointMap>
+  Mat_4 construct_quadric_from_edge(typename boost::graph_traits<TriangleMesh>::halfedge_descriptor he,
+                                    const TriangleMesh& tmesh, const VertexPointMap vpm, const GeomTraits& gt) const {
+    return SMS::internal::construct_classic_plane_quadric_from_edge(he, tmesh, vpm, gt);
+  }
+  template <class VertexPointMap>
+  Mat_4 construct_quadric_from_face(typename boost::graph_traits<TriangleMesh>::face_descriptor f,
+                                    const TriangleMesh& tmesh, const VertexPointMap vpm, const GeomTraits& gt) const {
+    Mat_4 q = SMS::internal::construct_classic_plane_quadric_from_face(f, tmesh, vpm, gt);
+    double c[3] = {0, 0, 0};
+    for (auto v : CGAL::vertices_around_face(CGAL::halfedge(f, tmesh), tmesh)) {
+      const auto& p = get(vpm, v);
+      c[0] += p.x() / 3, c[1] += p.y() / 3, c[2] += p.z() / 3;
+    }
+    // |x - c|^2 = x.x - 2 c.x + c.c as a 4 x 4 quadric in (x, 1)
+    for (int a = 0; a < 3; ++a) {
+      q(a, a) += weight_;
+      q(a, 3) -= weight_ * c[a];
+      q(3, a) -= weight_ * c[a];
+    }
+    q(3, 3) += weight_ * (c[0] * c[0] + c[1] * c[1] + c[2] * c[2]);
+    return q;
+  }
+  Col_4 construct_optimal_point(const Mat_4& quadric, const Col_4& p0, const Col_4& p1) const {
+    return SMS::internal::construct_optimal_point_singular<GeomTraits>(quadric, p0, p1);
+  }
+
+ private:
+  double weight_;
+};
+
+// Cost and placement as CGAL's GarlandHeckbert_plane_policies, over the
+// regularised quadrics.
+class RegularisedGarlandHeckbert
+    : public SMS::internal::GarlandHeckbert_cost_and_placement<RegularisedPlaneQuadric<Mesh, K>, Mesh, K> {
+  using Base = SMS::internal::GarlandHeckbert_cost_and_placement<RegularisedPlaneQuadric<Mesh, K>, Mesh, K>;
+
+ public:
+  using Get_cost = RegularisedGarlandHeckbert;
+  using Get_placement = RegularisedGarlandHeckbert;
+  RegularisedGarlandHeckbert(Mesh& m, double weight) : Base(m, RegularisedPlaneQuadric<Mesh, K>(weight)) {}
+  const Get_cost& get_cost() const { return *this; }
+  const Get_placement& get_placement() const { return *this; }
+  using Base::operator();
+};
+
 }  // namespace
 
 Surface decimate_surface(const Surface& s, std::int64_t target_faces, DecimationCost cost, bool bounded_normal_change) {
@@ -88,8 +156,8 @@ Surface decimate_surface(const Surface& s, std::int64_t target_faces, Decimation
       SMS::edge_collapse(m, stop, CGAL::parameters::get_cost(c).get_placement(p));
     }
   } else {
-    using GH = SMS::GarlandHeckbert_plane_policies<Mesh, K>;
-    GH gh(m);
+    using GH = RegularisedGarlandHeckbert;
+    GH gh(m, 0.01);
     if (bounded_normal_change) {
       SMS::Bounded_normal_change_placement<GH::Get_placement> p(gh.get_placement());
       SMS::edge_collapse(m, stop, CGAL::parameters::get_cost(gh.get_cost()).get_placement(p));
