@@ -467,6 +467,34 @@ TEST(MsmBuild, BadInputIsOneLineError) {
   }
 }
 
+// A tetrahedral layer whose prisms are too deep and twisted for the
+// 7-tetrahedron split (the demo's muscle as a tetra layer: 12.6 mm deep under
+// quads 2.9 mm wide at the top and 1.0 mm at the bone) is refused with its
+// shape and the way out, a lattice layer; the message blamed the layers'
+// order or an intersection, which the checks before it had ruled out.
+TEST(MsmBuild, InvertedTetraLayerNamesItsShape) {
+  const auto tt = table();
+  auto s = test::cylinder_stack(64, 5, 0.12, {0.030, 0.010, 0.008, 0.006});
+  const double turn = 2 * M_PI / 64 / 3;  // the surface below turned by a third of a cell
+  s[1].second = test::tube(64, 5, 0.12, [](double, double) { return 0.010; });
+  for (Eigen::Index v = 0; v < s[1].second.vertices.rows(); ++v) {
+    const double th = 2 * M_PI * static_cast<double>(v % 64) / 64 + turn;
+    s[1].second.vertices(v, 0) = 0.010 * std::cos(th);
+    s[1].second.vertices(v, 1) = 0.010 * std::sin(th);
+  }
+  const std::string e = expect_error([&] {
+    build_layers(s, {{"skin", "tetra"}, {"fat", "lattice"}, {"muscle", "lattice"}}, tt, BuildOptions{});
+  });
+  EXPECT_NE(e.find("inverted cells in layer 'skin'"), std::string::npos) << e;
+  EXPECT_NE(e.find("its column is 19.98 mm deep under quads whose narrowest edge is 2.944 mm at the top and 0.9814 mm at the bottom"), std::string::npos) << e;
+  EXPECT_NE(e.find("too deep and distorted for the 7-tetrahedron split"), std::string::npos) << e;
+  EXPECT_NE(e.find("--layers skin:lattice"), std::string::npos) << e;
+  EXPECT_EQ(e.find("out of order"), std::string::npos) << e;
+  // the way out holds: the same surfaces build with a lattice layer
+  const BuiltModel m = build_layers(s, {{"skin", "lattice"}, {"fat", "lattice"}, {"muscle", "lattice"}}, tt, BuildOptions{});
+  EXPECT_EQ(m.report.components, 1);
+}
+
 // The hexahedron Jacobian (corners and centre): a box's is its volume; a
 // sheared or twisted cell stays positive; a folded, flat or inside-out cell
 // is not.
