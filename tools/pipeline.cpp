@@ -325,6 +325,43 @@ int run_pipeline(Args a) {
         {"labels.h5", "labels.nrrd"});
     const std::string labels = seg.dir + "/labels.h5";
 
+    // Tissues of the table that the stack does not show (a general table on a
+    // crop: no artery in it, no marrow in the slices) are left out, each with
+    // a warning naming the stack and the table; the surface stage refused
+    // them with an error against the cache's labels file. The layers need two.
+    {
+      const Volume v = ModelReader(labels).volume();
+      std::vector<std::int64_t> count(256, 0);
+      for (std::uint8_t l : v.labels) ++count[l];
+      json absent = json::array();
+      auto present = [&](std::vector<std::string>& names) {
+        std::vector<std::string> kept;
+        for (const auto& t : names) {
+          const int l = v.label_of(t);
+          if (l > 0 && count[static_cast<std::size_t>(l)] > 0) {
+            kept.push_back(t);
+            continue;
+          }
+          absent.push_back(t);
+          std::cerr << "orthosim pipeline: warning: " << a.stack << ": no voxel was segmented as '" << t
+                    << "' (tissue table " << a.tissues << "); it is left out\n";
+        }
+        names = kept;
+      };
+      present(layered);
+      present(vessels);
+      report.metrics()["absent_tissues"] = absent;
+      if (layered.size() < 2)
+        throw Error(a.stack, "the segmented stack shows " + std::to_string(layered.size()) +
+                                 " layered tissue(s) of " + a.tissues + "; the layers need at least two");
+      for (const auto& l : scene.layers)
+        if (std::find(layered.begin(), layered.end(), l) == layered.end())
+          throw Error(a.scene, "layer '" + l + "': no voxel of it was segmented in " + a.stack);
+      for (const auto& t : scene.vessels)
+        if (std::find(vessels.begin(), vessels.end(), t) == vessels.end())
+          throw Error(a.scene, "vessel '" + t + "': no voxel of it was segmented in " + a.stack);
+    }
+
     // 2. vessels: they read only the labels, so they run in a child process
     // alongside surface -> remesh -> build -> tune (only the trees the scene
     // uses; all vessel tissues without a scene)

@@ -218,6 +218,57 @@ TEST(Pipeline, LayerOrderFollowsTheNestingNotTheTableOrder) {
   for (const char* l : {"skin", "fat", "muscle"}) EXPECT_TRUE(m.h5().is_group(std::string("/layers/") + l)) << l;
 }
 
+// A table with tissues the slices do not show (a general table on a crop)
+// builds from the tissues they do show: each absent one gets a warning line
+// naming the stack and the table, and the report lists them. The surface
+// stage refused such a table with "tissue 'tendon' has no voxels" against a
+// labels file in the pipeline's cache. A scene that needs an absent layer is
+// refused naming it.
+TEST(Pipeline, TissuesTheSlicesDoNotShowAreLeftOut) {
+  const Sample& s = sample();
+  nlohmann::json t = nlohmann::json::parse(test::read_file(s.tissues));
+  auto& v = t["tissues"];
+  int top = 0;
+  for (const auto& e : v) top = std::max(top, e["label"].get<int>());
+  nlohmann::json tendon, nerve;
+  for (const auto& e : v) {
+    if (e["name"] == "muscle") tendon = e;
+    if (e["name"] == "vein") nerve = e;
+  }
+  ASSERT_FALSE(tendon.is_null());
+  ASSERT_FALSE(nerve.is_null());
+  tendon["name"] = "tendon", tendon["label"] = top + 1, tendon["inside"] = "fat", tendon["rgb"] = {{250, 250, 250}};
+  nerve["name"] = "nerve", nerve["label"] = top + 2, nerve["rgb"] = {{10, 250, 10}};
+  v.push_back(tendon);
+  v.push_back(nerve);
+  const std::string table = s.dir / "extra.json", out = s.dir / "extra.h5", rep = s.dir / "extra.json.report";
+  test::write_file(table, t.dump(2));
+  const std::string base = "pipeline --stack " + s.stack + " --tissues " + table + " --spacing 0.75,0.75,3 --work " +
+                           (s.dir / "work") + " --no-texture --no-tune --quiet ";
+  const auto r = test::run_cli(base + "--out " + out + " --report " + rep);
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_EQ(test::count_lines(r.err), 2) << r.err;
+  for (const char* name : {"tendon", "nerve"})
+    EXPECT_NE(r.err.find("orthosim pipeline: warning: " + s.stack + ": no voxel was segmented as '" + name +
+                         "' (tissue table " + table + "); it is left out"),
+              std::string::npos)
+        << r.err;
+  EXPECT_EQ(nlohmann::json::parse(test::read_file(rep))["metrics"]["absent_tissues"],
+            nlohmann::json::array({"tendon", "nerve"}));
+  ModelReader m(out);
+  for (const char* l : {"skin", "fat", "muscle"}) EXPECT_TRUE(m.h5().is_group(std::string("/layers/") + l)) << l;
+  EXPECT_FALSE(m.h5().is_group("/layers/tendon"));
+  // a scene that needs the absent layer
+  test::write_file(s.dir / "tendon_scene.json", R"({"model": "m.h5", "layers": ["skin", "tendon"]})");
+  const auto bad = test::run_cli(base + "--out " + (s.dir / "extra2.h5") + " --scene " + (s.dir / "tendon_scene.json"));
+  EXPECT_EQ(bad.code, 2) << bad.err;
+  EXPECT_NE(bad.err.find("orthosim pipeline: error: " + (s.dir / "tendon_scene.json") +
+                         ": layer 'tendon': no voxel of it was segmented in " + s.stack),
+            std::string::npos)
+      << bad.err;
+  EXPECT_FALSE(fs::exists(s.dir / "extra2.h5"));
+}
+
 TEST(Pipeline, ExportGathersEveryStagesOutputs) {
   const Sample& s = sample();
   const std::string out = s.dir / "export";
