@@ -177,6 +177,18 @@ TissueTable parse_tissue_table(const std::string& text, const std::string& path)
     ts.rgb = colours(e["rgb"], path, where);
     ts.density_kg_m3 = number(e, "density_kg_m3", path, where);
     if (!(ts.density_kg_m3 > 0)) throw Error(path, where + ": density_kg_m3 must be > 0");
+    // No tissue lies outside [100, 22 600] kg/m^3: a tenth of water's (inflated
+    // lung, the lightest, is ~250) up to osmium's, the densest element's. A
+    // value outside is a unit slip (1.09: g/cm^3) that would make every node's
+    // mass 1000x off, silently.
+    if (!(ts.density_kg_m3 >= 100 && ts.density_kg_m3 <= 22600)) {
+      std::ostringstream m;
+      m << where << ": density_kg_m3 " << ts.density_kg_m3
+        << " is no tissue's (100 to 22 600 kg/m^3, a tenth of water's up to osmium's)";
+      if (ts.density_kg_m3 >= 0.1 && ts.density_kg_m3 < 22.6)
+        m << "; " << ts.density_kg_m3 << " g/cm^3 is " << ts.density_kg_m3 * 1000 << " kg/m^3";
+      throw Error(path, m.str());
+    }
     if (!e.contains("layer") || !e["layer"].is_string() || !layers.count(e["layer"].get<std::string>()))
       throw Error(path, where + ": 'layer' must be one of tetra, lattice, rigid, vessel, none");
     ts.layer = e["layer"];

@@ -66,6 +66,14 @@ TEST(Tissues, JsonRoundTrip) {
 TEST(Tissues, RejectsBadTables) {
   expect_error("{", "not valid JSON");
   expect_error(replace(kGood, "\"density_kg_m3\": 950", "\"density_kg_m3\": -950"), "density_kg_m3 must be > 0");
+  // a unit slip (g/cm^3) and impossible densities were taken, making every node's mass 1000x off
+  expect_error(replace(kGood, "\"density_kg_m3\": 950", "\"density_kg_m3\": 0.95"),
+               "tissue 'fat': density_kg_m3 0.95 is no tissue's (100 to 22 600 kg/m^3, a tenth of water's up to osmium's); "
+               "0.95 g/cm^3 is 950 kg/m^3");
+  expect_error(replace(kGood, "\"density_kg_m3\": 950", "\"density_kg_m3\": 0.001"), "density_kg_m3 0.001 is no tissue's");
+  expect_error(replace(kGood, "\"density_kg_m3\": 950", "\"density_kg_m3\": 1e6"), "density_kg_m3 1e+06 is no tissue's");
+  EXPECT_NO_THROW(parse_tissue_table(replace(kGood, "\"density_kg_m3\": 950", "\"density_kg_m3\": 250"), "t.json"))
+      << "inflated lung";
   expect_error(replace(kGood, "\"k2_kpa\": 18.8", "\"k2_kpa\": 0.05"), "k2_kpa must not be smaller");
   expect_error(replace(kGood, "\"turning_strain\": 0.4", "\"turning_strain\": 0"), "turning_strain");
   expect_error(replace(kGood, "\"label\": 2", "\"label\": 1"), "duplicate label 1");
