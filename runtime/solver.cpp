@@ -75,6 +75,8 @@ void ensure_scratch(const Model& m, State& s, bool implicit) {
     if (sc.diag.size() != 2 * n3) sc.diag.assign(2 * n3, 0);
     if (sc.precond.size() != 2 * n3) sc.precond.assign(2 * n3, 0);
     if (sc.attach_f.size() != n3) sc.attach_f.assign(n3, 0);
+    if (sc.spring_block.size() != 6 * ns) sc.spring_block.assign(6 * ns, 0);
+    if (sc.force_sq.size() != n3 / 3) sc.force_sq.assign(n3 / 3, 0);
     for (auto* v : {&sc.rhs, &sc.r, &sc.z, &sc.p, &sc.p_next, &sc.q, &sc.vnew})
       if (v->size() != n3) v->assign(n3, 0);
   }
@@ -313,13 +315,17 @@ Check implicit_substep(const Model& m, State& s, Real t, Real h, const SolverOpt
     }
   }
 
-  // one pass per node over all its springs: elastic force, the matrix row
-  // (diagonal block and one block per neighbour), right-hand side,
-  // preconditioner and initial guess
+  // Two passes over the nodes. The first takes each spring once, at its end
+  // a: its elastic force, energy and block (the geometry shared by a
+  // biphasic pair), kept per spring, and node a's share of its row; the
+  // second gathers the springs at their end b and completes each row, the
+  // right-hand side, preconditioner and initial guess. Each spring was
+  // computed at both ends until 2026-11-26 (the same d = x_b - x_a, so the
+  // same values); every sum is taken in the same order as then, so the
+  // results are bitwise those of before.
   const std::int32_t* a_first = m.a_first.data();
   const std::int32_t* b_first = m.b_first.data();
   const std::int32_t* b_spring = m.b_spring.data();
-  const std::int32_t* sa = m.spring_a.data();
   const std::int32_t* sb = m.spring_b.data();
   const std::int32_t* slot_a = m.slot_a.data();
   const std::int32_t* slot_b = m.slot_b.data();
@@ -339,19 +345,22 @@ Check implicit_substep(const Model& m, State& s, Real t, Real h, const SolverOpt
   Real* D = sc.diag.data();
   Real* O = sc.offdiag.data();
   Real* P = sc.precond.data();
+  Real* fs = sc.fs.data();          // (n_springs x 3) force on end a
+  Real* blk = sc.spring_block.data();  // (n_springs x 6) block
+  Real* fsq = sc.force_sq.data();   // (n_nodes) sum |f|^2 of the node's springs so far
   const Vec3 g{o.gravity[0], o.gravity[1], o.gravity[2]};
   const Real damp = 1 + h * o.mass_damping;
   const bool block = o.preconditioner == Preconditioner::block_jacobi;
   const bool use_warm = o.warm_start;
   for_chunks(m, [&](int ch) {
-    Real u = 0, b2 = 0, t2 = 0;
+    Real u = 0;
     for (std::int32_t i = chunk_begin(m, ch), e = chunk_end(m, ch); i < e; ++i) {
       const Vec3 xi = load3(x, i);
       Vec3 fi{};
       Real fs2 = 0;
       Sym3 Di;
       for (std::int32_t kk = nbr_first[i]; kk < nbr_first[i + 1]; ++kk) sym_store(O, kk, Sym3{});
-      // springs are sorted by (a, b): a biphasic pair is adjacent in both lists and shares its geometry
+      // springs are sorted by (a, b): a biphasic pair is adjacent and shares its geometry
       std::int32_t prev = -1;
       SpringGeometry geo{};
       for (std::int32_t q = a_first[i], qe = a_first[i + 1]; q < qe; ++q) {
@@ -360,24 +369,34 @@ Check implicit_substep(const Model& m, State& s, Real t, Real h, const SolverOpt
           geo = spring_geometry(load3(x, prev) - xi, Vec3{});
         }
         const SpringForceBlock sf = spring_force_block(geo, rest[q], k[q], c[q], ten[q] != 0, h);
+        store3(fs, q, sf.f);
+        sym_store(blk, q, sf.block);
         fi += sf.f;
         fs2 += dot(sf.f, sf.f);
         u += sf.energy;
         Di += sf.block;
         sym_add(O, slot_a[q], sf.block);
       }
-      prev = -1;
+      store3(f, i, fi);
+      fsq[i] = fs2;
+      sym_store(D, i, Di);
+    }
+    partial[ch * kPad] = u;
+  });
+  for_chunks(m, [&](int ch) {
+    Real b2 = 0, t2 = 0;
+    for (std::int32_t i = chunk_begin(m, ch), e = chunk_end(m, ch); i < e; ++i) {
+      Vec3 fi = load3(f, i);
+      Real fs2 = fsq[i];
+      Sym3 Di = sym_at(D, i);
       for (std::int32_t qq = b_first[i], qe = b_first[i + 1]; qq < qe; ++qq) {
         const std::int32_t q = b_spring[qq];
-        if (sa[q] != prev) {
-          prev = sa[q];
-          geo = spring_geometry(xi - load3(x, prev), Vec3{});
-        }
-        const SpringForceBlock sf = spring_force_block(geo, rest[q], k[q], c[q], ten[q] != 0, h);
-        fi -= sf.f;
-        fs2 += dot(sf.f, sf.f);
-        Di += sf.block;
-        sym_add(O, slot_b[q], sf.block);
+        const Vec3 fq = load3(fs, q);
+        const Sym3 bq = sym_at(blk, q);
+        fi -= fq;
+        fs2 += dot(fq, fq);
+        Di += bq;
+        sym_add(O, slot_b[q], bq);
       }
       fi += load3(fext, i);
       if (w[i] == 0) {
@@ -410,7 +429,6 @@ Check implicit_substep(const Model& m, State& s, Real t, Real h, const SolverOpt
       t2 += dot(mv, mv) + h * h * (fs2 + dot(fe, fe) + dot(fa, fa) + dot(mg, mg));
       store3(vnew, i, use_warm ? vi + load3(warm, i) : vi);
     }
-    partial[ch * kPad] = u;
     partial[ch * kPad + 1] = b2;
     partial[ch * kPad + 2] = t2;
   });

@@ -68,6 +68,8 @@ struct Scratch {
   std::vector<Real> partial;   // (n_chunks x 4) per-chunk partial sums
   std::vector<Real> attach_k;  // (n_nodes) N/m: spring-attachment stiffness per node
   std::vector<Real> attach_f;  // (n_nodes x 3) N: spring-attachment forces of the substep (implicit)
+  std::vector<Real> spring_block;  // (n_springs x 6) implicit: each spring's matrix block, computed at its end a
+  std::vector<Real> force_sq;      // (n_nodes) implicit: sum of |f|^2 over a node's springs (the residual's scale)
 };
 
 struct State {

@@ -46,7 +46,9 @@ Model stress_model(const StressCase& c, const StressSize& size) {
   o.turning_strain[0] = 0.02;
   o.density.assign(nc, 1000);
   o.names.clear();
-  for (int s = 0; s < size.layers; ++s) o.names.push_back("l" + std::to_string(s));
+  // (appended, not "l" + std::to_string(s): GCC 12 warns -Wrestrict on that
+  // operator+, a false positive, GCC bug 105329)
+  for (int s = 0; s < size.layers; ++s) o.names.push_back(std::string("l").append(std::to_string(s)));
   o.damping_ratio = 0.02;
   const LayeredBlock b = make_layered_block(o);
 
