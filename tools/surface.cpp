@@ -43,7 +43,7 @@ void add_surface_command(CLI::App& app) {
     std::string labels, out, model, tissues, tissue_table, decimation = "lindstrom-turk";
     std::int64_t target_faces = 0;
     int smooth_iterations = 10, threads = 0;
-    double sigma = 0.7, lambda = 0.5, mu = -0.53, nest_clearance = 0.1;
+    double sigma = 0.7, lambda = 0.5, mu = -0.53, nest_clearance = 0.1, min_component_voxels = SurfaceOptions{}.min_component_voxels;
     bool no_fill_holes = false, no_self_check = false;
     CommonOptions common;
   };
@@ -68,6 +68,9 @@ void add_surface_command(CLI::App& app) {
                   "keep each nested surface this far inside its parent's, in voxels of the smallest spacing")
       ->capture_default_str();
   sub->add_flag("--no-fill-holes", a.no_fill_holes, "keep pockets the tissue encloses out of its solid");
+  sub->add_option("--min-component-voxels", a.min_component_voxels,
+                  "drop surface components enclosing fewer voxels (noise specks; the largest is kept; 0: keep all)")
+      ->capture_default_str();
   sub->add_flag("--no-self-intersection-check", a.no_self_check, "skip the CGAL self-intersection count");
   sub->add_option("--threads", a.threads, "worker threads (0: all cores)")->capture_default_str();
   add_common_options(sub, a.common);
@@ -83,6 +86,7 @@ void add_surface_command(CLI::App& app) {
     o.fill_holes = !a.no_fill_holes;
     o.check_self_intersections = !a.no_self_check;
     o.nest_clearance_vox = a.nest_clearance;
+    o.min_component_voxels = a.min_component_voxels;
     if (a.decimation == "lindstrom-turk") o.decimation = DecimationCost::lindstrom_turk;
     else if (a.decimation == "garland-heckbert") o.decimation = DecimationCost::garland_heckbert;
     else throw UsageError("--decimation: expected lindstrom-turk or garland-heckbert, got '" + a.decimation + "'");
@@ -229,6 +233,8 @@ void add_surface_command(CLI::App& app) {
         m.solid_voxels = before.solid_voxels;
         m.filled_voxels = before.filled_voxels;
         m.smooth_volume_change = before.smooth_volume_change;
+        m.dropped_components = before.dropped_components;
+        m.dropped_volume_m3 = before.dropped_volume_m3;
         m.solid_s = before.solid_s, m.field_s = before.field_s, m.extract_s = before.extract_s;
         m.smooth_s = before.smooth_s, m.decimate_s = before.decimate_s;
         m.check_s = before.check_s + std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
@@ -301,6 +307,8 @@ void add_surface_command(CLI::App& app) {
                                 {"smooth_volume_change", m.smooth_volume_change},
                                 {"euler", m.euler},
                                 {"components", m.components},
+                                {"dropped_components", m.dropped_components},
+                                {"dropped_volume_m3", m.dropped_volume_m3},
                                 {"closed", m.closed},
                                 {"manifold", m.manifold},
                                 {"outward", m.outward},

@@ -16,9 +16,11 @@
 #include <climits>
 #include <cmath>
 #include <cstring>
+#include <map>
 #include <memory>
 #include <numeric>
 #include <optional>
+#include <set>
 #include <stdexcept>
 
 #if defined(__linux__)
@@ -264,6 +266,68 @@ class LabelSet {
   std::array<std::uint8_t, 256> lut_{};
   std::vector<std::uint8_t> list_;
 };
+
+// Drops the edge-connected components of s that enclose less than
+// min_volume (|signed volume|, m^3), never the largest; compacts the
+// vertices (and their per-vertex flags `fixed`, when sized to them).
+void drop_small_components(Surface& s, std::vector<std::uint8_t>& fixed, double min_volume, int& dropped,
+                           double& dropped_volume) {
+  const Eigen::Index nv = s.vertices.rows(), nf = s.faces.rows();
+  std::vector<std::int32_t> parent(static_cast<std::size_t>(nv));
+  for (Eigen::Index i = 0; i < nv; ++i) parent[static_cast<std::size_t>(i)] = static_cast<std::int32_t>(i);
+  auto find = [&](std::int32_t x) {
+    while (parent[static_cast<std::size_t>(x)] != x) x = parent[static_cast<std::size_t>(x)] = parent[static_cast<std::size_t>(parent[static_cast<std::size_t>(x)])];
+    return x;
+  };
+  for (Eigen::Index f = 0; f < nf; ++f)
+    for (int k = 1; k < 3; ++k) {
+      const std::int32_t a = find(s.faces(f, 0)), b = find(s.faces(f, k));
+      if (a != b) parent[static_cast<std::size_t>(std::max(a, b))] = std::min(a, b);
+    }
+  // signed volume per component (divergence theorem)
+  std::map<std::int32_t, double> volume;
+  for (Eigen::Index f = 0; f < nf; ++f) {
+    const Eigen::Vector3d a = s.vertices.row(s.faces(f, 0)), b = s.vertices.row(s.faces(f, 1)), c = s.vertices.row(s.faces(f, 2));
+    volume[find(s.faces(f, 0))] += a.dot(b.cross(c)) / 6;
+  }
+  if (volume.size() < 2) return;
+  std::int32_t largest = volume.begin()->first;
+  for (const auto& [r, vol] : volume)
+    if (std::abs(vol) > std::abs(volume[largest])) largest = r;
+  std::set<std::int32_t> drop;
+  for (const auto& [r, vol] : volume)
+    if (r != largest && std::abs(vol) < min_volume) {
+      drop.insert(r);
+      ++dropped;
+      dropped_volume += std::abs(vol);
+    }
+  if (drop.empty()) return;
+  std::vector<std::int32_t> id(static_cast<std::size_t>(nv), -1);
+  std::int32_t n = 0;
+  for (Eigen::Index i = 0; i < nv; ++i)
+    if (!drop.count(find(static_cast<std::int32_t>(i)))) id[static_cast<std::size_t>(i)] = n++;
+  MatX3d vertices(n, 3);
+  std::vector<std::uint8_t> kept_fixed;
+  const bool flags = fixed.size() == static_cast<std::size_t>(nv);
+  if (flags) kept_fixed.resize(static_cast<std::size_t>(n));
+  for (Eigen::Index i = 0; i < nv; ++i) {
+    const std::int32_t j = id[static_cast<std::size_t>(i)];
+    if (j < 0) continue;
+    vertices.row(j) = s.vertices.row(i);
+    if (flags) kept_fixed[static_cast<std::size_t>(j)] = fixed[static_cast<std::size_t>(i)];
+  }
+  Eigen::Index kept = 0;
+  for (Eigen::Index f = 0; f < nf; ++f) kept += id[static_cast<std::size_t>(s.faces(f, 0))] >= 0;
+  MatX3i faces(kept, 3);
+  for (Eigen::Index f = 0, w = 0; f < nf; ++f) {
+    if (id[static_cast<std::size_t>(s.faces(f, 0))] < 0) continue;
+    for (int k = 0; k < 3; ++k) faces(w, k) = id[static_cast<std::size_t>(s.faces(f, k))];
+    ++w;
+  }
+  s.vertices = std::move(vertices);
+  s.faces = std::move(faces);
+  if (flags) fixed = std::move(kept_fixed);
+}
 
 // The solid's indicator on the padded grid, holes filled. Hole filling works
 // on runs: the maximal x-runs of non-solid voxels of every row, joined by a
@@ -807,6 +871,8 @@ void validate(const SurfaceOptions& o) {
   if (o.target_faces > 0 && o.target_faces < 4) bad("target-faces: must be 0 (keep all) or >= 4, got " + std::to_string(o.target_faces));
   if (!(o.nest_clearance_vox >= 0 && o.nest_clearance_vox <= 1))
     bad("nest-clearance: must be in [0, 1] voxels, got " + std::to_string(o.nest_clearance_vox));
+  if (!(o.min_component_voxels >= 0 && std::isfinite(o.min_component_voxels)))
+    bad("min-component-voxels: must be >= 0 and finite, got " + std::to_string(o.min_component_voxels));
 }
 
 std::string surface_parameters_json(const SurfaceOptions& o) {
@@ -824,6 +890,7 @@ std::string surface_parameters_json(const SurfaceOptions& o) {
   j["bounded_normal_change"] = o.bounded_normal_change;
   j["check_self_intersections"] = o.check_self_intersections;
   j["nest_clearance_vox"] = o.nest_clearance_vox;
+  j["min_component_voxels"] = o.min_component_voxels;
   return j.dump();
 }
 
@@ -1259,6 +1326,9 @@ SurfaceResult extract_surface(const Volume& v, const std::vector<int>& solid_lab
     m.extract_s = since(t0);
   }
   if (s.faces.rows() == 0) throw Error("", "the solid has no surface at this iso level (smoothed away)");
+  if (o.min_component_voxels > 0)
+    drop_small_components(s, fixed, o.min_component_voxels * v.spacing_m[0] * v.spacing_m[1] * v.spacing_m[2],
+                          m.dropped_components, m.dropped_volume_m3);
   m.extracted_faces = s.faces.rows();
 
   t0 = Clock::now();
