@@ -31,6 +31,7 @@
 #include <cstring>
 #include <filesystem>
 #include <fstream>
+#include <functional>
 #include <iostream>
 #include <map>
 #include <optional>
@@ -305,12 +306,16 @@ int run_pipeline(Args a) {
     if (t.layer == "vessel") vessels.push_back(t.name);
   }
   if (layered.size() < 2) throw Error(a.tissues, "the pipeline needs at least two layered tissues (tetra, lattice or rigid)");
-  for (const auto& l : scene.layers)
-    if (std::find(layered.begin(), layered.end(), l) == layered.end())
-      throw Error(a.scene, "layer '" + l + "' is not a layered tissue of " + a.tissues);
-  for (const auto& v : scene.vessels)
-    if (std::find(vessels.begin(), vessels.end(), v) == vessels.end())
-      throw Error(a.scene, "vessel '" + v + "' is not a vessel tissue of " + a.tissues);
+  // the layers and vessels a --scene names must be among them; why(kind, name) says why one is not
+  auto require_scene_needs = [&](const std::function<std::string(const std::string&, const std::string&)>& why) {
+    for (const auto& l : scene.layers)
+      if (std::find(layered.begin(), layered.end(), l) == layered.end()) throw Error(a.scene, why("layer", l));
+    for (const auto& v : scene.vessels)
+      if (std::find(vessels.begin(), vessels.end(), v) == vessels.end()) throw Error(a.scene, why("vessel", v));
+  };
+  require_scene_needs([&](const std::string& kind, const std::string& name) {
+    return kind + " '" + name + "' is not a " + (kind == "layer" ? "layered" : "vessel") + " tissue of " + a.tissues;
+  });
 
   const std::string stack_hash = hash_path(a.stack), table_hash = hash_path(a.tissues);
   Runner run(a, report);
@@ -354,12 +359,9 @@ int run_pipeline(Args a) {
       if (layered.size() < 2)
         throw Error(a.stack, "the segmented stack shows " + std::to_string(layered.size()) +
                                  " layered tissue(s) of " + a.tissues + "; the layers need at least two");
-      for (const auto& l : scene.layers)
-        if (std::find(layered.begin(), layered.end(), l) == layered.end())
-          throw Error(a.scene, "layer '" + l + "': no voxel of it was segmented in " + a.stack);
-      for (const auto& t : scene.vessels)
-        if (std::find(vessels.begin(), vessels.end(), t) == vessels.end())
-          throw Error(a.scene, "vessel '" + t + "': no voxel of it was segmented in " + a.stack);
+      require_scene_needs([&](const std::string& kind, const std::string& name) {
+        return kind + " '" + name + "': no voxel of it was segmented in " + a.stack;
+      });
     }
 
     // 2. vessels: they read only the labels, so they run in a child process
