@@ -71,9 +71,11 @@ std::vector<std::array<std::uint8_t, 3>> colours(const json& j, const std::strin
     if (!c.is_array() || c.size() != 3) throw Error(path, where + ": each rgb prototype needs 3 values");
     std::array<std::uint8_t, 3> rgb{};
     for (int k = 0; k < 3; ++k) {
-      if (!c[k].is_number_integer() || c[k].get<int>() < 0 || c[k].get<int>() > 255)
-        throw Error(path, where + ": rgb values must be integers in 0..255");
-      rgb[k] = static_cast<std::uint8_t>(c[k].get<int>());
+      // read as 64 bits: an int read wrapped 4294967522 to 226, which was taken
+      if (!c[k].is_number_integer() || (c[k].is_number_unsigned() && c[k].get<std::uint64_t>() > 255) ||
+          c[k].get<std::int64_t>() < 0 || c[k].get<std::int64_t>() > 255)
+        throw Error(path, where + ": rgb values must be integers in 0..255, not " + c[k].dump());
+      rgb[k] = static_cast<std::uint8_t>(c[k].get<std::int64_t>());
     }
     out.push_back(rgb);
   }
@@ -83,7 +85,8 @@ std::vector<std::array<std::uint8_t, 3>> colours(const json& j, const std::strin
 Mechanics parse_mechanics(const json& m, const std::string& path, const std::string& where) {
   Mechanics out;
   if (!m.is_object()) throw Error(path, where + ": 'mechanics' must be an object");
-  if (!m.contains("model") || !m["model"].is_string()) throw Error(path, where + ": mechanics needs a 'model'");
+  if (!m.contains("model")) throw Error(path, where + ": mechanics needs a 'model'");
+  if (!m["model"].is_string()) throw Error(path, where + ": mechanics 'model' must be \"linear\" or \"biphasic\", not " + m["model"].dump());
   const std::string model = m["model"];
   const std::string w = where + " mechanics";
   if (model == "biphasic") {
@@ -159,6 +162,8 @@ TissueTable parse_tissue_table(const std::string& text, const std::string& path)
       throw Error(path, "a tissue has no name");
     Tissue ts;
     ts.name = e["name"];
+    if (ts.name == t.background_name)
+      throw Error(path, "tissue '" + ts.name + "' has the background's name (label 0 is the background; rename the tissue)");
     const std::string where = "tissue '" + ts.name + "'";
     check_keys(e, {"name", "label", "rgb", "density_kg_m3", "layer", "inside", "mechanics", "source", "note"},
                path, where);

@@ -306,6 +306,19 @@ int run_pipeline(Args a) {
     if (t.layer == "vessel") vessels.push_back(t.name);
   }
   if (layered.size() < 2) throw Error(a.tissues, "the pipeline needs at least two layered tissues (tetra, lattice or rigid)");
+  // The layers nest: each layered tissue after the outermost lies, through its
+  // 'inside' chain, in one before it. A second outermost one ('inside': null)
+  // failed in the build with an error against a file in the cache.
+  for (std::size_t i = 1; i < layered.size(); ++i) {
+    bool nested = false;
+    for (const Tissue* t = table.find(layered[i]); t && !t->inside.empty() && !nested; t = table.find(t->inside))
+      nested = std::find(layered.begin(), layered.begin() + static_cast<std::ptrdiff_t>(i), t->inside) !=
+               layered.begin() + static_cast<std::ptrdiff_t>(i);
+    if (!nested)
+      throw Error(a.tissues, "layered tissue '" + layered[i] + "' lies inside none of the layered tissues outside it (" +
+                                 layered[0] + (i > 1 ? " ... " + layered[i - 1] : std::string()) +
+                                 "): the layers nest one in another; give it the tissue it lies in ('inside')");
+  }
   // the layers and vessels a --scene names must be among them; why(kind, name) says why one is not
   auto require_scene_needs = [&](const std::function<std::string(const std::string&, const std::string&)>& why) {
     for (const auto& l : scene.layers)
@@ -338,6 +351,15 @@ int run_pipeline(Args a) {
       const Volume v = ModelReader(labels).volume();
       std::vector<std::int64_t> count(256, 0);
       for (std::uint8_t l : v.labels) ++count[l];
+      // the segment stage's calibration samples per tissue: a tissue whose colour
+      // was found but has no voxel left lost them to the clean-up (a wrong 'inside')
+      std::map<std::string, std::int64_t> samples;
+      try {
+        const json rep = json::parse(std::ifstream(seg.dir + "/report.json"));
+        for (const auto& pr : rep.at("metrics").at("prototypes")) samples[pr.at("tissue").get<std::string>()] += pr.at("samples").get<std::int64_t>();
+      } catch (const std::exception&) {
+        // a report without prototypes: the warning cannot tell the two causes apart
+      }
       json absent = json::array();
       auto present = [&](std::vector<std::string>& names) {
         std::vector<std::string> kept;
@@ -348,8 +370,16 @@ int run_pipeline(Args a) {
             continue;
           }
           absent.push_back(t);
-          std::cerr << "orthosim pipeline: warning: " << a.stack << ": no voxel was segmented as '" << t
-                    << "' (tissue table " << a.tissues << "); it is left out\n";
+          const auto found = samples.find(t);
+          if (found != samples.end() && found->second > 0)
+            std::cerr << "orthosim pipeline: warning: " << a.stack << ": no voxel of '" << t
+                      << "' is left after segmentation: its colour was found (" << found->second
+                      << " calibration samples), but the clean-up gave its voxels to the tissues around them (does its "
+                         "'inside' in "
+                      << a.tissues << " name the tissue it lies in?); it is left out\n";
+          else
+            std::cerr << "orthosim pipeline: warning: " << a.stack << ": no voxel was segmented as '" << t
+                      << "' (its colour does not appear in the slices; tissue table " << a.tissues << "); it is left out\n";
         }
         names = kept;
       };

@@ -66,6 +66,11 @@ TEST(Tissues, JsonRoundTrip) {
 TEST(Tissues, RejectsBadTables) {
   expect_error("{", "not valid JSON");
   expect_error(replace(kGood, "\"density_kg_m3\": 950", "\"density_kg_m3\": -950"), "density_kg_m3 must be > 0");
+  // an rgb value beyond 32 bits was read wrapped (4294967522 -> 226) and taken; a tissue could take the background's name
+  expect_error(replace(kGood, "[230, 200, 120]", "[4294967526, 200, 120]"), "rgb values must be integers in 0..255, not 4294967526");
+  expect_error(replace(kGood, "[230, 200, 120]", "[-1, 200, 120]"), "rgb values must be integers in 0..255");
+  expect_error(replace(kGood, "\"name\": \"fat\"", "\"name\": \"background\""), "tissue 'background' has the background's name");
+  expect_error(replace(kGood, "\"model\": \"linear\"", "\"model\": 3"), "mechanics 'model' must be \"linear\" or \"biphasic\", not 3");
   // a unit slip (g/cm^3) and impossible densities were taken, making every node's mass 1000x off
   expect_error(replace(kGood, "\"density_kg_m3\": 950", "\"density_kg_m3\": 0.95"),
                "tissue 'fat': density_kg_m3 0.95 is no tissue's (100 to 22 600 kg/m^3, a tenth of water's up to osmium's); "

@@ -250,7 +250,7 @@ TEST(Pipeline, TissuesTheSlicesDoNotShowAreLeftOut) {
   EXPECT_EQ(test::count_lines(r.err), 2) << r.err;
   for (const char* name : {"tendon", "nerve"})
     EXPECT_NE(r.err.find("orthosim pipeline: warning: " + s.stack + ": no voxel was segmented as '" + name +
-                         "' (tissue table " + table + "); it is left out"),
+                         "' (its colour does not appear in the slices; tissue table " + table + "); it is left out"),
               std::string::npos)
         << r.err;
   EXPECT_EQ(nlohmann::json::parse(test::read_file(rep))["metrics"]["absent_tissues"],
@@ -267,6 +267,18 @@ TEST(Pipeline, TissuesTheSlicesDoNotShowAreLeftOut) {
             std::string::npos)
       << bad.err;
   EXPECT_FALSE(fs::exists(s.dir / "extra2.h5"));
+  // a tissue whose colour is there but whose voxels the clean-up gave away (marrow put inside
+  // the skin: not in contact with it, absorbed by the bone) is told apart from one never seen
+  nlohmann::json m2 = nlohmann::json::parse(test::read_file(s.tissues));
+  for (auto& e : m2["tissues"])
+    if (e["name"] == "marrow") e["inside"] = "skin";
+  const std::string moved = s.dir / "marrow_in_skin.json";
+  test::write_file(moved, m2.dump(2));
+  const auto rm = test::run_cli("pipeline --stack " + s.stack + " --tissues " + moved + " --spacing 0.75,0.75,3 --work " +
+                                (s.dir / "work") + " --no-texture --no-tune --quiet --out " + (s.dir / "extra3.h5"));
+  ASSERT_EQ(rm.code, 0) << rm.err;
+  EXPECT_NE(rm.err.find("no voxel of 'marrow' is left after segmentation: its colour was found ("), std::string::npos) << rm.err;
+  EXPECT_NE(rm.err.find("does its 'inside' in " + moved + " name the tissue it lies in?"), std::string::npos) << rm.err;
 }
 
 TEST(Pipeline, ExportGathersEveryStagesOutputs) {
@@ -332,6 +344,21 @@ TEST(Pipeline, BadFlags) {
   EXPECT_FALSE(fs::exists(s.dir / "x.h5"));
   r = test::run_cli("pipeline --stack " + (s.dir / "nope") + " --tissues " + s.tissues + " --spacing 1,1,1 --out " + (s.dir / "x.h5"));
   EXPECT_EQ(r.code, 2);
+  EXPECT_FALSE(fs::exists(s.dir / "x.h5"));
+  // a second outermost layered tissue: refused before any stage, naming the table (it failed in
+  // the build stage, naming a model file in the cache)
+  nlohmann::json t = nlohmann::json::parse(test::read_file(s.tissues));
+  for (auto& e : t["tissues"])
+    if (e["name"] == "fat") e["inside"] = nullptr;
+  const std::string table = s.dir / "two_roots.json";
+  test::write_file(table, t.dump(2));
+  r = test::run_cli("pipeline --stack " + s.stack + " --tissues " + table + " --spacing 0.75,0.75,3 --work " + (s.dir / "work") +
+                    " --out " + (s.dir / "x.h5") + " --no-texture --no-tune --quiet");
+  EXPECT_EQ(r.code, 2);
+  EXPECT_EQ(test::count_lines(r.err), 1) << r.err;
+  EXPECT_NE(r.err.find("orthosim pipeline: error: " + table + ": layered tissue 'fat' lies inside none of the layered tissues outside it (skin)"),
+            std::string::npos)
+      << r.err;
   EXPECT_FALSE(fs::exists(s.dir / "x.h5"));
 }
 
