@@ -215,6 +215,12 @@ ToolDef parse_tool(const json& j, std::size_t index, const std::string& file) {
         t.path.t.push_back(tt);
         for (int k = 1; k < 4; ++k) t.path.p.push_back(e[k].get<Real>());
       }
+      // A pull grips its nodes where they are at its start and moves them by the
+      // path's change since then: one waypoint moves nothing (it was run so,
+      // the grip held at rest, without a word).
+      if (t.type == ToolType::pull && t.path.t.size() == 1)
+        o.fail("a pull's path needs at least two waypoints [t, dx, dy, dz]: the grip moves its nodes by the path's "
+               "change since the tool's start, so one waypoint moves nothing");
     }
   }
   if (t.type == ToolType::pressure) {

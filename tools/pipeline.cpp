@@ -369,17 +369,20 @@ int run_pipeline(Args a) {
             kept.push_back(t);
             continue;
           }
-          absent.push_back(t);
+          // Its colour was found but no voxel is left: the model would lack a tissue the
+          // slices show. That is an error (a wrong 'inside', or a segmentation that
+          // collapsed: at 8-bit noise 24 the vein's prototype took the gel and the
+          // clean-up gave the skin away), not a tissue to leave out.
           const auto found = samples.find(t);
           if (found != samples.end() && found->second > 0)
-            std::cerr << "orthosim pipeline: warning: " << a.stack << ": no voxel of '" << t
-                      << "' is left after segmentation: its colour was found (" << found->second
-                      << " calibration samples), but the clean-up gave its voxels to the tissues around them (does its "
-                         "'inside' in "
-                      << a.tissues << " name the tissue it lies in?); it is left out\n";
-          else
-            std::cerr << "orthosim pipeline: warning: " << a.stack << ": no voxel was segmented as '" << t
-                      << "' (its colour does not appear in the slices; tissue table " << a.tissues << "); it is left out\n";
+            throw Error(a.stack, "no voxel of '" + t + "' is left after segmentation, though its colour was found (" +
+                                     std::to_string(found->second) +
+                                     " calibration samples): the clean-up gave its voxels to the tissues around them; "
+                                     "check its 'inside' in " + a.tissues +
+                                     " and the segment report (prototypes' shifts, cleanup) in " + seg.dir);
+          absent.push_back(t);
+          std::cerr << "orthosim pipeline: warning: " << a.stack << ": no voxel was segmented as '" << t
+                    << "' (its colour does not appear in the slices; tissue table " << a.tissues << "); it is left out\n";
         }
         names = kept;
       };

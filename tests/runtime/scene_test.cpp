@@ -114,6 +114,9 @@ TEST_F(SceneTest, BadScenesAreOneLineErrorsBeforeAnyStep) {
        "direction must be a non-zero"},
       {R"({"model": "model.h5", "tools": [{"type": "pull", "center": [0, 0, 0], "radius": 0.01, "path": [[1, 0, 0, 0], [0.5, 0, 0, 0]]}]})",
        "path times must be >= 0 and increasing"},
+      // one waypoint moved nothing (the grip held at rest, silently)
+      {R"({"model": "model.h5", "tools": [{"type": "pull", "center": [0, 0, 0], "radius": 0.01, "path": [[0, 0.02, 0, 0]]}]})",
+       "a pull's path needs at least two waypoints"},
       {R"({"model": "model.h5", "damping": {"mass": -1}})", "mass must be a finite number"},
       {R"({"model": "model.h5", "output": {"every": 3}})", "missing dir"},
       {R"({"model": "model.h5",)", "invalid JSON"},
