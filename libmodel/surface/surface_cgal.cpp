@@ -258,6 +258,76 @@ NestingResult enforce_nesting(Surface& inner, const Surface& outer, double clear
     move[u] += (at - start).norm();
     inner.vertices.row(i) = at.transpose();
   }
+  // Untangle. Neighbouring vertices moved onto the closest points of a curved
+  // outer surface can fold the inner one over itself: the phantom at noise 4
+  // on 1.2 x 0.8 x 3.5 mm voxels left 6 intersecting face pairs in the bone
+  // after its 531 vertices were moved inside the muscle. Where faces within two
+  // rings of a moved vertex intersect, the vertices of those faces and their
+  // neighbours are relaxed (each to the mean of its neighbours), kept inside
+  // (the move above again), in rounds until none intersect (at most 20). Only
+  // surfaces with such a fold change.
+  if (std::find(moved.begin(), moved.end(), 1) != moved.end()) {
+    std::vector<std::vector<std::int32_t>> ring(static_cast<std::size_t>(n));
+    std::vector<std::vector<std::int32_t>> vface(static_cast<std::size_t>(n));
+    for (Eigen::Index f = 0; f < inner.faces.rows(); ++f)
+      for (int k = 0; k < 3; ++k) {
+        const std::int32_t a = inner.faces(f, k), b = inner.faces(f, (k + 1) % 3);
+        ring[static_cast<std::size_t>(a)].push_back(b);
+        ring[static_cast<std::size_t>(b)].push_back(a);
+        vface[static_cast<std::size_t>(a)].push_back(static_cast<std::int32_t>(f));
+      }
+    for (auto& r : ring) {
+      std::sort(r.begin(), r.end());
+      r.erase(std::unique(r.begin(), r.end()), r.end());
+    }
+    // the faces within two rings of the moved vertices
+    std::vector<std::uint8_t> near(static_cast<std::size_t>(n), 0);
+    for (Eigen::Index i = 0; i < n; ++i)
+      if (moved[static_cast<std::size_t>(i)]) {
+        near[static_cast<std::size_t>(i)] = 1;
+        for (auto j : ring[static_cast<std::size_t>(i)]) {
+          near[static_cast<std::size_t>(j)] = 1;
+          for (auto k : ring[static_cast<std::size_t>(j)]) near[static_cast<std::size_t>(k)] = 1;
+        }
+      }
+    for (int round = 0; round < 20; ++round) {
+      const Mesh im = to_mesh(inner, "nesting");
+      std::vector<Mesh::Face_index> range;
+      for (auto f : im.faces()) {
+        bool any = false;
+        for (auto v : CGAL::vertices_around_face(im.halfedge(f), im)) any = any || near[v.idx()];
+        if (any) range.push_back(f);
+      }
+      std::vector<std::pair<Mesh::Face_index, Mesh::Face_index>> pairs;
+      CGAL::Polygon_mesh_processing::self_intersections(range, im, std::back_inserter(pairs));
+      res.folds_left = static_cast<std::int64_t>(pairs.size());
+      if (pairs.empty()) break;
+      if (round == 0) res.folds = res.folds_left;
+      ++res.untangle_rounds;
+      std::vector<std::uint8_t> relax(static_cast<std::size_t>(n), 0);
+      for (const auto& [f1, f2] : pairs)
+        for (auto f : {f1, f2})
+          for (int k = 0; k < 3; ++k) {
+            const auto v = static_cast<std::size_t>(inner.faces(static_cast<Eigen::Index>(f.idx()), k));
+            relax[v] = 1;
+            for (auto j : ring[v]) relax[static_cast<std::size_t>(j)] = 1;
+          }
+      MatX3d next = inner.vertices;
+      for (Eigen::Index i = 0; i < n; ++i) {
+        const auto u = static_cast<std::size_t>(i);
+        if (!relax[u] || ring[u].empty()) continue;
+        Eigen::RowVector3d mean = Eigen::RowVector3d::Zero();
+        for (auto j : ring[u]) mean += inner.vertices.row(j);
+        next.row(i) = mean / static_cast<double>(ring[u].size());
+      }
+      inner.vertices = next;
+      for (Eigen::Index i = 0; i < n; ++i)
+        if (relax[static_cast<std::size_t>(i)]) {
+          near[static_cast<std::size_t>(i)] = 1;
+          fix(i);
+        }
+    }
+  }
   for (Eigen::Index i = 0; i < n; ++i) {
     const auto u = static_cast<std::size_t>(i);
     if (!moved[u]) continue;
