@@ -16,11 +16,9 @@
 #include <climits>
 #include <cmath>
 #include <cstring>
-#include <map>
 #include <memory>
 #include <numeric>
 #include <optional>
-#include <set>
 #include <stdexcept>
 
 #if defined(__linux__)
@@ -267,45 +265,62 @@ class LabelSet {
   std::vector<std::uint8_t> list_;
 };
 
+// The edge-connected component of every vertex of s: up[v] ends as the
+// smallest vertex id of v's component (union-find over the faces' edges, then
+// every path resolved). up holds s.vertices.rows() entries.
+void vertex_components(const Surface& s, std::int32_t* up) {
+  const Eigen::Index V = s.vertices.rows(), F = s.faces.rows();
+  std::iota(up, up + V, 0);
+  auto find = [&](std::int32_t a) {
+    while (up[a] != a) a = up[a] = up[up[a]];
+    return a;
+  };
+  for (Eigen::Index f = 0; f < F; ++f)
+    for (int k = 0; k < 2; ++k) {
+      const std::int32_t a = find(s.faces(f, k)), b = find(s.faces(f, k + 1));
+      if (a != b) up[std::max(a, b)] = std::min(a, b);
+    }
+  for (Eigen::Index v = 0; v < V; ++v) up[v] = up[up[v]];  // roots are smaller ids: one pass resolves
+}
+
 // Drops the edge-connected components of s that enclose less than
 // min_volume (|signed volume|, m^3), never the largest; compacts the
 // vertices (and their per-vertex flags `fixed`, when sized to them).
 void drop_small_components(Surface& s, std::vector<std::uint8_t>& fixed, double min_volume, int& dropped,
                            double& dropped_volume) {
   const Eigen::Index nv = s.vertices.rows(), nf = s.faces.rows();
-  std::vector<std::int32_t> parent(static_cast<std::size_t>(nv));
-  for (Eigen::Index i = 0; i < nv; ++i) parent[static_cast<std::size_t>(i)] = static_cast<std::int32_t>(i);
-  auto find = [&](std::int32_t x) {
-    while (parent[static_cast<std::size_t>(x)] != x) x = parent[static_cast<std::size_t>(x)] = parent[static_cast<std::size_t>(parent[static_cast<std::size_t>(x)])];
-    return x;
-  };
-  for (Eigen::Index f = 0; f < nf; ++f)
-    for (int k = 1; k < 3; ++k) {
-      const std::int32_t a = find(s.faces(f, 0)), b = find(s.faces(f, k));
-      if (a != b) parent[static_cast<std::size_t>(std::max(a, b))] = std::min(a, b);
-    }
-  // signed volume per component (divergence theorem)
-  std::map<std::int32_t, double> volume;
+  std::vector<std::int32_t> root(static_cast<std::size_t>(nv));
+  vertex_components(s, root.data());
+  // signed volume per component (divergence theorem), indexed by its root
+  std::vector<double> volume(static_cast<std::size_t>(nv), 0.0);
+  std::vector<std::uint8_t> has_face(static_cast<std::size_t>(nv), 0);
   for (Eigen::Index f = 0; f < nf; ++f) {
     const Eigen::Vector3d a = s.vertices.row(s.faces(f, 0)), b = s.vertices.row(s.faces(f, 1)), c = s.vertices.row(s.faces(f, 2));
-    volume[find(s.faces(f, 0))] += a.dot(b.cross(c)) / 6;
+    const auto r = static_cast<std::size_t>(root[static_cast<std::size_t>(s.faces(f, 0))]);
+    volume[r] += a.dot(b.cross(c)) / 6;
+    has_face[r] = 1;
   }
-  if (volume.size() < 2) return;
-  std::int32_t largest = volume.begin()->first;
-  for (const auto& [r, vol] : volume)
-    if (std::abs(vol) > std::abs(volume[largest])) largest = r;
-  std::set<std::int32_t> drop;
-  for (const auto& [r, vol] : volume)
-    if (r != largest && std::abs(vol) < min_volume) {
-      drop.insert(r);
-      ++dropped;
-      dropped_volume += std::abs(vol);
-    }
-  if (drop.empty()) return;
+  std::int32_t largest = -1, components = 0;
+  for (Eigen::Index r = 0; r < nv; ++r) {
+    if (!has_face[static_cast<std::size_t>(r)]) continue;
+    ++components;
+    if (largest < 0 || std::abs(volume[static_cast<std::size_t>(r)]) > std::abs(volume[static_cast<std::size_t>(largest)]))
+      largest = static_cast<std::int32_t>(r);
+  }
+  if (components < 2) return;
+  std::vector<std::uint8_t> drop(static_cast<std::size_t>(nv), 0);
+  for (Eigen::Index r = 0; r < nv; ++r) {
+    const auto u = static_cast<std::size_t>(r);
+    if (!has_face[u] || r == largest || !(std::abs(volume[u]) < min_volume)) continue;
+    drop[u] = 1;
+    ++dropped;
+    dropped_volume += std::abs(volume[u]);
+  }
+  if (std::find(drop.begin(), drop.end(), 1) == drop.end()) return;
   std::vector<std::int32_t> id(static_cast<std::size_t>(nv), -1);
   std::int32_t n = 0;
   for (Eigen::Index i = 0; i < nv; ++i)
-    if (!drop.count(find(static_cast<std::int32_t>(i)))) id[static_cast<std::size_t>(i)] = n++;
+    if (!drop[static_cast<std::size_t>(root[static_cast<std::size_t>(i)])]) id[static_cast<std::size_t>(i)] = n++;
   MatX3d vertices(n, 3);
   std::vector<std::uint8_t> kept_fixed;
   const bool flags = fixed.size() == static_cast<std::size_t>(nv);
@@ -1230,18 +1245,9 @@ SurfaceMetrics check_impl(const Surface& s, const Corners* corners, bool self_in
   m.closed = n.bad_edges == 0 && n.unmatched == 0;
   m.manifold = m.closed && n.bad_fans == 0 && n.isolated == 0;
   m.euler = static_cast<int>(V - n.edges + F);
-  // components (union-find over vertices)
+  // components
   BigArray<std::int32_t> up(static_cast<std::size_t>(V));
-  std::iota(up.data(), up.data() + V, 0);
-  auto find = [&](std::int32_t a) {
-    while (up[static_cast<std::size_t>(a)] != a) a = up[static_cast<std::size_t>(a)] = up[static_cast<std::size_t>(up[static_cast<std::size_t>(a)])];
-    return a;
-  };
-  for (std::int64_t f = 0; f < F; ++f)
-    for (int k = 0; k < 2; ++k) {
-      const std::int32_t a = find(s.faces(f, k)), b = find(s.faces(f, k + 1));
-      if (a != b) up[static_cast<std::size_t>(std::max(a, b))] = std::min(a, b);
-    }
+  vertex_components(s, up.data());
   int comps = 0;
   for (std::int64_t v = 0; v < V; ++v)
     if (up[static_cast<std::size_t>(v)] == v && c.offset[static_cast<std::size_t>(v)] != c.offset[static_cast<std::size_t>(v + 1)]) ++comps;

@@ -76,7 +76,7 @@ Surface from_mesh(const Mesh& m) {
 // surface, that sum is (nearly) singular. Its test for a singular matrix is
 // an exact det == 0, so a nearly singular one is inverted and places the new
 // vertex far along the plane; the bounded-normal-change filter then refuses
-// the collapse, and the run crawls: the demo's skin (75 k faces) had not
+// the collapse, and the run crawls: the demo's skin (365 k faces) had not
 // reached 2 000 faces after 2 minutes, where Lindstrom-Turk takes 2 s (CGAL
 // issue 8988, fixed in CGAL 6.1 by adding line quadrics). Here each face also
 // adds `weight` times the point quadric of its centroid, |x - c|^2, so the
@@ -268,13 +268,11 @@ NestingResult enforce_nesting(Surface& inner, const Surface& outer, double clear
   // surfaces with such a fold change.
   if (std::find(moved.begin(), moved.end(), 1) != moved.end()) {
     std::vector<std::vector<std::int32_t>> ring(static_cast<std::size_t>(n));
-    std::vector<std::vector<std::int32_t>> vface(static_cast<std::size_t>(n));
     for (Eigen::Index f = 0; f < inner.faces.rows(); ++f)
       for (int k = 0; k < 3; ++k) {
         const std::int32_t a = inner.faces(f, k), b = inner.faces(f, (k + 1) % 3);
         ring[static_cast<std::size_t>(a)].push_back(b);
         ring[static_cast<std::size_t>(b)].push_back(a);
-        vface[static_cast<std::size_t>(a)].push_back(static_cast<std::int32_t>(f));
       }
     for (auto& r : ring) {
       std::sort(r.begin(), r.end());
