@@ -18,7 +18,7 @@ namespace orthosim::cli {
 void add_segment_command(CLI::App& app) {
   auto* sub = app.add_subcommand("segment", "classify a colour slice stack into tissue labels (/volume)");
   struct Args {
-    std::string stack, tissues, spacing, origin = "0,0,0", out, nrrd, truth, normalise = "plane", scratch_dir;
+    std::string stack, tissues, spacing, origin = "0,0,0", out, nrrd, truth, normalise = "plane", classify = "mahalanobis", scratch_dir;
     bool no_cleanup = false, no_order = false, no_fill_holes = false;
     int speck_support = 2, calibration_slices = 9, refine_iterations = 8, slab = 8, threads = 0;
     std::int64_t min_island = 64, min_vessel = 4;
@@ -35,6 +35,9 @@ void add_segment_command(CLI::App& app) {
   sub->add_option("--nrrd", a.nrrd, "also write the labels as NRRD (3D Slicer)");
   sub->add_option("--truth", a.truth, "model file with a true /volume: per-tissue Dice in the report");
   sub->add_option("--normalise", a.normalise, "background normalisation: none, gain, plane")->capture_default_str();
+  sub->add_option("--classify", a.classify,
+                  "colour to prototype: mahalanobis (under the calibrated colour spread) or nearest (CIELAB)")
+      ->capture_default_str();
   sub->add_flag("--no-cleanup", a.no_cleanup, "no clean-up at all (order, rank filter, components)");
   sub->add_flag("--no-order", a.no_order, "do not enforce the anatomical order of the table's 'inside'");
   sub->add_flag("--no-fill-holes", a.no_fill_holes, "keep background enclosed by the body");
@@ -49,9 +52,9 @@ void add_segment_command(CLI::App& app) {
       ->capture_default_str();
   sub->add_option("--calibration-slices", a.calibration_slices, "slices used to calibrate the colours")
       ->capture_default_str();
-  sub->add_option("--refine-iterations", a.refine_iterations, "k-means iterations (0: table colours as they are)")
+  sub->add_option("--refine-iterations", a.refine_iterations, "EM iterations of the colour calibration (0: table colours as they are)")
       ->capture_default_str();
-  sub->add_option("--refine-max-shift", a.refine_max_shift, "largest prototype move by k-means, CIE76 units")
+  sub->add_option("--refine-max-shift", a.refine_max_shift, "largest prototype move by the calibration, CIE76 units")
       ->capture_default_str();
   sub->add_option("--lightness-weight", a.lightness_weight, "weight of lightness against chroma")
       ->capture_default_str();
@@ -70,6 +73,9 @@ void add_segment_command(CLI::App& app) {
     else if (a.normalise == "gain") o.normalise = SegmentOptions::Normalise::gain;
     else if (a.normalise == "plane") o.normalise = SegmentOptions::Normalise::plane;
     else throw UsageError("--normalise: expected none, gain or plane, got '" + a.normalise + "'");
+    if (a.classify == "mahalanobis") o.classify = SegmentOptions::Classify::mahalanobis;
+    else if (a.classify == "nearest") o.classify = SegmentOptions::Classify::nearest;
+    else throw UsageError("--classify: expected mahalanobis or nearest, got '" + a.classify + "'");
     o.cleanup = !a.no_cleanup;
     o.enforce_order = !a.no_order;
     o.fill_holes = !a.no_fill_holes;

@@ -388,6 +388,12 @@ std::vector<std::uint8_t> ComponentTracker::resolve(const LabelInfo& info, const
       adj[a][b] += w;
       adj[b][a] += w;
     }
+    // each tissue's largest component before any merge (the first of equals)
+    std::vector<std::uint32_t> largest_of(256, std::uint32_t(-1));
+    for (auto r : roots) {
+      auto& b = largest_of[label_[r]];
+      if (b == std::uint32_t(-1) || size_[r] > size_[b]) b = r;
+    }
     // a component of a nested tissue that touches nothing of its parent's
     // region is out of place (bone in the skin, fat in the gel)
     auto misplaced = [&](std::uint32_t r) {
@@ -420,6 +426,13 @@ std::vector<std::uint8_t> ComponentTracker::resolve(const LabelInfo& info, const
       std::int64_t tw = -1;
       for (const auto& [nb, w] : it->second)
         if (w > tw || (w == tw && size_[nb] > size_[t])) t = nb, tw = w;
+      // a tissue's largest component, out of place but larger than the
+      // neighbour that would take it, stays: then the neighbour is what is
+      // misplaced (shaded fat taken for bone ringing the muscle; absorbing
+      // the muscle into that ring deleted it on the real arm slice), as the
+      // slices' order rule keeps a pocket larger than its outline
+      if (label_[c] != 0 && size_[c] >= o.min_island_voxels && largest_of[label_[c]] == c && size_[c] > size_[t])
+        continue;
       (label_[c] == 0 ? dec.holes_filled : size_[c] < o.min_island_voxels ? dec.islands_absorbed
                                                                            : dec.misplaced_absorbed) += size_[c];
       // merge c into t

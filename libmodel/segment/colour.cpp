@@ -121,7 +121,7 @@ int ColourModel::nearest(const std::array<double, 3>& lab) const {
   int best = 0;
   double bd = 1e300;
   for (std::size_t i = 0; i < centres.size(); ++i) {
-    const double d = dist2(lab, centres[i].lab);
+    const double d = score(lab, i);
     if (d < bd) bd = d, best = static_cast<int>(i);
   }
   return best;
@@ -132,7 +132,7 @@ int ColourModel::nearest_allowed(const std::array<double, 3>& lab, const std::ve
   double bd = 1e300;
   for (std::size_t i = 0; i < centres.size(); ++i) {
     if (!allowed[centres[i].label]) continue;
-    const double d = dist2(lab, centres[i].lab);
+    const double d = score(lab, i);
     if (d < bd) bd = d, best = static_cast<int>(i);
   }
   return best;
@@ -400,8 +400,8 @@ void calibrate(ColourModel& m, const std::vector<std::vector<std::uint8_t>>& sli
     i = j;
   }
 
-  // 3. EM for a mixture of isotropic Gaussians (one per prototype, a shared
-  // variance, mixing weights), seeded by the prototypes, each mean shrunk
+  // 3. EM for a mixture of Gaussians (one per prototype, a shared full
+  // covariance, mixing weights), seeded by the prototypes, each mean shrunk
   // towards its prototype (a conjugate prior of weight n0 samples per
   // prototype), moves clamped. Plain k-means (equal weights, no variance) lets
   // a rare tissue's prototype run off into the noise tail of a common one
@@ -415,56 +415,66 @@ void calibrate(ColourModel& m, const std::vector<std::vector<std::uint8_t>>& sli
   constexpr std::size_t kChunk = 4096;
   const std::size_t chunks = (N + kChunk - 1) / kChunk;
   // per chunk and centre: weighted sums of L, a, b, the weight, and of the
-  // squared distances (for the variance)
-  std::vector<std::vector<std::array<double, 5>>> part(chunks, std::vector<std::array<double, 5>>(C));
+  // products of the deviations from the centre (for the covariance)
+  using Acc = std::array<double, 10>;
+  std::vector<std::vector<Acc>> part(chunks, std::vector<Acc>(C));
   std::vector<double> log_pi(C, 0.0);  // log mixing weights (the first pass: hard, nearest)
-  double inv2var = 0;                  // 1 / (2 sigma^2); 0 before the first pass: hard assignments
+  // the shared covariance's inverse (symmetric: xx, yy, zz, xy, xz, yz);
+  // unused in the first, hard pass
+  std::array<double, 6> P{0, 0, 0, 0, 0, 0};
   auto reduce = [&](std::size_t c) {
-    std::array<double, 5> sum{0, 0, 0, 0, 0};
+    Acc sum{};
     for (std::size_t k = 0; k < chunks; ++k)  // fixed order: deterministic
-      for (int j = 0; j < 5; ++j) sum[j] += part[k][c][j];
+      for (std::size_t j = 0; j < sum.size(); ++j) sum[j] += part[k][c][j];
     return sum;
   };
+  auto accumulate = [](Acc& a, double r, const std::array<double, 3>& x, const std::array<double, 3>& mu) {
+    const double d0 = x[0] - mu[0], d1 = x[1] - mu[1], d2 = x[2] - mu[2];
+    a[0] += r * x[0], a[1] += r * x[1], a[2] += r * x[2], a[3] += r;
+    a[4] += r * d0 * d0, a[5] += r * d1 * d1, a[6] += r * d2 * d2;
+    a[7] += r * d0 * d1, a[8] += r * d0 * d2, a[9] += r * d1 * d2;
+  };
   // pass 0 (when refining): hard nearest assignments to the table's colours
-  // give the first weights and variance and move nothing; passes 1.. are EM
+  // give the first weights and covariance and move nothing; passes 1.. are EM
   for (int it = o.refine_iterations > 0 ? -1 : 0; it < o.refine_iterations; ++it) {
     const bool hard = it < 0;
     tbb::parallel_for(std::size_t(0), chunks, [&](std::size_t k) {
       auto& acc = part[k];
-      for (auto& a : acc) a = {0, 0, 0, 0, 0};
-      std::vector<double> d2(C), lp(C);
+      for (auto& a : acc) a = Acc{};
+      std::vector<double> lp(C);
       for (std::size_t i = k * kChunk; i < std::min(N, (k + 1) * kChunk); ++i) {
         const double w = weight[i];
+        const auto& x = lab[i];
         if (hard) {
-          const int c = m.nearest(lab[i]);
-          auto& a = acc[static_cast<std::size_t>(c)];
-          a[0] += w * lab[i][0], a[1] += w * lab[i][1], a[2] += w * lab[i][2], a[3] += w;
-          a[4] += w * m.dist2(lab[i], m.centres[static_cast<std::size_t>(c)].lab);
+          const auto c = static_cast<std::size_t>(m.nearest(x));
+          accumulate(acc[c], w, x, m.centres[c].lab);
           continue;
         }
         double top = -1e300;
         for (std::size_t c = 0; c < C; ++c) {
-          d2[c] = m.dist2(lab[i], m.centres[c].lab);
-          lp[c] = log_pi[c] - d2[c] * inv2var;
+          const auto& mu = m.centres[c].lab;
+          const double d0 = x[0] - mu[0], d1 = x[1] - mu[1], d2 = x[2] - mu[2];
+          const double q = P[0] * d0 * d0 + P[1] * d1 * d1 + P[2] * d2 * d2 +
+                           2 * (P[3] * d0 * d1 + P[4] * d0 * d2 + P[5] * d1 * d2);
+          lp[c] = log_pi[c] - 0.5 * q;
           top = std::max(top, lp[c]);
         }
         double z = 0;
         for (std::size_t c = 0; c < C; ++c) z += (lp[c] = std::exp(lp[c] - top));
         for (std::size_t c = 0; c < C; ++c) {
           const double r = w * lp[c] / z;
-          if (r == 0) continue;
-          auto& a = acc[c];
-          a[0] += r * lab[i][0], a[1] += r * lab[i][1], a[2] += r * lab[i][2], a[3] += r, a[4] += r * d2[c];
+          if (r != 0) accumulate(acc[c], r, x, m.centres[c].lab);
         }
       }
     });
-    double moved = 0, total = 0, spread = 0;
+    double moved = 0, total = 0;
+    std::array<double, 6> scatter{0, 0, 0, 0, 0, 0};
     std::vector<double> weight_of(C);
     for (std::size_t c = 0; c < C; ++c) {
-      const std::array<double, 5> sum = reduce(c);
+      const Acc sum = reduce(c);
       weight_of[c] = sum[3];
       total += sum[3];
-      spread += sum[4];
+      for (int j = 0; j < 6; ++j) scatter[j] += sum[4 + j];
       if (it < 0) continue;
       Centre& ce = m.centres[c];
       std::array<double, 3> next;
@@ -479,12 +489,27 @@ void calibrate(ColourModel& m, const std::vector<std::vector<std::uint8_t>>& sli
       ce.samples = static_cast<std::int64_t>(std::llround(sum[3]));
     }
     // the mixing weights (with the prior's samples, so none reaches 0) and the
-    // shared variance per axis (floored at 0.25 CIE76 units: 8-bit rounding)
+    // shared covariance, its diagonal floored at 0.25 CIE76 units (8-bit
+    // rounding). A full covariance, not one variance: sensor noise is
+    // isotropic in RGB but not in CIELAB (the blue gel's chroma spreads twice
+    // as wide as its lightness), and with one variance the gel's chroma tail
+    // looked unlikely under the gel and a rare tissue next to it took it (the
+    // vein moved 20 units into the gel at 8-bit noise 20 and the segmentation
+    // collapsed).
     for (std::size_t c = 0; c < C; ++c)
       log_pi[c] = std::log((weight_of[c] + n0 + 1e-300) / (total + static_cast<double>(C) * n0 + 1e-300));
-    const double var = std::max(0.0625, spread / (3 * std::max(total, 1e-300)));
-    inv2var = 1 / (2 * var);
+    Eigen::Matrix3d S;
+    const double inv_total = 1 / std::max(total, 1e-300);
+    S << scatter[0], scatter[3], scatter[4], scatter[3], scatter[1], scatter[5], scatter[4], scatter[5], scatter[2];
+    S *= inv_total;
+    S.diagonal().array() += 0.0625;
+    const Eigen::Matrix3d Pi = S.inverse();
+    P = {Pi(0, 0), Pi(1, 1), Pi(2, 2), Pi(0, 1), Pi(0, 2), Pi(1, 2)};
     if (it >= 0 && moved < 0.01) break;
+  }
+  if (o.classify == SegmentOptions::Classify::mahalanobis && o.refine_iterations > 0) {
+    m.mahalanobis = true;
+    m.precision = P;
   }
   m.reset_table();
 }

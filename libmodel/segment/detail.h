@@ -68,9 +68,22 @@ struct ColourModel {
     const double dl = lab[0] - c[0], da = lab[1] - c[1], db = lab[2] - c[2];
     return wl2 * dl * dl + da * da + db * db;
   }
-  // Nearest centre (first of equals) under dist2.
+  // The Mahalanobis rule (SegmentOptions::Classify::mahalanobis), set by
+  // calibrate(): the inverse of the calibration mixture's shared covariance
+  // (xx, yy, zz, xy, xz, yz). Off: dist2.
+  bool mahalanobis = false;
+  std::array<double, 6> precision{0, 0, 0, 0, 0, 0};
+  // What a centre costs a colour: dist2, or the squared Mahalanobis distance.
+  double score(const std::array<double, 3>& lab, std::size_t i) const {
+    if (!mahalanobis) return dist2(lab, centres[i].lab);
+    const auto& c = centres[i].lab;
+    const auto& P = precision;
+    const double d0 = lab[0] - c[0], d1 = lab[1] - c[1], d2 = lab[2] - c[2];
+    return P[0] * d0 * d0 + P[1] * d1 * d1 + P[2] * d2 * d2 + 2 * (P[3] * d0 * d1 + P[4] * d0 * d2 + P[5] * d1 * d2);
+  }
+  // Best centre (first of equals) under score.
   int nearest(const std::array<double, 3>& lab) const;
-  // Nearest centre whose label is allowed[label] != 0; -1 if none.
+  // Best centre whose label is allowed[label] != 0; -1 if none.
   int nearest_allowed(const std::array<double, 3>& lab, const std::vector<std::uint8_t>& allowed) const;
 
   // nearest(srgb8_to_lab(r, g, b)) through a table over all 2^24 colours,

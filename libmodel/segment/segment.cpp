@@ -40,6 +40,14 @@ const char* to_string(SegmentOptions::Normalise n) {
   return "?";
 }
 
+const char* to_string(SegmentOptions::Classify c) {
+  switch (c) {
+    case SegmentOptions::Classify::nearest: return "nearest";
+    case SegmentOptions::Classify::mahalanobis: return "mahalanobis";
+  }
+  return "?";
+}
+
 void validate(const SegmentOptions& o) {
   auto bad = [](const std::string& m) { throw Error("", m); };
   for (int i = 0; i < 3; ++i) {
@@ -67,6 +75,7 @@ std::string segment_parameters_json(const SegmentOptions& o) {
   j["calibration_slices"] = o.calibration_slices;
   j["sample_stride"] = o.sample_stride;
   j["normalise"] = to_string(o.normalise);
+  j["classify"] = to_string(o.classify);
   j["refine_iterations"] = o.refine_iterations;
   j["refine_prior"] = o.refine_prior;
   j["refine_max_shift"] = o.refine_max_shift;

@@ -8,18 +8,22 @@
 //     read first. Their background (the embedding medium, the table's
 //     background prototypes) gives the stack's reference background colour,
 //     and an EM fit in CIELAB over their pixels (each sample the per-channel
-//     median of its 3 x 3 neighbourhood) of a mixture of isotropic Gaussians
+//     median of its 3 x 3 neighbourhood) of a mixture of Gaussians
 //     seeded by the table's colour prototypes, with mixing weights and a
-//     shared variance, moves each prototype to where its tissue really is in
+//     shared full covariance, moves each prototype to where its tissue really is in
 //     this stack (a Bayesian shrinkage towards the prototype, at most
 //     refine_max_shift CIE76 units away). The table's colours only need to be
 //     roughly right; the weights keep a rare tissue's prototype out of the
-//     noise tail of a common one (plain k-means let it run off there).
+//     noise tail of a common one (plain k-means let it run off there), and
+//     the full covariance follows sensor noise, isotropic in RGB but not in
+//     CIELAB (with one variance the vein still ran into the gel's chroma
+//     tail at 8-bit noise 20).
 //  2. Per slice: normalisation against the background. A per-channel gain
 //     field (constant or a plane across the slice) maps the slice's background
 //     onto the reference: illumination drift along and across slices goes.
-//     Then nearest refined prototype in CIELAB (memoised per 24-bit sRGB
-//     colour in a 16 MiB table filled as colours are met).
+//     Then the nearest refined prototype under the calibration's covariance
+//     (Mahalanobis; or in CIELAB, see classify), memoised per 24-bit sRGB
+//     colour in a 16 MiB table filled as colours are met.
 //  3. Per slice: anatomical order. For every tissue U that encloses others
 //     (the table's "inside"), the 2-D region of U and everything nested in it is
 //     filled; what that fill encloses but is neither U nor nested in U (skin
@@ -38,8 +42,11 @@
 //     slice with a union-find over run-length runs: background pockets that do
 //     not reach the lateral border are holes and are filled by their majority
 //     neighbour; islands of a bulk tissue smaller than min_island_voxels and
-//     of a vessel tissue smaller than min_vessel_voxels are absorbed by their
-//     majority neighbour; then only the body (the largest 6-connected
+//     of a vessel tissue smaller than min_vessel_voxels, and components of a
+//     nested tissue touching nothing of their parent's region, are absorbed
+//     by their majority neighbour (not a tissue's largest component when it
+//     is larger than that neighbour: then the neighbour is misplaced); then
+//     only the body (the largest 6-connected
 //     non-background component, and any other of at least min_body_fraction
 //     of its size) is kept.
 //
@@ -149,6 +156,17 @@ struct SegmentOptions {
   // Values below 1 make the classification more robust to brightness.
   double lightness_weight = 1.0;
 
+  // How a colour picks its prototype. nearest: the nearest in CIELAB
+  // (CIE76, lightness weighted). mahalanobis: the nearest under the
+  // calibration mixture's shared covariance (the lightness weight is then
+  // unused): distances count in units of the stack's own colour spread along
+  // each direction, so the sensor noise's wide chroma on dark and saturated
+  // colours no longer carries a common tissue's pixels into a rare one next
+  // to it (the blue gel into the vein). Equal priors: the mixing weights
+  // would keep thin layers' boundary pixels from them. Needs
+  // refine_iterations > 0 (else nearest).
+  enum class Classify { nearest, mahalanobis };
+  Classify classify = Classify::mahalanobis;
   // -- clean-up (each can be switched off) --
   bool cleanup = true;        // master switch for steps 3-5 of the header
   bool enforce_order = true;  // anatomical order from the table's "inside"
@@ -178,6 +196,7 @@ void validate(const SegmentOptions& o);
 // The options as a JSON object (reports, provenance).
 std::string segment_parameters_json(const SegmentOptions& o);
 const char* to_string(SegmentOptions::Normalise n);
+const char* to_string(SegmentOptions::Classify c);
 
 // A prototype after calibration.
 struct Prototype {

@@ -213,6 +213,48 @@ TEST(SegmentPhantom, HighNoiseKeepsRareTissues) {
   }
 }
 
+// Sensor noise sigma 20: the blue gel's chroma then spreads twice as wide in
+// CIELAB as its lightness. With one shared variance in the calibration the
+// vein's prototype ran 20 units off into the gel's chroma tail and took
+// most of the gel, and the order clean-up then the body (skin Dice 0.39,
+// bone 0.13, exit 0); a full shared covariance keeps it on the vein. Then
+// the Mahalanobis rule, which counts distances in that spread, keeps the
+// gel's noisy pixels out of the vein (vein Dice 0.63-0.68 by the nearest
+// colour, 0.95-0.97 by Mahalanobis on the 96 x 96 x 48 phantoms of seeds 1
+// and 3). The bulk tissues' goal is lower than at low noise: the skin, a
+// rim a few voxels thick, loses its boundary voxels to the noise.
+TEST(SegmentPhantom, VeryHighNoiseDoesNotCollapse) {
+  for (const unsigned seed : {1u, 3u}) {
+    PhantomOptions p = test_phantom();
+    p.noise_sigma = 20;
+    p.seed = seed;
+    const Volume truth = phantom_labels(p);
+    const TissueTable table = phantom_tissue_table();
+    for (const auto rule : {SegmentOptions::Classify::nearest, SegmentOptions::Classify::mahalanobis}) {
+      SegmentOptions o = phantom_segment_options(p);
+      o.classify = rule;
+      SegmentMetrics m;
+      const Volume v = segment_volume(phantom_source(p, truth), table, o, &m);
+      std::map<std::string, std::int64_t> tv;
+      const auto dice = dice_per_tissue(v, truth, &tv);
+      const std::string what = std::string("noise 20, seed ") + std::to_string(seed) + ", " + to_string(rule);
+      for (const auto& [k, d] : dice) std::printf("  %s: %-8s dice %.4f\n", what.c_str(), k.c_str(), d);
+      for (const auto& pr : m.prototypes) {
+        const double shift = std::hypot(pr.lab[0] - pr.table_lab[0], pr.lab[1] - pr.table_lab[1], pr.lab[2] - pr.table_lab[2]);
+        EXPECT_LT(shift, 15) << what << ": prototype of label " << pr.label;  // the table is the phantom's own colours
+      }
+      for (const auto& t : table.tissues) {
+        if (tv[t.name] < 1000 && t.layer != "vessel") continue;
+        const double d = dice.count(t.name) ? dice.at(t.name) : 0.0;
+        if (rule == SegmentOptions::Classify::mahalanobis)
+          EXPECT_GE(d, t.layer == "vessel" ? 0.90 : 0.85) << what << ": " << t.name;
+        else
+          EXPECT_GE(d, 0.5) << what << ": " << t.name;  // no collapse
+      }
+    }
+  }
+}
+
 TEST(SegmentPhantom, PerturbedPrototypesAndIllumination) {
   const PhantomOptions p = test_phantom();
   const Volume truth = phantom_labels(p);
@@ -261,13 +303,19 @@ TEST(SegmentPhantom, PerturbedPrototypesAndIllumination) {
 namespace {
 
 // 4-connected components of the pixels of `mask` (ny x nx): sizes, largest first.
-std::vector<std::int64_t> component_sizes(const std::vector<char>& mask, int nx, int ny) {
+// Sizes of the 4-connected components of `mask`, largest first; `left`
+// (optional) receives the size of those touching the left image edge (x = 0)
+// other than the largest.
+std::vector<std::int64_t> component_sizes(const std::vector<char>& mask, int nx, int ny,
+                                          std::int64_t* left = nullptr) {
   std::vector<char> seen(mask.size(), 0);
   std::vector<std::int64_t> sizes;
+  std::vector<std::int64_t> at_left;
   std::vector<int> todo;
   for (int start = 0; start < nx * ny; ++start) {
     if (!mask[start] || seen[start]) continue;
     std::int64_t n = 0;
+    bool touches = false;
     seen[start] = 1;
     todo.assign(1, start);
     while (!todo.empty()) {
@@ -275,13 +323,20 @@ std::vector<std::int64_t> component_sizes(const std::vector<char>& mask, int nx,
       todo.pop_back();
       ++n;
       const int x = i % nx, y = i / nx;
+      touches |= x == 0;
       const int nb[4] = {x > 0 ? i - 1 : -1, x + 1 < nx ? i + 1 : -1, y > 0 ? i - nx : -1, y + 1 < ny ? i + nx : -1};
       for (int j : nb)
         if (j >= 0 && mask[j] && !seen[j]) seen[j] = 1, todo.push_back(j);
     }
     sizes.push_back(n);
+    if (touches) at_left.push_back(n);
   }
   std::sort(sizes.rbegin(), sizes.rend());
+  if (left) {
+    *left = 0;
+    for (auto a : at_left) *left += a;
+    if (std::find(at_left.begin(), at_left.end(), sizes[0]) != at_left.end()) *left -= sizes[0];
+  }
   return sizes;
 }
 
@@ -398,12 +453,15 @@ TEST(SegmentReal, ArmCropIsPlausible) {
   // contiguity: the largest 2-D component of each bulk tissue holds most of
   // it (fat, muscle, marrow); the bone's largest is the cortex ring, besides
   // it a few pale patches of fat or fascia at the muscle's border; the skin
-  // rim is found in pieces, so it gets no bound
+  // rim is found in pieces, so it gets no bound. The torso's strip on the
+  // left edge is another body: where the arm's skin is found between them,
+  // its fat is a component of its own and is not counted against the arm's.
   std::map<int, double> largest;
   for (int l : {fat, muscle, bone, marrow, skin}) {
-    const auto sizes = component_sizes(mask_of({l}), nx, ny);
+    std::int64_t torso = 0;
+    const auto sizes = component_sizes(mask_of({l}), nx, ny, l == fat ? &torso : nullptr);
     ASSERT_FALSE(sizes.empty()) << v.label_names[static_cast<std::size_t>(l)];
-    largest[l] = static_cast<double>(sizes[0]) / static_cast<double>(count[static_cast<std::size_t>(l)]);
+    largest[l] = static_cast<double>(sizes[0]) / static_cast<double>(count[static_cast<std::size_t>(l)] - torso);
     std::printf("  %-7s components %zu, largest holds %.3f\n", v.label_names[static_cast<std::size_t>(l)].c_str(),
                 sizes.size(), largest[l]);
   }
