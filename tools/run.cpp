@@ -57,6 +57,17 @@ void add_run_command(CLI::App& app) {
     if (no_output) def.output.enabled = false;
     if (threads >= 0) def.threads = threads;
     const long n_steps = steps_given ? steps : std::max(1L, std::lround(def.duration / def.dt));
+    // what the scene asks for that this run will not do (even with --quiet)
+    if (!steps_given && def.duration < 0.5 * def.dt)
+      std::cerr << "orthosim run: warning: " << scene_file << ": duration " << def.duration
+                << " s is under half a step (dt = " << def.dt << " s); one step is run\n";
+    const double last_start = static_cast<double>(n_steps - 1) * def.dt;  // the last step starts here
+    for (const auto& t : def.tools)
+      if (t.start > last_start * (1 + 1e-12) + 1e-15)
+        std::cerr << "orthosim run: warning: " << scene_file << ": the " << runtime::to_string(t.type) << " tool"
+                  << (t.name.empty() ? std::string() : " '" + t.name + "'") << " starts at t = " << t.start
+                  << " s, after the run's last step starts (t = " << last_start << " s, " << n_steps
+                  << " steps of " << def.dt << " s): it never acts\n";
 
     std::unique_ptr<runtime::Scene> scene;
     {
@@ -140,6 +151,7 @@ void add_run_command(CLI::App& app) {
                       {"contacts_reused", fs->counters.contacts_reused},
                       {"neighbour_lists_kept", fs->counters.list_reuses},
                       {"pressure_solver", runtime::to_string(fl.params.pressure_solver)},
+                      {"pressure_solves", fs->counters.pressure_solves},
                       {"pressure_iterations", fs->counters.pressure_iterations},
                       {"pressure_retries", fs->counters.pressure_retries},
                       {"pressure_unconverged", fs->counters.pressure_unconverged},
@@ -205,6 +217,12 @@ void add_run_command(CLI::App& app) {
                 << ") in the kept steps, after " << c.cg_redos
                 << " redos with more substeps: the tissue is stiff for this dt (a smaller dt, a higher "
                    "cg_max_iterations, or cg_tolerance)\n";
+    if (const runtime::FluidState* fs = scene->fluid_state(); fs && fs->counters.pressure_unconverged > 0)
+      std::cerr << "orthosim run: warning: " << scene_file << ": " << fs->counters.pressure_unconverged << " of "
+                << fs->counters.pressure_solves
+                << " PCISPH pressure solves were taken unconverged (after halving the substep, or where halving "
+                   "cannot help): the blood is compressed beyond pcisph_tolerance there (more "
+                   "pcisph_max_iterations or a smaller dt; metrics.fluid.pressure_unconverged)\n";
     report.write(common.report);
     if (c.failed > 0) {
       // the run went to the end (outputs and report written; a failed step ends at rest, never

@@ -267,6 +267,11 @@ void add_vessels_command(CLI::App& app) {
                   << m.children_pruned << " leaf branch(es), " << std::fixed << std::setprecision(1)
                   << 1e3 * m.pruned_length_m << " mm in all, at junctions with more than " << a.max_children
                   << " children (--refuse-excess-children refuses instead)\n";
+      if (m.self_intersections > 0)  // even with --quiet: a tube that cuts itself misleads collisions and rendering
+        std::cerr << "orthosim vessels: warning: " << a.labels << ": " << tissues[i] << ": the tube has "
+                  << m.self_intersections << " self-intersecting face pair(s) (" << m.trees << " tree(s), "
+                  << m.branches << " branches, from " << m.voxels
+                  << " voxels): touching or noisy vessel labels (the segment report's vessel Dice or islands)\n";
     }
     if (!a.common.quiet) {
       for (std::size_t i = 0; i < tissues.size(); ++i) {

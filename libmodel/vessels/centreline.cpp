@@ -497,6 +497,17 @@ void refine_centrelines(const Grid& g, const VesselOptions& o, Forest& f) {
     // (forward from its last clean point Q) and the children's axes; Q then
     // moves back to one parent radius before the bifurcation point, and the
     // meeting point is found again from there
+    // Q stays after the parent's own head region (its start as a child of the
+    // junction above, rewritten later): moved back over it, the tail's rewrite
+    // cut the head's index off the branch (noisy labels' short branches: an
+    // internal error, vector::_M_range_insert, at 8-bit noise 24)
+    int q_min = 0;
+    if (!P.start_root)
+      for (std::size_t jk = 0; jk < f.junctions.size(); ++jk) {
+        const auto& kids = f.junctions[jk].children;
+        const auto it = std::find(kids.begin(), kids.end(), J.parent);
+        if (it != kids.end()) q_min = zones[jk].start[static_cast<std::size_t>(it - kids.begin())] + 1;
+      }
     Eigen::Vector3d xb = xj, tq;
     bool sane = false;
     for (int pass = 0; pass < 2; ++pass) {
@@ -522,7 +533,7 @@ void refine_centrelines(const Grid& g, const VesselOptions& o, Forest& f) {
       const double sb = sp[z.q] + (xb - P.x[z.q]).dot(tq);
       const double want = sb - std::max(P.r[z.q], P.rho[z.q]);
       int q = z.q;
-      while (q > 0 && sp[q] > want) --q;
+      while (q > q_min && sp[q] > want) --q;
       if (q == z.q) break;
       z.q = q;
     }

@@ -121,6 +121,80 @@ TEST_F(RunCli, BleedsAndReportsTheFluid) {
   }
 }
 
+// What the scene asks for and the run will not do is named in a warning (it
+// was silent): a tool that starts after the last step starts, a duration
+// under half a step (one step is run).
+TEST_F(RunCli, WhatTheRunWillNotDoIsAWarning) {
+  auto with_start = [&](const std::string& start, const std::string& duration) {
+    return scene(R"({
+      "model": "model.h5", "fixed": ["fixed"], "integrator": "implicit", "dt": 0.005, "duration": )" + duration + R"(,
+      "tools": [{"name": "scalpel", "type": "cut", "polyline": [[0.0, 0, 0.01], [0.03, 0, 0.01]], "depth": 0.008,
+                 "direction": [0, 1, 0], "snap": false, "start": )" + start + R"(}]
+    })");
+  };
+  // 4 steps of 5 ms: the last starts at 15 ms
+  const auto late = with_start("0.02", "0.02");
+  const auto r = run_cli("run " + late + " --no-output --quiet --report " + (dir / "late.json"));
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_EQ(test::count_lines(r.err), 1) << r.err;
+  EXPECT_NE(r.err.find("orthosim run: warning: " + late + ": the cut tool 'scalpel' starts at t = 0.02 s, after the "
+                       "run's last step starts (t = 0.015 s, 4 steps of 0.005 s): it never acts"),
+            std::string::npos)
+      << r.err;
+  const auto j = nlohmann::json::parse(test::read_file(dir / "late.json"));
+  EXPECT_TRUE(j["metrics"]["cuts"].empty()) << j["metrics"]["cuts"].dump();
+  // starting with the last step: it acts, no warning
+  const auto last = run_cli("run " + with_start("0.015", "0.02") + " --no-output --quiet --report " + (dir / "last.json"));
+  ASSERT_EQ(last.code, 0) << last.err;
+  EXPECT_EQ(last.err, "");
+  EXPECT_EQ(nlohmann::json::parse(test::read_file(dir / "last.json"))["metrics"]["cuts"].size(), 1u);
+  // --steps decides the run's length: the same check against it
+  const auto more = run_cli("run " + late + " --steps 5 --no-output --quiet");
+  ASSERT_EQ(more.code, 0) << more.err;
+  EXPECT_EQ(more.err, "");
+  // a duration under half a step
+  const auto shortrun = with_start("0", "0.002");
+  const auto r2 = run_cli("run " + shortrun + " --no-output --quiet");
+  ASSERT_EQ(r2.code, 0) << r2.err;
+  EXPECT_EQ(test::count_lines(r2.err), 1) << r2.err;
+  EXPECT_NE(r2.err.find("orthosim run: warning: " + shortrun + ": duration 0.002 s is under half a step (dt = 0.005 s); "
+                        "one step is run"),
+            std::string::npos)
+      << r2.err;
+}
+
+// PCISPH solves taken unconverged are named in a warning (the report counted
+// them, the run said nothing).
+TEST_F(RunCli, UnconvergedPressureSolvesAreAWarning) {
+  runtime::testing::write_model_file(model, runtime::testing::make_layered_block(39, 9, 4), true);  // with the artery
+  auto bleed = [&](const std::string& extra) {
+    return scene(R"({
+      "model": "model.h5", "fixed": ["fixed"], "gravity": [0, 9.81, 0], "integrator": "implicit",
+      "dt": 0.005, "duration": 0.1, "vessels": ["artery"],
+      "fluid": {"spacing": 0.002, "sound_speed": 3, "bleed_pressure": 500, "margin": 0.01, "pressure_solver": "pcisph")" +
+                 extra + R"(},
+      "tools": [{"name": "scalpel", "type": "cut", "polyline": [[0.0, 0, 0.01], [0.03, 0, 0.01]], "depth": 0.008,
+                 "direction": [0, 1, 0], "snap": false, "start": 0}]
+    })");
+  };
+  const auto tight = bleed(R"(, "pcisph_tolerance": 1e-3, "pcisph_max_iterations": 3, "pcisph_target_iterations": 3)");
+  const auto r = run_cli("run " + tight + " --no-output --quiet --threads 2 --report " + (dir / "p.json"));
+  ASSERT_EQ(r.code, 0) << r.err;
+  const auto f = nlohmann::json::parse(test::read_file(dir / "p.json"))["metrics"]["fluid"];
+  ASSERT_GT(f["pressure_unconverged"].get<long>(), 0) << f.dump();
+  EXPECT_EQ(test::count_lines(r.err), 1) << r.err;
+  EXPECT_NE(r.err.find("orthosim run: warning: " + tight + ": " + std::to_string(f["pressure_unconverged"].get<long>()) +
+                       " of " + std::to_string(f["pressure_solves"].get<long>()) +
+                       " PCISPH pressure solves were taken unconverged"),
+            std::string::npos)
+      << r.err;
+  // the defaults converge: no warning
+  const auto ok = run_cli("run " + bleed("") + " --no-output --quiet --threads 2 --report " + (dir / "q.json"));
+  ASSERT_EQ(ok.code, 0) << ok.err;
+  EXPECT_EQ(nlohmann::json::parse(test::read_file(dir / "q.json"))["metrics"]["fluid"]["pressure_unconverged"], 0);
+  EXPECT_EQ(ok.err, "");
+}
+
 // A cut that misses the model is named in a warning (it cut nothing, silently).
 TEST_F(RunCli, ACutThatMissesTheModelIsAWarning) {
   auto cut_at = [&](const std::string& z) {
