@@ -15,6 +15,7 @@
 #endif
 
 #include <algorithm>
+#include <chrono>
 #include <atomic>
 #include <cmath>
 #include <cstdint>
@@ -1903,6 +1904,10 @@ struct Stepper {
 const char* to_string(Eos e) { return e == Eos::linear ? "linear" : "tait"; }
 const char* to_string(Rheology r) { return r == Rheology::carreau ? "carreau" : "newtonian"; }
 const char* to_string(PressureSolver p) { return p == PressureSolver::pcisph ? "pcisph" : "eos"; }
+const char* fluid_phase_name(int k) {
+  static const char* names[] = {"prepare", "density", "forces", "pressure", "integrate", "emit"};
+  return k >= 0 && k < 6 ? names[k] : "?";
+}
 const char* substep_limit_name(int k) {
   static const char* const names[6] = {"step", "cfl", "force", "viscous", "max_substep", "pressure"};
   return k >= 0 && k < 6 ? names[k] : "?";
@@ -2315,6 +2320,12 @@ FluidStepInfo fluid_step(const Fluid& f, FluidState& s, Real dt, const FluidBoun
   info.min_substep = HUGE_VAL;
   info.max_compression = -HUGE_VAL;
   std::vector<Reaction> reactions, impulses;
+  using clock = std::chrono::steady_clock;
+  auto lap = [&, t = clock::now()](int phase) mutable {
+    const auto now = clock::now();
+    s.counters.phase_s[static_cast<std::size_t>(phase)] += std::chrono::duration<double>(now - t).count();
+    t = now;
+  };
   while (tau < dt) {
     if (info.substeps >= f.params.max_substeps) {
       info.truncated = true;
@@ -2326,11 +2337,15 @@ FluidStepInfo fluid_step(const Fluid& f, FluidState& s, Real dt, const FluidBoun
     Real vtop = 0;  // m/s, the force pass's top speed
     Pass c;
     if (st.n() > 0) {
+      lap(5);  // the loop's own bookkeeping goes with emit
       st.prepare();
       c = st.pass(tau);
+      lap(0);
       info.max_compression = std::max(info.max_compression, st.density(c));
+      lap(1);
       reactions.clear();
       const auto maxima = st.forces(c, reactions);
+      lap(2);
       std::tie(h, which) = st.limit(maxima);
       vtop = std::sqrt(maxima[1]);
     } else {
@@ -2379,21 +2394,25 @@ FluidStepInfo fluid_step(const Fluid& f, FluidState& s, Real dt, const FluidBoun
         reactions.clear();
         st.forces(c, reactions, false);
       }
+      lap(3);
     }
     ++s.counters.substep_limit[static_cast<std::size_t>(which)];
     s.scratch.substep_motion = vtop * h;
     for (const Reaction& r : reactions) st.add_reaction(r, h / dt);
     impulses.clear();
     if (st.n() > 0) {
+      lap(5);
       const auto [removed, collisions] = st.integrate(h, tau, impulses);
       s.counters.collisions += collisions;
       for (const Reaction& r : impulses) st.add_reaction(r, 1);
+      lap(4);
       if (removed > 0) {
         st.compact();
         info.removed += removed;
       }
     }
     info.emitted += st.emit(h, s.time + tau);
+    lap(5);
     // the last substep ends exactly at dt
     tau = (h == rest) ? dt : tau + h;
     ++info.substeps;
@@ -2421,6 +2440,7 @@ FluidStepInfo fluid_step(const Fluid& f, FluidState& s, Real dt, const FluidBoun
       [](Tail a, const Tail& b2) { return Tail{a.first + b2.first, std::max(a.second, b2.second)}; });
   if (!nb.empty()) info.mean_neighbours = static_cast<Real>(tail.first) / static_cast<Real>(nb.size());
   info.max_speed = std::sqrt(tail.second);
+  lap(5);
   s.last = info;
   return info;
 }

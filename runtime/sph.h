@@ -481,6 +481,13 @@ struct FluidCounters {
   // [3] viscous (viscous_limit), [4] max_substep,
   // [5] pressure (pcisph: the length its solver asked for, or a halving)
   std::array<std::int64_t, 6> substep_limit{};
+  // Wall time (s) of fluid_step's phases, all steps (steady clock, read
+  // around each phase of each substep): [0] prepare (sort, neighbour grid and
+  // lists, the walls' triangle grid), [1] density (with the walls' share),
+  // [2] forces (with the walls'), [3] pressure (pcisph's corrections),
+  // [4] integrate (with the collisions against the walls), [5] emit and
+  // compact. Names: fluid_phase_name.
+  std::array<double, 6> phase_s{};
   Real emitted_volume = 0;           // m^3
   Real drained_volume = 0;           // m^3
   Real lost_volume = 0;              // m^3, left the domain or non-finite
@@ -489,6 +496,8 @@ struct FluidCounters {
 // What one step did.
 // Names of FluidCounters::substep_limit's entries: "step", "cfl", "force", "viscous", "max_substep", "pressure".
 const char* substep_limit_name(int k);
+// Names of FluidCounters::phase_s's entries: "prepare", "density", "forces", "pressure", "integrate", "emit".
+const char* fluid_phase_name(int k);
 
 struct FluidStepInfo {
   int substeps = 0;

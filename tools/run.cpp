@@ -161,6 +161,8 @@ void add_run_command(CLI::App& app) {
                       {"sound_speed_m_s", fl.c0},
                       {"physx_stiffness", fl.physx_stiffness},
                       {"wall_s", f.wall_s}};
+      for (int k = 0; k < static_cast<int>(fs->counters.phase_s.size()); ++k)
+        met["fluid"]["phases_s"][runtime::fluid_phase_name(k)] = fs->counters.phase_s[static_cast<std::size_t>(k)];
       met["particles_emitted"] = f.emitted;
       met["particles_drained"] = f.drained;
       if (!common.quiet)

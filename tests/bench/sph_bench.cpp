@@ -470,9 +470,11 @@ std::array<double, 6> limit_shares(const std::array<std::int64_t, 6>& limits) {
 struct PaperScene {
   double dt = 0, steps_per_s = 0, fluid_share = 0, substeps = 0, neighbours = 0, compression = 0;
   double particles0 = 0, particles1 = 0, warmup_s = 0;
+  int steps = 0;           // timed
   double grid_builds = 0;  // the tissue surface's triangle grid: builds per timed step
   double kept_lists = 0;   // share of the timed substeps that kept the last neighbour lists
   std::array<std::int64_t, 6> limits{};  // timed substeps by the limit that set them (FluidCounters::substep_limit)
+  std::array<double, 6> phases{};        // timed steps' fluid phases, s (FluidCounters::phase_s)
 };
 
 // the triangle walls' work savers (FluidParams; both exact): for the trade-off's figures
@@ -518,6 +520,7 @@ PaperScene paper_scene(double dt, std::int64_t particles, int steps, int threads
   rt::Scene scene(std::move(m), def);
   PaperScene r;
   r.dt = dt;
+  r.steps = steps;
   const auto t0 = clock_type::now();
   while (scene.fluid_summary().particles < particles && scene.time() < 20) {
     scene.simulate(dt);
@@ -530,6 +533,7 @@ PaperScene paper_scene(double dt, std::int64_t particles, int steps, int threads
   const std::int64_t sub0 = fs.counters.substeps;
   const std::int64_t builds0 = fs.surfaces.empty() ? 0 : fs.surfaces[0].grid.builds;
   const auto lim0 = fs.counters.substep_limit;
+  const auto ph0 = fs.counters.phase_s;
   const std::int64_t lb0 = fs.counters.list_builds, lr0 = fs.counters.list_reuses;
   const auto t1 = clock_type::now();
   for (int k = 0; k < steps; ++k) {
@@ -543,6 +547,7 @@ PaperScene paper_scene(double dt, std::int64_t particles, int steps, int threads
   r.fluid_share = (scene.fluid_summary().wall_s - fluid0) / wall;
   r.substeps = static_cast<double>(fs.counters.substeps - sub0) / steps;
   for (std::size_t k = 0; k < r.limits.size(); ++k) r.limits[k] = fs.counters.substep_limit[k] - lim0[k];
+  for (std::size_t k = 0; k < r.phases.size(); ++k) r.phases[k] = fs.counters.phase_s[k] - ph0[k];
   r.neighbours /= steps;
   r.grid_builds = fs.surfaces.empty() ? 0 : static_cast<double>(fs.surfaces[0].grid.builds - builds0) / steps;
   r.particles1 = static_cast<double>(fs.size());
@@ -567,6 +572,14 @@ void print_paper_scene(int threads, std::int64_t particles, const SceneKnobs& kn
       if (share[k] > 0) std::printf(" %s %.0f%%", rt::substep_limit_name(static_cast<int>(k)), 100 * share[k]);
     std::printf("; surface grid built in %.0f%% of the steps; neighbour lists kept in %.0f%% of the substeps\n",
                 100 * r.grid_builds, 100 * r.kept_lists);
+    // where a fluid substep goes (FluidCounters::phase_s), per substep and as shares of the fluid's time
+    double all = 0;
+    for (double p : r.phases) all += p;
+    const double per = 1e3 * all / (r.substeps * r.steps);
+    std::printf("          fluid substep %.3f ms:", per);
+    for (std::size_t k = 0; k < r.phases.size(); ++k)
+      if (r.phases[k] > 0) std::printf(" %s %.0f%%", rt::fluid_phase_name(static_cast<int>(k)), 100 * r.phases[k] / all);
+    std::printf("\n");
     std::fflush(stdout);
   }
 }
@@ -763,6 +776,10 @@ void results(const std::string& path, bool quick) {
     const auto share = limit_shares(r.limits);
     for (std::size_t k = 0; k < share.size(); ++k)
       row.extra[std::string("substeps_set_by_") + rt::substep_limit_name(static_cast<int>(k))] = share[k];
+    double all = 0;
+    for (double p : r.phases) all += p;
+    for (std::size_t k = 0; k < r.phases.size(); ++k)
+      row.extra[std::string("fluid_phase_share_") + rt::fluid_phase_name(static_cast<int>(k))] = all > 0 ? r.phases[k] / all : 0;
     out.add(row);
   }
   out.write(path);

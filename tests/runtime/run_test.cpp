@@ -100,6 +100,17 @@ TEST_F(RunCli, BleedsAndReportsTheFluid) {
     EXPECT_GE(f["neighbour_lists_kept"].get<long>(), 0);
     EXPECT_LT(f["neighbour_lists_kept"].get<long>(), f["substeps"].get<long>());  // the first substep builds
     EXPECT_EQ(f["pressure_solver"], solver);
+    // where the fluid's time went: six phases, inside the fluid's wall time
+    double phases = 0;
+    for (const char* k : {"prepare", "density", "forces", "pressure", "integrate", "emit"}) {
+      ASSERT_TRUE(f["phases_s"][k].is_number()) << k << " " << f.dump();
+      EXPECT_GE(f["phases_s"][k].get<double>(), 0) << k;
+      phases += f["phases_s"][k].get<double>();
+    }
+    EXPECT_GT(f["phases_s"]["density"].get<double>(), 0);
+    EXPECT_GT(phases, 0);
+    EXPECT_LE(phases, f["wall_s"].get<double>() * 1.0001) << f.dump();
+    if (solver == "eos") EXPECT_EQ(f["phases_s"]["pressure"].get<double>(), 0);
     if (solver == "eos") {
       eos_substeps = f["substeps"].get<long>();
       EXPECT_EQ(f["pressure_iterations"].get<long>(), 0);
