@@ -61,6 +61,14 @@ void add_run_command(CLI::App& app) {
     if (!steps_given && def.duration < 0.5 * def.dt)
       std::cerr << "orthosim run: warning: " << scene_file << ": duration " << def.duration
                 << " s is under half a step (dt = " << def.dt << " s); one step is run\n";
+    if (def.fluid.enabled && def.vessels.empty())
+      for (const auto& t : def.tools)
+        if (t.type == runtime::ToolType::cut) {
+          std::cerr << "orthosim run: warning: " << scene_file << ": the scene has blood and a cut"
+                    << (t.name.empty() ? std::string() : " '" + t.name + "'")
+                    << " but loads no vessel tree, so nothing can bleed (name the trees in \"vessels\")\n";
+          break;
+        }
     const double last_start = static_cast<double>(n_steps - 1) * def.dt;  // the last step starts here
     for (const auto& t : def.tools)
       if (t.start > last_start * (1 + 1e-12) + 1e-15)
@@ -184,8 +192,12 @@ void add_run_command(CLI::App& app) {
                   << " % of the limited ones; metrics.fluid.substeps_set_by)\n";
     }
     met["cuts"] = nlohmann::json::array();
+    // the surface quads are loaded only when the scene draws or collides with
+    // them (Scene::init): without them a cut removes none, and the count is null
+    const bool surface_loaded = (def.output.enabled && def.output.vtk.surface) || def.fluid.enabled;
     for (const auto& c : scene->cuts())
-      met["cuts"].push_back({{"springs_cut", c.springs_cut}, {"quads_removed", c.quads_removed},
+      met["cuts"].push_back({{"springs_cut", c.springs_cut},
+                             {"quads_removed", surface_loaded ? nlohmann::json(c.quads_removed) : nlohmann::json()},
                              {"detached_nodes", c.detached.size()}, {"vessel_hits", c.vessel_hits.size()}});
     met["frames"] = r.frames;
     met["kinetic_energy_j"] = scene->state().kinetic_energy;

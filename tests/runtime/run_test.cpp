@@ -163,6 +163,24 @@ TEST_F(RunCli, WhatTheRunWillNotDoIsAWarning) {
   const auto more = run_cli("run " + late + " --steps 5 --no-output --quiet");
   ASSERT_EQ(more.code, 0) << more.err;
   EXPECT_EQ(more.err, "");
+  // blood and a cut, but no vessel tree loaded: nothing can bleed
+  const auto dry = scene(R"({
+      "model": "model.h5", "fixed": ["fixed"], "integrator": "implicit", "dt": 0.005, "duration": 0.01,
+      "fluid": {"spacing": 0.002, "sound_speed": 3, "margin": 0.01},
+      "tools": [{"name": "scalpel", "type": "cut", "polyline": [[0.0, 0, 0.01], [0.03, 0, 0.01]], "depth": 0.008,
+                 "direction": [0, 1, 0], "snap": false, "start": 0}]
+    })");
+  const auto r3 = run_cli("run " + dry + " --no-output --quiet --report " + (dir / "dry.json"));
+  ASSERT_EQ(r3.code, 0) << r3.err;
+  EXPECT_EQ(test::count_lines(r3.err), 1) << r3.err;
+  EXPECT_NE(r3.err.find("orthosim run: warning: " + dry + ": the scene has blood and a cut 'scalpel' but loads no "
+                        "vessel tree, so nothing can bleed"),
+            std::string::npos)
+      << r3.err;
+  // with the fluid the surface is loaded and the cut's quads are counted; without it (and
+  // without output) they are not loaded, and the count is null, not 0
+  EXPECT_GT(nlohmann::json::parse(test::read_file(dir / "dry.json"))["metrics"]["cuts"][0]["quads_removed"].get<int>(), 0);
+  EXPECT_TRUE(nlohmann::json::parse(test::read_file(dir / "last.json"))["metrics"]["cuts"][0]["quads_removed"].is_null());
   // a duration under half a step
   const auto shortrun = with_start("0", "0.002");
   const auto r2 = run_cli("run " + shortrun + " --no-output --quiet");
