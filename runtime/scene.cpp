@@ -510,6 +510,7 @@ void Scene::init(const std::string& model_file) {
     if (t.type == ToolType::cut) {
       if (candidates.empty()) throw Error(file, "tool '" + t.name + "' has no candidate node");
       const auto [lo, hi] = rest_box(m, candidates);
+      Real farthest_snap = 0;  // m, the longest way a point was moved by the snap
       for (std::size_t k = 0; 3 * k < t.polyline.size(); ++k) {
         Vec3 p = load3(t.polyline.data(), static_cast<std::int64_t>(k));
         if (t.polyline_relative) p = {lo.x + p.x * (hi.x - lo.x), lo.y + p.y * (hi.y - lo.y), lo.z + p.z * (hi.z - lo.z)};
@@ -520,9 +521,21 @@ void Scene::init(const std::string& model_file) {
             const Vec3 r = load3(m.rest_x.data(), i);
             if (norm(r - p) < best) best = norm(r - p), q = r;
           }
+          farthest_snap = std::max(farthest_snap, best);
           p = q;
         }
         store3(run.def.polyline.data(), static_cast<std::int64_t>(k), p);
+      }
+      // a polyline whose points all snap to one node (it lies far from the
+      // tissue, or is shorter than the node spacing) has no length left
+      if (t.snap && t.polyline.size() >= 6) {
+        bool one = true;
+        for (std::size_t k = 3; k < run.def.polyline.size(); ++k) one = one && run.def.polyline[k] == run.def.polyline[k % 3];
+        if (one)
+          throw Error(file, "tool '" + t.name + "': every point of the cut's polyline snaps to the same node (at rest " +
+                                fmt(run.def.polyline[0]) + ", " + fmt(run.def.polyline[1]) + ", " + fmt(run.def.polyline[2]) +
+                                " m; the farthest point moved " + fmt(farthest_snap) +
+                                " m): the polyline lies far from the candidate nodes or is shorter than their spacing");
       }
       CutDef cd;
       for (std::size_t k = 0; 3 * k < run.def.polyline.size(); ++k)

@@ -117,6 +117,9 @@ TEST_F(SceneTest, BadScenesAreOneLineErrorsBeforeAnyStep) {
       // one waypoint moved nothing (the grip held at rest, silently)
       {R"({"model": "model.h5", "tools": [{"type": "pull", "center": [0, 0, 0], "radius": 0.01, "path": [[0, 0.02, 0, 0]]}]})",
        "a pull's path needs at least two waypoints"},
+      // a polyline a metre off the block: both points snap to one corner node (it said "zero length")
+      {R"({"model": "model.h5", "tools": [{"name": "scalpel", "type": "cut", "polyline": [[1, 1, 1], [1.01, 1, 1]], "depth": 0.004}]})",
+       "tool 'scalpel': every point of the cut's polyline snaps to the same node"},
       {R"({"model": "model.h5", "damping": {"mass": -1}})", "mass must be a finite number"},
       {R"({"model": "model.h5", "output": {"every": 3}})", "missing dir"},
       {R"({"model": "model.h5",)", "invalid JSON"},
