@@ -220,14 +220,29 @@ bool capped_along(const Surface& s, const Topology& t, const FaceData& fd, const
 // The sweep along capped_alternative's axis stands only if its ring planes
 // do not cross inside the tube; else the error of the principal axis, or one
 // naming the short tube.
+// The surface's straight extent along d and its largest across d (along the
+// axis's other two directions), m: what the short-tube message quotes (the
+// sweep's own length is an arc along a centreline that may wander).
+std::pair<double, double> spans(const Surface& s, const Axis& ax) {
+  std::array<double, 3> lo{1e300, 1e300, 1e300}, hi{-1e300, -1e300, -1e300};
+  const Vec3 dirs[3] = {ax.d, ax.others[0], ax.others[1]};
+  for (Eigen::Index v = 0; v < s.vertices.rows(); ++v)
+    for (int k = 0; k < 3; ++k) {
+      const double x = s.vertices.row(v).dot(dirs[k]);
+      lo[k] = std::min(lo[k], x), hi[k] = std::max(hi[k], x);
+    }
+  return {hi[0] - lo[0], std::max(hi[1] - lo[1], hi[2] - lo[2])};
+}
+
 void check_alternative_sweep(const TubeSweep& sw, const RemeshOptions& o, const std::string& name,
-                             const std::exception_ptr& first) {
+                             const std::exception_ptr& first, const std::pair<double, double>& span) {
   if (sw.plane_turn < o.max_plane_turn) return;
   if (first) std::rethrow_exception(first);
   std::ostringstream m;
   m.precision(3);
-  m << "not tube-like: no flat cap ends the sweep along the largest extent, and along the axis of the flat caps ("
-    << sw.length_m * 1e3 << " mm: a stack shorter than the limb is wide?) the ring planes cross inside the tube "
+  m << "not tube-like: no flat cap ends the sweep along the largest extent, and along the axis of the flat caps "
+    << "(the surface spans " << span.first * 1e3 << " mm along it and " << span.second * 1e3
+    << " mm across: a stack shorter than the limb is wide?) the ring planes cross inside the tube "
     << "(R |dn/ds| = " << sw.plane_turn << ", at most " << o.max_plane_turn << ")";
   throw Error(name, m.str());
 }
@@ -1188,7 +1203,7 @@ TubeSweep sweep_from_axes(const Surface& s, const Topology& topo, const RemeshOp
   if (first || (!sw.flat_cap[0] && !sw.flat_cap[1])) {
     if (const auto alt = capped_alternative(s, topo, ax, o)) {
       sw = sweep_impl(s, topo, slice(*alt), *alt, o, name, /*cap_guard=*/true);
-      check_alternative_sweep(sw, o, name, first);
+      check_alternative_sweep(sw, o, name, first, spans(s, *alt));
     } else if (first) {
       std::rethrow_exception(first);
     }
