@@ -271,7 +271,8 @@ void add_vessels_command(CLI::App& app) {
         std::cerr << "orthosim vessels: warning: " << a.labels << ": " << tissues[i] << ": the tube has "
                   << m.self_intersections << " self-intersecting face pair(s) (" << m.trees << " tree(s), "
                   << m.branches << " branches, from " << m.voxels
-                  << " voxels): touching or noisy vessel labels (the segment report's vessel Dice or islands)\n";
+                  << " voxels): branches short or sharply bent against their radius, or touching or noisy "
+                     "vessel labels (the segment report's vessel Dice and islands)\n";
     }
     if (!a.common.quiet) {
       for (std::size_t i = 0; i < tissues.size(); ++i) {
