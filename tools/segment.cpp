@@ -161,15 +161,24 @@ void add_segment_command(CLI::App& app) {
                                                      m.write_s);
     nlohmann::json protos = nlohmann::json::array();
     const auto names = table.label_names();
-    for (const auto& p : m.prototypes) {
+    auto name_of = [&](int l) { return l >= 0 && l < static_cast<int>(names.size()) ? names[l] : std::string(); };
+    const std::vector<int> nearer = nearest_table_labels(m.prototypes);
+    for (std::size_t k = 0; k < m.prototypes.size(); ++k) {
+      const Prototype& p = m.prototypes[k];
       const double d = std::sqrt((p.lab[0] - p.table_lab[0]) * (p.lab[0] - p.table_lab[0]) +
                                  (p.lab[1] - p.table_lab[1]) * (p.lab[1] - p.table_lab[1]) +
                                  (p.lab[2] - p.table_lab[2]) * (p.lab[2] - p.table_lab[2]));
-      protos.push_back({{"tissue", p.label < static_cast<int>(names.size()) ? names[p.label] : ""},
+      protos.push_back({{"tissue", name_of(p.label)},
                         {"table_lab", p.table_lab},
                         {"lab", p.lab},
                         {"shift", d},
-                        {"samples", p.samples}});
+                        {"samples", p.samples},
+                        {"nearest_table_colour", name_of(nearer[k])}});
+      if (nearer[k] != p.label)  // even with --quiet: the labels of both tissues may be wrong
+        std::cerr << "orthosim segment: warning: " << a.stack << ": the calibrated colour of '" << name_of(p.label)
+                  << "' moved " << std::lround(d) << " CIE76 units from its table colour, nearer the table colour of '"
+                  << name_of(nearer[k]) << "' than its own: it may have taken that tissue's pixels, or the table's "
+                  << "colour is far off (" << a.tissues << "; --refine-iterations 0 keeps the table's colours)\n";
     }
     j["prototypes"] = protos;
     j["gain_min"] = m.gain_min;

@@ -48,6 +48,22 @@ const char* to_string(SegmentOptions::Classify c) {
   return "?";
 }
 
+std::vector<int> nearest_table_labels(const std::vector<Prototype>& prototypes) {
+  auto d2 = [](const std::array<double, 3>& a, const std::array<double, 3>& b) {
+    return (a[0] - b[0]) * (a[0] - b[0]) + (a[1] - b[1]) * (a[1] - b[1]) + (a[2] - b[2]) * (a[2] - b[2]);
+  };
+  std::vector<int> out;
+  out.reserve(prototypes.size());
+  for (const auto& p : prototypes) {
+    int best = p.label;
+    double bd = d2(p.lab, p.table_lab);
+    for (const auto& q : prototypes)
+      if (q.label != p.label && d2(p.lab, q.table_lab) < bd) bd = d2(p.lab, q.table_lab), best = q.label;
+    out.push_back(best);
+  }
+  return out;
+}
+
 void validate(const SegmentOptions& o) {
   auto bad = [](const std::string& m) { throw Error("", m); };
   for (int i = 0; i < 3; ++i) {

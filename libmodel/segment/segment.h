@@ -206,6 +206,13 @@ struct Prototype {
   std::int64_t samples = 0;           // calibration samples assigned
 };
 
+// For each prototype, the label of the table colour nearest its calibrated
+// colour (CIE76 over every prototype's table colour; its own on a tie). A
+// prototype whose calibrated colour lies nearer another tissue's table colour
+// than its own has probably taken that tissue's pixels (or the table's colour
+// for it is far off): the CLI warns.
+std::vector<int> nearest_table_labels(const std::vector<Prototype>& prototypes);
+
 struct SegmentMetrics {
   int nx = 0, ny = 0, nz = 0;
   std::map<std::string, std::int64_t> voxels;  // per tissue name, "background" included

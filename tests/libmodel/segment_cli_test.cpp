@@ -77,6 +77,9 @@ TEST(SegmentCli, GoodStackMatchesTruthAndIsDeterministic) {
     ASSERT_TRUE(rep["metrics"]["dice"].contains(t)) << t;
     EXPECT_GT(rep["metrics"]["dice"][t].get<double>(), 0.9) << t;
   }
+  // every calibrated colour stays nearest its own table colour: no warning
+  for (const auto& p : rep["metrics"]["prototypes"]) EXPECT_EQ(p["nearest_table_colour"], p["tissue"]) << p.dump();
+  EXPECT_EQ(a.err, "");
   {
     ModelReader m(d / "a.h5");
     const Volume v = m.volume();

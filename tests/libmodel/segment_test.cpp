@@ -255,6 +255,22 @@ TEST(SegmentPhantom, VeryHighNoiseDoesNotCollapse) {
   }
 }
 
+// The calibration's sanity check: a prototype whose calibrated colour lies
+// nearer another tissue's table colour than its own is named (the CLI warns).
+// The numbers are the vein's at 8-bit noise 20 under the old single-variance
+// calibration: it moved 19.6 units, to 19.5 from the gel's table colour.
+TEST(SegmentCalibration, NearestTableColourNamesACapturedPrototype) {
+  std::vector<Prototype> p(3);
+  p[0].label = 0, p[0].table_lab = {40.5, 3.2, -26.1}, p[0].lab = {39.6, 6.4, -28.2};  // gel
+  p[1].label = 3, p[1].table_lab = {31.9, 39.7, 25.0}, p[1].lab = {32.9, 41.9, 24.5};  // muscle
+  p[2].label = 7, p[2].table_lab = {23.0, 33.3, -37.7}, p[2].lab = {35.5, 18.2, -37.6};  // vein, captured
+  EXPECT_EQ(nearest_table_labels(p), (std::vector<int>{0, 3, 0}));
+  p[2].lab = {25.0, 30.0, -37.0};  // moved a little: its own
+  EXPECT_EQ(nearest_table_labels(p), (std::vector<int>{0, 3, 7}));
+  p[2].lab = p[2].table_lab;  // unmoved
+  EXPECT_EQ(nearest_table_labels(p)[2], 7);
+}
+
 TEST(SegmentPhantom, PerturbedPrototypesAndIllumination) {
   const PhantomOptions p = test_phantom();
   const Volume truth = phantom_labels(p);
