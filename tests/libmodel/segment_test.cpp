@@ -182,6 +182,17 @@ TEST(SegmentPhantom, DiceJpeg) {
   expect_dice(dice, tv, table, "jpeg");
 }
 
+// Segments the phantom `p` (its labels `truth`) with `o`, prints and returns
+// the Dice per tissue; `tv` receives the true voxel counts, `m` the metrics.
+std::map<std::string, double> segment_dice(const PhantomOptions& p, const Volume& truth, const SegmentOptions& o,
+                                           const std::string& what, std::map<std::string, std::int64_t>* tv,
+                                           SegmentMetrics* m) {
+  const Volume v = segment_volume(phantom_source(p, truth), phantom_tissue_table(), o, m);
+  const auto dice = dice_per_tissue(v, truth, tv);
+  for (const auto& [k, d] : dice) std::printf("  %s: %-8s dice %.4f\n", what.c_str(), k.c_str(), d);
+  return dice;
+}
+
 // Sensor noise sigma 12 (8-bit units, three times the sample's): plain
 // k-means calibration let the vein's prototype (0.3 % of the voxels) run
 // off into the noise tail of the blue gel next to it in colour, and the
@@ -199,11 +210,9 @@ TEST(SegmentPhantom, HighNoiseKeepsRareTissues) {
       SegmentOptions o = phantom_segment_options(p);
       o.lightness_weight = lw;
       SegmentMetrics m;
-      const Volume v = segment_volume(phantom_source(p, truth), table, o, &m);
       std::map<std::string, std::int64_t> tv;
-      const auto dice = dice_per_tissue(v, truth, &tv);
       const std::string what = "noise 12, seed " + std::to_string(seed) + ", lightness weight " + std::to_string(lw);
-      for (const auto& [k, d] : dice) std::printf("  %s: %-8s dice %.4f\n", what.c_str(), k.c_str(), d);
+      const auto dice = segment_dice(p, truth, o, what, &tv, &m);
       expect_dice(dice, tv, table, what);
       for (const auto& pr : m.prototypes) {
         const double shift = std::hypot(pr.lab[0] - pr.table_lab[0], pr.lab[1] - pr.table_lab[1], pr.lab[2] - pr.table_lab[2]);
@@ -234,11 +243,9 @@ TEST(SegmentPhantom, VeryHighNoiseDoesNotCollapse) {
       SegmentOptions o = phantom_segment_options(p);
       o.classify = rule;
       SegmentMetrics m;
-      const Volume v = segment_volume(phantom_source(p, truth), table, o, &m);
       std::map<std::string, std::int64_t> tv;
-      const auto dice = dice_per_tissue(v, truth, &tv);
       const std::string what = std::string("noise 20, seed ") + std::to_string(seed) + ", " + to_string(rule);
-      for (const auto& [k, d] : dice) std::printf("  %s: %-8s dice %.4f\n", what.c_str(), k.c_str(), d);
+      const auto dice = segment_dice(p, truth, o, what, &tv, &m);
       for (const auto& pr : m.prototypes) {
         const double shift = std::hypot(pr.lab[0] - pr.table_lab[0], pr.lab[1] - pr.table_lab[1], pr.lab[2] - pr.table_lab[2]);
         EXPECT_LT(shift, 15) << what << ": prototype of label " << pr.label;  // the table is the phantom's own colours
