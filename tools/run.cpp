@@ -209,7 +209,11 @@ void add_run_command(CLI::App& app) {
     if (!common.quiet)
       std::cerr << "run: " << r.steps << " steps in " << r.step_wall_s << " s ("
                 << met["steps_per_second"].get<double>() << " steps/s, " << c.substeps << " substeps, "
-                << c.events << " stability events, " << c.failed << " failed)"
+                << c.events << " stability events, " << c.failed << " failed"
+                << (c.cg_redos > 0 ? ", " + std::to_string(c.cg_redos) +
+                                         " implicit steps redone with more substeps: PCG stopped at cg_max_iterations"
+                                   : std::string())
+                << ")"
                 << (scene->output() ? ", series " + scene->output()->pvd_path() : std::string()) << "\n";
     if (scene->fluid_state()) {
       const auto f = scene->fluid_summary();

@@ -344,6 +344,11 @@ TEST_F(RunCli, UnconvergedSolvesAreAWarning) {
                         "after 24 redos"),
             std::string::npos)
       << rd.err;
+  // the summary (without --quiet) counts the redos too
+  const auto rs = run_cli("run " + d + " --steps 3 --no-output");
+  EXPECT_NE(rs.err.find(", 24 implicit steps redone with more substeps: PCG stopped at cg_max_iterations)"),
+            std::string::npos)
+      << rs.err;
   const auto ok = scene(R"({"model": "model.h5", "fixed": ["fixed"], "integrator": "implicit", "dt": 0.01})");
   const auto q = run_cli("run " + ok + " --steps 3 --no-output --quiet");
   EXPECT_EQ(q.code, 0) << q.err;
