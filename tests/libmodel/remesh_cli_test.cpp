@@ -165,3 +165,35 @@ TEST(RemeshCli, SegmentedSampleBuildsAtFineGrids) {
     EXPECT_EQ(b["metrics"]["inverted_tets"], 0) << g;
   }
 }
+
+// A phantom limb about as long as it is wide (128 x 128 x 64 at 0.6 x 0.6 x
+// 1.0 mm: the skin spans 62.5 x 55.2 x 63.0 mm). Its principal axis tilted
+// 8.6 degrees off z and was capped at neither end, but the sweep along it
+// found caps and stood; it wandered to 81.6 mm and the remesh failed, with an
+// error that changed with the noise alone ("bone not inside muscle" at noise
+// 0-8, "fat not inside skin" at 12, "cuts the surface in 2 loops" at 16).
+// The sweep along the flat caps' normal (z) goes first now.
+TEST(RemeshCli, LimbAsLongAsWideSweepsAlongTheSlicesNormal) {
+  test::TempDir d{"remesh-square"};
+  const std::string st = d / "stack", labels = d / "labels.h5", surf = d / "surfaces";
+  auto r = test::run_cli("phantom -q --out " + st + " --size 128x128x64 --spacing 0.6,0.6,1.0 --noise 2 --seed 7");
+  ASSERT_EQ(r.code, 0) << r.err;
+  r = test::run_cli("segment -q --stack " + st + "/slices --tissues " + st + "/tissues.json --spacing 0.6,0.6,1.0 --out " +
+                    labels);
+  ASSERT_EQ(r.code, 0) << r.err;
+  r = test::run_cli("surface -q --labels " + labels + " --out " + surf + " --tissues skin,fat,muscle,bone");
+  ASSERT_EQ(r.code, 0) << r.err;
+  r = test::run_cli("remesh -q --surface " + surf + "/skin.stl --inner " + surf + "/fat.stl," + surf + "/muscle.stl," +
+                    surf + "/bone.stl --grid 39x9 --out " + (d / "q") + " --report " + (d / "r.json"));
+  ASSERT_EQ(r.code, 0) << r.err;
+  const auto j = nlohmann::json::parse(test::read_file(d / "r.json"));
+  const auto& sw = j["metrics"]["sweep"];
+  std::printf("  sweep %s\n", sw.dump().c_str());
+  EXPECT_GT(sw["length_m"].get<double>(), 0.060);
+  EXPECT_LT(sw["length_m"].get<double>(), 0.070);  // the stack is 63 mm; the wandering sweep was 81.6 mm
+  EXPECT_LT(sw["plane_turn"].get<double>(), 1);
+  for (const auto& l : j["metrics"]["layers"]) {
+    EXPECT_EQ(l["quality"]["flipped"], 0) << l["name"];
+    EXPECT_EQ(l["quality"]["degenerate"], 0) << l["name"];
+  }
+}
