@@ -382,7 +382,9 @@ int run_pipeline(Args a) {
                                      " and the segment report (prototypes' shifts, cleanup) in " + seg.dir);
           absent.push_back(t);
           std::cerr << "orthosim pipeline: warning: " << a.stack << ": no voxel was segmented as '" << t
-                    << "' (its colour does not appear in the slices; tissue table " << a.tissues << "); it is left out\n";
+                    << "' (no calibration sample and no voxel took its colour: the slices do not show it, or their "
+                       "compression or noise changed it; tissue table "
+                    << a.tissues << "); it is left out\n";
         }
         names = kept;
       };

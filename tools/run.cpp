@@ -224,6 +224,15 @@ void add_run_command(CLI::App& app) {
                   << (f.flow_rate > 0 ? f.particle_volume / f.flow_rate : HUGE_VAL)
                   << " s of that flow; a finer fluid spacing or a higher bleed_pressure shows it\n";
     }
+    if (scene->fluid_state() && !scene->model().vessels.empty() && !scene->cuts().empty()) {
+      std::size_t hits = 0;
+      for (const auto& cr : scene->cuts()) hits += cr.vessel_hits.size();
+      if (hits == 0)  // even with --quiet: the bleeding the scene is built for cannot start
+        std::cerr << "orthosim run: warning: " << scene_file << ": " << scene->cuts().size()
+                  << " cut(s) crossed none of the " << scene->model().vessels.size()
+                  << " loaded vessel tree(s), so nothing bled (is the vessel where the cut is? the model's vessels "
+                     "may be shorter than the tissue's: see its vessels report)\n";
+    }
     for (const auto& cr : scene->cuts())
       if (cr.springs_cut == 0 && cr.quads_removed == 0)  // even with --quiet: the incision the scene asks for is not there
         std::cerr << "orthosim run: warning: " << scene_file << ": the cut"

@@ -224,6 +224,35 @@ TEST_F(RunCli, UnconvergedPressureSolvesAreAWarning) {
   EXPECT_EQ(ok.err, "");
 }
 
+// Cuts that cross none of the loaded vessels are named in a warning: a
+// bleeding scene on a model whose segmentation lost most of its vessels ran
+// with nothing bleeding and said nothing.
+TEST_F(RunCli, CutsThatMissEveryVesselAreAWarning) {
+  runtime::testing::write_model_file(model, runtime::testing::make_layered_block(39, 9, 4), true);  // artery at x = 10 mm
+  auto cut_from = [&](const std::string& x0, const std::string& x1) {
+    return scene(R"({
+      "model": "model.h5", "fixed": ["fixed"], "integrator": "implicit", "dt": 0.005, "duration": 0.01,
+      "vessels": ["artery"], "fluid": {"spacing": 0.002, "sound_speed": 3, "margin": 0.01},
+      "tools": [{"name": "scalpel", "type": "cut", "polyline": [[)" + x0 + R"(, 0, 0.01], [)" + x1 + R"(, 0, 0.01]],
+                 "depth": 0.008, "direction": [0, 1, 0], "snap": false, "start": 0}]
+    })");
+  };
+  const auto away = cut_from("0.1", "0.13");
+  const auto r = run_cli("run " + away + " --no-output --quiet --report " + (dir / "away.json"));
+  ASSERT_EQ(r.code, 0) << r.err;
+  const auto j = nlohmann::json::parse(test::read_file(dir / "away.json"));
+  ASSERT_GT(j["metrics"]["cuts"][0]["springs_cut"].get<int>(), 0) << "the cut opens the tissue";
+  EXPECT_EQ(test::count_lines(r.err), 1) << r.err;
+  EXPECT_NE(r.err.find("orthosim run: warning: " + away + ": 1 cut(s) crossed none of the 1 loaded vessel tree(s), so "
+                       "nothing bled"),
+            std::string::npos)
+      << r.err;
+  // across the artery: it bleeds, no warning
+  const auto across = run_cli("run " + cut_from("0.0", "0.03") + " --no-output --quiet");
+  ASSERT_EQ(across.code, 0) << across.err;
+  EXPECT_EQ(across.err, "");
+}
+
 // A cut that misses the model is named in a warning (it cut nothing, silently).
 TEST_F(RunCli, ACutThatMissesTheModelIsAWarning) {
   auto cut_at = [&](const std::string& z) {

@@ -250,7 +250,8 @@ TEST(Pipeline, TissuesTheSlicesDoNotShowAreLeftOut) {
   EXPECT_EQ(test::count_lines(r.err), 2) << r.err;
   for (const char* name : {"tendon", "nerve"})
     EXPECT_NE(r.err.find("orthosim pipeline: warning: " + s.stack + ": no voxel was segmented as '" + name +
-                         "' (its colour does not appear in the slices; tissue table " + table + "); it is left out"),
+                         "' (no calibration sample and no voxel took its colour: the slices do not show it, or their compression or "
+                         "noise changed it; tissue table " + table + "); it is left out"),
               std::string::npos)
         << r.err;
   EXPECT_EQ(nlohmann::json::parse(test::read_file(rep))["metrics"]["absent_tissues"],
