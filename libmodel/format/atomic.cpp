@@ -17,8 +17,11 @@ namespace {
 std::string temp_name(const std::string& target) {
   static std::atomic<int> counter{0};
   fs::path t(target);
-  std::string name = "." + t.filename().string() + ".tmp-" + std::to_string(::getpid()) + "-" +
-                     std::to_string(counter++);
+  // appended piece by piece: GCC 12's "." + std::string (an insert at 0 on an
+  // rvalue) raised a false -Wrestrict warning inside <string> (GCC bug 105329)
+  std::string name = ".";
+  name += t.filename().string();
+  name += ".tmp-" + std::to_string(::getpid()) + "-" + std::to_string(counter++);
   return (t.parent_path() / name).string();
 }
 
