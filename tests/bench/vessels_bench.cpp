@@ -141,7 +141,10 @@ void print_row(const std::string& method, const Runs& r) {
     std::vector<int> b = r.branches;
     std::sort(b.begin(), b.end());
     b.erase(std::unique(b.begin(), b.end()), b.end());
-    for (int x : b) br += (br.empty() ? "" : "/") + std::to_string(x);
+    for (int x : b) {  // appended: '"/" + std::string' raised GCC 12's false -Wrestrict (bug 105329)
+      if (!br.empty()) br += "/";
+      br += std::to_string(x);
+    }
   }
   std::printf("  %-26s %9.1f %9.1f %9.1f  %-8s %4d/%-4zu %8.3f %8.3f %8.3f %8.4f\n", method.c_str(), 1e3 * r.median(),
               1e3 * r.min(), 1e3 * r.max(), br.c_str(), r.topology_ok, r.seconds.size(), 1e3 * r.error.mean_m,
