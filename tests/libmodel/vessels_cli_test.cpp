@@ -138,6 +138,27 @@ TEST(VesselsCli, PhantomTreesIntoANewModelWithFilesAndReport) {
   EXPECT_TRUE(q.out.empty()) << q.out;
 }
 
+// A tube that cuts itself is named in one warning line, even with -q (it was
+// written silently): the phantom's artery on a stack shorter than the limb is
+// wide, exact labels, has short oblique branches against its 5.4 mm radius.
+TEST(VesselsCli, SelfIntersectingTubeIsAWarning) {
+  test::TempDir d{"vessels-short"};
+  const std::string st = d / "stack";
+  auto r = test::run_cli("phantom -q --out " + st + " --size 256x256x64 --spacing 0.7,0.7,1.0");
+  ASSERT_EQ(r.code, 0) << r.err;
+  r = test::run_cli("vessels -q --labels " + st + "/truth.h5 --tissue artery --model " + (d / "m.h5") + " --report " +
+                    (d / "r.json"));
+  ASSERT_EQ(r.code, 0) << r.err;
+  const auto j = nlohmann::json::parse(test::read_file(d / "r.json"));
+  const long n = j["metrics"]["tissues"]["artery"]["tube"]["self_intersections"].get<long>();
+  ASSERT_GT(n, 0);
+  EXPECT_EQ(test::count_lines(r.err), 1) << r.err;
+  EXPECT_NE(r.err.find("orthosim vessels: warning: " + st + "/truth.h5: artery: the tube has " + std::to_string(n) +
+                       " self-intersecting face pair(s)"),
+            std::string::npos)
+      << r.err;
+}
+
 TEST(VesselsCli, AddsToAnExistingModelAndKeepsItsGroups) {
   Files f;
   const std::string model = f / "labels.h5";  // the labels file is the model: /volume stays
