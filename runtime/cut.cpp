@@ -157,6 +157,7 @@ CutReport cut_model(Model& m, std::span<const Real> x, const CutDef& def) {
     std::copy(v, v + 4, &m.quads[4 * qkeep]);
     ++qkeep;
   }
+  rep.quads_loaded = m.n_quads > 0;
   rep.quads_removed = m.n_quads - static_cast<std::int32_t>(qkeep);
   m.quads.resize(4 * qkeep);
   m.n_quads = static_cast<std::int32_t>(qkeep);

@@ -20,6 +20,7 @@
 #include <cmath>
 #include <cstdint>
 #include <cstring>
+#include <iterator>
 #include <numeric>
 #include <sstream>
 #include <tuple>
@@ -1906,11 +1907,11 @@ const char* to_string(Rheology r) { return r == Rheology::carreau ? "carreau" : 
 const char* to_string(PressureSolver p) { return p == PressureSolver::pcisph ? "pcisph" : "eos"; }
 const char* fluid_phase_name(int k) {
   static const char* names[] = {"prepare", "density", "forces", "pressure", "integrate", "emit"};
-  return k >= 0 && k < 6 ? names[k] : "?";
+  return k >= 0 && k < static_cast<int>(std::size(names)) ? names[k] : "?";
 }
 const char* substep_limit_name(int k) {
   static const char* const names[6] = {"step", "cfl", "force", "viscous", "max_substep", "pressure"};
-  return k >= 0 && k < 6 ? names[k] : "?";
+  return k >= 0 && k < static_cast<int>(std::size(names)) ? names[k] : "?";
 }
 
 Real carreau_viscosity(const Carreau& c, Real shear_rate) {

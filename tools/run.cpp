@@ -192,12 +192,10 @@ void add_run_command(CLI::App& app) {
                   << " % of the limited ones; metrics.fluid.substeps_set_by)\n";
     }
     met["cuts"] = nlohmann::json::array();
-    // the surface quads are loaded only when the scene draws or collides with
-    // them (Scene::init): without them a cut removes none, and the count is null
-    const bool surface_loaded = (def.output.enabled && def.output.vtk.surface) || def.fluid.enabled;
+    // without surface quads loaded a cut removes none, and the count is null
     for (const auto& c : scene->cuts())
       met["cuts"].push_back({{"springs_cut", c.springs_cut},
-                             {"quads_removed", surface_loaded ? nlohmann::json(c.quads_removed) : nlohmann::json()},
+                             {"quads_removed", c.quads_loaded ? nlohmann::json(c.quads_removed) : nlohmann::json()},
                              {"detached_nodes", c.detached.size()}, {"vessel_hits", c.vessel_hits.size()}});
     met["frames"] = r.frames;
     met["kinetic_energy_j"] = scene->state().kinetic_energy;

@@ -1223,9 +1223,15 @@ TubeSweep sweep_from_axes(const Surface& s, const Topology& topo, const RemeshOp
   // outside the muscle, depending on the noise alone; along the caps' normal
   // its planes turn by 0.74.
   const auto alt = capped_alternative(s, topo, ax, o);
+  TubeSweep alt_sw;
+  std::exception_ptr alt_error;  // the alternative sweep failed: the principal axis may still do
   if (alt) {
-    TubeSweep sw = sweep_impl(s, topo, slice(*alt), *alt, o, name, /*cap_guard=*/true);
-    if (sw.plane_turn < 1) return sw;
+    try {
+      alt_sw = sweep_impl(s, topo, slice(*alt), *alt, o, name, /*cap_guard=*/true);
+      if (alt_sw.plane_turn < 1) return alt_sw;
+    } catch (const Error&) {
+      alt_error = std::current_exception();
+    }
   }
   TubeSweep sw;
   std::exception_ptr first;
@@ -1235,9 +1241,12 @@ TubeSweep sweep_from_axes(const Surface& s, const Topology& topo, const RemeshOp
     first = std::current_exception();
   }
   if (first || (!sw.flat_cap[0] && !sw.flat_cap[1])) {
-    if (alt) {
-      sw = sweep_impl(s, topo, slice(*alt), *alt, o, name, /*cap_guard=*/true);
-      check_alternative_sweep(sw, o, name, first, spans(s, *alt));
+    if (alt_error) {
+      std::rethrow_exception(alt_error);
+    } else if (alt) {
+      // its planes cross (R |dn/ds| >= 1 > max_plane_turn): this throws, with
+      // the principal sweep's error where that failed
+      check_alternative_sweep(alt_sw, o, name, first, spans(s, *alt));
     } else if (first) {
       std::rethrow_exception(first);
     }

@@ -452,11 +452,7 @@ void calibrate(ColourModel& m, const std::vector<std::vector<std::uint8_t>>& sli
         }
         double top = -1e300;
         for (std::size_t c = 0; c < C; ++c) {
-          const auto& mu = m.centres[c].lab;
-          const double d0 = x[0] - mu[0], d1 = x[1] - mu[1], d2 = x[2] - mu[2];
-          const double q = P[0] * d0 * d0 + P[1] * d1 * d1 + P[2] * d2 * d2 +
-                           2 * (P[3] * d0 * d1 + P[4] * d0 * d2 + P[5] * d1 * d2);
-          lp[c] = log_pi[c] - 0.5 * q;
+          lp[c] = log_pi[c] - 0.5 * mahalanobis2(P, x, m.centres[c].lab);
           top = std::max(top, lp[c]);
         }
         double z = 0;

@@ -42,6 +42,13 @@ struct LabelInfo {
 };
 LabelInfo make_label_info(const TissueTable& t, bool fill_holes);
 
+// (a - b)^T P (a - b) for a symmetric P given as (xx, yy, zz, xy, xz, yz).
+inline double mahalanobis2(const std::array<double, 6>& P, const std::array<double, 3>& a,
+                           const std::array<double, 3>& b) {
+  const double d0 = a[0] - b[0], d1 = a[1] - b[1], d2 = a[2] - b[2];
+  return P[0] * d0 * d0 + P[1] * d1 * d1 + P[2] * d2 * d2 + 2 * (P[3] * d0 * d1 + P[4] * d0 * d2 + P[5] * d1 * d2);
+}
+
 struct Centre {
   int label = 0;
   std::array<double, 3> table_lab{};
@@ -75,11 +82,7 @@ struct ColourModel {
   std::array<double, 6> precision{0, 0, 0, 0, 0, 0};
   // What a centre costs a colour: dist2, or the squared Mahalanobis distance.
   double score(const std::array<double, 3>& lab, std::size_t i) const {
-    if (!mahalanobis) return dist2(lab, centres[i].lab);
-    const auto& c = centres[i].lab;
-    const auto& P = precision;
-    const double d0 = lab[0] - c[0], d1 = lab[1] - c[1], d2 = lab[2] - c[2];
-    return P[0] * d0 * d0 + P[1] * d1 * d1 + P[2] * d2 * d2 + 2 * (P[3] * d0 * d1 + P[4] * d0 * d2 + P[5] * d1 * d2);
+    return mahalanobis ? mahalanobis2(precision, lab, centres[i].lab) : dist2(lab, centres[i].lab);
   }
   // Best centre (first of equals) under score.
   int nearest(const std::array<double, 3>& lab) const;
