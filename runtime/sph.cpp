@@ -2363,6 +2363,11 @@ FluidStepInfo fluid_step(const Fluid& f, FluidState& s, Real dt, const FluidBoun
       // (a solve builds its pressure from 0 in steps of delta ~ 1/h^2), within
       // 0.5x ... 1.25x of this one.
       Real first_before = HUGE_VAL;
+      // No halving below the substep the equation of state would take at the
+      // same c0, cfl (H/2) / (c0 + |v|max): there one EOS pass is the cheaper
+      // solver, and an unreachable tolerance would otherwise ratchet the
+      // substep down without end (each redo's h sets the next substep's).
+      const Real floor = f.params.cfl * f.h / (f.c0 + vtop);
       for (int retry = 0;; ++retry) {
         int it = 0;
         Real err = 0, first = 0;
@@ -2378,14 +2383,15 @@ FluidStepInfo fluid_step(const Fluid& f, FluidState& s, Real dt, const FluidBoun
         // longer shrinks), the solve is taken as it is
         // (a stalled solve, Stepper::pcisph, is redone at half the substep like one
         // that ran out of corrections: the shorter motion may bring its particle in)
-        const bool hopeless = compressed_before || first > Real(0.7) * first_before;
+        const bool hopeless = compressed_before || first > Real(0.7) * first_before || h / 2 < floor;
         if (stalled) ++s.counters.pressure_stalled;
         first_before = first;
         if (ok || retry == 10 || hopeless) {
           if (!ok) ++s.counters.pressure_unconverged;
           info.max_predicted_compression = std::max(info.max_predicted_compression, err);
-          s.pressure_substep =
-              h * std::clamp(std::sqrt(Real(f.params.pcisph_target_iterations) / std::max(it, 1)), Real(0.5), Real(1.25));
+          s.pressure_substep = std::max(
+              floor, h * std::clamp(std::sqrt(Real(f.params.pcisph_target_iterations) / std::max(it, 1)), Real(0.5),
+                                    Real(1.25)));
           break;
         }
         ++s.counters.pressure_retries;

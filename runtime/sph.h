@@ -160,7 +160,12 @@ const char* to_string(Rheology r);
 //   pcisph_max_iterations is redone at half the substep, unless the fluid was
 //   compressed already (its worst particle at the substep's start, or the
 //   compression predicted without pressure no longer shrinks): then the solve
-//   is taken as it is and counted. A solve that cycles between two states
+//   is taken as it is and counted. Nor is it halved below the substep the
+//   EOS would take at the same c0, cfl h / (c0 + |v|max) (there one EOS pass
+//   is the cheaper solver; an unreachable tolerance ratcheted the substep
+//   down without end before, each redo's h starting the next substep, and
+//   the corrections over a vanishing substep threw particles out); the next
+//   substep is not sized below it either. A solve that cycles between two states
 //   (a particle beside walls whose response to its own pressure is more than
 //   twice delta overshoots; with the clamp at 0 it flips back and forth) stops
 //   after pcisph_stall_repeats repeats and is treated as one not converged.
@@ -471,7 +476,7 @@ struct FluidCounters {
   std::int64_t list_reuses = 0;      // substeps that kept the last lists (neighbour_skin)
   std::int64_t pressure_solves = 0;       // pcisph: solves, the redone ones included
   std::int64_t pressure_iterations = 0;   // pcisph: corrections, all substeps
-  std::int64_t pressure_unconverged = 0;  // pcisph: solves taken unconverged (after 10 halvings, or where halving cannot help)
+  std::int64_t pressure_unconverged = 0;  // pcisph: solves taken unconverged (after 10 halvings, at the EOS substep, or where halving cannot help)
   std::int64_t pressure_retries = 0;      // pcisph: solves redone at half the substep (not converged)
   std::int64_t pressure_stalled = 0;      // pcisph: solves stopped early, cycling between two states (then redone or taken)
   // substeps by the limit that set their length (fluid_step spreads the rest

@@ -245,9 +245,10 @@ void add_run_command(CLI::App& app) {
     if (const runtime::FluidState* fs = scene->fluid_state(); fs && fs->counters.pressure_unconverged > 0)
       std::cerr << "orthosim run: warning: " << scene_file << ": " << fs->counters.pressure_unconverged << " of "
                 << fs->counters.pressure_solves
-                << " PCISPH pressure solves were taken unconverged (after halving the substep, or where halving "
-                   "cannot help): the blood is compressed beyond pcisph_tolerance there (more "
-                   "pcisph_max_iterations or a smaller dt; metrics.fluid.pressure_unconverged)\n";
+                << " PCISPH pressure solves were taken unconverged (after halving the substep, at most down to the "
+                   "EOS's own at the same sound speed, or where halving cannot help): the blood is compressed "
+                   "beyond pcisph_tolerance there (more pcisph_max_iterations or a larger pcisph_tolerance; "
+                   "metrics.fluid.pressure_unconverged)\n";
     report.write(common.report);
     if (c.failed > 0) {
       // the run went to the end (outputs and report written; a failed step ends at rest, never

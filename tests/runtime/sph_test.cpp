@@ -439,6 +439,38 @@ TEST(SphPcisph, CyclingSolvesStopEarly) {
   EXPECT_LE(without.worst, FluidParams{}.pcisph_tolerance);
 }
 
+// A tolerance no solve reaches (1e-9 in 3 corrections) must not ratchet the
+// substep down: each redo at half the substep set the next substep's start,
+// nothing grew it back, and the pressures of a correction over a vanishing
+// substep (delta ~ 1/h^2 against a compression that did not shrink with h) threw
+// particles out as non-finite. The substep now stays at or above the EOS's
+// own at the same sound speed, and the solves are taken and counted.
+TEST(SphPcisph, UnreachableToleranceKeepsTheEosSubstep) {
+  auto run = [](PressureSolver solver) {
+    FluidParams p;
+    p.pressure_solver = solver;
+    if (solver == PressureSolver::pcisph) {
+      p.pcisph_tolerance = 1e-9;
+      p.pcisph_max_iterations = p.pcisph_target_iterations = p.pcisph_min_iterations = 3;
+    }
+    const Fluid f = make_fluid(p);
+    const FluidBoundaries b = make_box_boundaries({0, 0, 0}, {0.04, 0.04, 0.04});
+    FluidState s = make_fluid_state();
+    fill_box(f, s, {0, 0.01, 0}, {0.02, 0.03, 0.02});  // a block dropped 1 cm onto the floor
+    for (int k = 0; k < 60; ++k) fluid_step(f, s, 1e-3, b);
+    EXPECT_TRUE(all_finite(s));
+    EXPECT_EQ(s.counters.nonfinite, 0);
+    EXPECT_EQ(s.counters.truncated_steps, 0);
+    return s.counters;
+  };
+  const FluidCounters eos = run(PressureSolver::eos), pci = run(PressureSolver::pcisph);
+  std::printf("  substeps: EOS %lld, PCISPH at 1e-9 %lld (%lld solves unconverged, %lld redone)\n",
+              static_cast<long long>(eos.substeps), static_cast<long long>(pci.substeps),
+              static_cast<long long>(pci.pressure_unconverged), static_cast<long long>(pci.pressure_retries));
+  EXPECT_GT(pci.pressure_unconverged, 0);
+  EXPECT_LE(pci.substeps, eos.substeps * 3 / 2);
+}
+
 TEST(SphPcisph, DamBreakSurgeFront) {
   const DamBreakResult r = dam_break(16, 0.02, PressureSolver::pcisph);
   for (const auto& q : r.points) std::printf("  T %.2f  Z %.3f  (Martin & Moyce %.2f)\n", q[0], q[1], q[2]);
