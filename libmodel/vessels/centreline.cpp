@@ -529,9 +529,20 @@ void refine_centrelines(const Grid& g, const VesselOptions& o, Forest& f) {
       for (std::size_t ci = 0; ci < J.children.size(); ++ci)
         sane = sane && (f.branches[J.children[ci]].x[z.start[ci]] - xb).dot(tc[ci]) > 0;
       if (!sane) break;
-      // Q at least one radius before B along the parent
+      // Q at least one radius before B along the parent, and half a radius
+      // behind every child's first ring (a child turning sharply off a wide
+      // parent reaches back along the parent's axis by r_c sin(angle); a
+      // parent ring level with it left the patch no room and it folded)
       const double sb = sp[z.q] + (xb - P.x[z.q]).dot(tq);
-      const double want = sb - std::max(P.r[z.q], P.rho[z.q]);
+      const double rq = std::max(P.r[z.q], P.rho[z.q]);
+      double want = sb - rq;
+      for (std::size_t ci = 0; ci < J.children.size(); ++ci) {
+        const Branch& C = f.branches[J.children[ci]];
+        const int i = z.start[ci];
+        const double c = std::clamp(tc[ci].dot(tq), -1.0, 1.0);
+        const double back = (C.x[i] - xb).dot(tq) - C.r[i] * std::sqrt(1 - c * c);
+        want = std::min(want, sb + back - 0.5 * rq);
+      }
       int q = z.q;
       while (q > q_min && sp[q] > want) --q;
       if (q == z.q) break;

@@ -439,15 +439,20 @@ TEST(Vessels, NoisySegmentedVeinWithShortBranches) {
 }
 
 // The default `orthosim phantom` sample (its bifurcation is narrow: the
-// children leave the brachial artery about 20 degrees apart) and a coarse one
-// (vessel radii of about two voxels): right trees and valid tubes.
+// children leave the brachial artery about 20 degrees apart), a coarse one
+// (vessel radii of about two voxels) and a short wide one (a stack shorter
+// than the limb is wide: the artery's radius is 5.4 mm and one child turns
+// about 80 degrees off it; the parent's last ring lay level with that child's
+// first ring, and the patch between folded, 40 self-intersecting face pairs
+// until 2026-11-27): right trees and valid tubes.
 TEST(Vessels, PhantomTreesAtOtherResolutions) {
   struct Res {
     int n, nz;
     double h, hz;
     bool accuracy;
   };
-  for (const Res res : {Res{256, 128, 0.3e-3, 1.0e-3, true}, Res{64, 32, 0.8e-3, 2.0e-3, false}}) {
+  for (const Res res : {Res{256, 128, 0.3e-3, 1.0e-3, true}, Res{64, 32, 0.8e-3, 2.0e-3, false},
+                         Res{256, 64, 0.7e-3, 1.0e-3, false}}) {
     PhantomOptions po;
     po.nx = po.ny = res.n, po.nz = res.nz;
     po.spacing_m = {res.h, res.h, res.hz};
@@ -459,7 +464,15 @@ TEST(Vessels, PhantomTreesAtOtherResolutions) {
       const CentrelineError e = compare_centrelines(r.tree, truth.at(tissue));
       print("phantom " + std::to_string(res.n) + " " + tissue, r, e, res.h);
       if (res.accuracy) expect_accuracy(e, res.h);
-      EXPECT_LE(e.max_m, 2.0 * res.h);
+      // Within a junction the centreline is a convention: the phantom's axes
+      // meet on the parent's, the extracted ones where the children's axes
+      // cross the rebuilt parent's. For the wide stack's 5.4 mm artery (7.7
+      // voxels) they are 3 mm apart, and the largest deviations (2.8 voxels,
+      // 1.9 mm, before and after the ring fix) lie there: the bound is the
+      // larger of 2 voxels and half the widest truth radius.
+      const double r_max = truth.at(tissue).radii.maxCoeff();
+      EXPECT_LE(e.max_m, std::max(2.0 * res.h, 0.5 * r_max));
+      EXPECT_LE(e.mean_m, 0.5 * res.h);
       const VesselTree& t = truth.at(tissue);
       expect_topology(r.tree, std::vector<int>(t.branch_parent.data(), t.branch_parent.data() + t.branch_parent.size()));
       expect_tube(r, 1);
