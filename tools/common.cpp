@@ -31,6 +31,42 @@ void check_common_options(const CommonOptions& o) {
   if (!o.report.empty()) check_output_file(o.report);
 }
 
+namespace {
+
+// The --report of the command running now ("" when none): Report::input
+// refuses to record it as an input (a scene's "model" key can name it).
+std::string& current_report() {
+  static std::string path;
+  return path;
+}
+
+// Whether two paths name one file: the same inode where both exist, else
+// the same normalised absolute path.
+bool same_file(const std::string& a, const std::string& b) {
+  namespace fs = std::filesystem;
+  std::error_code e1, e2;
+  if (fs::exists(a, e1) && fs::exists(b, e2)) return fs::equivalent(a, b, e1);
+  const fs::path ca = fs::weakly_canonical(a, e1), cb = fs::weakly_canonical(b, e2);
+  return !e1 && !e2 && ca == cb;
+}
+
+// --report naming a file the command reads or writes would replace it with
+// the report (a model overwritten by a 2 KB JSON): refused before any work.
+void check_report_is_not_an_operand(const CLI::App* sub, const std::string& report) {
+  if (report.empty()) return;
+  for (const CLI::Option* opt : sub->get_options()) {
+    if (opt->get_name() == "--report" || opt->count() == 0) continue;
+    for (const std::string& v : opt->results()) {
+      if (v.empty() || !same_file(v, report)) continue;
+      const std::string name = opt->get_name().empty() || opt->get_name()[0] != '-' ? "the argument " + v
+                                                                                     : opt->get_name() + " " + v;
+      throw Error(report, "--report names the same file as " + name + ": the report would replace it");
+    }
+  }
+}
+
+}  // namespace
+
 Report::Report(std::string command) : start_(std::chrono::steady_clock::now()) {
   j_["command"] = std::move(command);
   j_["version"] = version_string();
@@ -43,7 +79,11 @@ Report::Report(std::string command) : start_(std::chrono::steady_clock::now()) {
   j_["metrics"] = nlohmann::json::object();
 }
 
-void Report::input(const std::string& path) { j_["inputs"][path] = hash_path(path); }
+void Report::input(const std::string& path) {
+  if (!current_report().empty() && same_file(path, current_report()))
+    throw Error(current_report(), "--report names the input " + path + ": the report would replace it");
+  j_["inputs"][path] = hash_path(path);
+}
 void Report::output(const std::string& path) { j_["outputs"].push_back(path); }
 
 void Report::phase(const std::string& name, double seconds) {
@@ -102,10 +142,17 @@ int guarded(const std::string& command, const std::function<void()>& body) {
 }
 
 void on_run(CLI::App* sub, const std::string& command, const CommonOptions& common, std::function<void()> body) {
-  sub->callback([command, &common, body = std::move(body)] {
+  sub->callback([sub, command, &common, body = std::move(body)] {
     exit_code() = 0;  // the body may set a code of its own (run: 3, steps failed)
+    // the pipeline runs its stages in this process: each restores the outer one's
+    struct Current {
+      std::string saved = current_report();
+      ~Current() { current_report() = saved; }
+    } current;
     const int code = guarded(command, [&] {
       check_common_options(common);  // before any work: a run never ends on an unwritable report
+      check_report_is_not_an_operand(sub, common.report);
+      current_report() = common.report;
       body();
     });
     if (code != 0) exit_code() = code;

@@ -6,6 +6,7 @@
 #include "tools/common.h"
 
 #include <cmath>
+#include <filesystem>
 #include <iostream>
 
 namespace orthosim::cli {
@@ -77,13 +78,13 @@ void add_run_command(CLI::App& app) {
                   << " s, after the run's last step starts (t = " << last_start << " s, " << n_steps
                   << " steps of " << def.dt << " s): it never acts\n";
 
+    report.input(scene_file);  // before the load: refuses a --report that names the scene's model
+    if (std::filesystem::exists(def.model)) report.input(def.model);
     std::unique_ptr<runtime::Scene> scene;
     {
       Phase p(report, "load");
       scene = std::make_unique<runtime::Scene>(def);
     }
-    report.input(scene_file);
-    report.input(def.model);
     const runtime::Model& m0 = scene->model();  // a cut replaces the model: not used after the steps
     auto& par = report.parameters();
     par["model"] = def.model;

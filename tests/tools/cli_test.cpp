@@ -180,6 +180,37 @@ TEST(Cli, ReportPathIsCheckedBeforeAnyWork) {
   EXPECT_FALSE(fs::exists(d / "nodir"));
 }
 
+// --report naming a file the command reads or writes: refused before any work,
+// the file untouched (run --report MODEL replaced a 13 MB model by its report,
+// exit 0; so did tune, and run --report SCENE the scene). Also where the scene's
+// own "model" key names it.
+TEST(Cli, ReportNeverReplacesAnOperand) {
+  const PhantomStack& ph = phantom_stack();
+  test::TempDir d("cli-report-operand");
+  const std::string model = make_model(d), bytes = test::read_file(model);
+  const std::string scene = d / "s.json";
+  test::write_file(scene, R"({"model": ")" + model + R"(", "dt": 0.001, "duration": 0.002})");
+  const std::string scene_bytes = test::read_file(scene);
+  const std::vector<std::tuple<std::string, std::string, std::string>> cases = {
+      {"run --no-output " + scene + " --model " + model, model, "--report names the same file as --model " + model},
+      {"run --no-output " + scene + " --model " + model, scene,
+       "--report names the same file as the argument " + scene},
+      {"run --no-output " + scene, model, "--report names the input " + model},
+      {"tune --tissues " + ph.tissues + " --model " + model, model, "--report names the same file as --model " + model},
+      {"inspect " + model, model, "--report names the same file as the argument " + model},
+      {"segment --stack " + ph.slices + " --tissues " + ph.tissues + " --spacing 1,1,2 --out " + (d / "l.h5"),
+       d / "l.h5", "--report names the same file as --out " + (d / "l.h5")},
+  };
+  for (const auto& [args, report, what] : cases) {
+    SCOPED_TRACE(args + " --report " + report);
+    const auto r = test::run_cli(args + " --quiet --report " + report);
+    expect_refused(r, report, what);
+    EXPECT_EQ(test::read_file(model), bytes);
+    EXPECT_EQ(test::read_file(scene), scene_bytes);
+  }
+  EXPECT_FALSE(fs::exists(d / "l.h5"));
+}
+
 // --truth of another size than the stack: refused before --out is written
 // (segment wrote --out, then failed on the Dice).
 TEST(Cli, SegmentChecksTheTruthBeforeWriting) {
