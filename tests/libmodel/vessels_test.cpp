@@ -447,22 +447,23 @@ TEST(Vessels, NoisySegmentedVeinWithShortBranches) {
 // until 2026-11-27): right trees and valid tubes.
 TEST(Vessels, PhantomTreesAtOtherResolutions) {
   struct Res {
-    int n, nz;
+    int nx, ny, nz;
     double h, hz;
     bool accuracy;
   };
-  for (const Res res : {Res{256, 128, 0.3e-3, 1.0e-3, true}, Res{64, 32, 0.8e-3, 2.0e-3, false},
-                         Res{256, 64, 0.7e-3, 1.0e-3, false}}) {
+  for (const Res res : {Res{256, 256, 128, 0.3e-3, 1.0e-3, true}, Res{64, 64, 32, 0.8e-3, 2.0e-3, false},
+                         Res{256, 256, 64, 0.7e-3, 1.0e-3, false}}) {
     PhantomOptions po;
-    po.nx = po.ny = res.n, po.nz = res.nz;
+    po.nx = res.nx, po.ny = res.ny, po.nz = res.nz;
     po.spacing_m = {res.h, res.h, res.hz};
     const Volume v = phantom_labels(po);
     const auto truth = phantom_vessels(po);
     for (const std::string tissue : {"artery", "vein"}) {
-      SCOPED_TRACE(tissue + " " + std::to_string(res.n) + "x" + std::to_string(res.nz));
+      const std::string size = std::to_string(res.nx) + "x" + std::to_string(res.ny) + "x" + std::to_string(res.nz);
+      SCOPED_TRACE(tissue + " " + size);
       const VesselResult r = extract_vessels(v, tissue, {});
       const CentrelineError e = compare_centrelines(r.tree, truth.at(tissue));
-      print("phantom " + std::to_string(res.n) + " " + tissue, r, e, res.h);
+      print("phantom " + size + " " + tissue, r, e, res.h);
       if (res.accuracy) expect_accuracy(e, res.h);
       // Within a junction the centreline is a convention: the phantom's axes
       // meet on the parent's, the extracted ones where the children's axes
@@ -473,9 +474,57 @@ TEST(Vessels, PhantomTreesAtOtherResolutions) {
       const double r_max = truth.at(tissue).radii.maxCoeff();
       EXPECT_LE(e.max_m, std::max(2.0 * res.h, 0.5 * r_max));
       EXPECT_LE(e.mean_m, 0.5 * res.h);
+      EXPECT_GE(e.overlap_truth, 0.99);  // the whole vessel, to the border
+      // every end of the phantom's vessels is cut by the volume border
+      for (const auto& end : r.metrics.ends) EXPECT_TRUE(end.open) << end.position_m.transpose();
       const VesselTree& t = truth.at(tissue);
       expect_topology(r.tree, std::vector<int>(t.branch_parent.data(), t.branch_parent.data() + t.branch_parent.size()));
       expect_tube(r, 1);
+    }
+  }
+}
+
+// Vessels cut by the volume border reach it, whatever the stack: thinning
+// peeled the first slices of a vessel leaving through the first slice (the
+// axis's voxels tie in distance near an open end and went lowest index
+// first). On exact labels at 0.45 x 0.45 x 1.5 mm the phantom's vein lost
+// its first 5 slices, its root came out closed at z = 7.5 mm and the tree
+// 7.5 mm short (overlap with the truth 0.957); on a 32 x 32 x 48 stack at
+// 0.45 x 0.45 x 0.6 mm half the vein and the artery's trunk and bifurcation
+// were lost. Silent, exit 0, until 2026-11-27.
+TEST(Vessels, VesselsCutByTheBorderReachIt) {
+  struct Stack {
+    int nx, ny, nz;
+    double h, hz;
+    bool resolved;  // vessel radii of 1.5 voxels or more (the 32 x 32 stack's are about 1: vessels.md, limits)
+  };
+  for (const Stack st : {Stack{96, 160, 96, 0.45e-3, 1.5e-3, true}, Stack{32, 32, 48, 0.45e-3, 0.6e-3, false},
+                         Stack{200, 120, 80, 0.45e-3, 1.5e-3, true}}) {
+    PhantomOptions po;
+    po.nx = st.nx, po.ny = st.ny, po.nz = st.nz;
+    po.spacing_m = {st.h, st.h, st.hz};
+    const Volume v = phantom_labels(po);
+    const auto truth = phantom_vessels(po);
+    for (const std::string tissue : {"artery", "vein"}) {
+      const std::string size = std::to_string(st.nx) + "x" + std::to_string(st.ny) + "x" + std::to_string(st.nz);
+      SCOPED_TRACE(tissue + " " + size);
+      const VesselResult r = extract_vessels(v, tissue, {});
+      const CentrelineError e = compare_centrelines(r.tree, truth.at(tissue));
+      print("border " + size + " " + tissue, r, e, st.h);
+      const VesselTree& t = truth.at(tissue);
+      expect_topology(r.tree, std::vector<int>(t.branch_parent.data(), t.branch_parent.data() + t.branch_parent.size()));
+      if (st.resolved) {
+        EXPECT_GE(e.overlap_truth, 0.99);
+        EXPECT_GE(e.overlap_extracted, 0.99);
+      }
+      std::size_t leaves = 0;  // the truth's ends: its root and its leaf branches' ends
+      for (Eigen::Index b = 0; b < t.branch_parent.size(); ++b)
+        leaves += std::find(t.branch_parent.data(), t.branch_parent.data() + t.branch_parent.size(), b) ==
+                  t.branch_parent.data() + t.branch_parent.size();
+      EXPECT_EQ(r.metrics.ends.size(), leaves + 1);
+      for (const auto& end : r.metrics.ends) EXPECT_TRUE(end.open) << end.position_m.transpose();
+      const MeshCheck c = check_mesh(r.tree.tube_vertices, r.tree.tube_quads, r.tree.tube_tris);
+      EXPECT_TRUE(c.closed() && c.manifold() && c.oriented());
     }
   }
 }
