@@ -113,7 +113,10 @@ class Obj {
     if (!v.is_array() || v.size() != 3) fail(std::string(key) + " must be [x, y, z]");
     std::array<Real, 3> out{};
     for (int k = 0; k < 3; ++k) {
-      if (!v[k].is_number() || !std::isfinite(v[k].get<Real>())) fail(std::string(key) + " must be three finite numbers");
+      // beyond 1e9 (m, m/s^2, or a direction's components) nothing is physical, and
+      // squares overflow past 1e154: gravity -1e200 froze the run, direction 1e200 normalised to 0
+      if (!v[k].is_number() || !std::isfinite(v[k].get<Real>()) || std::abs(v[k].get<Real>()) > 1e9)
+        fail(std::string(key) + " must be three finite numbers within +-1e9 (got " + v.dump() + ")");
       out[k] = v[k].get<Real>();
     }
     return out;
@@ -144,6 +147,17 @@ std::pair<Vec3, Vec3> rest_box(const Model& m, const std::vector<std::int32_t>& 
 std::string resolve(const std::string& base_dir, const std::string& p) {
   if (p.empty() || fs::path(p).is_absolute() || base_dir.empty()) return p;
   return (fs::path(base_dir) / p).lexically_normal().string();
+}
+
+// A direction scaled to unit length (0 stays 0): by its largest component
+// first, so tiny components (1e-200) do not underflow to a zero length.
+std::array<Real, 3> unit_direction(std::array<Real, 3> d) {
+  const Real m = std::max({std::abs(d[0]), std::abs(d[1]), std::abs(d[2])});
+  if (!(m > 0)) return {0, 0, 0};
+  for (auto& x : d) x /= m;
+  const Real n = std::sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]);
+  for (auto& x : d) x /= n;
+  return d;
 }
 
 ToolDef parse_tool(const json& j, std::size_t index, const std::string& file) {
@@ -194,7 +208,7 @@ ToolDef parse_tool(const json& j, std::size_t index, const std::string& file) {
     }
     t.depth = o.number("depth", 0, 0, 10, true);
     if (!o.has("depth")) o.fail("depth (m) is required");
-    t.direction = o.vec3("direction", {0, 0, 0});
+    t.direction = unit_direction(o.vec3("direction", {0, 0, 0}));
     t.snap = o.boolean("snap", true);
   }
   t.start = o.number("start", 0, 0, 1e9);
@@ -227,10 +241,8 @@ ToolDef parse_tool(const json& j, std::size_t index, const std::string& file) {
     t.pressure = o.number("pressure", 0, -1e9, 1e9);
     if (!o.has("pressure")) o.fail("pressure (Pa) is required");
     if (!t.has_center) o.fail("a pressure tool needs a center and radius");
-    t.direction = o.vec3("direction", {0, 0, 0});
-    const Real n = std::sqrt(t.direction[0] * t.direction[0] + t.direction[1] * t.direction[1] + t.direction[2] * t.direction[2]);
-    if (!(n > 0)) o.fail("direction must be a non-zero [x, y, z]");
-    for (auto& d : t.direction) d /= n;
+    t.direction = unit_direction(o.vec3("direction", {0, 0, 0}));
+    if (t.direction == std::array<Real, 3>{0, 0, 0}) o.fail("direction must be a non-zero [x, y, z]");
   }
   o.finish();
   return t;
@@ -257,6 +269,10 @@ SceneDef parse_scene(const std::string& text, const std::string& file) {
   d.layers = o.strings("layers");
   if (d.layers.size() == 1 && d.layers[0] == "all") d.layers.clear();
   d.vessels = o.strings("vessels");
+  for (std::size_t i = 0; i < d.vessels.size(); ++i)
+    for (std::size_t k = 0; k < i; ++k)
+      if (d.vessels[i] == d.vessels[k])  // each tree would bleed twice
+        o.fail("vessels: '" + d.vessels[i] + "' is named twice");
   if (o.has("fluid")) {
     Obj f(o.at("fluid"), "fluid: ", file);
     FluidDef& fd = d.fluid;
@@ -365,6 +381,8 @@ SceneDef parse_scene(const std::string& text, const std::string& file) {
     d.output.enabled = true;
     d.output.dir = resolve(base, out.string("dir", "", true));
     d.output.name = out.string("name", d.output.name);
+    if (d.output.name.find_first_of("/\\") != std::string::npos || d.output.name == "." || d.output.name == "..")
+      out.fail("name must be a file name without a folder (got '" + d.output.name + "'): the series goes into dir");
     d.output.every = static_cast<int>(out.integer("every", 1, 1, 1 << 30));
     const std::string f = out.string("format", "binary");
     if (f == "binary") d.output.vtk.binary = true;

@@ -8,6 +8,7 @@
 #include <cmath>
 #include <filesystem>
 #include <iostream>
+#include <sstream>
 
 namespace orthosim::cli {
 
@@ -46,8 +47,12 @@ void add_run_command(CLI::App& app) {
   on_run(sub, "run", common, [steps_flag] {
     Report report("run");
     const bool steps_given = steps_flag->count() > 0;
-    if (steps_given && steps < 1)
-      throw UsageError("--steps must be >= 1, got " + std::to_string(steps) + " (leave it out to run the scene's duration)");
+    // 1e9 steps: a day at 10^4 steps/s; beyond, a count that overflowed or a
+    // dt far too small for the duration (dt 1e-20 over 1 s ran "1 steps")
+    constexpr long kMaxSteps = 1000000000;
+    if (steps_given && (steps < 1 || steps > kMaxSteps))
+      throw UsageError("--steps must be in 1..1e9, got " + std::to_string(steps) +
+                       " (leave it out to run the scene's duration)");
     if (threads < -1 || threads > 1024) throw UsageError("--threads must be in 0..1024");
     runtime::SceneDef def = runtime::parse_scene_file(scene_file);
     if (!model_override.empty()) def.model = model_override;
@@ -57,6 +62,9 @@ void add_run_command(CLI::App& app) {
     }
     if (no_output) def.output.enabled = false;
     if (threads >= 0) def.threads = threads;
+    if (!steps_given && !(def.duration / def.dt <= kMaxSteps))
+      throw Error(scene_file, "duration / dt = " + (std::ostringstream() << def.duration / def.dt).str() +
+                                  " steps, more than 1e9: a larger dt or a shorter duration (or --steps)");
     const long n_steps = steps_given ? steps : std::max(1L, std::lround(def.duration / def.dt));
     // what the scene asks for that this run will not do (even with --quiet)
     if (!steps_given && def.duration < 0.5 * def.dt)

@@ -331,9 +331,19 @@ TEST_F(RunCli, BadScenesExitTwoWithOneLine) {
   const auto z = run_cli("run " + ok + " --steps 0 --out " + (dir / "never") + " --report " + (dir / "never.json"));
   EXPECT_EQ(z.code, 2) << z.err;
   EXPECT_EQ(test::count_lines(z.err), 1) << z.err;
-  EXPECT_NE(z.err.find("orthosim run: error: --steps must be >= 1, got 0"), std::string::npos) << z.err;
+  EXPECT_NE(z.err.find("orthosim run: error: --steps must be in 1..1e9, got 0"), std::string::npos) << z.err;
   EXPECT_FALSE(fs::exists(dir / "never"));
   EXPECT_FALSE(fs::exists(dir / "never.json"));
+  // more than 1e9 steps: --steps 1e20 was clamped to 2^63 - 1 and hung; dt 1e-20
+  // over 1 s overflowed the count and ran "1 steps" (2026-11-27)
+  const auto big = run_cli("run " + ok + " --steps 99999999999999999999");
+  EXPECT_EQ(big.code, 2) << big.err;
+  EXPECT_NE(big.err.find("--steps must be in 1..1e9"), std::string::npos) << big.err;
+  const auto tiny = scene(R"({"model": "model.h5", "dt": 1e-20, "duration": 1})");
+  const auto t = run_cli("run " + tiny + " --no-output");
+  EXPECT_EQ(t.code, 2) << t.err;
+  EXPECT_EQ(test::count_lines(t.err), 1) << t.err;
+  EXPECT_NE(t.err.find(tiny + ": duration / dt = 1e+20 steps, more than 1e9"), std::string::npos) << t.err;
   const auto help = run_cli("run --help");
   EXPECT_NE(help.out.find(">= 1"), std::string::npos) << help.out;
 }

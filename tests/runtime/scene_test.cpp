@@ -121,6 +121,15 @@ TEST_F(SceneTest, BadScenesAreOneLineErrorsBeforeAnyStep) {
       {R"({"model": "model.h5", "tools": [{"name": "scalpel", "type": "cut", "polyline": [[1, 1, 1], [1.01, 1, 1]], "depth": 0.004}]})",
        "tool 'scalpel': every point of the cut's polyline snaps to the same node"},
       {R"({"model": "model.h5", "damping": {"mass": -1}})", "mass must be a finite number"},
+      // beyond +-1e9: gravity -1e200 froze the run (exit 0, "0 failed"), a direction
+      // of 1e200 normalised to 0 and the pressure tool did nothing (2026-11-27)
+      {R"({"model": "model.h5", "gravity": [0, -1e200, 0]})", "gravity must be three finite numbers within +-1e9"},
+      {R"({"model": "model.h5", "tools": [{"type": "pressure", "center": [0, 0, 0], "radius": 0.01, "pressure": 5, "direction": [1e200, 1e200, 0]}]})",
+       "direction must be three finite numbers within +-1e9"},
+      // each tree bled twice
+      {R"({"model": "model.h5", "vessels": ["artery", "artery"]})", "vessels: 'artery' is named twice"},
+      // "a/b" failed after the first step, "../x" wrote outside dir
+      {R"({"model": "model.h5", "output": {"dir": "o", "name": "../escape"}})", "name must be a file name without a folder"},
       {R"({"model": "model.h5", "output": {"every": 3}})", "missing dir"},
       {R"({"model": "model.h5",)", "invalid JSON"},
   };
@@ -301,6 +310,20 @@ TEST_F(SceneTest, NearestTakesTheClosestNodeWhenNoneIsWithinTheRadius) {
   EXPECT_TRUE(parse_scene_file(scene_file(R"({"model": "model.h5", "tools": [{"type": "pull", "center": [0, 0, 0], "radius": 0.001, "nearest": true}]})"))
                   .tools[0]
                   .nearest);
+}
+
+// Directions are scaled by their largest component before their length: a
+// direction of 1e-200 squared to 0 (the pressure tool did nothing, silently).
+TEST_F(SceneTest, TinyDirectionsAreUnitVectors) {
+  const auto p = scene_file(R"({"model": "model.h5", "tools": [
+      {"type": "pressure", "center": [0, 0, 0], "radius": 0.01, "pressure": 5, "direction": [0, 1e-200, -1e-200]},
+      {"type": "cut", "polyline": [[0, 0, 0], [0.01, 0, 0]], "depth": 0.004, "direction": [3e-300, 0, 0]}]})");
+  const SceneDef d = parse_scene_file(p);
+  ASSERT_EQ(d.tools.size(), 2u);
+  EXPECT_DOUBLE_EQ(d.tools[0].direction[0], 0);
+  EXPECT_DOUBLE_EQ(d.tools[0].direction[1], std::sqrt(0.5));
+  EXPECT_DOUBLE_EQ(d.tools[0].direction[2], -std::sqrt(0.5));
+  EXPECT_DOUBLE_EQ(d.tools[1].direction[0], 1);
 }
 
 TEST_F(SceneTest, HookHoldsAndPressurePushes) {
