@@ -173,6 +173,7 @@ void add_run_command(CLI::App& app) {
                       {"pressure_retries", fs->counters.pressure_retries},
                       {"pressure_unconverged", fs->counters.pressure_unconverged},
                       {"pressure_stalled", fs->counters.pressure_stalled},
+                      {"truncated_steps", fs->counters.truncated_steps},
                       {"surface_grid_builds", surface_grid_builds(*fs)},
                       {"spacing_m", fl.params.spacing},
                       {"sound_speed_m_s", fl.c0},
@@ -251,6 +252,11 @@ void add_run_command(CLI::App& app) {
                 << ") in the kept steps, after " << c.cg_redos
                 << " redos with more substeps: the tissue is stiff for this dt (a smaller dt, a higher "
                    "cg_max_iterations, or cg_tolerance)\n";
+    if (const runtime::FluidState* fs = scene->fluid_state(); fs && fs->counters.truncated_steps > 0)  // even with --quiet
+      std::cerr << "orthosim run: warning: " << scene_file << ": the blood reached its limit of "
+                << scene->fluid()->params.max_substeps << " substeps in " << fs->counters.truncated_steps
+                << " step(s); the rest of those steps' fluid time was skipped, so the blood lags the tissue (its "
+                   "sound speed or spacing asks for substeps far below dt; metrics.fluid.truncated_steps)\n";
     if (const runtime::FluidState* fs = scene->fluid_state(); fs && fs->counters.pressure_unconverged > 0)
       std::cerr << "orthosim run: warning: " << scene_file << ": " << fs->counters.pressure_unconverged << " of "
                 << fs->counters.pressure_solves

@@ -226,6 +226,25 @@ TEST_F(RunCli, UnconvergedPressureSolvesAreAWarning) {
   EXPECT_EQ(ok.err, "");
 }
 
+// A fluid whose substeps hit max_substeps skips the rest of the step: counted
+// in the report and one warning line (sound speed 1e5 m/s: nothing said, and
+// the only warning blamed the emitter, until 2026-11-27).
+TEST_F(RunCli, FluidStepsCutAtMaxSubstepsAreAWarning) {
+  runtime::testing::write_model_file(model, runtime::testing::make_layered_block(39, 9, 4), true);
+  const auto s = scene(R"({
+      "model": "model.h5", "fixed": ["fixed"], "integrator": "implicit", "dt": 0.01, "duration": 0.02,
+      "vessels": ["artery"], "fluid": {"spacing": 0.002, "sound_speed": 100000, "margin": 0.01}
+    })");
+  const auto r = run_cli("run " + s + " --no-output --quiet --report " + (dir / "t.json"));
+  ASSERT_EQ(r.code, 0) << r.err;
+  const auto f = nlohmann::json::parse(test::read_file(dir / "t.json"))["metrics"]["fluid"];
+  EXPECT_EQ(f["truncated_steps"].get<long>(), 2) << f.dump();
+  EXPECT_EQ(test::count_lines(r.err), 1) << r.err;
+  EXPECT_NE(r.err.find("orthosim run: warning: " + s + ": the blood reached its limit of 4096 substeps in 2 step(s)"),
+            std::string::npos)
+      << r.err;
+}
+
 // Cuts that cross none of the loaded vessels are named in a warning: a
 // bleeding scene on a model whose segmentation lost most of its vessels ran
 // with nothing bleeding and said nothing.
