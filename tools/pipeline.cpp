@@ -18,6 +18,7 @@
 #include "libmodel/format/model.h"
 #include "libmodel/pipeline/cache.h"
 #include "libmodel/provenance.h"
+#include "libmodel/remesh/remesh.h"
 #include "libmodel/tissues.h"
 #include "tools/common.h"
 
@@ -268,7 +269,18 @@ int run_pipeline(Args a) {
   if (a.work.empty()) a.work = a.out + ".work";
   if (!(a.tune_budget_s > 0)) throw UsageError("--tune-budget-s must be > 0");
   if (a.tune_evaluations < 1) throw UsageError("--tune-evaluations must be >= 1");
-  parse_size(a.grid, 2, "--grid");
+  {
+    // the remesh stage's own rule, before any stage runs (--grid 2x9 failed after
+    // segment and surface, minutes on a full stack)
+    const std::vector<int> g = parse_size(a.grid, 2, "--grid");
+    RemeshOptions ro;
+    ro.nu = g[0], ro.nv = g[1];
+    try {
+      validate(ro);
+    } catch (const Error& e) {
+      throw UsageError("--" + e.message());
+    }
+  }
   parse_list(a.spacing, 3, "--spacing", true);
   parse_list(a.origin, 3, "--origin", false);
   std::error_code ec;
@@ -551,6 +563,15 @@ int run_pipeline(Args a) {
     report.json()["failed_stage"] = f.stage;
     report.write(a.common.report);
     return run.failed_code();
+  } catch (const Error& e) {
+    // the pipeline's own checks between stages (a tissue the clean-up lost, too
+    // few layers): the report names the stage whose output failed them (it was
+    // not written at all)
+    const json& st = report.json()["stages"];
+    report.json()["failed_stage"] = st.empty() ? json("pipeline") : st.back()["stage"];
+    report.json()["error"] = e.what();
+    report.write(a.common.report);
+    throw;
   }
   int ran = 0;
   for (const auto& s : report.json()["stages"]) ran += s.value("ran", false) ? 1 : 0;

@@ -345,7 +345,8 @@ BuiltModel build_layers(const std::vector<std::pair<std::string, QuadSurface>>& 
       const std::string cause =
           specs[l].kind == "tetra"
               ? "the prisms are too deep and distorted for the 7-tetrahedron split (the paper's tetrahedral layer is a thin "
-                "outer one); build it as a lattice layer (--layers " + specs[l].tissue + ":lattice)"
+                "outer one); build it as a lattice layer (build --layers " + specs[l].tissue +
+                    ":lattice, or its \"layer\": \"lattice\" in the tissue table for the pipeline)"
               : "the hexahedra are too distorted (twisted or flattened between the two surfaces)";
       throw Error("", "inverted cells in layer '" + specs[l].tissue + "': " + std::to_string(cells[l].inverted) + " of " +
                           (specs[l].kind == "tetra"

@@ -277,7 +277,8 @@ TEST(Pipeline, TissuesTheSlicesDoNotShowAreLeftOut) {
   const std::string moved = s.dir / "marrow_in_skin.json";
   test::write_file(moved, m2.dump(2));
   const auto rm = test::run_cli("pipeline --stack " + s.stack + " --tissues " + moved + " --spacing 0.75,0.75,3 --work " +
-                                (s.dir / "work") + " --no-texture --no-tune --quiet --out " + (s.dir / "extra3.h5"));
+                                (s.dir / "work") + " --no-texture --no-tune --quiet --out " + (s.dir / "extra3.h5") +
+                                " --report " + (s.dir / "extra3.json"));
   EXPECT_EQ(rm.code, 2) << rm.err;
   EXPECT_EQ(test::count_lines(rm.err), 1) << rm.err;
   EXPECT_NE(rm.err.find("orthosim pipeline: error: " + s.stack + ": no voxel of 'marrow' is left after segmentation, though its colour was found ("),
@@ -285,6 +286,10 @@ TEST(Pipeline, TissuesTheSlicesDoNotShowAreLeftOut) {
       << rm.err;
   EXPECT_NE(rm.err.find("check its 'inside' in " + moved), std::string::npos) << rm.err;
   EXPECT_FALSE(fs::exists(s.dir / "extra3.h5"));
+  // the report is written, naming the stage whose output failed the check (it was not written at all)
+  const auto rr = nlohmann::json::parse(test::read_file(s.dir / "extra3.json"));
+  EXPECT_EQ(rr["failed_stage"], "segment");
+  EXPECT_NE(rr["error"].get<std::string>().find("no voxel of 'marrow' is left"), std::string::npos);
 }
 
 TEST(Pipeline, ExportGathersEveryStagesOutputs) {
@@ -351,6 +356,12 @@ TEST(Pipeline, BadFlags) {
   r = test::run_cli("pipeline --stack " + (s.dir / "nope") + " --tissues " + s.tissues + " --spacing 1,1,1 --out " + (s.dir / "x.h5"));
   EXPECT_EQ(r.code, 2);
   EXPECT_FALSE(fs::exists(s.dir / "x.h5"));
+  // a grid the remesh stage refuses, refused before any stage (it failed after segment and surface)
+  r = test::run_cli("pipeline --stack " + s.stack + " --tissues " + s.tissues + " --spacing 0.75,0.75,3 --grid 2x9 --work " +
+                    (s.dir / "work-grid") + " --out " + (s.dir / "x.h5"));
+  EXPECT_EQ(r.code, 2);
+  EXPECT_EQ(r.err, "orthosim pipeline: error: --grid: nu (points around) must be in 3..10000, got 2\n");
+  EXPECT_FALSE(fs::exists(s.dir / "work-grid"));
   // a second outermost layered tissue: refused before any stage, naming the table (it failed in
   // the build stage, naming a model file in the cache)
   nlohmann::json t = nlohmann::json::parse(test::read_file(s.tissues));
