@@ -159,6 +159,16 @@ void on_run(CLI::App* sub, const std::string& command, const CommonOptions& comm
   });
 }
 
+CLI::Validator seed_check() {
+  return CLI::Validator(
+      [](std::string& v) -> std::string {
+        const bool digits = !v.empty() && v.find_first_not_of("0123456789") == std::string::npos;
+        if (digits && (v.size() < 20 || (v.size() == 20 && v <= "18446744073709551615"))) return "";
+        return "a seed is an integer in 0..18446744073709551615, got '" + v + "'";
+      },
+      "UINT64");
+}
+
 std::vector<int> parse_size(const std::string& text, int n, const std::string& flag) {
   std::vector<int> out;
   std::stringstream s(text);

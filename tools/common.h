@@ -100,6 +100,10 @@ std::vector<int> parse_size(const std::string& text, int n, const std::string& f
 // Parses "a,b,c" into n finite numbers; `positive` requires each > 0.
 std::vector<double> parse_list(const std::string& text, int n, const std::string& flag, bool positive);
 
+// A CLI11 check for seeds: decimal digits only, within 64 bits ("-1" wrapped to
+// 2^64 - 1 and 2^64 was clamped, silently).
+CLI::Validator seed_check();
+
 // Registers every subcommand this build has on `app` (tools/main.cpp).
 void register_commands(CLI::App& app);
 // Runs one subcommand in this process, as `orthosim args...` would

@@ -29,7 +29,8 @@ void add_phantom_command(CLI::App& app) {
   sub->add_option("--noise", a.noise, "Gaussian sensor noise sigma, 8-bit units")->capture_default_str();
   sub->add_flag("--jpeg", a.jpeg, "write JPEG slices (with compression artefacts) instead of PNG");
   sub->add_option("--jpeg-quality", a.jpeg_quality, "JPEG quality 1..100")->capture_default_str();
-  sub->add_option("--seed", a.seed, "seed of texture, illumination and noise")->capture_default_str();
+  sub->add_option("--seed", a.seed, "seed of texture, illumination and noise")
+      ->check(seed_check())->capture_default_str();
   add_common_options(sub, a.common);
 
   on_run(sub, "phantom", a.common, [] {

@@ -607,7 +607,8 @@ void add_pipeline_command(CLI::App& app) {
   sub->add_option("--tune-budget-s", a.tune_budget_s,
                   "wall-clock safety cap per tuned tissue (s); a tuning it cuts depends on the machine's speed")
       ->capture_default_str();
-  sub->add_option("--seed", a.seed, "seed of the tuning")->capture_default_str();
+  sub->add_option("--seed", a.seed, "seed of the tuning")
+      ->check(seed_check())->capture_default_str();
   add_common_options(sub, a.common);
   sub->callback([] {
     int stage_code = 0;

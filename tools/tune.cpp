@@ -145,7 +145,8 @@ void add_tune_command(CLI::App& app) {
   sub->add_option("--model", model,
                   "built model: specimens take its layers' cell sizes; the tuned laws and /tuning/<tissue> are written "
                   "into it");
-  sub->add_option("--seed", opt.seed, "random seed")->capture_default_str();
+  sub->add_option("--seed", opt.seed, "random seed")
+      ->check(seed_check())->capture_default_str();
   sub->add_option("--budget-s", opt.budget_s, "wall-clock budget per tissue (s)")->capture_default_str();
   sub->add_option("--max-evaluations", opt.max_evaluations,
                   "virtual experiments per tissue (0: no limit); a run bounded by this, not by time, is reproducible")

@@ -76,6 +76,26 @@ TEST(Cli, UnknownCommandAndFlagAreOneLineExit2) {
   EXPECT_EQ(r.err.rfind("orthosim inspect: error: ", 0), 0u) << r.err;
 }
 
+// A seed outside 64 bits is refused: "-1" wrapped to 2^64 - 1 and 2^64 was
+// clamped to it, silently (recorded so in the provenance).
+TEST(Cli, SeedsAreSixtyFourBitIntegers) {
+  test::TempDir d("cli-seed");
+  const std::vector<std::string> cmds = {"phantom --out " + (d / "ph") + " --size 16x16x2", "tune --tissues x.json",
+                                         "pipeline --stack x --tissues x.json --spacing 1,1,1 --out " + (d / "m.h5")};
+  for (const std::string& cmd : cmds)
+    for (const std::string seed : {"-1", "18446744073709551616", "1.5"}) {
+      SCOPED_TRACE(cmd + " --seed " + seed);
+      const auto r = test::run_cli(cmd + " --seed " + seed);
+      EXPECT_EQ(r.code, 2);
+      EXPECT_EQ(test::count_lines(r.err), 1) << r.err;
+      EXPECT_NE(r.err.find("--seed: a seed is an integer in 0..18446744073709551615, got '" + seed + "'"),
+                std::string::npos)
+          << r.err;
+    }
+  EXPECT_FALSE(fs::exists(d / "ph"));
+  EXPECT_EQ(test::run_cli("phantom -q --out " + (d / "ph") + " --size 16x16x2 --seed 18446744073709551615").code, 0);
+}
+
 TEST(Cli, InspectSummarisesAModel) {
   test::TempDir dir("cli");
   auto p = make_model(dir);
