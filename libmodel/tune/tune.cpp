@@ -251,8 +251,12 @@ TuneResult tune_specimen(msm::Specimen& specimen, const Target& target, const Ex
   } else if (nlopt_local().count(o.method)) {
     std::vector<double> x = x0;
     ev(x);  // the rule itself, as every method sees it first
-    r.stop = ev.reached ? "target"
-                        : run_nlopt(nlopt_local().at(o.method), ev, x, o.max_evaluations, o.budget_s, o.seed, 0.1);
+    // the rule's evaluation counts against the budget (sbplx --max-evaluations 5 ran 6)
+    if (ev.reached) r.stop = "target";
+    else if (o.max_evaluations == 1) r.stop = "evaluations";
+    else
+      r.stop = run_nlopt(nlopt_local().at(o.method), ev, x, o.max_evaluations > 0 ? o.max_evaluations - 1 : 0,
+                         o.budget_s, o.seed, 0.1);
   } else {
     // global stage, then a local polish from its best point with what is left
     const double share = o.polish == "none" ? 0.0 : o.polish_share;

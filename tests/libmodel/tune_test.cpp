@@ -357,6 +357,21 @@ TEST(Tune, NloptGlobalThenPolishImprovesOnTheRule) {
   EXPECT_LT(r.psi, objective(dermis(), r.untuned.p));
 }
 
+// A local method counts the rule's own evaluation against max_evaluations
+// (sbplx, neldermead, cobyla ran max_evaluations + 1 experiments).
+TEST(Tune, LocalMethodsKeepToTheEvaluationBound) {
+  for (const char* method : {"bobyqa", "sbplx", "neldermead", "cobyla"})
+    for (const std::int64_t n : {1, 5, 12}) {
+      TuneOptions o = sa(n);
+      o.method = method;
+      o.tolerance = 1e-9;  // never reached: the bound stops the run
+      const TuneResult r = tune_target(dermis(), ExperimentOptions{}, o);
+      EXPECT_LE(r.evaluations, n) << method;
+      EXPECT_GE(r.evaluations, 1) << method;
+      EXPECT_EQ(r.stop, "evaluations") << method << " " << n;
+    }
+}
+
 // ---- the model layer and the /tuning record ----------------------------------------------------
 
 TEST(Tune, AppliesTunedLawsToALayerAndRoundTripsTheRecord) {
