@@ -164,13 +164,19 @@ CutReport cut_model(Model& m, std::span<const Real> x, const CutDef& def) {
 
   // vessels (static centrelines, rest frame)
   for (std::size_t vi = 0; vi < m.vessels.size(); ++vi) {
-    const auto& ves = m.vessels[vi];
+    auto& ves = m.vessels[vi];
     const std::size_t ne = ves.edges.size() / 2;
     for (std::size_t e = 0; e < ne; ++e) {
       const std::int32_t a = ves.edges[2 * e], b = ves.edges[2 * e + 1];
       const Vec3 pa = load3(ves.nodes.data(), a), pb = load3(ves.nodes.data(), b);
       Real t = 0;
       if (!blade.crosses(pa, pb, &t)) continue;
+      if (ves.edge_cut.size() != ne) ves.edge_cut.assign(ne, 0);
+      if (ves.edge_cut[e]) {  // opened by an earlier cut: it bleeds already
+        ++rep.vessel_edges_open_already;
+        continue;
+      }
+      ves.edge_cut[e] = 1;
       VesselHit h;
       h.vessel = static_cast<int>(vi);
       h.edge = static_cast<std::int32_t>(e);

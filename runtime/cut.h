@@ -59,6 +59,7 @@ struct CutReport {
   Vec3 direction;                      // the blade direction used (unit)
   std::int32_t springs_cut = 0;        // linear springs removed
   std::int32_t quads_removed = 0;      // surface quads removed
+  std::int32_t vessel_edges_open_already = 0;  // crossed vessel edges an earlier cut had opened (no new wound)
   bool quads_loaded = false;           // the model had surface quads to cut (a scene loads them only when it draws or collides with them)
   std::vector<std::int32_t> detached;  // nodes left without any spring, ascending
   std::vector<VesselHit> vessel_hits;

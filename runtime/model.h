@@ -105,6 +105,9 @@ struct Model {
     std::vector<Real> nodes;  // (n x 3) m
     std::vector<Real> radii;  // (n) m
     std::vector<std::int32_t> edges;  // (n_edges x 2)
+    // (n_edges, or empty: none) 1 where a cut has opened the edge: a later cut
+    // across it opens no second wound (an identical second cut doubled the bleeding)
+    std::vector<char> edge_cut;
     // the tube surface, read only when a scene writes output (LoadRequest::vessel_tubes):
     // the file's quads split into two triangles each, then its triangles
     std::vector<Real> tube_vertices;            // (n_tube x 3) m

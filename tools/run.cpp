@@ -184,7 +184,7 @@ void add_run_command(CLI::App& app) {
       met["particles_emitted"] = f.emitted;
       met["particles_drained"] = f.drained;
       if (!common.quiet)
-        std::cerr << "run: blood: " << f.emitters << " vessel(s) bleeding, " << f.emitted << " particles emitted, "
+        std::cerr << "run: blood: " << f.emitters << " wound(s) in the vessels bleeding, " << f.emitted << " particles emitted, "
                   << f.drained << " drained, " << f.left_domain << " left the domain, " << f.particles
                   << " in the scene; fluid " << f.wall_s << " s of the steps\n";
       // what sets the fluid's substeps: the largest share (the steps' last substeps aside)
@@ -206,7 +206,8 @@ void add_run_command(CLI::App& app) {
     for (const auto& c : scene->cuts())
       met["cuts"].push_back({{"springs_cut", c.springs_cut},
                              {"quads_removed", c.quads_loaded ? nlohmann::json(c.quads_removed) : nlohmann::json()},
-                             {"detached_nodes", c.detached.size()}, {"vessel_hits", c.vessel_hits.size()}});
+                             {"detached_nodes", c.detached.size()}, {"vessel_hits", c.vessel_hits.size()},
+                             {"vessel_edges_open_already", c.vessel_edges_open_already}});
     met["frames"] = r.frames;
     met["kinetic_energy_j"] = scene->state().kinetic_energy;
     met["elastic_energy_j"] = scene->state().spring_energy;
