@@ -327,6 +327,23 @@ void add_surface_command(CLI::App& app) {
                                   {"check", m.check_s}}}};
     }
     report.write(a.common.report);
+    // what the surfaces do not promise, even with --quiet (a noisy segmentation's
+    // fat passed with a handle and 5 self-intersecting face pairs, silently)
+    for (std::size_t i = 0; i < names.size(); ++i) {
+      const SurfaceMetrics& m = results[i].metrics;
+      const int handles = m.components - m.euler / 2;  // the genus summed over the components
+      if (m.self_intersections > 0 || handles > 0)
+        std::cerr << "orthosim surface: warning: " << a.labels << ": " << names[i] << ": the surface has "
+                  << (m.self_intersections > 0 ? std::to_string(m.self_intersections) + " self-intersecting face pair(s)"
+                                                 : std::string())
+                  << (m.self_intersections > 0 && handles > 0 ? " and " : "")
+                  << (handles > 0 ? std::to_string(handles) + " handle(s) (Euler characteristic " +
+                                        std::to_string(m.euler) + ", " + std::to_string(m.components) +
+                                        " component(s))"
+                                  : std::string())
+                  << ": noise or misclassified voxels in the labels (the segment report's Dice); remesh needs "
+                     "layers without handles\n";
+    }
     if (!a.common.quiet) {
       std::cout << std::fixed;
       std::cout << "surface: wrote " << names.size() << " surface" << (names.size() == 1 ? "" : "s") << " to " << a.out

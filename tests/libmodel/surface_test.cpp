@@ -736,6 +736,30 @@ TEST(SurfaceCli, NestingLeavesNoFolds) {
   EXPECT_GT(folds, 0) << "the moves fold the bone here: the test needs them";
 }
 
+// A surface with handles or self-intersections gets one warning line, even
+// with --quiet: a noisy segmentation's fat (noise 16) passed with a handle and
+// 5 self-intersecting face pairs silently, and remesh refused it later.
+TEST(SurfaceCli, HandlesAreAWarning) {
+  test::TempDir d("surface-handle");
+  {
+    ModelWriter w(d / "ring.h5", ModelWriter::Start::fresh);
+    w.write(torus().v);
+    w.commit();
+  }
+  const test::RunResult r = test::run_cli("surface --labels " + (d / "ring.h5") + " --out " + (d / "stl") + " --quiet");
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_EQ(test::count_lines(r.err), 1) << r.err;
+  EXPECT_EQ(r.err, "orthosim surface: warning: " + (d / "ring.h5") +
+                       ": solid: the surface has 1 handle(s) (Euler characteristic 0, 1 component(s)): noise or "
+                       "misclassified voxels in the labels (the segment report's Dice); remesh needs layers without "
+                       "handles\n");
+  // the phantom's tissues: none
+  const CliFiles& f = cli_files();
+  const test::RunResult q = test::run_cli("surface --labels " + (f / "labels.h5") + " --out " + (d / "ph") + " --quiet");
+  ASSERT_EQ(q.code, 0) << q.err;
+  EXPECT_EQ(q.err, "");
+}
+
 TEST(SurfaceCli, DefaultTissuesAreEveryLabelWithVoxels) {
   const CliFiles& f = cli_files();
   test::TempDir out("surface-all");
