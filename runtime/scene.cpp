@@ -59,7 +59,10 @@ class Obj {
   [[noreturn]] void fail(const std::string& what) const { throw Error(file_, where_ + what); }
   bool has(const char* key) {
     seen_.insert(key);
-    return j_.contains(key) && !j_.at(key).is_null();
+    // null is no value: "fixed": null ran with nothing fixed and the limb fell
+    if (j_.contains(key) && j_.at(key).is_null())
+      fail(std::string(key) + " is null: give a value, or leave the key out for its default");
+    return j_.contains(key);
   }
   const json& at(const char* key) { return j_.at(key); }
   Real number(const char* key, Real fallback, Real lo, Real hi, bool open_lo = false) {
@@ -252,14 +255,27 @@ ToolDef parse_tool(const json& j, std::size_t index, const std::string& file) {
 
 SceneDef parse_scene(const std::string& text, const std::string& file) {
   json j;
+  // a key twice in one object: JSON leaves it undefined, the parser kept the
+  // last ({"dt": 0.01, "dt": 0.02} ran at 0.02, silently)
+  std::vector<std::set<std::string>> keys;
+  std::string twice;
+  const json::parser_callback_t on = [&](int, json::parse_event_t ev, json& parsed) {
+    if (ev == json::parse_event_t::object_start) keys.emplace_back();
+    else if (ev == json::parse_event_t::object_end && !keys.empty()) keys.pop_back();
+    else if (ev == json::parse_event_t::key && !keys.empty() && !keys.back().insert(parsed.get<std::string>()).second &&
+             twice.empty())
+      twice = parsed.get<std::string>();
+    return true;
+  };
   try {
-    j = json::parse(text);
+    j = json::parse(text, on);
   } catch (const json::exception& e) {
     std::string what = e.what();
     for (auto& c : what)
       if (c == '\n') c = ' ';
     throw Error(file, "invalid JSON: " + what);
   }
+  if (!twice.empty()) throw Error(file, "invalid JSON: the key '" + twice + "' appears twice in one object");
   const std::string base = file.empty() ? "" : fs::path(file).parent_path().string();
   SceneDef d = default_scene_def();
   d.file = file;
@@ -267,6 +283,8 @@ SceneDef parse_scene(const std::string& text, const std::string& file) {
   o.string("description", "");
   d.model = resolve(base, o.string("model", "", true));
   d.layers = o.strings("layers");
+  if (o.has("layers") && d.layers.empty())  // [] loaded every layer
+    o.fail("layers is empty: name the layers to load, or leave the key out (or \"all\") for every layer");
   if (d.layers.size() == 1 && d.layers[0] == "all") d.layers.clear();
   d.vessels = o.strings("vessels");
   for (std::size_t i = 0; i < d.vessels.size(); ++i)
@@ -555,6 +573,7 @@ void Scene::init(const std::string& model_file) {
                                 " m; the farthest point moved " + fmt(farthest_snap) +
                                 " m): the polyline lies far from the candidate nodes or is shorter than their spacing");
       }
+      run.snap_m = farthest_snap;
       CutDef cd;
       for (std::size_t k = 0; 3 * k < run.def.polyline.size(); ++k)
         cd.polyline.push_back(load3(run.def.polyline.data(), static_cast<std::int64_t>(k)));
@@ -1011,6 +1030,7 @@ int Scene::tool(const std::string& name) const {
 }
 
 const std::vector<std::int32_t>& Scene::tool_nodes(int tool) const { return tools_.at(static_cast<std::size_t>(tool)).nodes; }
+Real Scene::tool_snap_distance(int tool) const { return tools_.at(static_cast<std::size_t>(tool)).snap_m; }
 
 void Scene::move_tool(int tool, const std::array<Real, 3>& p) {
   check_mutable("move_tool()");

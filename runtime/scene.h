@@ -227,6 +227,9 @@ class Scene {
   void fix(std::span<const std::int32_t> nodes);
   void release(std::span<const std::int32_t> nodes);
   const std::vector<std::int32_t>& tool_nodes(int tool) const;
+  // m: how far the snap moved the farthest point of a cut tool's polyline onto
+  // its nodes (0 for other tools, or without snap)
+  Real tool_snap_distance(int tool) const;
   // Cuts the tissue now (between steps), as a cut tool would; returns what it did.
   CutReport cut(const CutDef& def);
   // Every cut made so far, in order (the cut tools' and cut()'s).
@@ -274,6 +277,7 @@ class Scene {
     std::vector<std::int32_t> nodes;
     bool active = false, done = false;
     int attachment = -1;
+    Real snap_m = 0;  // cut: the farthest snap of a polyline point (m)
   };
   std::vector<ToolRun> tools_;
   std::vector<CutReport> cuts_;

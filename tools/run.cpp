@@ -94,6 +94,16 @@ void add_run_command(CLI::App& app) {
       scene = std::make_unique<runtime::Scene>(def);
     }
     const runtime::Model& m0 = scene->model();  // a cut replaces the model: not used after the steps
+    // a cut polyline snapped farther than its depth lay off the skin (5 m off a 7 cm
+    // limb was snapped onto it and cut, silently); even with --quiet
+    for (std::size_t k = 0; k < def.tools.size(); ++k)
+      if (def.tools[k].type == runtime::ToolType::cut &&
+          scene->tool_snap_distance(static_cast<int>(k)) > def.tools[k].depth)
+        std::cerr << "orthosim run: warning: " << scene_file << ": the cut"
+                  << (def.tools[k].name.empty() ? std::string() : " '" + def.tools[k].name + "'")
+                  << "'s polyline lies off its nodes: the snap moved a point "
+                  << scene->tool_snap_distance(static_cast<int>(k)) << " m, more than the cut's depth ("
+                  << def.tools[k].depth << " m); check its points (or \"snap\": false)\n";
     auto& par = report.parameters();
     par["model"] = def.model;
     par["layers"] = def.layers;
@@ -226,11 +236,13 @@ void add_run_command(CLI::App& app) {
                 << (scene->output() ? ", series " + scene->output()->pvd_path() : std::string()) << "\n";
     if (scene->fluid_state()) {
       const auto f = scene->fluid_summary();
-      if (f.emitters > 0 && f.emitted == 0)  // a warning even with --quiet: the bleeding the scene asks for shows nothing
+      if (f.emitters > 0 && f.emitted == 0 && !(f.flow_rate > 0))  // bleed_pressure 0 ("takes inf s")
+        std::cerr << "orthosim run: warning: " << scene_file << ": " << f.emitters
+                  << " wound(s) in the vessels, but bleed_pressure is 0: nothing flows\n";
+      else if (f.emitters > 0 && f.emitted == 0)  // a warning even with --quiet: the bleeding the scene asks for shows nothing
         std::cerr << "orthosim run: warning: " << scene_file << ": " << f.emitters << " cut vessel(s) bleed "
                   << f.flow_rate << " m^3/s in all, but no particle was emitted: one particle ("
-                  << f.particle_volume << " m^3) takes "
-                  << (f.flow_rate > 0 ? f.particle_volume / f.flow_rate : HUGE_VAL)
+                  << f.particle_volume << " m^3) takes " << f.particle_volume / f.flow_rate
                   << " s of that flow; a finer fluid spacing or a higher bleed_pressure shows it\n";
     }
     if (scene->fluid_state() && !scene->model().vessels.empty() && !scene->cuts().empty()) {

@@ -3,6 +3,8 @@
 #include <algorithm>
 #include <cmath>
 #include <limits>
+#include <sstream>
+#include <string>
 
 namespace orthosim::tune {
 
@@ -41,14 +43,23 @@ Target target_of(const Tissue& t) {
 
 void validate(const Target& q) {
   auto positive = [](double v) { return std::isfinite(v) && v > 0; };
+  // 1 Pa .. 1 TPa: softer than any tissue (brain, fat: ~100 Pa) to stiffer than
+  // cortical bone (~20 GPa) by decades; beyond, a unit slip (k 1e30 kPa was
+  // tuned and reported 100 % off with exit 0)
+  auto modulus = [&](double v, const char* name) {
+    if (!positive(v)) throw Error("", std::string("target ") + name + " must be a positive modulus");
+    if (v < 1 || v > 1e12)
+      throw Error("", std::string("target ") + name + " = " + (std::ostringstream() << v / 1e3).str() +
+                          " kPa is outside a tissue's range, 1e-3 .. 1e9 kPa (a unit slip?)");
+  };
   if (q.biphasic) {
-    if (!positive(q.k1_pa)) throw Error("", "target K1 must be a positive modulus");
-    if (!positive(q.k2_pa)) throw Error("", "target K2 must be a positive modulus");
+    modulus(q.k1_pa, "K1");
+    modulus(q.k2_pa, "K2");
     if (q.k2_pa < q.k1_pa) throw Error("", "target K2 must not be smaller than K1");
     if (!(std::isfinite(q.turning_strain) && q.turning_strain > 0 && q.turning_strain < 1))
       throw Error("", "target turning strain must lie in (0, 1)");
-  } else if (!positive(q.k_pa)) {
-    throw Error("", "target K must be a positive modulus");
+  } else {
+    modulus(q.k_pa, "K");
   }
   const std::size_t n = q.biphasic ? 3 : 1;
   if (q.weights.size() != n) throw Error("", "target needs " + std::to_string(n) + " weights");

@@ -443,6 +443,12 @@ TEST(Tune, RejectsTargetsOutOfPhysicalRangeAndBadOptions) {
   EXPECT_NE(bad(biphasic(100, 0, 18800)).find("turning strain"), std::string::npos);
   EXPECT_NE(bad(biphasic(100, 1.0, 18800)).find("turning strain"), std::string::npos);
   EXPECT_NE(bad(linear(0)).find("K must be"), std::string::npos);
+  // beyond a tissue's decades (k 1e30 kPa was tuned, 100 % off, exit 0)
+  EXPECT_NE(bad(linear(1e33)).find("target K = 1e+30 kPa is outside a tissue's range, 1e-3 .. 1e9 kPa"), std::string::npos);
+  EXPECT_NE(bad(linear(1e-27)).find("outside a tissue's range"), std::string::npos);
+  EXPECT_NE(bad(biphasic(100, 0.4, 1e303)).find("target K2 = "), std::string::npos);
+  EXPECT_EQ(bad(linear(1)), "");
+  EXPECT_EQ(bad(linear(2e10)), "");  // cortical bone
   Target z = dermis();
   z.weights = {0, 0, 0};
   EXPECT_NE(bad(z).find("all weights are zero"), std::string::npos);

@@ -321,6 +321,35 @@ TEST_F(RunCli, ABleedingTooSmallToShowIsAWarning) {
   const auto shows = run_cli("run " + bleed("500") + " --no-output --quiet");
   ASSERT_EQ(shows.code, 0) << shows.err;
   EXPECT_EQ(shows.err, "");
+  // bleed_pressure 0: nothing flows, said so (it said "takes inf s of that flow")
+  const auto zero = bleed("0");
+  const auto z = run_cli("run " + zero + " --no-output --quiet");
+  ASSERT_EQ(z.code, 0) << z.err;
+  EXPECT_EQ(test::count_lines(z.err), 1) << z.err;
+  EXPECT_EQ(z.err.rfind("orthosim run: warning: " + zero + ": ", 0), 0u) << z.err;
+  EXPECT_NE(z.err.find(" wound(s) in the vessels, but bleed_pressure is 0: nothing flows"), std::string::npos) << z.err;
+}
+
+// A cut polyline the snap moved farther than the cut's depth lay off the
+// skin: a warning (5 m off a 7 cm limb was snapped on and cut, silently).
+TEST_F(RunCli, ACutSnappedFromFarOffIsAWarning) {
+  auto cut_at = [&](const std::string& y) {
+    return scene(R"({
+      "model": "model.h5", "fixed": ["fixed"], "integrator": "implicit", "dt": 0.005, "duration": 0.01,
+      "tools": [{"name": "scalpel", "type": "cut", "nodes": "skin", "polyline": [[0.005, )" + y + R"(, 0.01], [0.03, )" + y +
+                 R"(, 0.01]], "depth": 0.004, "direction": [0, 1, 0]}]
+    })");
+  };
+  const auto far = cut_at("-0.5");
+  const auto r = run_cli("run " + far + " --no-output --quiet");
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_EQ(test::count_lines(r.err), 1) << r.err;
+  EXPECT_NE(r.err.find("orthosim run: warning: " + far + ": the cut 'scalpel''s polyline lies off its nodes: the snap moved a point 0.5"),
+            std::string::npos)
+      << r.err;
+  const auto on = run_cli("run " + cut_at("0") + " --no-output --quiet");
+  ASSERT_EQ(on.code, 0) << on.err;
+  EXPECT_EQ(on.err, "");
 }
 
 TEST_F(RunCli, BadScenesExitTwoWithOneLine) {

@@ -128,6 +128,12 @@ TEST_F(SceneTest, BadScenesAreOneLineErrorsBeforeAnyStep) {
        "direction must be three finite numbers within +-1e9"},
       // each tree bled twice
       {R"({"model": "model.h5", "vessels": ["artery", "artery"]})", "vessels: 'artery' is named twice"},
+      // null was taken for absent ("fixed": null ran with nothing fixed), [] for every layer
+      {R"({"model": "model.h5", "fixed": null})", "fixed is null: give a value, or leave the key out"},
+      {R"({"model": "model.h5", "fluid": {"spacing": null}})", "fluid: spacing is null"},
+      {R"({"model": "model.h5", "layers": []})", "layers is empty"},
+      {R"({"model": "model.h5", "dt": 0.01, "dt": 0.02})", "invalid JSON: the key 'dt' appears twice in one object"},
+      {R"({"model": "model.h5", "fluid": {"spacing": 0.002, "spacing": 0.001}})", "the key 'spacing' appears twice"},
       // "a/b" failed after the first step, "../x" wrote outside dir
       {R"({"model": "model.h5", "output": {"dir": "o", "name": "../escape"}})", "name must be a file name without a folder"},
       {R"({"model": "model.h5", "output": {"every": 3}})", "missing dir"},
