@@ -4,8 +4,10 @@
 
 #include <nlohmann/json.hpp>
 
+#include <algorithm>
 #include <cctype>
 #include <cmath>
+#include <filesystem>
 #include <fstream>
 #include <map>
 #include <set>
@@ -136,6 +138,27 @@ TissueTable parse_tissue_table(const std::string& text, const std::string& path)
   }
   if (!j.is_object()) throw Error(path, "tissue table must be a JSON object");
   check_keys(j, {"format", "note", "units", "background", "tissues"}, path, "top level");
+  // the keys carry their units (k1_kpa, density_kg_m3): a "units" block that says
+  // otherwise is a table written for other units ("moduli": "MPa" was read as kPa)
+  if (j.contains("units")) {
+    const json& u = j["units"];
+    if (!u.is_object()) throw Error(path, "'units' must be an object like {\"moduli\": \"kPa\"}");
+    auto lower = [](std::string x) {
+      for (auto& c : x) c = static_cast<char>(std::tolower(static_cast<unsigned char>(c)));
+      x.erase(std::remove(x.begin(), x.end(), ' '), x.end());
+      return x;
+    };
+    const std::vector<std::pair<const char*, std::vector<std::string>>> known = {{"moduli", {"kpa"}},
+                                                                                {"density", {"kg/m^3", "kg/m3", "kgm^-3"}}};
+    for (const auto& [key, ok] : known) {
+      if (!u.contains(key)) continue;
+      const std::string v = u[key].is_string() ? lower(u[key].get<std::string>()) : std::string();
+      if (std::find(ok.begin(), ok.end(), v) == ok.end())
+        throw Error(path, std::string("units: ") + key + " is " + u[key].dump() + ", but the table's " + key +
+                              " keys are in " + (std::string(key) == "moduli" ? "kPa (k1_kpa, k2_kpa, k_kpa)" : "kg/m^3 (density_kg_m3)") +
+                              ": convert the values and say so");
+    }
+  }
   if (!j.contains("format") || j["format"] != "orthosim-tissues/1")
     throw Error(path, "missing or unsupported 'format' (expected \"orthosim-tissues/1\")");
   TissueTable t;
@@ -231,6 +254,8 @@ TissueTable parse_tissue_table(const std::string& text, const std::string& path)
 }
 
 TissueTable load_tissue_table(const std::string& path) {
+  std::error_code ec;
+  if (std::filesystem::is_directory(path, ec)) throw Error(path, "is a folder, not a tissue table (tissues.json)");
   std::ifstream in(path, std::ios::binary);
   if (!in) throw Error(path, "cannot open tissue table (missing or unreadable)");
   std::stringstream s;

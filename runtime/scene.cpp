@@ -417,6 +417,7 @@ SceneDef parse_scene(const std::string& text, const std::string& file) {
 
 SceneDef parse_scene_file(const std::string& path) {
   std::error_code ec;
+  if (fs::is_directory(path, ec)) throw Error(path, "is a folder, not a scene file");
   if (!fs::is_regular_file(path, ec)) throw Error(path, "scene file not found");
   std::ifstream in(path, std::ios::binary);
   std::stringstream s;
@@ -474,6 +475,7 @@ Scene::Scene(const SceneDef& def) : def_(def) {
   validate(def_);
   std::error_code ec;
   if (def_.model.empty()) throw Error(def_.file, "no model file given");
+  if (fs::is_directory(def_.model, ec)) throw Error(def_.file, "model file '" + def_.model + "' is a folder");
   if (!fs::is_regular_file(def_.model, ec)) throw Error(def_.file, "model file '" + def_.model + "' does not exist");
   init(def_.model);
 }

@@ -90,6 +90,14 @@ TEST(Tissues, RejectsBadTables) {
   expect_error(replace(kGood, "\"label\": 4", "\"label\": 0"), "label must be in 1..255");
   expect_error(replace(kGood, "orthosim-tissues/1", "other/2"), "format");
   expect_error(replace(kGood, "[[230, 225, 210]]", "[[230, 225, 300]]"), "0..255");
+  // a units block other than the keys' units (its moduli in MPa were read as kPa)
+  expect_error(replace(kGood, "\"format\": \"orthosim-tissues/1\",", "\"format\": \"orthosim-tissues/1\", \"units\": {\"moduli\": \"MPa\"},"),
+               "units: moduli is \"MPa\", but the table's moduli keys are in kPa (k1_kpa, k2_kpa, k_kpa)");
+  expect_error(replace(kGood, "\"format\": \"orthosim-tissues/1\",", "\"format\": \"orthosim-tissues/1\", \"units\": {\"density\": \"g/cm^3\"},"),
+               "units: density is \"g/cm^3\"");
+  EXPECT_NO_THROW(parse_tissue_table(replace(kGood, "\"format\": \"orthosim-tissues/1\",",
+                                             "\"format\": \"orthosim-tissues/1\", \"units\": {\"moduli\": \"kPa\", \"density\": \"kg/m3\"},"),
+                                     "t.json"));
   // an inside cycle
   expect_error(replace(replace(kGood, "\"layer\": \"tetra\",", "\"layer\": \"tetra\", \"inside\": \"bone\","),
                        "\"inside\": \"fat\"", "\"inside\": \"skin\""),
@@ -145,5 +153,12 @@ TEST(Tissues, MissingFileIsAClearError) {
     FAIL();
   } catch (const Error& e) {
     EXPECT_EQ(e.file(), "/nonexistent/tissues.json");
+  }
+  // a folder (it said "not valid JSON")
+  try {
+    load_tissue_table("/tmp");
+    FAIL();
+  } catch (const Error& e) {
+    EXPECT_EQ(std::string(e.what()), "/tmp: is a folder, not a tissue table (tissues.json)");
   }
 }

@@ -88,6 +88,7 @@ TEST_F(SceneTest, BadScenesAreOneLineErrorsBeforeAnyStep) {
   const std::vector<Case> cases{
       {R"({"dt": 0.01})", "missing model"},
       {R"({"model": "nope.h5"})", "does not exist"},
+      {R"({"model": "."})", "' is a folder"},  // (it said "does not exist")
       {R"({"model": "model.h5", "layers": ["epidermis"]})", "no layer 'epidermis'"},
       {R"({"model": "model.h5", "fixed": ["clamp"]})", "no node set 'clamp'"},
       {R"({"model": "model.h5", "tools": [{"type": "pull", "center": [1, 1, 1], "radius": 0.001}]})", "takes no node"},
