@@ -94,6 +94,19 @@ void add_run_command(CLI::App& app) {
       scene = std::make_unique<runtime::Scene>(def);
     }
     const runtime::Model& m0 = scene->model();  // a cut replaces the model: not used after the steps
+    // a pull or hook whose nodes are all fixed already moves nothing (a pull on the
+    // "fixed" set ran as if it were not there); even with --quiet
+    for (std::size_t k = 0; k < def.tools.size(); ++k) {
+      const auto type = def.tools[k].type;
+      if (type != runtime::ToolType::pull && type != runtime::ToolType::hook) continue;
+      const auto& nodes = scene->tool_nodes(static_cast<int>(k));
+      bool all_fixed = !nodes.empty();
+      for (auto i : nodes) all_fixed = all_fixed && scene->state().pin[static_cast<std::size_t>(i)] == runtime::Pin::fixed;
+      if (all_fixed)
+        std::cerr << "orthosim run: warning: " << scene_file << ": the " << runtime::to_string(type) << " tool"
+                  << (def.tools[k].name.empty() ? std::string() : " '" + def.tools[k].name + "'") << " takes only the "
+                  << nodes.size() << " fixed node(s) it found: it does nothing (its nodes or centre?)\n";
+    }
     // a cut polyline snapped farther than its depth lay off the skin (5 m off a 7 cm
     // limb was snapped onto it and cut, silently); even with --quiet
     for (std::size_t k = 0; k < def.tools.size(); ++k)

@@ -330,6 +330,22 @@ TEST_F(RunCli, ABleedingTooSmallToShowIsAWarning) {
   EXPECT_NE(z.err.find(" wound(s) in the vessels, but bleed_pressure is 0: nothing flows"), std::string::npos) << z.err;
 }
 
+// A pull whose nodes are all fixed does nothing: a warning (it ran as if it
+// were not there, silently).
+TEST_F(RunCli, AToolOnFixedNodesIsAWarning) {
+  const auto s = scene(R"({
+      "model": "model.h5", "fixed": ["fixed"], "integrator": "implicit", "dt": 0.005, "duration": 0.01,
+      "tools": [{"name": "grasper", "type": "pull", "nodes": "fixed", "center_in_box": [0.5, 0.5, 0.5], "radius": 0.001,
+                 "nearest": true, "path": [[0, 0, 0, 0], [0.01, 0, 0.001, 0]]}]
+    })");
+  const auto r = run_cli("run " + s + " --no-output --quiet");
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_EQ(test::count_lines(r.err), 1) << r.err;
+  EXPECT_NE(r.err.find("orthosim run: warning: " + s + ": the pull tool 'grasper' takes only the 1 fixed node(s) it found: it does nothing"),
+            std::string::npos)
+      << r.err;
+}
+
 // A cut polyline the snap moved farther than the cut's depth lay off the
 // skin: a warning (5 m off a 7 cm limb was snapped on and cut, silently).
 TEST_F(RunCli, ACutSnappedFromFarOffIsAWarning) {
