@@ -215,6 +215,10 @@ ToolDef parse_tool(const json& j, std::size_t index, const std::string& file) {
     t.snap = o.boolean("snap", true);
   }
   t.start = o.number("start", 0, 0, 1e9);
+  // a cut acts once, at its start: an "end" was ignored
+  if (t.type == ToolType::cut && o.has("end")) o.fail("a cut acts once, at its start: it takes no end");
+  // a drain removes blood within its radius, whatever the nodes: "nodes" was ignored
+  if (t.type == ToolType::drain && !t.nodes.empty()) o.fail("a drain takes no nodes (it removes the blood within its radius)");
   t.end = o.number("end", std::numeric_limits<Real>::infinity(), 0, 1e9);
   if (o.has("end") && !(t.end > t.start)) o.fail("end must be after start");
   if (t.type == ToolType::drain && !t.has_center) o.fail("a drain needs a center (or center_in_box) and a radius");
@@ -308,6 +312,9 @@ SceneDef parse_scene(const std::string& text, const std::string& file) {
     if (eos == "tait") p.eos = Eos::tait;
     else if (eos == "linear") p.eos = Eos::linear;
     else f.fail("eos must be tait or linear (got '" + eos + "')");
+    // the PhysX mode's equation of state is linear: a Tait "eos" given with it was ignored
+    if (f.has("eos") && p.physx_stiffness > 0 && p.eos != Eos::linear)
+      f.fail("eos '" + eos + "' with physx_stiffness: the PhysX mode's equation of state is linear (leave eos out)");
     const std::string solver = f.string("pressure_solver", "eos");
     if (solver == "eos") p.pressure_solver = PressureSolver::eos;
     else if (solver == "pcisph") p.pressure_solver = PressureSolver::pcisph;

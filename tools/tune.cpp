@@ -154,20 +154,26 @@ void add_tune_command(CLI::App& app) {
   sub->add_option("--method", opt.method, "sa, an NLopt global algorithm (crs2, isres, direct-l, esch) or an NLopt "
                                           "local one (bobyqa, sbplx, neldermead, cobyla)")
       ->capture_default_str();
-  sub->add_option("--polish", opt.polish, "local polish after an NLopt global method: bobyqa, sbplx or none")
-      ->capture_default_str();
+  CLI::Option* const polish =
+      sub->add_option("--polish", opt.polish, "local polish after an NLopt global method: bobyqa, sbplx or none")
+          ->capture_default_str();
   sub->add_option("--tolerance", opt.tolerance, "stop when every weighted parameter is within this relative error")
       ->capture_default_str();
   sub->add_option("--out", out, "tuned tissue table (JSON)");
   sub->add_option("--plot", plot_dir, "directory for one stress-strain PNG per tissue");
   add_common_options(sub, common);
-  on_run(sub, "tune", common, [] {
+  on_run(sub, "tune", common, [polish] {
     Report report("tune");
     try {
       tune::validate(opt);
     } catch (const Error& e) {
       throw UsageError(e.message());
     }
+    // a polish follows a global method only: given with sa or a local method it was ignored
+    if (polish->count() > 0 && (opt.method == "sa" || opt.method == "bobyqa" || opt.method == "sbplx" ||
+                                opt.method == "neldermead" || opt.method == "cobyla"))
+      throw UsageError("--polish follows an NLopt global method (crs2, isres, direct-l, esch), not --method " +
+                       opt.method);
     const TissueTable table = load_tissue_table(tissues_path);
     report.input(tissues_path);
 

@@ -198,6 +198,9 @@ TEST(TuneCli, BadInputIsOneLineExit2AndWritesNothing) {
   expect_refused(d, "--tissues " + kTable + " --budget-s -3", "budget");
   expect_refused(d, "--tissues " + kTable + " --method annealing", "unknown method 'annealing'");
   expect_refused(d, "--tissues " + kTable + " --polish newton", "unknown polish");
+  // a polish after sa or a local method was ignored, silently
+  expect_refused(d, "--tissues " + kTable + " --polish sbplx", "--polish follows an NLopt global method");
+  expect_refused(d, "--tissues " + kTable + " --method bobyqa --polish none", "not --method bobyqa");
   expect_refused(d, "--tissues " + kTable + " --tolerance 0", "tolerance");
   expect_refused(d, "--tissues " + (d / "missing.json"), "missing.json");
   expect_refused(d,

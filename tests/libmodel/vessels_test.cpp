@@ -8,6 +8,8 @@
 #include "tests/test_util.h"
 
 #include <gtest/gtest.h>
+
+#include <functional>
 #include <tbb/global_control.h>
 
 #include <cmath>
@@ -438,6 +440,29 @@ TEST(Vessels, NoisySegmentedVeinWithShortBranches) {
   EXPECT_GE(r.metrics.self_intersections, 0);  // counted
 }
 
+// The phantom's vessels on a stack of nx x ny x nz voxels of h x h x hz: each
+// tissue's extraction, its error against the phantom's trees and that tree
+// (whose topology the extraction must have).
+void for_each_phantom_vessel(
+    int nx, int ny, int nz, double h, double hz, const std::string& tag,
+    const std::function<void(const VesselResult&, const CentrelineError&, const VesselTree&)>& check) {
+  PhantomOptions po;
+  po.nx = nx, po.ny = ny, po.nz = nz;
+  po.spacing_m = {h, h, hz};
+  const Volume v = phantom_labels(po);
+  const auto truth = phantom_vessels(po);
+  const std::string size = std::to_string(nx) + "x" + std::to_string(ny) + "x" + std::to_string(nz);
+  for (const std::string tissue : {"artery", "vein"}) {
+    SCOPED_TRACE(tissue + " " + size);
+    const VesselResult r = extract_vessels(v, tissue, {});
+    const CentrelineError e = compare_centrelines(r.tree, truth.at(tissue));
+    print(tag + " " + size + " " + tissue, r, e, h);
+    const VesselTree& t = truth.at(tissue);
+    expect_topology(r.tree, std::vector<int>(t.branch_parent.data(), t.branch_parent.data() + t.branch_parent.size()));
+    check(r, e, t);
+  }
+}
+
 // The default `orthosim phantom` sample (its bifurcation is narrow: the
 // children leave the brachial artery about 20 degrees apart), a coarse one
 // (vessel radii of about two voxels) and a short wide one (a stack shorter
@@ -452,36 +477,23 @@ TEST(Vessels, PhantomTreesAtOtherResolutions) {
     bool accuracy;
   };
   for (const Res res : {Res{256, 256, 128, 0.3e-3, 1.0e-3, true}, Res{64, 64, 32, 0.8e-3, 2.0e-3, false},
-                         Res{256, 256, 64, 0.7e-3, 1.0e-3, false}}) {
-    PhantomOptions po;
-    po.nx = res.nx, po.ny = res.ny, po.nz = res.nz;
-    po.spacing_m = {res.h, res.h, res.hz};
-    const Volume v = phantom_labels(po);
-    const auto truth = phantom_vessels(po);
-    for (const std::string tissue : {"artery", "vein"}) {
-      const std::string size = std::to_string(res.nx) + "x" + std::to_string(res.ny) + "x" + std::to_string(res.nz);
-      SCOPED_TRACE(tissue + " " + size);
-      const VesselResult r = extract_vessels(v, tissue, {});
-      const CentrelineError e = compare_centrelines(r.tree, truth.at(tissue));
-      print("phantom " + size + " " + tissue, r, e, res.h);
-      if (res.accuracy) expect_accuracy(e, res.h);
-      // Within a junction the centreline is a convention: the phantom's axes
-      // meet on the parent's, the extracted ones where the children's axes
-      // cross the rebuilt parent's. For the wide stack's 5.4 mm artery (7.7
-      // voxels) they are 3 mm apart, and the largest deviations (2.8 voxels,
-      // 1.9 mm, before and after the ring fix) lie there: the bound is the
-      // larger of 2 voxels and half the widest truth radius.
-      const double r_max = truth.at(tissue).radii.maxCoeff();
-      EXPECT_LE(e.max_m, std::max(2.0 * res.h, 0.5 * r_max));
-      EXPECT_LE(e.mean_m, 0.5 * res.h);
-      EXPECT_GE(e.overlap_truth, 0.99);  // the whole vessel, to the border
-      // every end of the phantom's vessels is cut by the volume border
-      for (const auto& end : r.metrics.ends) EXPECT_TRUE(end.open) << end.position_m.transpose();
-      const VesselTree& t = truth.at(tissue);
-      expect_topology(r.tree, std::vector<int>(t.branch_parent.data(), t.branch_parent.data() + t.branch_parent.size()));
-      expect_tube(r, 1);
-    }
-  }
+                         Res{256, 256, 64, 0.7e-3, 1.0e-3, false}})
+    for_each_phantom_vessel(res.nx, res.ny, res.nz, res.h, res.hz, "phantom",
+                            [&](const VesselResult& r, const CentrelineError& e, const VesselTree& t) {
+                              if (res.accuracy) expect_accuracy(e, res.h);
+                              // Within a junction the centreline is a convention: the phantom's axes
+                              // meet on the parent's, the extracted ones where the children's axes
+                              // cross the rebuilt parent's. For the wide stack's 5.4 mm artery (7.7
+                              // voxels) they are 3 mm apart, and the largest deviations (2.8 voxels,
+                              // 1.9 mm, before and after the ring fix) lie there: the bound is the
+                              // larger of 2 voxels and half the widest truth radius.
+                              EXPECT_LE(e.max_m, std::max(2.0 * res.h, 0.5 * t.radii.maxCoeff()));
+                              EXPECT_LE(e.mean_m, 0.5 * res.h);
+                              EXPECT_GE(e.overlap_truth, 0.99);  // the whole vessel, to the border
+                              // every end of the phantom's vessels is cut by the volume border
+                              for (const auto& end : r.metrics.ends) EXPECT_TRUE(end.open) << end.position_m.transpose();
+                              expect_tube(r, 1);
+                            });
 }
 
 // Vessels cut by the volume border reach it, whatever the stack: thinning
@@ -499,34 +511,22 @@ TEST(Vessels, VesselsCutByTheBorderReachIt) {
     bool resolved;  // vessel radii of 1.5 voxels or more (the 32 x 32 stack's are about 1: vessels.md, limits)
   };
   for (const Stack st : {Stack{96, 160, 96, 0.45e-3, 1.5e-3, true}, Stack{32, 32, 48, 0.45e-3, 0.6e-3, false},
-                         Stack{200, 120, 80, 0.45e-3, 1.5e-3, true}}) {
-    PhantomOptions po;
-    po.nx = st.nx, po.ny = st.ny, po.nz = st.nz;
-    po.spacing_m = {st.h, st.h, st.hz};
-    const Volume v = phantom_labels(po);
-    const auto truth = phantom_vessels(po);
-    for (const std::string tissue : {"artery", "vein"}) {
-      const std::string size = std::to_string(st.nx) + "x" + std::to_string(st.ny) + "x" + std::to_string(st.nz);
-      SCOPED_TRACE(tissue + " " + size);
-      const VesselResult r = extract_vessels(v, tissue, {});
-      const CentrelineError e = compare_centrelines(r.tree, truth.at(tissue));
-      print("border " + size + " " + tissue, r, e, st.h);
-      const VesselTree& t = truth.at(tissue);
-      expect_topology(r.tree, std::vector<int>(t.branch_parent.data(), t.branch_parent.data() + t.branch_parent.size()));
-      if (st.resolved) {
-        EXPECT_GE(e.overlap_truth, 0.99);
-        EXPECT_GE(e.overlap_extracted, 0.99);
-      }
-      std::size_t leaves = 0;  // the truth's ends: its root and its leaf branches' ends
-      for (Eigen::Index b = 0; b < t.branch_parent.size(); ++b)
-        leaves += std::find(t.branch_parent.data(), t.branch_parent.data() + t.branch_parent.size(), b) ==
-                  t.branch_parent.data() + t.branch_parent.size();
-      EXPECT_EQ(r.metrics.ends.size(), leaves + 1);
-      for (const auto& end : r.metrics.ends) EXPECT_TRUE(end.open) << end.position_m.transpose();
-      const MeshCheck c = check_mesh(r.tree.tube_vertices, r.tree.tube_quads, r.tree.tube_tris);
-      EXPECT_TRUE(c.closed() && c.manifold() && c.oriented());
-    }
-  }
+                         Stack{200, 120, 80, 0.45e-3, 1.5e-3, true}})
+    for_each_phantom_vessel(st.nx, st.ny, st.nz, st.h, st.hz, "border",
+                            [&](const VesselResult& r, const CentrelineError& e, const VesselTree& t) {
+                              if (st.resolved) {
+                                EXPECT_GE(e.overlap_truth, 0.99);
+                                EXPECT_GE(e.overlap_extracted, 0.99);
+                              }
+                              std::size_t leaves = 0;  // the truth's ends: its root and its leaf branches' ends
+                              const int* p = t.branch_parent.data();
+                              const Eigen::Index n = t.branch_parent.size();
+                              for (Eigen::Index b = 0; b < n; ++b) leaves += std::find(p, p + n, b) == p + n;
+                              EXPECT_EQ(r.metrics.ends.size(), leaves + 1);
+                              for (const auto& end : r.metrics.ends) EXPECT_TRUE(end.open) << end.position_m.transpose();
+                              const MeshCheck c = check_mesh(r.tree.tube_vertices, r.tree.tube_quads, r.tree.tube_tris);
+                              EXPECT_TRUE(c.closed() && c.manifold() && c.oriented());
+                            });
 }
 
 // ---- determinism, bad input ---------------------------------------------------------------

@@ -133,6 +133,12 @@ TEST_F(SceneTest, BadScenesAreOneLineErrorsBeforeAnyStep) {
       {R"({"model": "model.h5", "fixed": null})", "fixed is null: give a value, or leave the key out"},
       {R"({"model": "model.h5", "fluid": {"spacing": null}})", "fluid: spacing is null"},
       {R"({"model": "model.h5", "layers": []})", "layers is empty"},
+      // keys that were ignored
+      {R"({"model": "model.h5", "fluid": {"physx_stiffness": 20, "eos": "tait"}})", "the PhysX mode's equation of state is linear"},
+      {R"({"model": "model.h5", "tools": [{"type": "cut", "polyline": [[0, 0, 0], [0.01, 0, 0]], "depth": 0.004, "end": 1}]})",
+       "a cut acts once, at its start: it takes no end"},
+      {R"({"model": "model.h5", "tools": [{"type": "drain", "nodes": "skin", "center": [0, 0, 0], "radius": 0.01}]})",
+       "a drain takes no nodes"},
       {R"({"model": "model.h5", "dt": 0.01, "dt": 0.02})", "invalid JSON: the key 'dt' appears twice in one object"},
       {R"({"model": "model.h5", "fluid": {"spacing": 0.002, "spacing": 0.001}})", "the key 'spacing' appears twice"},
       // "a/b" failed after the first step, "../x" wrote outside dir
