@@ -650,8 +650,9 @@ void refine_centrelines(const Grid& g, const VesselOptions& o, Forest& f) {
     for (int a = 0; a < 3; ++a) d = std::min({d, p(a) - org[a], org[a] + (vn[a] - 1) * g.h[a] - p(a)});
     return d;
   };
-  auto extend = [&](std::vector<Eigen::Vector3d>& x, std::vector<double>& r, bool at_start) {
-    if (x.size() < 4) return;
+  // Returns the border plane the end now lies on (axis, coordinate), or axis -1.
+  auto extend = [&](std::vector<Eigen::Vector3d>& x, std::vector<double>& r, bool at_start) -> std::pair<int, double> {
+    if (x.size() < 4) return {-1, 0.0};
     if (at_start) std::reverse(x.begin(), x.end()), std::reverse(r.begin(), r.end());
     const std::size_t keep_min = x.size() / 2;
     while (x.size() > keep_min && border_distance(x.back()) < std::max(r.back(), 2 * g.hmax())) x.pop_back(), r.pop_back();
@@ -659,12 +660,14 @@ void refine_centrelines(const Grid& g, const VesselOptions& o, Forest& f) {
     const int w = std::min(n - 1, std::max(2, static_cast<int>(std::lround(r.back() / step))));
     const Eigen::Vector3d t = (x.back() - x[n - 1 - w]).normalized();
     double best = 1e300;
+    std::pair<int, double> on{-1, 0.0};
     for (int d = 0; d < 3; ++d) {
       if (std::abs(t(d)) < 1e-6) continue;
       const double plane = t(d) > 0 ? org[d] + (vn[d] - 1) * g.h[d] : org[d];
       const double lam = (plane - x.back()(d)) / t(d);
-      if (lam >= 0) best = std::min(best, lam);
+      if (lam >= 0 && lam < best) best = lam, on = {d, plane};
     }
+    if (!(best <= 4 * r.back() + 3 * g.hmax())) on = {-1, 0.0};
     if (best <= 4 * r.back() + 3 * g.hmax() && best > 1e-9) {
       const Eigen::Vector3d e = x.back() + best * t;
       const int k = std::max(1, static_cast<int>(std::ceil(best / step)));
@@ -673,11 +676,12 @@ void refine_centrelines(const Grid& g, const VesselOptions& o, Forest& f) {
       for (int i = 1; i <= k; ++i) x.push_back(a + (e - a) * (static_cast<double>(i) / k)), r.push_back(ra);
     }
     if (at_start) std::reverse(x.begin(), x.end()), std::reverse(r.begin(), r.end());
+    return on;
   };
   for (std::size_t bi = 0; bi < f.branches.size(); ++bi) {
     Branch& b = f.branches[bi];
-    if (b.start_root && b.start_open) extend(b.x, b.r, true);
-    if (b.end_leaf && b.end_open) extend(b.x, b.r, false);
+    if (b.start_root && b.start_open) std::tie(b.start_axis, b.start_plane) = extend(b.x, b.r, true);
+    if (b.end_leaf && b.end_open) std::tie(b.end_axis, b.end_plane) = extend(b.x, b.r, false);
     b.tube_b = arc(b.x).back() - (b.end_leaf ? 0.0 : tail[bi]);
     b.rho.resize(b.x.size());
     for (std::size_t i = 0; i < b.x.size(); ++i) b.rho[i] = inscribed(g, b.x[i]);

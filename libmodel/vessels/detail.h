@@ -105,6 +105,9 @@ struct Branch {
   bool start_root = false;         // starts at the tree's root end
   bool end_leaf = false;           // ends at a vessel end (else at a junction)
   bool start_open = false, end_open = false;  // that end is cut by the volume border
+  // the border plane an open end lies on: axis (0..2, -1: none) and coordinate (m)
+  int start_axis = -1, end_axis = -1;
+  double start_plane = 0, end_plane = 0;
   // tube interval: arc lengths along x where the swept tube starts and ends
   double tube_a = 0, tube_b = 0;
   // Bezier (filled by fit_bezier)

@@ -459,6 +459,16 @@ void for_each_phantom_vessel(
     print(tag + " " + size + " " + tissue, r, e, h);
     const VesselTree& t = truth.at(tissue);
     expect_topology(r.tree, std::vector<int>(t.branch_parent.data(), t.branch_parent.data() + t.branch_parent.size()));
+    // the tube ends flush with the border planes it is cut by: a vessel leaving
+    // obliquely stuck out by r sin(tilt) (3.5 mm for the wide stack's artery)
+    const Eigen::Vector3d lo(v.origin_m[0], v.origin_m[1], v.origin_m[2]);
+    const Eigen::Vector3d hi = lo + Eigen::Vector3d((nx - 1) * h, (ny - 1) * h, (nz - 1) * hz);
+    double out = 0;
+    for (Eigen::Index i = 0; i < r.tree.tube_vertices.rows(); ++i) {
+      const Eigen::Vector3d q = r.tree.tube_vertices.row(i).transpose();
+      out = std::max({out, (lo - q).maxCoeff(), (q - hi).maxCoeff()});
+    }
+    EXPECT_LE(out, 1e-9) << "the tube reaches past the volume's border planes";
     check(r, e, t);
   }
 }
