@@ -387,6 +387,8 @@ SceneDef parse_scene(const std::string& text, const std::string& file) {
   if (o.has("implicit")) {
     Obj s(o.at("implicit"), "implicit: ", file);
     d.solver.cg_tolerance = s.number("cg_tolerance", d.solver.cg_tolerance, 0, 1, true);
+    if (!(d.solver.cg_tolerance < 1))  // the solver's range is open at 1 (it said so without the prefix)
+      s.fail("cg_tolerance must be a finite number in (0, 1) (got " + fmt(d.solver.cg_tolerance) + ")");
     d.solver.cg_max_iterations = static_cast<int>(s.integer("cg_max_iterations", d.solver.cg_max_iterations, 1, 100000));
     const std::string pc = s.string("preconditioner", "block_jacobi");
     if (pc == "block_jacobi") d.solver.preconditioner = Preconditioner::block_jacobi;

@@ -295,8 +295,9 @@ void add_run_command(CLI::App& app) {
       // the run went to the end (outputs and report written; a failed step ends at rest, never
       // NaN), but the solver gave up on steps: the scene is beyond its stability
       std::cerr << "orthosim run: error: " << scene_file << ": " << c.failed << " of " << r.steps
-                << " steps failed (the solver gave up on them after " << def.solver.max_retries
-                << " retries; metrics.stability in the report)\n";
+                << " steps failed (the solver gave up on them after up to " << def.solver.max_retries
+                << " retries, halving the substep down to 1/" << def.solver.max_substeps
+                << " of the step at most; metrics.stability in the report)\n";
       exit_code() = 3;
     }
   });

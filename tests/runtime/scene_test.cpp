@@ -133,6 +133,8 @@ TEST_F(SceneTest, BadScenesAreOneLineErrorsBeforeAnyStep) {
       {R"({"model": "model.h5", "fixed": null})", "fixed is null: give a value, or leave the key out"},
       {R"({"model": "model.h5", "fluid": {"spacing": null}})", "fluid: spacing is null"},
       {R"({"model": "model.h5", "layers": []})", "layers is empty"},
+      // 1 passed the scene's range and the solver refused it without the prefix
+      {R"({"model": "model.h5", "implicit": {"cg_tolerance": 1}})", "implicit: cg_tolerance must be a finite number in (0, 1)"},
       // keys that were ignored
       {R"({"model": "model.h5", "fluid": {"physx_stiffness": 20, "eos": "tait"}})", "the PhysX mode's equation of state is linear"},
       {R"({"model": "model.h5", "tools": [{"type": "cut", "polyline": [[0, 0, 0], [0.01, 0, 0]], "depth": 0.004, "end": 1}]})",
