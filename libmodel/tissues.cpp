@@ -1,5 +1,6 @@
 #include "libmodel/tissues.h"
 
+#include "libmodel/format/json.h"
 #include "libmodel/format/types.h"
 
 #include <nlohmann/json.hpp>
@@ -131,11 +132,13 @@ Mechanics parse_mechanics(const json& m, const std::string& path, const std::str
 
 TissueTable parse_tissue_table(const std::string& text, const std::string& path) {
   json j;
+  std::string twice;
   try {
-    j = json::parse(text);
+    j = parse_json_noting_repeats(text, twice);
   } catch (const json::parse_error& e) {
     throw Error(path, std::string("not valid JSON: ") + e.what());
   }
+  if (!twice.empty()) throw Error(path, "not valid JSON: the key '" + twice + "' appears twice in one object");
   if (!j.is_object()) throw Error(path, "tissue table must be a JSON object");
   check_keys(j, {"format", "note", "units", "background", "tissues"}, path, "top level");
   // the keys carry their units (k1_kpa, density_kg_m3): a "units" block that says

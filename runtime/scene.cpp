@@ -1,6 +1,7 @@
 #include "runtime/scene.h"
 
 #include "libmodel/format/atomic.h"
+#include "libmodel/format/json.h"
 #include "runtime/loader.h"
 #include "runtime/sph_surface.h"
 
@@ -259,20 +260,9 @@ ToolDef parse_tool(const json& j, std::size_t index, const std::string& file) {
 
 SceneDef parse_scene(const std::string& text, const std::string& file) {
   json j;
-  // a key twice in one object: JSON leaves it undefined, the parser kept the
-  // last ({"dt": 0.01, "dt": 0.02} ran at 0.02, silently)
-  std::vector<std::set<std::string>> keys;
   std::string twice;
-  const json::parser_callback_t on = [&](int, json::parse_event_t ev, json& parsed) {
-    if (ev == json::parse_event_t::object_start) keys.emplace_back();
-    else if (ev == json::parse_event_t::object_end && !keys.empty()) keys.pop_back();
-    else if (ev == json::parse_event_t::key && !keys.empty() && !keys.back().insert(parsed.get<std::string>()).second &&
-             twice.empty())
-      twice = parsed.get<std::string>();
-    return true;
-  };
   try {
-    j = json::parse(text, on);
+    j = parse_json_noting_repeats(text, twice);
   } catch (const json::exception& e) {
     std::string what = e.what();
     for (auto& c : what)

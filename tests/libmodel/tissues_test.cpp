@@ -98,6 +98,9 @@ TEST(Tissues, RejectsBadTables) {
   EXPECT_NO_THROW(parse_tissue_table(replace(kGood, "\"format\": \"orthosim-tissues/1\",",
                                              "\"format\": \"orthosim-tissues/1\", \"units\": {\"moduli\": \"kPa\", \"density\": \"kg/m3\"},"),
                                      "t.json"));
+  // a key twice (the last won, silently)
+  expect_error(replace(kGood, "\"density_kg_m3\": 950,", "\"density_kg_m3\": 950, \"density_kg_m3\": 900,"),
+               "the key 'density_kg_m3' appears twice in one object");
   // an inside cycle
   expect_error(replace(replace(kGood, "\"layer\": \"tetra\",", "\"layer\": \"tetra\", \"inside\": \"bone\","),
                        "\"inside\": \"fat\"", "\"inside\": \"skin\""),
