@@ -15,6 +15,13 @@ namespace {
 namespace fs = std::filesystem;
 using test::run_cli;
 
+// A run that succeeds with exactly one warning line holding `text`.
+void expect_one_warning(const test::RunResult& r, const std::string& text) {
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_EQ(test::count_lines(r.err), 1) << r.err;
+  EXPECT_NE(r.err.find(text), std::string::npos) << r.err;
+}
+
 struct RunCli : ::testing::Test {
   test::TempDir dir{"runcli"};
   std::string model = dir / "model.h5";
@@ -235,14 +242,10 @@ TEST_F(RunCli, FluidStepsCutAtMaxSubstepsAreAWarning) {
       "model": "model.h5", "fixed": ["fixed"], "integrator": "implicit", "dt": 0.01, "duration": 0.02,
       "vessels": ["artery"], "fluid": {"spacing": 0.002, "sound_speed": 100000, "margin": 0.01}
     })");
-  const auto r = run_cli("run " + s + " --no-output --quiet --report " + (dir / "t.json"));
-  ASSERT_EQ(r.code, 0) << r.err;
+  expect_one_warning(run_cli("run " + s + " --no-output --quiet --report " + (dir / "t.json")),
+                     "orthosim run: warning: " + s + ": the blood reached its limit of 4096 substeps in 2 step(s)");
   const auto f = nlohmann::json::parse(test::read_file(dir / "t.json"))["metrics"]["fluid"];
   EXPECT_EQ(f["truncated_steps"].get<long>(), 2) << f.dump();
-  EXPECT_EQ(test::count_lines(r.err), 1) << r.err;
-  EXPECT_NE(r.err.find("orthosim run: warning: " + s + ": the blood reached its limit of 4096 substeps in 2 step(s)"),
-            std::string::npos)
-      << r.err;
 }
 
 // Cuts that cross none of the loaded vessels are named in a warning: a
@@ -338,12 +341,9 @@ TEST_F(RunCli, AToolOnFixedNodesIsAWarning) {
       "tools": [{"name": "grasper", "type": "pull", "nodes": "fixed", "center_in_box": [0.5, 0.5, 0.5], "radius": 0.001,
                  "nearest": true, "path": [[0, 0, 0, 0], [0.01, 0, 0.001, 0]]}]
     })");
-  const auto r = run_cli("run " + s + " --no-output --quiet");
-  ASSERT_EQ(r.code, 0) << r.err;
-  EXPECT_EQ(test::count_lines(r.err), 1) << r.err;
-  EXPECT_NE(r.err.find("orthosim run: warning: " + s + ": the pull tool 'grasper' takes only the 1 fixed node(s) it found: it does nothing"),
-            std::string::npos)
-      << r.err;
+  expect_one_warning(run_cli("run " + s + " --no-output --quiet"),
+                     "orthosim run: warning: " + s +
+                         ": the pull tool 'grasper' takes only the 1 fixed node(s) it found: it does nothing");
 }
 
 // A cut polyline the snap moved farther than the cut's depth lay off the
@@ -357,12 +357,9 @@ TEST_F(RunCli, ACutSnappedFromFarOffIsAWarning) {
     })");
   };
   const auto far = cut_at("-0.5");
-  const auto r = run_cli("run " + far + " --no-output --quiet");
-  ASSERT_EQ(r.code, 0) << r.err;
-  EXPECT_EQ(test::count_lines(r.err), 1) << r.err;
-  EXPECT_NE(r.err.find("orthosim run: warning: " + far + ": the cut 'scalpel''s polyline lies off its nodes: the snap moved a point 0.5"),
-            std::string::npos)
-      << r.err;
+  expect_one_warning(run_cli("run " + far + " --no-output --quiet"),
+                     "orthosim run: warning: " + far +
+                         ": the cut 'scalpel''s polyline lies off its nodes: the snap moved a point 0.5");
   const auto on = run_cli("run " + cut_at("0") + " --no-output --quiet");
   ASSERT_EQ(on.code, 0) << on.err;
   EXPECT_EQ(on.err, "");
