@@ -1032,6 +1032,7 @@ int Scene::tool(const std::string& name) const {
 
 const std::vector<std::int32_t>& Scene::tool_nodes(int tool) const { return tools_.at(static_cast<std::size_t>(tool)).nodes; }
 Real Scene::tool_snap_distance(int tool) const { return tools_.at(static_cast<std::size_t>(tool)).snap_m; }
+std::array<Real, 3> Scene::tool_center(int tool) const { return tools_.at(static_cast<std::size_t>(tool)).def.center; }
 
 void Scene::move_tool(int tool, const std::array<Real, 3>& p) {
   check_mutable("move_tool()");

@@ -230,6 +230,8 @@ class Scene {
   // m: how far the snap moved the farthest point of a cut tool's polyline onto
   // its nodes (0 for other tools, or without snap)
   Real tool_snap_distance(int tool) const;
+  // m: a tool's centre at rest, center_in_box resolved (0, 0, 0 without one)
+  std::array<Real, 3> tool_center(int tool) const;
   // Cuts the tissue now (between steps), as a cut tool would; returns what it did.
   CutReport cut(const CutDef& def);
   // Every cut made so far, in order (the cut tools' and cut()'s).

@@ -107,6 +107,25 @@ void add_run_command(CLI::App& app) {
                   << (def.tools[k].name.empty() ? std::string() : " '" + def.tools[k].name + "'") << " takes only the "
                   << nodes.size() << " fixed node(s) it found: it does nothing (its nodes or centre?)\n";
     }
+    // a drain that cannot reach the blood's domain never drains (a centre 100 m off
+    // ran with 0 drained and nothing said); even with --quiet
+    if (const runtime::FluidBoundaries* fb = scene->fluid_boundaries())
+      for (std::size_t k = 0; k < def.tools.size(); ++k) {
+        if (def.tools[k].type != runtime::ToolType::drain) continue;
+        const auto c = scene->tool_center(static_cast<int>(k));
+        double d2 = 0;
+        for (int a = 0; a < 3; ++a) {
+          const double e = std::max({fb->lo[static_cast<std::size_t>(a)] - c[static_cast<std::size_t>(a)], 0.0,
+                                     c[static_cast<std::size_t>(a)] - fb->hi[static_cast<std::size_t>(a)]});
+          d2 += e * e;
+        }
+        if (std::sqrt(d2) > def.tools[k].radius)
+          std::cerr << "orthosim run: warning: " << scene_file << ": the drain"
+                    << (def.tools[k].name.empty() ? std::string() : " '" + def.tools[k].name + "'") << " lies "
+                    << std::sqrt(d2) - def.tools[k].radius
+                    << " m outside the blood's domain (the loaded tissue's box grown by fluid.margin): it never "
+                       "drains\n";
+      }
     // a cut polyline snapped farther than its depth lay off the skin (5 m off a 7 cm
     // limb was snapped onto it and cut, silently); even with --quiet
     for (std::size_t k = 0; k < def.tools.size(); ++k)

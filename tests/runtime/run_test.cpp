@@ -346,6 +346,23 @@ TEST_F(RunCli, AToolOnFixedNodesIsAWarning) {
                          ": the pull tool 'grasper' takes only the 1 fixed node(s) it found: it does nothing");
 }
 
+// A drain that cannot reach the blood's domain is a warning (0 drained, silently).
+TEST_F(RunCli, ADrainOutsideTheBloodIsAWarning) {
+  auto drain_at = [&](const std::string& c) {
+    return scene(R"({
+      "model": "model.h5", "fixed": ["fixed"], "integrator": "implicit", "dt": 0.005, "duration": 0.01,
+      "fluid": {"spacing": 0.002, "sound_speed": 3, "margin": 0.01},
+      "tools": [{"name": "suction", "type": "drain", "center": )" + c + R"(, "radius": 0.01}]
+    })");
+  };
+  const auto far = drain_at("[1, 0, 0]");
+  expect_one_warning(run_cli("run " + far + " --no-output --quiet"),
+                     "orthosim run: warning: " + far + ": the drain 'suction' lies ");
+  const auto near = run_cli("run " + drain_at("[0.01, 0, 0.01]") + " --no-output --quiet");
+  ASSERT_EQ(near.code, 0) << near.err;
+  EXPECT_EQ(near.err, "");
+}
+
 // A cut polyline the snap moved farther than the cut's depth lay off the
 // skin: a warning (5 m off a 7 cm limb was snapped on and cut, silently).
 TEST_F(RunCli, ACutSnappedFromFarOffIsAWarning) {
