@@ -22,6 +22,12 @@ void expect_one_warning(const test::RunResult& r, const std::string& text) {
   EXPECT_NE(r.err.find(text), std::string::npos) << r.err;
 }
 
+// A run that succeeds without a word on stderr.
+void expect_silent(const test::RunResult& r) {
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_EQ(r.err, "");
+}
+
 struct RunCli : ::testing::Test {
   test::TempDir dir{"runcli"};
   std::string model = dir / "model.h5";
@@ -164,14 +170,10 @@ TEST_F(RunCli, WhatTheRunWillNotDoIsAWarning) {
   const auto j = nlohmann::json::parse(test::read_file(dir / "late.json"));
   EXPECT_TRUE(j["metrics"]["cuts"].empty()) << j["metrics"]["cuts"].dump();
   // starting with the last step: it acts, no warning
-  const auto last = run_cli("run " + with_start("0.015", "0.02") + " --no-output --quiet --report " + (dir / "last.json"));
-  ASSERT_EQ(last.code, 0) << last.err;
-  EXPECT_EQ(last.err, "");
+  expect_silent(run_cli("run " + with_start("0.015", "0.02") + " --no-output --quiet --report " + (dir / "last.json")));
   EXPECT_EQ(nlohmann::json::parse(test::read_file(dir / "last.json"))["metrics"]["cuts"].size(), 1u);
   // --steps decides the run's length: the same check against it
-  const auto more = run_cli("run " + late + " --steps 5 --no-output --quiet");
-  ASSERT_EQ(more.code, 0) << more.err;
-  EXPECT_EQ(more.err, "");
+  expect_silent(run_cli("run " + late + " --steps 5 --no-output --quiet"));
   // blood and a cut, but no vessel tree loaded: nothing can bleed
   const auto dry = scene(R"({
       "model": "model.h5", "fixed": ["fixed"], "integrator": "implicit", "dt": 0.005, "duration": 0.01,
@@ -272,9 +274,7 @@ TEST_F(RunCli, CutsThatMissEveryVesselAreAWarning) {
             std::string::npos)
       << r.err;
   // across the artery: it bleeds, no warning
-  const auto across = run_cli("run " + cut_from("0.0", "0.03") + " --no-output --quiet");
-  ASSERT_EQ(across.code, 0) << across.err;
-  EXPECT_EQ(across.err, "");
+  expect_silent(run_cli("run " + cut_from("0.0", "0.03") + " --no-output --quiet"));
 }
 
 // A cut that misses the model is named in a warning (it cut nothing, silently).
@@ -294,9 +294,7 @@ TEST_F(RunCli, ACutThatMissesTheModelIsAWarning) {
       << r.err;
   const auto j = nlohmann::json::parse(test::read_file(dir / "miss.json"));
   EXPECT_EQ(j["metrics"]["cuts"][0]["springs_cut"], 0);
-  const auto hit = run_cli("run " + cut_at("0.01") + " --no-output --quiet");
-  ASSERT_EQ(hit.code, 0) << hit.err;
-  EXPECT_EQ(hit.err, "");
+  expect_silent(run_cli("run " + cut_at("0.01") + " --no-output --quiet"));
 }
 
 // A cut vessel whose flow is too small to emit one particle in the run is
@@ -321,9 +319,7 @@ TEST_F(RunCli, ABleedingTooSmallToShowIsAWarning) {
   EXPECT_EQ(j["metrics"]["fluid"]["particles_emitted"], 0);
   EXPECT_GT(j["metrics"]["fluid"]["bleeding_flow_m3_s"].get<double>(), 0);
   // a bleeding that shows: no warning
-  const auto shows = run_cli("run " + bleed("500") + " --no-output --quiet");
-  ASSERT_EQ(shows.code, 0) << shows.err;
-  EXPECT_EQ(shows.err, "");
+  expect_silent(run_cli("run " + bleed("500") + " --no-output --quiet"));
   // bleed_pressure 0: nothing flows, said so (it said "takes inf s of that flow")
   const auto zero = bleed("0");
   const auto z = run_cli("run " + zero + " --no-output --quiet");
@@ -358,9 +354,7 @@ TEST_F(RunCli, ADrainOutsideTheBloodIsAWarning) {
   const auto far = drain_at("[1, 0, 0]");
   expect_one_warning(run_cli("run " + far + " --no-output --quiet"),
                      "orthosim run: warning: " + far + ": the drain 'suction' lies ");
-  const auto near = run_cli("run " + drain_at("[0.01, 0, 0.01]") + " --no-output --quiet");
-  ASSERT_EQ(near.code, 0) << near.err;
-  EXPECT_EQ(near.err, "");
+  expect_silent(run_cli("run " + drain_at("[0.01, 0, 0.01]") + " --no-output --quiet"));
 }
 
 // A cut polyline the snap moved farther than the cut's depth lay off the
@@ -377,9 +371,7 @@ TEST_F(RunCli, ACutSnappedFromFarOffIsAWarning) {
   expect_one_warning(run_cli("run " + far + " --no-output --quiet"),
                      "orthosim run: warning: " + far +
                          ": the cut 'scalpel''s polyline lies off its nodes: the snap moved a point 0.5");
-  const auto on = run_cli("run " + cut_at("0") + " --no-output --quiet");
-  ASSERT_EQ(on.code, 0) << on.err;
-  EXPECT_EQ(on.err, "");
+  expect_silent(run_cli("run " + cut_at("0") + " --no-output --quiet"));
 }
 
 TEST_F(RunCli, BadScenesExitTwoWithOneLine) {
