@@ -151,15 +151,19 @@ TissueTable parse_tissue_table(const std::string& text, const std::string& path)
       x.erase(std::remove(x.begin(), x.end(), ' '), x.end());
       return x;
     };
-    const std::vector<std::pair<const char*, std::vector<std::string>>> known = {{"moduli", {"kpa"}},
-                                                                                {"density", {"kg/m^3", "kg/m3", "kgm^-3"}}};
-    for (const auto& [key, ok] : known) {
-      if (!u.contains(key)) continue;
-      const std::string v = u[key].is_string() ? lower(u[key].get<std::string>()) : std::string();
-      if (std::find(ok.begin(), ok.end(), v) == ok.end())
-        throw Error(path, std::string("units: ") + key + " is " + u[key].dump() + ", but the table's " + key +
-                              " keys are in " + (std::string(key) == "moduli" ? "kPa (k1_kpa, k2_kpa, k_kpa)" : "kg/m^3 (density_kg_m3)") +
-                              ": convert the values and say so");
+    struct Unit {
+      const char* key;
+      std::vector<std::string> spellings;  // lower case, no spaces
+      const char* keys_are;
+    };
+    const Unit known[] = {{"moduli", {"kpa"}, "kPa (k1_kpa, k2_kpa, k_kpa)"},
+                          {"density", {"kg/m^3", "kg/m3", "kgm^-3"}, "kg/m^3 (density_kg_m3)"}};
+    for (const Unit& k : known) {
+      if (!u.contains(k.key)) continue;
+      const std::string v = u[k.key].is_string() ? lower(u[k.key].get<std::string>()) : std::string();
+      if (std::find(k.spellings.begin(), k.spellings.end(), v) == k.spellings.end())
+        throw Error(path, std::string("units: ") + k.key + " is " + u[k.key].dump() + ", but the table's " + k.key +
+                              " keys are in " + k.keys_are + ": convert the values and say so");
     }
   }
   if (!j.contains("format") || j["format"] != "orthosim-tissues/1")

@@ -14,6 +14,9 @@ namespace orthosim::cli {
 
 namespace {
 
+// " 'name'" for a named tool in a message, "" for an unnamed one
+std::string quoted(const std::string& name) { return name.empty() ? std::string() : " '" + name + "'"; }
+
 // the fluid's substeps by the limit that set their length
 nlohmann::json substep_limits(const runtime::FluidCounters& c) {
   nlohmann::json j = nlohmann::json::object();
@@ -74,7 +77,7 @@ void add_run_command(CLI::App& app) {
       for (const auto& t : def.tools)
         if (t.type == runtime::ToolType::cut) {
           std::cerr << "orthosim run: warning: " << scene_file << ": the scene has blood and a cut"
-                    << (t.name.empty() ? std::string() : " '" + t.name + "'")
+                    << quoted(t.name)
                     << " but loads no vessel tree, so nothing can bleed (name the trees in \"vessels\")\n";
           break;
         }
@@ -82,7 +85,7 @@ void add_run_command(CLI::App& app) {
     for (const auto& t : def.tools)
       if (t.start > last_start * (1 + 1e-12) + 1e-15)
         std::cerr << "orthosim run: warning: " << scene_file << ": the " << runtime::to_string(t.type) << " tool"
-                  << (t.name.empty() ? std::string() : " '" + t.name + "'") << " starts at t = " << t.start
+                  << quoted(t.name) << " starts at t = " << t.start
                   << " s, after the run's last step starts (t = " << last_start << " s, " << n_steps
                   << " steps of " << def.dt << " s): it never acts\n";
 
@@ -94,48 +97,43 @@ void add_run_command(CLI::App& app) {
       scene = std::make_unique<runtime::Scene>(def);
     }
     const runtime::Model& m0 = scene->model();  // a cut replaces the model: not used after the steps
-    // a pull or hook whose nodes are all fixed already moves nothing (a pull on the
-    // "fixed" set ran as if it were not there); even with --quiet
+    // what a tool will not do (even with --quiet):
+    // - a pull or hook whose nodes are all fixed already moves nothing (a pull on
+    //   the "fixed" set ran as if it were not there);
+    // - a drain that cannot reach the blood's domain never drains (a centre 100 m
+    //   off ran with 0 drained and nothing said);
+    // - a cut polyline snapped farther than its depth lay off the skin (5 m off a
+    //   7 cm limb was snapped onto it and cut, silently)
+    const runtime::FluidBoundaries* const fb = scene->fluid_boundaries();
     for (std::size_t k = 0; k < def.tools.size(); ++k) {
-      const auto type = def.tools[k].type;
-      if (type != runtime::ToolType::pull && type != runtime::ToolType::hook) continue;
-      const auto& nodes = scene->tool_nodes(static_cast<int>(k));
-      bool all_fixed = !nodes.empty();
-      for (auto i : nodes) all_fixed = all_fixed && scene->state().pin[static_cast<std::size_t>(i)] == runtime::Pin::fixed;
-      if (all_fixed)
-        std::cerr << "orthosim run: warning: " << scene_file << ": the " << runtime::to_string(type) << " tool"
-                  << (def.tools[k].name.empty() ? std::string() : " '" + def.tools[k].name + "'") << " takes only the "
-                  << nodes.size() << " fixed node(s) it found: it does nothing (its nodes or centre?)\n";
-    }
-    // a drain that cannot reach the blood's domain never drains (a centre 100 m off
-    // ran with 0 drained and nothing said); even with --quiet
-    if (const runtime::FluidBoundaries* fb = scene->fluid_boundaries())
-      for (std::size_t k = 0; k < def.tools.size(); ++k) {
-        if (def.tools[k].type != runtime::ToolType::drain) continue;
-        const auto c = scene->tool_center(static_cast<int>(k));
-        double d2 = 0;
-        for (int a = 0; a < 3; ++a) {
-          const double e = std::max({fb->lo[static_cast<std::size_t>(a)] - c[static_cast<std::size_t>(a)], 0.0,
-                                     c[static_cast<std::size_t>(a)] - fb->hi[static_cast<std::size_t>(a)]});
+      const runtime::ToolDef& t = def.tools[k];
+      const int id = static_cast<int>(k);
+      if (t.type == runtime::ToolType::pull || t.type == runtime::ToolType::hook) {
+        const auto& nodes = scene->tool_nodes(id);
+        bool all_fixed = !nodes.empty();
+        for (auto i : nodes) all_fixed = all_fixed && scene->state().pin[static_cast<std::size_t>(i)] == runtime::Pin::fixed;
+        if (all_fixed)
+          std::cerr << "orthosim run: warning: " << scene_file << ": the " << runtime::to_string(t.type) << " tool"
+                    << quoted(t.name) << " takes only the " << nodes.size()
+                    << " fixed node(s) it found: it does nothing (its nodes or centre?)\n";
+      } else if (t.type == runtime::ToolType::drain && fb) {
+        const auto c = scene->tool_center(id);
+        double d2 = 0;  // from the centre to the domain box
+        for (std::size_t a = 0; a < 3; ++a) {
+          const double e = std::max({fb->lo[a] - c[a], 0.0, c[a] - fb->hi[a]});
           d2 += e * e;
         }
-        if (std::sqrt(d2) > def.tools[k].radius)
-          std::cerr << "orthosim run: warning: " << scene_file << ": the drain"
-                    << (def.tools[k].name.empty() ? std::string() : " '" + def.tools[k].name + "'") << " lies "
-                    << std::sqrt(d2) - def.tools[k].radius
+        if (std::sqrt(d2) > t.radius)
+          std::cerr << "orthosim run: warning: " << scene_file << ": the drain" << quoted(t.name) << " lies "
+                    << std::sqrt(d2) - t.radius
                     << " m outside the blood's domain (the loaded tissue's box grown by fluid.margin): it never "
                        "drains\n";
+      } else if (t.type == runtime::ToolType::cut && scene->tool_snap_distance(id) > t.depth) {
+        std::cerr << "orthosim run: warning: " << scene_file << ": the cut" << quoted(t.name)
+                  << "'s polyline lies off its nodes: the snap moved a point " << scene->tool_snap_distance(id)
+                  << " m, more than the cut's depth (" << t.depth << " m); check its points (or \"snap\": false)\n";
       }
-    // a cut polyline snapped farther than its depth lay off the skin (5 m off a 7 cm
-    // limb was snapped onto it and cut, silently); even with --quiet
-    for (std::size_t k = 0; k < def.tools.size(); ++k)
-      if (def.tools[k].type == runtime::ToolType::cut &&
-          scene->tool_snap_distance(static_cast<int>(k)) > def.tools[k].depth)
-        std::cerr << "orthosim run: warning: " << scene_file << ": the cut"
-                  << (def.tools[k].name.empty() ? std::string() : " '" + def.tools[k].name + "'")
-                  << "'s polyline lies off its nodes: the snap moved a point "
-                  << scene->tool_snap_distance(static_cast<int>(k)) << " m, more than the cut's depth ("
-                  << def.tools[k].depth << " m); check its points (or \"snap\": false)\n";
+    }
     auto& par = report.parameters();
     par["model"] = def.model;
     par["layers"] = def.layers;
@@ -289,7 +287,7 @@ void add_run_command(CLI::App& app) {
     for (const auto& cr : scene->cuts())
       if (cr.springs_cut == 0 && cr.quads_removed == 0)  // even with --quiet: the incision the scene asks for is not there
         std::cerr << "orthosim run: warning: " << scene_file << ": the cut"
-                  << (cr.tool.empty() ? std::string() : " '" + cr.tool + "'") << " at t = " << cr.time
+                  << quoted(cr.tool) << " at t = " << cr.time
                   << " s cut nothing: its polyline, swept along the blade to its depth, crosses no spring of the model\n";
     if (def.solver.integrator == runtime::Integrator::implicit_euler && c.cg_unconverged > 0)  // even with --quiet
       std::cerr << "orthosim run: warning: " << scene_file << ": " << c.cg_unconverged << " of " << c.cg_solves

@@ -170,8 +170,7 @@ void add_tune_command(CLI::App& app) {
       throw UsageError(e.message());
     }
     // a polish follows a global method only: given with sa or a local method it was ignored
-    if (polish->count() > 0 && (opt.method == "sa" || opt.method == "bobyqa" || opt.method == "sbplx" ||
-                                opt.method == "neldermead" || opt.method == "cobyla"))
+    if (polish->count() > 0 && !tune::is_global_method(opt.method))
       throw UsageError("--polish follows an NLopt global method (crs2, isres, direct-l, esch), not --method " +
                        opt.method);
     const TissueTable table = load_tissue_table(tissues_path);

@@ -206,6 +206,8 @@ bool is_method(const std::string& name) {
   return std::find(m.begin(), m.end(), name) != m.end();
 }
 
+bool is_global_method(const std::string& name) { return nlopt_global().count(name) > 0; }
+
 void validate(const TuneOptions& o) {
   if (!is_method(o.method)) {
     std::string list;

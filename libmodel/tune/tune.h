@@ -50,6 +50,8 @@ Space make_space(const Target& target, const std::vector<SpringClass>& classes);
 // Names accepted by TuneOptions::method.
 std::vector<std::string> methods();
 bool is_method(const std::string& name);
+// An NLopt global method, the only kind TuneOptions::polish follows.
+bool is_global_method(const std::string& name);
 
 // The annealer's settings for tuning: AnnealOptions' defaults with a fresh
 // walk from a random point every 100 sweeps (docs/tune.md).
