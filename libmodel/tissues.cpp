@@ -156,8 +156,11 @@ TissueTable parse_tissue_table(const std::string& text, const std::string& path)
       std::vector<std::string> spellings;  // lower case, no spaces
       const char* keys_are;
     };
+    // a key it does not know ("colour": "linear") was ignored: refused like any other
+    check_keys(u, {"moduli", "density", "rgb"}, path, "units");
     const Unit known[] = {{"moduli", {"kpa"}, "kPa (k1_kpa, k2_kpa, k_kpa)"},
-                          {"density", {"kg/m^3", "kg/m3", "kgm^-3"}, "kg/m^3 (density_kg_m3)"}};
+                          {"density", {"kg/m^3", "kg/m3", "kgm^-3"}, "kg/m^3 (density_kg_m3)"},
+                          {"rgb", {"srgb0..255", "srgb", "0..255", "srgb(0..255)"}, "8-bit sRGB 0..255"}};
     for (const Unit& k : known) {
       if (!u.contains(k.key)) continue;
       const std::string v = u[k.key].is_string() ? lower(u[k.key].get<std::string>()) : std::string();

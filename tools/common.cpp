@@ -22,6 +22,11 @@ int& exit_code() {
   return code;
 }
 
+std::string& last_error() {
+  static std::string message;
+  return message;
+}
+
 void add_common_options(CLI::App* sub, CommonOptions& o) {
   sub->add_option("--report", o.report, "write a JSON summary (inputs, parameters, timings, metrics)");
   sub->add_flag("--quiet,-q", o.quiet, "no progress or summary on stderr/stdout");
@@ -123,20 +128,24 @@ void Progress::update(long done) {
 }
 
 int guarded(const std::string& command, const std::function<void()>& body) {
+  auto print = [&](const char* kind, const std::string& message) {
+    last_error() = message;
+    std::cerr << "orthosim " << command << ": " << kind << ": " << message << "\n";
+  };
   try {
     body();
     return 0;
   } catch (const UsageError& e) {
-    std::cerr << "orthosim " << command << ": error: " << e.what() << "\n";
+    print("error", e.what());
     return 2;
   } catch (const Error& e) {
-    std::cerr << "orthosim " << command << ": error: " << e.what() << "\n";
+    print("error", e.what());
     return 2;
   } catch (const std::bad_alloc&) {
-    std::cerr << "orthosim " << command << ": error: out of memory\n";
+    print("error", "out of memory");
     return 1;
   } catch (const std::exception& e) {
-    std::cerr << "orthosim " << command << ": internal error: " << e.what() << "\n";
+    print("internal error", e.what());
     return 1;
   }
 }

@@ -89,6 +89,10 @@ class Progress {
 int guarded(const std::string& command, const std::function<void()>& body);
 // The process exit code main() returns (set by on_run).
 int& exit_code();
+// The message of the last error guarded() printed, without its "orthosim
+// <command>: error: " prefix ("" when none): the pipeline's report names a
+// failed stage's error with it.
+std::string& last_error();
 // Registers `body` as the subcommand's callback, run through guarded()
 // after check_common_options(common):
 //   on_run(sub, "phantom", a.common, [&] { ... });

@@ -22,6 +22,7 @@
 #include "libmodel/tissues.h"
 #include "tools/common.h"
 
+#include <fcntl.h>
 #include <spawn.h>
 #include <sys/wait.h>
 #include <unistd.h>
@@ -111,8 +112,9 @@ SceneNeeds read_scene(const std::string& path) {
 }
 
 // Runs another orthosim process with `args` (this executable, found through
-// /proc/self/exe); its stderr is ours. Throws Error when it cannot start.
-pid_t spawn_self(const std::vector<std::string>& args) {
+// /proc/self/exe), its stderr written to the file `err` (replayed on ours when
+// it ends: replay_stderr). Throws Error when it cannot start.
+pid_t spawn_self(const std::vector<std::string>& args, const std::string& err) {
   std::error_code ec;
   const std::string self = fs::read_symlink("/proc/self/exe", ec).string();
   if (ec) throw Error("/proc/self/exe", "cannot find this executable to run a stage in parallel: " + ec.message());
@@ -121,10 +123,28 @@ pid_t spawn_self(const std::vector<std::string>& args) {
   std::vector<char*> argv;
   for (auto& x : argv_s) argv.push_back(x.data());
   argv.push_back(nullptr);
+  posix_spawn_file_actions_t fa;
+  posix_spawn_file_actions_init(&fa);
+  posix_spawn_file_actions_addopen(&fa, 2, err.c_str(), O_WRONLY | O_CREAT | O_TRUNC, 0644);
   pid_t pid = 0;
-  const int rc = posix_spawn(&pid, self.c_str(), nullptr, nullptr, argv.data(), environ);
+  const int rc = posix_spawn(&pid, self.c_str(), &fa, nullptr, argv.data(), environ);
+  posix_spawn_file_actions_destroy(&fa);
   if (rc != 0) throw Error(self, std::string("cannot start a stage process: ") + std::strerror(rc));
   return pid;
+}
+
+// Copies a stage process's stderr file onto ours; returns the message of its
+// error line ("orthosim <stage>: error: MESSAGE"), "" when it has none.
+std::string replay_stderr(const std::string& err) {
+  std::ifstream in(err);
+  std::string line, message;
+  while (std::getline(in, line)) {
+    std::cerr << line << "\n";
+    for (const char* kind : {": error: ", ": internal error: "})
+      if (const auto at = line.find(kind); line.rfind("orthosim ", 0) == 0 && at != std::string::npos && message.empty())
+        message = line.substr(at + std::strlen(kind));
+  }
+  return message;
 }
 
 // Waits for a child; its exit code (1 when it died of a signal).
@@ -148,11 +168,12 @@ class Runner {
       if (p.pid <= 0) continue;
       kill(p.pid, SIGTERM);
       wait_child(p.pid);
+      replay_stderr(stderr_file(p));  // what it said before it stopped (an error of its own)
     }
   }
 
   struct StageFailed {
-    std::string stage;
+    std::string stage, error;  // the stage's error message ("" when it printed none)
   };
   // A stage started with start(), finished by finish().
   struct Pending {
@@ -172,7 +193,7 @@ class Runner {
     Pending p = open(name, key_parts, outputs);
     if (!p.entry.hit) {
       if (prepare) prepare(p.entry.dir);
-      if (const int code = body(p.entry.dir); code != 0) fail(name, code);
+      if (const int code = body(p.entry.dir); code != 0) fail(name, code, last_error());
     }
     return close(std::move(p));
   }
@@ -185,6 +206,7 @@ class Runner {
       auto args = with_report(make_args(dir), dir);
       const std::string saved = command_line();
       command_line() = "orthosim " + join(args, " ");
+      last_error().clear();
       const int code = run_command(args);
       command_line() = saved;
       return code;  // a failed stage printed its one-line error
@@ -198,7 +220,7 @@ class Runner {
                     const std::vector<std::string>& outputs) {
     Pending p = open(name, key_parts, outputs);
     p.rec["parallel"] = true;
-    if (!p.entry.hit) p.pid = spawn_self(with_report(make_args(p.entry.dir), p.entry.dir));
+    if (!p.entry.hit) p.pid = spawn_self(with_report(make_args(p.entry.dir), p.entry.dir), stderr_file(p));
     pending_.push_back(std::move(p));
     return pending_.size() - 1;
   }
@@ -207,7 +229,8 @@ class Runner {
     if (p.pid > 0) {
       const int code = wait_child(p.pid);
       p.pid = 0;
-      if (code != 0) fail(p.entry.stage, code);
+      const std::string error = replay_stderr(stderr_file(p));
+      if (code != 0) fail(p.entry.stage, code, error);
     }
     return close(std::move(p));
   }
@@ -248,11 +271,12 @@ class Runner {
     return p.entry;
   }
 
-  [[noreturn]] void fail(const std::string& name, int code) {
+  [[noreturn]] void fail(const std::string& name, int code, const std::string& error) {
     // the stage printed its one-line error; its cache entry stays without a manifest
     failed_code_ = code;
-    throw StageFailed{name};
+    throw StageFailed{name, error};
   }
+  static std::string stderr_file(const Pending& p) { return p.entry.dir + "/stderr.txt"; }
 
   const Args& a_;
   Report& report_;
@@ -261,10 +285,8 @@ class Runner {
   std::vector<Pending> pending_;
 };
 
-// Returns 0, or the exit code of the stage that failed (it printed its error).
-int run_pipeline(Args a) {
-  Report report("pipeline");
-  report.json()["stages"] = json::array();
+// The pipeline's work (run_pipeline below).
+int run_stages(Args a, Report& report) {
   if (a.out.empty()) throw UsageError("--out: a model file path is required");
   if (a.work.empty()) a.work = a.out + ".work";
   if (!(a.tune_budget_s > 0)) throw UsageError("--tune-budget-s must be > 0");
@@ -301,6 +323,7 @@ int run_pipeline(Args a) {
 
   // tissues of the layers (table order is outer to inner) and of the vessels
   std::vector<std::string> layered, vessels;
+  std::vector<std::string> beside;  // layered tissues after the floor, not in it (checked once segmented)
   // The stack ends at the first rigid tissue: what lies inside it (marrow in
   // bone) moves with it and adds no layer.
   // Outer to inner by the table's nesting ('inside': its depth), ties in table
@@ -310,27 +333,62 @@ int run_pipeline(Args a) {
   for (const auto& t : table.tissues) by_depth.push_back(&t);
   std::stable_sort(by_depth.begin(), by_depth.end(),
                    [&](const Tissue* a, const Tissue* b) { return table.depth(*a) < table.depth(*b); });
-  bool floor = false;
+  // does `t` lie, through its 'inside' chain, in the tissue named `outer`?
+  auto lies_in = [&](const Tissue& t, const std::string& outer) {
+    for (const Tissue* p = table.find(t.inside); p; p = table.find(p->inside))
+      if (p->name == outer) return true;
+    return false;
+  };
+  auto in_what = [](const Tissue& t) { return t.inside.empty() ? std::string("in no tissue") : "in '" + t.inside + "'"; };
+  auto is_layer = [](const Tissue& t) { return t.layer == "tetra" || t.layer == "lattice" || t.layer == "rigid"; };
+  const Tissue* floor = nullptr;  // the first rigid tissue
   for (const Tissue* tp : by_depth) {
     const Tissue& t = *tp;
-    if (!floor && (t.layer == "tetra" || t.layer == "lattice" || t.layer == "rigid")) layered.push_back(t.name);
-    floor = floor || t.layer == "rigid";
     if (t.layer == "vessel") vessels.push_back(t.name);
+    if (!is_layer(t)) continue;
+    if (!floor) {
+      layered.push_back(t.name);
+      if (t.layer == "rigid") floor = &t;
+      continue;
+    }
+    // after the floor: only what lies in it moves with it; a layered tissue beside
+    // it was left out of the model without a word (an artery made 'lattice', in
+    // the muscle next to the bone)
+    if (!lies_in(t, floor->name)) beside.push_back(t.name);
   }
   if (layered.size() < 2) throw Error(a.tissues, "the pipeline needs at least two layered tissues (tetra, lattice or rigid)");
-  // The layers nest: each layered tissue after the outermost lies, through its
-  // 'inside' chain, in one before it. A second outermost one ('inside': null)
-  // failed in the build with an error against a file in the cache.
+  // The layers nest: each layered tissue lies, through its 'inside' chain, in
+  // one outside it. A second outermost one ('inside': null) failed in the build
+  // with an error against a file in the cache.
   for (std::size_t i = 1; i < layered.size(); ++i) {
     bool nested = false;
-    for (const Tissue* t = table.find(layered[i]); t && !t->inside.empty() && !nested; t = table.find(t->inside))
-      nested = std::find(layered.begin(), layered.begin() + static_cast<std::ptrdiff_t>(i), t->inside) !=
-               layered.begin() + static_cast<std::ptrdiff_t>(i);
+    for (std::size_t j = 0; j < i && !nested; ++j) nested = lies_in(*table.find(layered[i]), layered[j]);
     if (!nested)
       throw Error(a.tissues, "layered tissue '" + layered[i] + "' lies inside none of the layered tissues outside it (" +
                                  layered[0] + (i > 1 ? " ... " + layered[i - 1] : std::string()) +
                                  "): the layers nest one in another; give it the tissue it lies in ('inside')");
   }
+  // And, among the tissues the slices show, each lies in the layer just outside
+  // it, and none lies beside the floor. Checked once segmented: a general table
+  // may list side-by-side tissues a stack does not show (a tendon beside the
+  // muscle). Two siblings (an artery made 'lattice', and the bone, both in the
+  // muscle) failed in remesh ("not inside artery") against the cache's STL; after
+  // the bone the artery was left out of the model without a word.
+  auto require_layers_nest = [&] {
+    for (const auto& name : beside) {
+      const Tissue& t = *table.find(name);
+      throw Error(a.tissues, "layered tissue '" + t.name + "' (" + t.layer + ", " + in_what(t) + ") lies beside the rigid '" +
+                                 floor->name + "', the innermost layer, not in it: the layers nest one in another; make it "
+                                 "lie in a layer ('inside') or give it layer vessel or none");
+    }
+    for (std::size_t i = 1; i < layered.size(); ++i) {
+      const Tissue& t = *table.find(layered[i]);
+      if (!lies_in(t, layered[i - 1]))
+        throw Error(a.tissues, "layered tissue '" + layered[i] + "' (" + in_what(t) + ") does not lie in '" + layered[i - 1] +
+                                   "', the layer just outside it: the layers nest one in another; make one of the two lie "
+                                   "in the other ('inside') or give it layer vessel or none");
+    }
+  };
   // the layers and vessels a --scene names must be among them; why(kind, name) says why one is not
   auto require_scene_needs = [&](const std::function<std::string(const std::string&, const std::string&)>& why) {
     for (const auto& l : scene.layers)
@@ -402,7 +460,9 @@ int run_pipeline(Args a) {
       };
       present(layered);
       present(vessels);
+      present(beside);
       report.metrics()["absent_tissues"] = absent;
+      require_layers_nest();
       if (layered.size() < 2)
         throw Error(a.stack, "the segmented stack shows " + std::to_string(layered.size()) +
                                  " layered tissue(s) of " + a.tissues + "; the layers need at least two");
@@ -561,6 +621,7 @@ int run_pipeline(Args a) {
   } catch (const Runner::StageFailed& f) {
     // the stage printed its one-line error; the previous --out and the cache stay intact
     report.json()["failed_stage"] = f.stage;
+    report.json()["error"] = f.error.empty() ? json() : json(f.error);
     report.write(a.common.report);
     return run.failed_code();
   } catch (const Error& e) {
@@ -579,6 +640,29 @@ int run_pipeline(Args a) {
   report.write(a.common.report);
   if (!a.common.quiet) std::cout << "pipeline: wrote " << a.out << " (" << ran << " stages run)\n";
   return 0;
+}
+
+// Returns 0, or the exit code of the stage that failed (it printed its error).
+// A run refused before any stage (a table whose layers do not nest) also writes
+// its report, naming the error (failed_stage "pipeline").
+int run_pipeline(const Args& a) {
+  Report report("pipeline");
+  report.json()["stages"] = json::array();
+  auto failed = [&](const std::string& message) {
+    if (report.json().contains("failed_stage")) return;  // the stages' own handler wrote it
+    report.json()["failed_stage"] = "pipeline";
+    report.json()["error"] = message;
+    report.write(a.common.report);
+  };
+  try {
+    return run_stages(a, report);
+  } catch (const UsageError& e) {
+    failed(e.what());
+    throw;
+  } catch (const Error& e) {
+    failed(e.what());
+    throw;
+  }
 }
 
 }  // namespace

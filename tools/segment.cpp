@@ -181,6 +181,21 @@ void add_segment_command(CLI::App& app) {
                   << "colour is far off (" << a.tissues << "; --refine-iterations 0 keeps the table's colours)\n";
     }
     j["prototypes"] = protos;
+    // a tissue whose colour the calibration found (samples) with no voxel left: the
+    // clean-up gave them away, or the classifier did (a palette stack: the muscle's
+    // 12 000 samples, none of its voxels). pipeline refuses it; alone, segment warns.
+    {
+      std::map<std::string, std::int64_t> samples;
+      for (const Prototype& p : m.prototypes) samples[name_of(p.label)] += p.samples;
+      for (const auto& [tissue, n] : samples) {
+        const auto v = m.voxels.find(tissue);
+        if (n > 0 && (v == m.voxels.end() || v->second == 0))
+          std::cerr << "orthosim segment: warning: " << a.stack << ": no voxel of '" << tissue
+                    << "' is left, though the calibration found its colour (" << n
+                    << " samples): the classifier or the clean-up gave its voxels to other tissues (check its "
+                    << "colours and 'inside' in " << a.tissues << ")\n";
+      }
+    }
     j["gain_min"] = m.gain_min;
     j["gain_max"] = m.gain_max;
     j["normalise_fallbacks"] = m.normalise_fallbacks;

@@ -243,7 +243,9 @@ void check_alternative_sweep(const TubeSweep& sw, const RemeshOptions& o, const 
   m << "not tube-like: no flat cap ends the sweep along the largest extent, and along the axis of the flat caps "
     << "(the surface spans " << span.first * 1e3 << " mm along it and " << span.second * 1e3
     << " mm across: a stack shorter than the limb is wide?) the ring planes cross inside the tube "
-    << "(R |dn/ds| = " << sw.plane_turn << ", at most " << o.max_plane_turn << ")";
+    << "(R |dn/ds| ";
+  if (std::isfinite(sw.plane_turn)) m << "= " << sw.plane_turn << ", at most " << o.max_plane_turn << ")";
+  else m << "unbounded, at most " << o.max_plane_turn << ": the surface has no length along it)";  // (a one-slice stack)
   throw Error(name, m.str());
 }
 

@@ -7,6 +7,7 @@
 #include <algorithm>
 #include <chrono>
 #include <cmath>
+#include <sstream>
 
 namespace orthosim {
 
@@ -140,10 +141,12 @@ VesselResult extract_vessels(const Volume& v, const std::string& tissue, const V
   M.components_dropped = gs.dropped;
   M.cuts = gs.cuts;
   M.roots_used = gs.roots_used;
-  if (f.branches.empty())
+  if (f.branches.empty()) {
+    std::ostringstream ratio;  // "3", not std::to_string's "3.000000"
+    ratio << o.min_length_ratio;
     throw Error("", "tissue '" + tissue + "': its " + std::to_string(M.voxels) +
-                        " voxels form no vessel (every piece is shorter than " + std::to_string(o.min_length_ratio) +
-                        " radii)");
+                        " voxels form no vessel (every piece is shorter than " + ratio.str() + " radii)");
+  }
 
   t0 = std::chrono::steady_clock::now();
   refine_centrelines(g, o, f);

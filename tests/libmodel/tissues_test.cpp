@@ -96,8 +96,13 @@ TEST(Tissues, RejectsBadTables) {
   expect_error(replace(kGood, "\"format\": \"orthosim-tissues/1\",", "\"format\": \"orthosim-tissues/1\", \"units\": {\"density\": \"g/cm^3\"},"),
                "units: density is \"g/cm^3\"");
   EXPECT_NO_THROW(parse_tissue_table(replace(kGood, "\"format\": \"orthosim-tissues/1\",",
-                                             "\"format\": \"orthosim-tissues/1\", \"units\": {\"moduli\": \"kPa\", \"density\": \"kg/m3\"},"),
+                                             "\"format\": \"orthosim-tissues/1\", \"units\": {\"moduli\": \"kPa\", \"density\": \"kg/m3\", \"rgb\": \"sRGB 0..255\"},"),
                                      "t.json"));
+  // colours in other units, and a unit the table does not know, were accepted and ignored
+  expect_error(replace(kGood, "\"format\": \"orthosim-tissues/1\",", "\"format\": \"orthosim-tissues/1\", \"units\": {\"rgb\": \"sRGB 0..1\"},"),
+               "units: rgb is \"sRGB 0..1\", but the table's rgb keys are in 8-bit sRGB 0..255");
+  expect_error(replace(kGood, "\"format\": \"orthosim-tissues/1\",", "\"format\": \"orthosim-tissues/1\", \"units\": {\"length\": \"mm\"},"),
+               "units: unknown key 'length'");
   // a key twice (the last won, silently)
   expect_error(replace(kGood, "\"density_kg_m3\": 950,", "\"density_kg_m3\": 950, \"density_kg_m3\": 900,"),
                "the key 'density_kg_m3' appears twice in one object");

@@ -280,12 +280,22 @@ TEST(Pipeline, TissuesTheSlicesDoNotShowAreLeftOut) {
                                 (s.dir / "work") + " --no-texture --no-tune --quiet --out " + (s.dir / "extra3.h5") +
                                 " --report " + (s.dir / "extra3.json"));
   EXPECT_EQ(rm.code, 2) << rm.err;
-  EXPECT_EQ(test::count_lines(rm.err), 1) << rm.err;
-  EXPECT_NE(rm.err.find("orthosim pipeline: error: " + s.stack + ": no voxel of 'marrow' is left after segmentation, though its colour was found ("),
+  // the segment stage's warning (below), then the pipeline's error
+  EXPECT_EQ(test::count_lines(rm.err), 2) << rm.err;
+  EXPECT_EQ(rm.err.rfind("orthosim segment: warning: " + s.stack + ": no voxel of 'marrow' is left", 0), 0u) << rm.err;
+  EXPECT_NE(rm.err.find("\northosim pipeline: error: " + s.stack + ": no voxel of 'marrow' is left after segmentation, though its colour was found ("),
             std::string::npos)
       << rm.err;
   EXPECT_NE(rm.err.find("check its 'inside' in " + moved), std::string::npos) << rm.err;
   EXPECT_FALSE(fs::exists(s.dir / "extra3.h5"));
+  // segment alone warns of it (exit 0: the labels are what it made)
+  const auto sg = test::run_cli("segment --stack " + s.stack + " --tissues " + moved + " --spacing 0.75,0.75,3 --out " +
+                                (s.dir / "marrow_in_skin.h5") + " --quiet");
+  EXPECT_EQ(sg.code, 0) << sg.err;
+  EXPECT_NE(sg.err.find("orthosim segment: warning: " + s.stack + ": no voxel of 'marrow' is left, though the calibration found its colour ("),
+            std::string::npos)
+      << sg.err;
+  EXPECT_NE(sg.err.find("check its colours and 'inside' in " + moved + ")\n"), std::string::npos) << sg.err;
   // the report is written, naming the stage whose output failed the check (it was not written at all)
   const auto rr = nlohmann::json::parse(test::read_file(s.dir / "extra3.json"));
   EXPECT_EQ(rr["failed_stage"], "segment");
@@ -340,11 +350,41 @@ TEST(Pipeline, AFailingStageKeepsThePreviousModel) {
   test::write_file(bad / "slices/zz_extra.png", "not an image");
   const auto r = test::run_cli("pipeline --stack " + (bad / "slices") + " --tissues " + s.tissues +
                                " --spacing 0.75,0.75,3 --work " + (s.dir / "work") + " --out " + (s.dir / "model.h5") +
-                               " --no-texture --no-tune --quiet");
+                               " --no-texture --no-tune --quiet --report " + (bad / "r.json"));
   EXPECT_EQ(r.code, 2);
   EXPECT_EQ(test::count_lines(r.err), 1) << r.err;
   EXPECT_NE(r.err.find("orthosim segment: error:"), std::string::npos) << r.err;
   EXPECT_EQ(test::read_file(s.dir / "model.h5"), before);
+  // the report names the stage and its error (the error was null: only stderr had it)
+  const auto rep = nlohmann::json::parse(test::read_file(bad / "r.json"));
+  EXPECT_EQ(rep["failed_stage"], "segment");
+  ASSERT_TRUE(rep["error"].is_string()) << rep.dump();
+  EXPECT_EQ("orthosim segment: error: " + rep["error"].get<std::string>() + "\n", r.err);
+}
+
+// A stack of one slice: remesh fails (the limb has no length; its message said
+// "R |dn/ds| = inf"), and the report names its error. The vessels, in their
+// child process, fail too when they finish first: their stderr is replayed.
+TEST(Pipeline, AOneSliceStackFailsInRemeshAndSaysWhy) {
+  const Sample& s = sample();
+  test::TempDir one("pipeline-one");
+  fs::create_directories(one / "slices");
+  std::vector<fs::path> slices;
+  for (const auto& e : fs::directory_iterator(s.stack)) slices.push_back(e.path());
+  std::sort(slices.begin(), slices.end());
+  fs::copy_file(slices[slices.size() / 2], one / "slices/slice_0000.png");
+  const auto r = test::run_cli("pipeline --stack " + (one / "slices") + " --tissues " + s.tissues +
+                               " --spacing 0.75,0.75,1.2 --work " + (one / "work") + " --out " + (one / "m.h5") +
+                               " --no-texture --no-tune --quiet --report " + (one / "r.json"));
+  EXPECT_EQ(r.code, 2);
+  EXPECT_FALSE(fs::exists(one / "m.h5"));
+  EXPECT_EQ(r.err.find("inf"), std::string::npos) << r.err;  // "R |dn/ds| = inf"
+  EXPECT_NE(r.err.find("orthosim remesh: error: "), std::string::npos) << r.err;
+  EXPECT_NE(r.err.find("R |dn/ds| unbounded, at most 0.5: the surface has no length along it"), std::string::npos) << r.err;
+  const auto rep = nlohmann::json::parse(test::read_file(one / "r.json"));
+  EXPECT_EQ(rep["failed_stage"], "remesh");
+  ASSERT_TRUE(rep["error"].is_string()) << rep.dump();
+  EXPECT_NE(r.err.find("orthosim remesh: error: " + rep["error"].get<std::string>() + "\n"), std::string::npos) << r.err;
 }
 
 TEST(Pipeline, BadFlags) {
@@ -377,6 +417,53 @@ TEST(Pipeline, BadFlags) {
             std::string::npos)
       << r.err;
   EXPECT_FALSE(fs::exists(s.dir / "x.h5"));
+}
+
+// The layers nest one in another. An artery made a 'lattice' layer lies in the
+// muscle beside the bone: after the bone (the rigid innermost layer) it was
+// left out of the model without a word, exit 0; listed before the bone, the two
+// were stacked as if the bone lay in the artery and remesh failed ("not inside
+// artery") against an STL in the cache. Both are refused once the segmentation
+// shows both tissues (a general table may list siblings a stack does not show:
+// Pipeline.TissuesTheSlicesDoNotShowAreLeftOut), naming the table; the report
+// says why.
+TEST(Pipeline, LayersBesideEachOtherAreRefused) {
+  const Sample& s = sample();
+  auto table_with_artery_layer = [&](bool before_bone) {
+    nlohmann::json t = nlohmann::json::parse(test::read_file(s.tissues));
+    auto& v = t["tissues"];
+    nlohmann::json mech;
+    for (const auto& e : v)
+      if (e["name"] == "muscle") mech = e["mechanics"];
+    auto it = std::find_if(v.begin(), v.end(), [](const nlohmann::json& e) { return e["name"] == "artery"; });
+    nlohmann::json artery = *it;
+    EXPECT_EQ(artery["inside"], "muscle");
+    artery["layer"] = "lattice", artery["mechanics"] = mech;
+    v.erase(it);
+    auto bone = std::find_if(v.begin(), v.end(), [](const nlohmann::json& e) { return e["name"] == "bone"; });
+    v.insert(before_bone ? bone : v.end(), artery);
+    const std::string path = s.dir / (before_bone ? "artery_layer_first.json" : "artery_layer.json");
+    test::write_file(path, t.dump(2));
+    return path;
+  };
+  for (bool before_bone : {false, true}) {
+    const std::string table = table_with_artery_layer(before_bone);
+    test::TempDir d("pipeline-nest");
+    const auto r = test::run_cli("pipeline --stack " + s.stack + " --tissues " + table + " --spacing 0.75,0.75,3 --work " +
+                                 (d / "work") + " --out " + (d / "x.h5") + " --no-texture --no-tune --quiet --report " +
+                                 (d / "r.json"));
+    EXPECT_EQ(r.code, 2) << r.err;
+    EXPECT_EQ(test::count_lines(r.err), 1) << r.err;
+    const std::string why = before_bone ? "layered tissue 'bone' (in 'muscle') does not lie in 'artery', the layer just outside it"
+                                        : "layered tissue 'artery' (lattice, in 'muscle') lies beside the rigid 'bone', the "
+                                          "innermost layer, not in it";
+    EXPECT_NE(r.err.find("orthosim pipeline: error: " + table + ": " + why), std::string::npos) << r.err;
+    EXPECT_FALSE(fs::exists(d / "x.h5"));
+    const auto rep = nlohmann::json::parse(test::read_file(d / "r.json"));
+    EXPECT_EQ(rep["failed_stage"], "segment");  // the stage whose output showed them
+    EXPECT_EQ(rep["stages"].size(), 1u);
+    EXPECT_NE(rep["error"].get<std::string>().find(why), std::string::npos) << rep.dump();
+  }
 }
 
 // The tool is an input of every stage: a different orthosim executable (here
