@@ -5,6 +5,8 @@
 #include <algorithm>
 #include <array>
 #include <cmath>
+#include <map>
+#include <utility>
 
 namespace orthosim::runtime {
 
@@ -50,7 +52,110 @@ Blade make_blade(const CutDef& def, const Vec3& d) {
   return b;
 }
 
+Real orient(const Vec3& a, const Vec3& b, const Vec3& c, const Vec3& d) { return dot(cross(b - a, c - a), d - a); }
+
+// p in tetrahedron a b c d (either orientation; its faces count as inside)
+bool in_tet(const Vec3& p, const Vec3& a, const Vec3& b, const Vec3& c, const Vec3& d) {
+  const Real v = orient(a, b, c, d);
+  if (!(std::abs(v) > 0)) return false;
+  const Real s[4] = {orient(p, b, c, d), orient(a, p, c, d), orient(a, b, p, d), orient(a, b, c, p)};
+  const Real tol = -1e-12 * std::abs(v);
+  for (Real x : s)
+    if (x * (v > 0 ? 1 : -1) < tol) return false;
+  return true;
+}
+
+// p in the column's hexahedron (top t, bottom b; six tetrahedra of two prisms)
+bool in_column(const Vec3& p, const std::array<Vec3, 4>& t, const std::array<Vec3, 4>& b) {
+  for (const auto& [i, j, k] : {std::array<int, 3>{0, 1, 2}, std::array<int, 3>{0, 2, 3}})
+    if (in_tet(p, t[i], t[j], t[k], b[i]) || in_tet(p, t[j], t[k], b[i], b[j]) || in_tet(p, t[k], b[i], b[j], b[k]))
+      return true;
+  return false;
+}
+
 }  // namespace
+
+WoundColumns wound_columns(const Model& m) {
+  WoundColumns w;
+  if (m.n_quads == 0 || m.node_layer.size() != static_cast<std::size_t>(m.n_nodes)) return w;
+  // quads by layer, in the model's order
+  std::vector<std::vector<std::int32_t>> by_layer(m.layers.size());
+  for (std::int32_t q = 0; q < m.n_quads; ++q) {
+    const std::int32_t* v = &m.quads[4 * static_cast<std::size_t>(q)];
+    const int l = m.node_layer[static_cast<std::size_t>(v[0])];
+    if (l < 0 || static_cast<std::size_t>(l) >= m.layers.size()) return w;
+    for (int c = 1; c < 4; ++c)
+      if (m.node_layer[static_cast<std::size_t>(v[c])] != l) return w;  // a quad across layers: not the builder's
+    by_layer[static_cast<std::size_t>(l)].push_back(q);
+  }
+  std::vector<std::size_t> surfaces;
+  for (std::size_t l = 0; l < m.layers.size(); ++l)
+    if (!by_layer[l].empty()) surfaces.push_back(l);
+  std::stable_sort(surfaces.begin(), surfaces.end(),
+                   [&](std::size_t a, std::size_t b) { return m.layers[a].order < m.layers[b].order; });
+  if (surfaces.size() < 2) return w;
+  const std::size_t nq = by_layer[surfaces[0]].size();
+  for (std::size_t s : surfaces)
+    if (by_layer[s].size() != nq) return w;
+  // one pattern: the same corners relative to each layer's first node
+  const auto& first = by_layer[surfaces[0]];
+  const std::int32_t base0 = m.layers[surfaces[0]].first;
+  for (std::size_t s : surfaces) {
+    const std::int32_t base = m.layers[s].first;
+    for (std::size_t k = 0; k < nq; ++k)
+      for (int c = 0; c < 4; ++c)
+        if (m.quads[4 * static_cast<std::size_t>(by_layer[s][k]) + c] - base !=
+            m.quads[4 * static_cast<std::size_t>(first[k]) + c] - base0)
+          return w;
+  }
+  w.n_surfaces = static_cast<std::int32_t>(surfaces.size());
+  w.n_quads = static_cast<std::int32_t>(nq);
+  for (std::size_t s : surfaces)
+    for (std::int32_t q : by_layer[s]) w.corners.insert(w.corners.end(), &m.quads[4 * static_cast<std::size_t>(q)], &m.quads[4 * static_cast<std::size_t>(q)] + 4);
+  // sides shared by two quads of the pattern
+  std::map<std::pair<std::int32_t, std::int32_t>, std::vector<std::int32_t>> sides;  // edge -> 4 k + c
+  for (std::int32_t k = 0; k < w.n_quads; ++k)
+    for (int c = 0; c < 4; ++c) {
+      const std::int32_t a = w.corner(0, k, c), b = w.corner(0, k, (c + 1) % 4);
+      sides[{std::min(a, b), std::max(a, b)}].push_back(4 * k + c);
+    }
+  w.neighbour.assign(4 * nq, -1);
+  for (const auto& [edge, at] : sides)
+    if (at.size() == 2) {
+      w.neighbour[static_cast<std::size_t>(at[0])] = at[1] / 4;
+      w.neighbour[static_cast<std::size_t>(at[1])] = at[0] / 4;
+    }
+  w.open.assign(static_cast<std::size_t>(w.n_surfaces - 1) * nq, 0);
+  return w;
+}
+
+std::vector<std::int32_t> wound_wall_triangles(const WoundColumns& w) {
+  std::vector<std::int32_t> tri;
+  if (!w.valid()) return tri;
+  const std::int32_t ns = w.n_surfaces, nq = w.n_quads;
+  auto open = [&](std::int32_t l, std::int32_t k) { return w.open[static_cast<std::size_t>(l) * nq + k] != 0; };
+  auto quad = [&](std::int32_t a, std::int32_t b, std::int32_t c, std::int32_t d) { tri.insert(tri.end(), {a, b, c, a, c, d}); };
+  for (std::int32_t l = 0; l < ns; ++l)
+    for (std::int32_t k = 0; k < nq; ++k) {
+      // the skin: a wall over a closed column; the last surface: always a wall
+      // (the wound's floor, the bone); between two columns: a wall where one
+      // is open and the other closed (inside closed tissue the blood never
+      // is, and a quad there took the closest-triangle query from the wound's
+      // side wall at its edge: the blood crossed the side wall there)
+      const bool above = l == 0 || open(l - 1, k), below = l + 1 < ns && open(l, k);
+      if (l + 1 < ns && above == below) continue;
+      quad(w.corner(l, k, 0), w.corner(l, k, 1), w.corner(l, k, 2), w.corner(l, k, 3));
+    }
+  for (std::int32_t l = 0; l + 1 < ns; ++l)
+    for (std::int32_t k = 0; k < nq; ++k)
+      for (int c = 0; c < 4; ++c) {
+        const std::int32_t nb = w.neighbour[4 * static_cast<std::size_t>(k) + c];
+        if (nb >= 0 && !(open(l, k) && !open(l, nb))) continue;
+        const int d = (c + 1) % 4;
+        quad(w.corner(l, k, c), w.corner(l, k, d), w.corner(l + 1, k, d), w.corner(l + 1, k, c));
+      }
+  return tri;
+}
 
 bool segment_crosses_triangle(const Vec3& p, const Vec3& q, const Vec3& a, const Vec3& b, const Vec3& c, Real* t_out) {
   const Vec3 dir = q - p, e1 = b - a, e2 = c - a;
@@ -112,7 +217,42 @@ Vec3 cut_direction(const Model& m, const CutDef& def) {
   return {u.x(), u.y(), u.z()};
 }
 
-CutReport cut_model(Model& m, std::span<const Real> x, const CutDef& def) {
+std::int32_t open_columns_at(WoundColumns& w, std::span<const Real> x, const std::vector<Vec3>& points) {
+  if (!w.valid() || points.empty()) return 0;
+  const std::int32_t nq = w.n_quads;
+  auto pos = [&](std::int32_t i) { return load3(x.data(), i); };
+  std::int32_t opened = 0;
+  for (const Vec3& p : points) {
+    std::int32_t best_l = -1, best_k = -1;
+    Real best = 1e300;
+    bool inside = false;
+    for (std::int32_t l = 0; l + 1 < w.n_surfaces && !inside; ++l)
+      for (std::int32_t k = 0; k < nq; ++k) {
+        std::array<Vec3, 4> t, b;
+        for (int c = 0; c < 4; ++c) t[c] = pos(w.corner(l, k, c)), b[c] = pos(w.corner(l + 1, k, c));
+        Box box;
+        Vec3 mid{0, 0, 0};
+        for (int c = 0; c < 4; ++c) box.add(t[c]), box.add(b[c]), mid += t[c], mid += b[c];
+        mid = Real(0.125) * mid;
+        if (!box.misses(p, p) && in_column(p, t, b)) {
+          best_l = l, best_k = k, inside = true;
+          break;
+        }
+        // else the nearest column whose corners' sphere holds the point
+        Real r2 = 0;
+        for (int c = 0; c < 4; ++c) r2 = std::max({r2, dot(t[c] - mid, t[c] - mid), dot(b[c] - mid, b[c] - mid)});
+        const Real d2 = dot(p - mid, p - mid);
+        if (d2 <= r2 && d2 < best) best = d2, best_l = l, best_k = k;
+      }
+    if (best_l < 0) continue;
+    std::uint8_t& o = w.open[static_cast<std::size_t>(best_l) * nq + best_k];
+    if (!o) ++opened;
+    o = 1;
+  }
+  return opened;
+}
+
+CutReport cut_model(Model& m, std::span<const Real> x, const CutDef& def, WoundColumns* columns) {
   CutReport rep;
   rep.direction = cut_direction(m, def);
   if (x.size() != 3 * static_cast<std::size_t>(m.n_nodes)) throw Error("", "cut: positions do not match the model");
@@ -186,6 +326,37 @@ CutReport cut_model(Model& m, std::span<const Real> x, const CutDef& def) {
       h.radius = ves.radii[static_cast<std::size_t>(a)] * (1 - t) + ves.radii[static_cast<std::size_t>(b)] * t;
       rep.vessel_hits.push_back(h);
     }
+  }
+
+  // the tissue columns the blade crosses, and those the bleeding points lie in
+  if (columns && columns->valid()) {
+    WoundColumns& w = *columns;
+    const std::int32_t nq = w.n_quads;
+    auto hex = [&](std::int32_t l, std::int32_t k, std::array<Vec3, 4>& t, std::array<Vec3, 4>& b) {
+      for (int c = 0; c < 4; ++c) t[c] = pos(w.corner(l, k, c)), b[c] = pos(w.corner(l + 1, k, c));
+    };
+    auto open = [&](std::int32_t l, std::int32_t k) {
+      std::uint8_t& o = w.open[static_cast<std::size_t>(l) * nq + k];
+      if (!o) ++rep.columns_opened;
+      o = 1;
+    };
+    for (std::int32_t l = 0; l + 1 < w.n_surfaces; ++l)
+      for (std::int32_t k = 0; k < nq; ++k) {
+        if (w.open[static_cast<std::size_t>(l) * nq + k]) continue;
+        std::array<Vec3, 4> t, b;
+        hex(l, k, t, b);
+        bool crossed = blade.crosses(t[0], t[2]) || blade.crosses(t[1], t[3]) || blade.crosses(b[0], b[2]) ||
+                       blade.crosses(b[1], b[3]);
+        for (int c = 0; c < 4 && !crossed; ++c) {
+          const int d = (c + 1) % 4;
+          crossed = blade.crosses(t[c], t[d]) || blade.crosses(b[c], b[d]) || blade.crosses(t[c], b[c]) ||
+                    blade.crosses(t[c], b[d]) || blade.crosses(t[d], b[c]);
+        }
+        if (crossed) open(l, k);
+      }
+    std::vector<Vec3> points;
+    for (const VesselHit& h : rep.vessel_hits) points.push_back(h.point);
+    rep.columns_opened += open_columns_at(w, x, points);
   }
 
   m.finalize();

@@ -59,6 +59,7 @@ struct CutReport {
   Vec3 direction;                      // the blade direction used (unit)
   std::int32_t springs_cut = 0;        // linear springs removed
   std::int32_t quads_removed = 0;      // surface quads removed
+  std::int32_t columns_opened = 0;     // tissue columns it opened for the blood (WoundColumns)
   std::int32_t vessel_edges_open_already = 0;  // crossed vessel edges an earlier cut had opened (no new wound)
   bool quads_loaded = false;           // the model had surface quads to cut (a scene loads them only when it draws or collides with them)
   std::vector<std::int32_t> detached;  // nodes left without any spring, ascending
@@ -67,13 +68,59 @@ struct CutReport {
   Real time = 0;                       // s, when it was made (set by Scene)
 };
 
+// The tissue's columns, for the blood's wound walls. The loaded layers' top
+// quad grids share one quad pattern (remesh's corresponding grids; the
+// builder offsets one pattern per layer), so quad k of surface l and quad k of
+// surface l + 1 bound one column of layer l: a hexahedron of tissue. The
+// blood may enter a column only once a cut has opened it; the collision
+// surface is then every surface quad that does not lie between two open
+// columns (or an open column and the outside), a side wall between an open
+// and a closed column, and an end wall on each column side at the grid's
+// boundary (the limb's open ends: without them the gaps between the layer
+// surfaces were open to the blood there). Without walls inside the tissue, a
+// vein cut deep in the limb bled into the gap between two layer surfaces and
+// the blood ran along it the whole limb's length (2026-11-27).
+struct WoundColumns {
+  std::int32_t n_surfaces = 0;          // loaded layer surfaces with quads, outer to inner
+  std::int32_t n_quads = 0;             // quads per surface
+  std::vector<std::int32_t> corners;    // (n_surfaces x n_quads x 4) local node ids
+  std::vector<std::int32_t> neighbour;  // (n_quads x 4) quad across side c (corners c, c+1); -1: the grid's boundary
+  std::vector<std::uint8_t> open;       // ((n_surfaces - 1) x n_quads) 1: a cut has opened the column
+  bool valid() const { return n_surfaces >= 2 && n_quads > 0; }
+  std::int32_t corner(std::int32_t surface, std::int32_t quad, int c) const {
+    return corners[(static_cast<std::size_t>(surface) * static_cast<std::size_t>(n_quads) + static_cast<std::size_t>(quad)) * 4 +
+                   static_cast<std::size_t>(c)];
+  }
+};
+
+// The columns of an uncut model: its quads grouped by the layer of their
+// corners (Model::node_layer), outer to inner (LayerInfo::order). Not valid
+// (n_surfaces < 2) unless two or more layers have quads with one pattern
+// (the same corners relative to each layer's first node, quad by quad).
+WoundColumns wound_columns(const Model& m);
+
+// Opens the column each point lies in (the one containing it, else the nearest
+// by centroid whose corners' sphere holds it; none for a point outside them
+// all) at the node positions `x`; returns how many it opened. A scene opens
+// those of its emitters' discs, which may reach past the column of the vessel
+// crossing (a disc on a column corner spans four).
+std::int32_t open_columns_at(WoundColumns& w, std::span<const Real> x, const std::vector<Vec3>& points);
+
+// The blood's collision triangles of the columns ((n x 3) local node ids),
+// as described at WoundColumns.
+std::vector<std::int32_t> wound_wall_triangles(const WoundColumns& w);
+
 // The blade direction a CutDef resolves to on model `m` (unit).
 Vec3 cut_direction(const Model& m, const CutDef& def);
 
 // Cuts `m` in place at the node positions `x` ((n_nodes x 3) m, usually
 // State::x) and re-finalizes it. Never produces non-finite data; throws
 // Error("", ...) only for an invalid def (call validate first to check).
-CutReport cut_model(Model& m, std::span<const Real> x, const CutDef& def);
+// With `columns` (valid), also opens the columns the blade crosses (any of
+// their edges, face diagonals or vertical edges across it) and the column
+// each vessel crossing lies in (the one containing it, else the nearest by
+// centroid): a bleeding vessel's emitter is then always inside the wound.
+CutReport cut_model(Model& m, std::span<const Real> x, const CutDef& def, WoundColumns* columns = nullptr);
 
 // Segment p q against triangle a b c: true when they cross (Moller and
 // Trumbore 1997 with the segment parameter in [0, 1]); degenerate triangles

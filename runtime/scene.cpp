@@ -12,6 +12,7 @@
 #include <algorithm>
 #include <chrono>
 #include <cmath>
+#include <numbers>
 #include <filesystem>
 #include <fstream>
 #include <iomanip>
@@ -701,6 +702,7 @@ struct Scene::FluidRun {
   std::vector<Real> force;         // (n_nodes x 3) N, the blood's wall forces of the last step
   FluidSummary summary;
   std::vector<std::pair<Real, std::string>> frames;  // blood surface series
+  WoundColumns wound;  // the tissue's columns the cuts open (cut.h); not valid: the quads as they are
 };
 
 Scene::~Scene() = default;
@@ -758,7 +760,9 @@ void Scene::init_fluid() {
     throw Error(def_.file, fluid_message(e.message()));
   }
   // the tissue surface: every node a vertex, the loaded layers' quads as
-  // two-sided triangles (blood meets the skin outside and the wound inside)
+  // two-sided triangles (blood meets the skin outside and the wound inside),
+  // closed around the tissue's columns until a cut opens them (WoundColumns)
+  fr.wound = wound_columns(m);
   FluidSurface surf;
   surf.two_sided = true;
   surf.wall = fd.tissue_wall;
@@ -783,6 +787,10 @@ void Scene::init_fluid() {
 void Scene::update_fluid_surface() {
   const Model& m = *model_;
   FluidSurface& surf = fluid_->state.surfaces.front();
+  if (fluid_->wound.valid()) {
+    surf.triangles = wound_wall_triangles(fluid_->wound);
+    return;
+  }
   surf.triangles.clear();
   surf.triangles.reserve(6 * static_cast<std::size_t>(m.n_quads));
   for (std::int32_t q = 0; q < m.n_quads; ++q) {
@@ -936,16 +944,16 @@ void Scene::update_tools(Real t) {
 
 CutReport Scene::apply_cut(const CutDef& def) {
   auto edited = std::make_shared<Model>(*model_);
-  CutReport rep = cut_model(*edited, state_.x, def);
+  CutReport rep = cut_model(*edited, state_.x, def, fluid_ ? &fluid_->wound : nullptr);
   model_ = edited;
   if (!rep.detached.empty()) fix_nodes(*model_, state_, rep.detached);
   state_.step_limit = 0;
   if (vtk_) vtk_->set_topology(*model_);
   if (fluid_) {
-    update_fluid_surface();
     // each cut vessel bleeds: Poiseuille flow of its radius capped by the
     // orifice, with the profile of the limit that binds, out of the wound
     const FluidDef& fd = def_.fluid;
+    std::vector<Vec3> disc;  // the emitters' discs: the wound holds them (WoundColumns)
     for (const VesselHit& h : rep.vessel_hits) {
       FluidEmitter e;
       e.center = {h.point.x, h.point.y, h.point.z};
@@ -958,7 +966,20 @@ CutReport Scene::apply_cut(const CutDef& def) {
       e.start = state_.time;
       e.end = state_.time + fd.bleed_duration;
       fluid_->state.emitters.push_back(e);
+      // the disc's centre and 16 points on its rim and half-way out
+      const Vec3 d = rep.direction;
+      const Vec3 u0 = std::abs(d.x) < 0.9 ? Vec3{1, 0, 0} : Vec3{0, 1, 0};
+      Vec3 u = u0 - dot(u0, d) * d;
+      u = (1 / norm(u)) * u;
+      const Vec3 v{d.y * u.z - d.z * u.y, d.z * u.x - d.x * u.z, d.x * u.y - d.y * u.x};
+      disc.push_back(h.point);
+      for (int k = 0; k < 8; ++k) {
+        const Real a = k * std::numbers::pi / 4;
+        for (Real r : {e.radius, Real(0.5) * e.radius}) disc.push_back(h.point + r * (std::cos(a) * u + std::sin(a) * v));
+      }
     }
+    rep.columns_opened += open_columns_at(fluid_->wound, state_.x, disc);
+    update_fluid_surface();
   }
   rep.time = state_.time;
   cuts_.push_back(rep);

@@ -9,6 +9,7 @@
 //   sph_bench --scene [--threads=2] the integrated paper scene (39x9x4 tissue + 5 000 particles + a bleeding cut)
 //             [--slack=F] [--requery]  with surface_grid_slack F (default 0.125), without the contacts' reuse
 //             [--cfl=F]             with the fluid's CFL number F (default 0.4)
+//             [--sound-speed=C]     physical blood with sound speed C m/s (default: PhysX stiffness 20)
 //   sph_bench --pressure-solvers    the EOS against PCISPH: time and error on the dam break and the
 //                                   hydrostatic column at three density errors each (medians of 3)
 //   sph_bench --skins               Verlet neighbour lists: the dam break's time per substep at neighbour_skin 0 ... 0.3
@@ -482,6 +483,7 @@ struct SceneKnobs {
   double slack = rt::FluidParams{}.surface_grid_slack;
   bool reuse_contacts = true;
   double cfl = rt::FluidParams{}.cfl;
+  double sound_speed = 0;  // > 0: physical blood with this c0 (m/s) in place of the PhysX stiffness 20
 };
 
 PaperScene paper_scene(double dt, std::int64_t particles, int steps, int threads, const SceneKnobs& knobs = {}) {
@@ -502,7 +504,8 @@ PaperScene paper_scene(double dt, std::int64_t particles, int steps, int threads
   def.solver.integrator = rt::Integrator::implicit_euler;
   def.fluid.enabled = true;
   def.fluid.params.spacing = 0.002;
-  def.fluid.params.physx_stiffness = 20;
+  def.fluid.params.physx_stiffness = knobs.sound_speed > 0 ? 0 : 20;
+  if (knobs.sound_speed > 0) def.fluid.params.sound_speed = knobs.sound_speed;
   def.fluid.params.surface_grid_slack = knobs.slack;
   def.fluid.params.reuse_wall_contacts = knobs.reuse_contacts;
   def.fluid.params.cfl = knobs.cfl;
@@ -557,8 +560,12 @@ PaperScene paper_scene(double dt, std::int64_t particles, int steps, int threads
 }
 
 void print_paper_scene(int threads, std::int64_t particles, const SceneKnobs& knobs) {
-  std::printf("Integrated paper scene: 39x9x4 lattice (implicit), PhysX blood (stiffness 20, dx = 2 mm), a cut vein emitting,\n"
-              "two-way coupled layer quads; one step = tissue step + fluid advanced by dt\n");
+  if (knobs.sound_speed > 0)
+    std::printf("Integrated paper scene: 39x9x4 lattice (implicit), physical blood (c0 = %g m/s, dx = 2 mm), a cut vein emitting,\n",
+                knobs.sound_speed);
+  else
+    std::printf("Integrated paper scene: 39x9x4 lattice (implicit), PhysX blood (stiffness 20, dx = 2 mm), a cut vein emitting,\n");
+  std::printf("two-way coupled layer quads and wound walls; one step = tissue step + fluid advanced by dt\n");
   std::printf("%9s %7s %12s %10s %14s %14s %12s %10s %12s %11s\n", "dt ms", "threads", "particles", "steps/s",
               "sim s/wall s", "fluid substeps", "fluid share", "neighbours", "max drho %", "warm-up s");
   for (double dt : {1e-3, 0.5e-3}) {
@@ -850,6 +857,9 @@ int main(int argc, char** argv) {
     } else if (std::strncmp(a, "--cfl=", 6) == 0) {
       knobs.cfl = number(a + 6);
       if (!(knobs.cfl > 0 && knobs.cfl <= 2)) return usage_error("--cfl must be a number in (0, 2]", a + 6);
+    } else if (std::strncmp(a, "--sound-speed=", 14) == 0) {
+      knobs.sound_speed = number(a + 14);
+      if (!(knobs.sound_speed > 0 && knobs.sound_speed <= 1e3)) return usage_error("--sound-speed must be a number in (0, 1000] (m/s)", a + 14);
     } else if (std::strcmp(a, "--requery") == 0) {
       knobs.reuse_contacts = false;
     } else if (std::strcmp(a, "--full") == 0) {

@@ -3,6 +3,7 @@
 // particles are conserved (in the scene + drained + lost = emitted); a drain
 // tool removes blood; the blood pushes on the tissue (two-way coupling);
 // runs are deterministic; scene files with a fluid and drains are checked.
+#include "runtime/cut.h"
 #include "runtime/scene.h"
 #include "runtime/sph.h"
 #include "runtime/testing/lattice.h"
@@ -166,6 +167,72 @@ TEST(Bleeding, ACutVesselEmitsItsFlowAndParticlesAreConserved) {
   for (Real y : fs.x[1]) mean_y += y;
   mean_y /= static_cast<Real>(fs.x[1].size());
   EXPECT_LT(mean_y, 0);
+}
+
+// The blood stays in the wound or outside the tissue. The vessel runs along x
+// in the second layer (3 mm deep, between the sheets at 2 and 7 mm); the cut
+// (the plane x = 28 mm, 4 mm deep) opens the tissue columns beside it
+// (x 24..32 mm). The layer surfaces were the only walls, so the blood bled
+// into the gap between the sheets at 2 and 7 mm and ran along the vessel
+// through the closed tissue to both ends of the block (the demo's bleeding
+// scene: blood inside the muscle 20 mm from the wound), until 2026-11-27. Now
+// the collision surface closes every column a cut has not opened (cut.h,
+// WoundColumns), and the columns the emitter's disc reaches are open (a disc
+// centred on a column corner spans four: it put blood straight into closed
+// columns).
+TEST(Bleeding, TheBloodStaysInTheWoundOrOutsideTheTissue) {
+  SceneDef def = bleeding_def(false);
+  Scene scene(block_with_vessel(), def);
+  run_steps(scene, 40);
+  ASSERT_EQ(scene.cuts().size(), 1u);
+  EXPECT_GE(scene.cuts()[0].columns_opened, 2 * 4);  // the skin layer's along the cut, at least
+  const auto& fs = *scene.fluid_state();
+  ASSERT_GT(fs.size(), 200);
+  const Real slack = def.fluid.params.spacing;  // a particle's reach past a wall
+  std::int64_t in_tissue = 0, astray = 0;
+  Real worst = 0;
+  for (std::size_t i = 0; i < fs.x[0].size(); ++i) {
+    const Real x = fs.x[0][i], y = fs.x[1][i], z = fs.x[2][i];
+    if (!(y > slack && y < 0.017 - slack && x > slack && x < 0.056 - slack && z > slack && z < 0.016 - slack)) continue;
+    ++in_tissue;
+    const Real off = std::abs(x - 0.028) - 0.004;  // beyond the open columns
+    if (off > slack) ++astray;
+    worst = std::max(worst, off);
+  }
+  EXPECT_GT(in_tissue, 0);  // the wound holds blood
+  EXPECT_EQ(astray, 0) << in_tissue << " particles in the tissue; the farthest " << 1e3 * worst << " mm beyond the wound";
+  EXPECT_EQ(scene.counters().failed, 0);
+}
+
+// The columns of the block: four surfaces of 14 x 4 quads with one pattern;
+// a closed block's collision surface is its skin, its bone sheet and the end
+// walls of its three column layers around the grid's boundary.
+TEST(Bleeding, WoundColumnsCloseTheTissue) {
+  Model m = block_with_vessel();
+  WoundColumns w = wound_columns(m);
+  ASSERT_TRUE(w.valid());
+  EXPECT_EQ(w.n_surfaces, 4);
+  EXPECT_EQ(w.n_quads, 14 * 4);
+  const std::int64_t boundary_sides = 2 * 14 + 2 * 4;
+  EXPECT_EQ(wound_wall_triangles(w).size(), static_cast<std::size_t>(3 * 2 * (2 * 56 + 3 * boundary_sides)));
+  // a cut 4 mm deep along x = 30 mm (between grid lines): one column wide, the two upper layers
+  CutDef cd;
+  cd.polyline = {{0.030, 0, -0.01}, {0.030, 0, 0.03}};
+  cd.direction = {0, 1, 0};
+  cd.depth = 4e-3;
+  const std::vector<Real> x = m.rest_x;
+  const CutReport r = cut_model(m, x, cd, &w);
+  EXPECT_EQ(r.columns_opened, 2 * 4);
+  for (std::int32_t k = 0; k < w.n_quads; ++k)
+    for (std::int32_t l = 0; l < 3; ++l) EXPECT_EQ(w.open[static_cast<std::size_t>(l * w.n_quads + k)], l < 2 && k % 14 == 7) << l << " " << k;
+  // skin: 4 quads fewer; the sheet at 2 mm: none (open above and below); at 7 mm: the 4 under
+  // the wound; side walls: 2 per open column not at the boundary (4 rows, 2 layers)
+  EXPECT_EQ(wound_wall_triangles(w).size(),
+            static_cast<std::size_t>(3 * 2 * ((56 - 4) + 4 + 56 + 3 * boundary_sides + 2 * 4 * 2)));
+  // a point in a closed column opens it
+  EXPECT_EQ(open_columns_at(w, x, {{0.010, 0.010, 0.006}}), 1);  // muscle layer, column (2, 1)
+  EXPECT_TRUE(w.open[static_cast<std::size_t>(2 * w.n_quads + 14 + 2)]);
+  EXPECT_EQ(open_columns_at(w, x, {{0.010, 0.010, 0.006}, {0.5, 0.5, 0.5}}), 0);  // open already; outside them all
 }
 
 // A second cut across a vessel edge an earlier cut opened adds no wound: the

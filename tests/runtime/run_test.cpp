@@ -102,6 +102,8 @@ TEST_F(RunCli, BleedsAndReportsTheFluid) {
     const auto& f = j["metrics"]["fluid"];
     EXPECT_GE(f["bleeding_vessels"].get<int>(), 1);
     EXPECT_GT(f["particles_emitted"].get<long>(), 0);
+    // the cut opened tissue columns to the blood (runtime/cut.h, WoundColumns)
+    EXPECT_GT(j["metrics"]["cuts"][0]["columns_opened"].get<int>(), 0) << j["metrics"]["cuts"].dump();
     long sum = 0;
     for (const char* k : {"step", "cfl", "force", "viscous", "max_substep", "pressure"}) sum += f["substeps_set_by"][k].get<long>();
     EXPECT_EQ(sum, f["substeps"].get<long>());
