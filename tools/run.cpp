@@ -5,10 +5,13 @@
 #include "runtime/scene.h"
 #include "tools/common.h"
 
+#include <algorithm>
 #include <cmath>
 #include <filesystem>
 #include <iostream>
+#include <iterator>
 #include <sstream>
+#include <vector>
 
 namespace orthosim::cli {
 
@@ -36,18 +39,19 @@ void add_run_command(CLI::App& app) {
   auto* sub = app.add_subcommand("run", "simulate a scene: lazy model loading, mass-spring solver, ParaView output");
   static std::string scene_file, model_override, out_override;
   static long steps = 0;
-  static int threads = -1;
+  static int threads = 0;
   static bool no_output = false;
   static CommonOptions common;
   sub->add_option("scene", scene_file, "scene file (.json); see docs/runtime.md")->required();
   CLI::Option* const steps_flag =
       sub->add_option("--steps", steps, "number of steps of the scene's dt, >= 1 (default: duration / dt)");
-  sub->add_option("--threads", threads, "worker threads (default: the scene's, 0 = all cores)");
+  CLI::Option* const threads_flag =
+      sub->add_option("--threads", threads, "worker threads (default: the scene's, 0 = all cores)");
   sub->add_option("--model", model_override, "model file, instead of the scene's");
   sub->add_option("--out", out_override, "output directory, instead of the scene's");
   sub->add_flag("--no-output", no_output, "write no ParaView series");
   add_common_options(sub, common);
-  on_run(sub, "run", common, [steps_flag] {
+  on_run(sub, "run", common, [steps_flag, threads_flag] {
     Report report("run");
     const bool steps_given = steps_flag->count() > 0;
     // 1e9 steps: a day at 10^4 steps/s; beyond, a count that overflowed or a
@@ -56,7 +60,10 @@ void add_run_command(CLI::App& app) {
     if (steps_given && (steps < 1 || steps > kMaxSteps))
       throw UsageError("--steps must be in 1..1e9, got " + std::to_string(steps) +
                        " (leave it out to run the scene's duration)");
-    if (threads < -1 || threads > 1024) throw UsageError("--threads must be in 0..1024");
+    // (-1 was the "not given" value, so --threads -1 ran with the scene's threads)
+    const bool threads_given = threads_flag->count() > 0;
+    if (threads_given && (threads < 0 || threads > 1024))
+      throw UsageError("--threads must be in 0..1024, got " + std::to_string(threads));
     runtime::SceneDef def = runtime::parse_scene_file(scene_file);
     if (!model_override.empty()) def.model = model_override;
     if (!out_override.empty()) {
@@ -64,7 +71,7 @@ void add_run_command(CLI::App& app) {
       def.output.dir = out_override;
     }
     if (no_output) def.output.enabled = false;
-    if (threads >= 0) def.threads = threads;
+    if (threads_given) def.threads = threads;
     if (!steps_given && !(def.duration / def.dt <= kMaxSteps))
       throw Error(scene_file, "duration / dt = " + (std::ostringstream() << def.duration / def.dt).str() +
                                   " steps, more than 1e9: a larger dt or a shorter duration (or --steps)");
@@ -98,8 +105,8 @@ void add_run_command(CLI::App& app) {
     }
     const runtime::Model& m0 = scene->model();  // a cut replaces the model: not used after the steps
     // what a tool will not do (even with --quiet):
-    // - a pull or hook whose nodes are all fixed already moves nothing (a pull on
-    //   the "fixed" set ran as if it were not there);
+    // - a pull, hook or pressure tool whose nodes are all fixed already moves
+    //   nothing (a pull on the "fixed" set ran as if it were not there);
     // - a drain that cannot reach the blood's domain never drains (a centre 100 m
     //   off ran with 0 drained and nothing said);
     // - a cut polyline snapped farther than its depth lay off the skin (5 m off a
@@ -108,7 +115,7 @@ void add_run_command(CLI::App& app) {
     for (std::size_t k = 0; k < def.tools.size(); ++k) {
       const runtime::ToolDef& t = def.tools[k];
       const int id = static_cast<int>(k);
-      if (t.type == runtime::ToolType::pull || t.type == runtime::ToolType::hook) {
+      if (t.type == runtime::ToolType::pull || t.type == runtime::ToolType::hook || t.type == runtime::ToolType::pressure) {
         const auto& nodes = scene->tool_nodes(id);
         bool all_fixed = !nodes.empty();
         for (auto i : nodes) all_fixed = all_fixed && scene->state().pin[static_cast<std::size_t>(i)] == runtime::Pin::fixed;
@@ -134,6 +141,31 @@ void add_run_command(CLI::App& app) {
                   << " m, more than the cut's depth (" << t.depth << " m); check its points (or \"snap\": false)\n";
       }
     }
+    // - two tools that hold the same nodes at the same time do not add up: a hook
+    //   fixes them, and a pull that moves them overrides another (a hook and a
+    //   pull on one grip left it still; of two pulls only the later acted). Spring
+    //   pulls (stiffness > 0) add their forces: no warning for two of them.
+    auto holds = [](const runtime::ToolDef& t) {
+      return t.type == runtime::ToolType::hook || t.type == runtime::ToolType::pull;
+    };
+    for (std::size_t a = 0; a < def.tools.size(); ++a)
+      for (std::size_t b = a + 1; b < def.tools.size(); ++b) {
+        const runtime::ToolDef &ta = def.tools[a], &tb = def.tools[b];
+        if (!holds(ta) || !holds(tb) || !(ta.start < tb.end && tb.start < ta.end)) continue;
+        if (ta.type == runtime::ToolType::pull && tb.type == runtime::ToolType::pull && ta.stiffness > 0 && tb.stiffness > 0)
+          continue;
+        auto na = scene->tool_nodes(static_cast<int>(a)), nb = scene->tool_nodes(static_cast<int>(b));
+        std::sort(na.begin(), na.end());
+        std::sort(nb.begin(), nb.end());
+        std::vector<std::int32_t> shared;
+        std::set_intersection(na.begin(), na.end(), nb.begin(), nb.end(), std::back_inserter(shared));
+        if (shared.empty()) continue;
+        std::cerr << "orthosim run: warning: " << scene_file << ": the " << runtime::to_string(ta.type) << " tool"
+                  << quoted(ta.name) << " and the " << runtime::to_string(tb.type) << " tool" << quoted(tb.name)
+                  << " hold " << shared.size() << " of the same node(s) at the same time (from "
+                  << std::max(ta.start, tb.start) << " s): they do not add up (a hook fixes its nodes; of two pulls "
+                     "that move nodes, the later one listed moves them)\n";
+      }
     auto& par = report.parameters();
     par["model"] = def.model;
     par["layers"] = def.layers;

@@ -329,6 +329,59 @@ TEST_F(RunCli, AToolOnFixedNodesIsAWarning) {
   expect_one_warning(run_cli("run " + s + " --no-output --quiet"),
                      "orthosim run: warning: " + s +
                          ": the pull tool 'grasper' takes only the 1 fixed node(s) it found: it does nothing");
+  // a pressure tool on fixed nodes likewise (no warning until 2026-11-27; the state was
+  // bitwise that of a run without it)
+  const auto p = scene(R"({
+      "model": "model.h5", "fixed": ["fixed"], "integrator": "implicit", "dt": 0.005, "duration": 0.01,
+      "tools": [{"name": "press", "type": "pressure", "nodes": "fixed", "center_in_box": [0.5, 0.5, 0.5], "radius": 0.001,
+                 "nearest": true, "pressure": 1e5, "direction": [0, 1, 0]}]
+    })");
+  expect_one_warning(run_cli("run " + p + " --no-output --quiet"),
+                     "orthosim run: warning: " + p +
+                         ": the pressure tool 'press' takes only the 1 fixed node(s) it found: it does nothing");
+}
+
+// Two tools holding the same nodes at the same time do not add up: a hook and a
+// pull on one grip left it still, of two pulls only the later acted, silently
+// (until 2026-11-27). Two spring pulls add their forces: no warning.
+TEST_F(RunCli, ToolsHoldingTheSameNodesAreAWarning) {
+  auto grip = [&](const std::string& first, const std::string& second) {
+    return scene(R"({
+      "model": "model.h5", "fixed": ["fixed"], "integrator": "implicit", "dt": 0.005, "duration": 0.01,
+      "tools": [)" + first + ", " + second + R"(]
+    })");
+  };
+  const std::string where = R"("nodes": "skin", "center_in_box": [0.5, 0, 0.5], "radius": 0.001, "nearest": true)";
+  const std::string hook = R"({"name": "h", "type": "hook", )" + where + "}";
+  const std::string pull = R"({"name": "g", "type": "pull", )" + where + R"(, "path": [[0, 0, 0, 0], [0.01, 0, 0.001, 0]]})";
+  const std::string pull2 = R"({"name": "g2", "type": "pull", )" + where + R"(, "path": [[0, 0, 0, 0], [0.01, 0, -0.001, 0]]})";
+  const auto a = grip(hook, pull);
+  expect_one_warning(run_cli("run " + a + " --no-output --quiet"),
+                     "orthosim run: warning: " + a + ": the hook tool 'h' and the pull tool 'g' hold 1 of the same node(s) "
+                     "at the same time (from 0 s): they do not add up");
+  const auto b = grip(pull, pull2);
+  expect_one_warning(run_cli("run " + b + " --no-output --quiet"),
+                     "orthosim run: warning: " + b + ": the pull tool 'g' and the pull tool 'g2' hold 1 of the same node(s)");
+  // spring pulls add up; tools at different times do not meet
+  std::string spring = pull, spring2 = pull2;
+  spring.insert(spring.size() - 1, R"(, "stiffness": 100)");
+  spring2.insert(spring2.size() - 1, R"(, "stiffness": 100)");
+  expect_silent(run_cli("run " + grip(spring, spring2) + " --no-output --quiet"));
+  std::string early = pull, later = pull2;
+  early.insert(early.size() - 1, R"(, "end": 0.005)");
+  later.insert(later.size() - 1, R"(, "start": 0.005)");
+  expect_silent(run_cli("run " + grip(early, later) + " --no-output --quiet"));
+}
+
+// --threads -1 was the "not given" value: it ran with the scene's threads.
+TEST_F(RunCli, ThreadsOutOfRangeAreRefused) {
+  const auto s = scene(R"({"model": "model.h5", "fixed": ["fixed"], "dt": 0.005, "duration": 0.01})");
+  for (const char* t : {"-1", "-5", "1025"}) {
+    const auto r = run_cli("run " + s + " --no-output --quiet --threads " + t);
+    EXPECT_EQ(r.code, 2) << t;
+    EXPECT_EQ(r.err, std::string("orthosim run: error: --threads must be in 0..1024, got ") + t + "\n");
+  }
+  expect_silent(run_cli("run " + s + " --no-output --quiet --threads 0"));
 }
 
 // A drain that cannot reach the blood's domain is a warning (0 drained, silently).
