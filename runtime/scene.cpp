@@ -397,7 +397,9 @@ SceneDef parse_scene(const std::string& text, const std::string& file) {
   if (o.has("output")) {
     Obj out(o.at("output"), "output: ", file);
     d.output.enabled = true;
-    d.output.dir = resolve(base, out.string("dir", "", true));
+    // no dir: `orthosim run --out` gives it (the Scene refuses an output without one)
+    const std::string dir = out.string("dir", "");
+    d.output.dir = dir.empty() ? std::string() : resolve(base, dir);
     d.output.name = out.string("name", d.output.name);
     if (d.output.name.find_first_of("/\\") != std::string::npos || d.output.name == "." || d.output.name == "..")
       out.fail("name must be a file name without a folder (got '" + d.output.name + "'): the series goes into dir");
@@ -448,7 +450,6 @@ void validate(const SceneDef& d) {
     if (!std::isfinite(t.pressure)) fail("tool '" + t.name + "': pressure must be finite");
     if (t.path.p.size() != 3 * t.path.t.size()) fail("tool '" + t.name + "': path points do not match its times");
   }
-  if (d.output.enabled && d.output.dir.empty()) fail("output: dir is required");
   for (const auto& t : d.tools) {
     if (t.type == ToolType::drain && !d.fluid.enabled) fail("tool '" + t.name + "': a drain needs the scene's fluid");
     if (t.type == ToolType::drain && !t.has_center) fail("tool '" + t.name + "': a drain needs a center and a radius");
@@ -471,8 +472,18 @@ struct Scene::Arena {
   explicit Arena(int threads) : arena(threads > 0 ? threads : tbb::info::default_concurrency()) {}
 };
 
+namespace {
+// An output needs a folder; a scene file's output block may leave it to `orthosim
+// run --out` (it was refused while parsing, before --out could give it).
+void require_output_dir(const SceneDef& d) {
+  if (d.output.enabled && d.output.dir.empty())
+    throw Error(d.file, "output: dir is required (in the scene's output block, or orthosim run --out)");
+}
+}  // namespace
+
 Scene::Scene(const SceneDef& def) : def_(def) {
   validate(def_);
+  require_output_dir(def_);
   std::error_code ec;
   if (def_.model.empty()) throw Error(def_.file, "no model file given");
   if (fs::is_directory(def_.model, ec)) throw Error(def_.file, "model file '" + def_.model + "' is a folder");
@@ -482,6 +493,7 @@ Scene::Scene(const SceneDef& def) : def_(def) {
 
 Scene::Scene(Model model, const SceneDef& def) : def_(def) {
   validate(def_);
+  require_output_dir(def_);
   model_ = std::make_shared<const Model>(std::move(model));
   init("");
 }

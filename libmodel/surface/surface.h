@@ -222,7 +222,7 @@ struct NestingResult {
   std::int64_t on_cap = 0;         // left on a border cap they share with outer (coplanar flat caps)
   std::int64_t folds = 0;          // intersecting face pairs the moves made (near moved vertices)
   int untangle_rounds = 0;         // rounds of relaxing them (each: relax, keep inside, test again)
-  std::int64_t folds_left = 0;     // intersecting pairs near moved vertices after them (0 unless 20 rounds did not do)
+  std::int64_t folds_left = 0;     // intersecting pairs near moved vertices after them (0 unless 20 rounds, or 3 without progress, did not do)
 };
 NestingResult enforce_nesting(Surface& inner, const Surface& outer, double clearance_m);
 

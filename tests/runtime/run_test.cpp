@@ -373,6 +373,20 @@ TEST_F(RunCli, ToolsHoldingTheSameNodesAreAWarning) {
   expect_silent(run_cli("run " + grip(early, later) + " --no-output --quiet"));
 }
 
+// An output block without "dir" takes --out's (it was refused, "output: missing
+// dir", though a scene with no output block at all ran with --out); without
+// --out it is refused naming the scene.
+TEST_F(RunCli, OutGivesAnOutputBlockItsDir) {
+  const auto s = scene(R"({"model": "model.h5", "fixed": ["fixed"], "dt": 0.005, "duration": 0.01,
+                           "output": {"every": 1, "name": "limb"}})");
+  const auto r = run_cli("run " + s + " --quiet --out " + (dir / "given"));
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_TRUE(fs::exists(dir / "given/limb.pvd"));
+  const auto bad = run_cli("run " + s + " --quiet");
+  EXPECT_EQ(bad.code, 2);
+  EXPECT_EQ(bad.err, "orthosim run: error: " + s + ": output: dir is required (in the scene's output block, or orthosim run --out)\n");
+}
+
 // --threads -1 was the "not given" value: it ran with the scene's threads.
 TEST_F(RunCli, ThreadsOutOfRangeAreRefused) {
   const auto s = scene(R"({"model": "model.h5", "fixed": ["fixed"], "dt": 0.005, "duration": 0.01})");

@@ -145,7 +145,7 @@ TEST_F(SceneTest, BadScenesAreOneLineErrorsBeforeAnyStep) {
       {R"({"model": "model.h5", "fluid": {"spacing": 0.002, "spacing": 0.001}})", "the key 'spacing' appears twice"},
       // "a/b" failed after the first step, "../x" wrote outside dir
       {R"({"model": "model.h5", "output": {"dir": "o", "name": "../escape"}})", "name must be a file name without a folder"},
-      {R"({"model": "model.h5", "output": {"every": 3}})", "missing dir"},
+      {R"({"model": "model.h5", "output": {"every": 3}})", "output: dir is required (in the scene's output block, or orthosim run --out)"},
       {R"({"model": "model.h5",)", "invalid JSON"},
   };
   for (const auto& c : cases) {
