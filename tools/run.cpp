@@ -347,7 +347,17 @@ void add_run_command(CLI::App& app) {
       std::cerr << "orthosim run: error: " << scene_file << ": " << c.failed << " of " << r.steps
                 << " steps failed (the solver gave up on them after up to " << def.solver.max_retries
                 << " retries, halving the substep down to 1/" << def.solver.max_substeps
-                << " of the step at most; metrics.stability in the report)\n";
+                << " of the step at most; metrics.stability in the report)";
+      // the symplectic stability limit beyond max_substeps: the cause, not a blow-up
+      // (a 1e12 N/m grip needed 2.5e6 substeps a step; the message spoke of retries only)
+      const double limit = scene->step_limit();
+      if (def.solver.integrator == runtime::Integrator::symplectic_euler && def.solver.substeps == 0 && limit > 0 &&
+          def.dt / limit > def.solver.max_substeps)
+        std::cerr << ": the symplectic stability limit is " << limit << " s, " << def.dt / limit
+                  << " substeps a step, more than max_substeps (" << def.solver.max_substeps
+                  << "): a stiffer spring or grip than the step allows (the implicit integrator, a smaller dt or "
+                     "a softer grip)";
+      std::cerr << "\n";
       exit_code() = 3;
     }
   });

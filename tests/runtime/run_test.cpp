@@ -485,9 +485,19 @@ TEST_F(RunCli, FailedStepsExitThree) {
   const auto j = nlohmann::json::parse(test::read_file(dir / "failed.json"));
   EXPECT_EQ(j["metrics"]["stability"]["failed_steps"], 3);
   EXPECT_TRUE(std::isfinite(j["metrics"]["kinetic_energy_j"].get<double>()));
+  EXPECT_EQ(r.err.find("symplectic stability limit"), std::string::npos) << r.err;  // a blow-up, not the limit
   // the same scene at 1 g: 0
   const auto ok = scene(R"({"model": "model.h5", "fixed": ["fixed"], "integrator": "symplectic", "dt": 0.01})");
   EXPECT_EQ(run_cli("run " + ok + " --steps 3 --no-output --quiet").code, 0);
+  // automatic substeps whose stability limit needs more than max_substeps: the message says
+  // so (it spoke of retries only; a 1e12 N/m grip needed 2.5e6 substeps a step)
+  const auto capped = scene(R"({"model": "model.h5", "fixed": ["fixed"], "integrator": "symplectic", "dt": 0.01,
+                                "gravity": [0, -100, 0], "stability": {"max_substeps": 2, "max_retries": 1}})");
+  const auto rc = run_cli("run " + capped + " --steps 3 --no-output --quiet");
+  EXPECT_EQ(rc.code, 3) << rc.err;
+  EXPECT_NE(rc.err.find("substeps a step, more than max_substeps (2): a stiffer spring or grip than the step allows"),
+            std::string::npos)
+      << rc.err;
 }
 
 // Implicit solves stopped at their iteration cap are named in a warning line
