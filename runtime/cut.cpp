@@ -73,6 +73,13 @@ bool in_column(const Vec3& p, const std::array<Vec3, 4>& t, const std::array<Vec
   return false;
 }
 
+// the top t and bottom b corners of column (l, k) at the positions pos(node)
+template <class Pos>
+void column_corners(const WoundColumns& w, std::int32_t l, std::int32_t k, const Pos& pos, std::array<Vec3, 4>& t,
+                    std::array<Vec3, 4>& b) {
+  for (int c = 0; c < 4; ++c) t[c] = pos(w.corner(l, k, c)), b[c] = pos(w.corner(l + 1, k, c));
+}
+
 }  // namespace
 
 WoundColumns wound_columns(const Model& m) {
@@ -229,7 +236,7 @@ std::int32_t open_columns_at(WoundColumns& w, std::span<const Real> x, const std
     for (std::int32_t l = 0; l + 1 < w.n_surfaces && !inside; ++l)
       for (std::int32_t k = 0; k < nq; ++k) {
         std::array<Vec3, 4> t, b;
-        for (int c = 0; c < 4; ++c) t[c] = pos(w.corner(l, k, c)), b[c] = pos(w.corner(l + 1, k, c));
+        column_corners(w, l, k, pos, t, b);
         Box box;
         Vec3 mid{0, 0, 0};
         for (int c = 0; c < 4; ++c) box.add(t[c]), box.add(b[c]), mid += t[c], mid += b[c];
@@ -328,23 +335,16 @@ CutReport cut_model(Model& m, std::span<const Real> x, const CutDef& def, WoundC
     }
   }
 
-  // the tissue columns the blade crosses, and those the bleeding points lie in
+  // the tissue columns the blade crosses (a scene opens those its emitters reach: open_columns_at)
   if (columns && columns->valid()) {
     WoundColumns& w = *columns;
     const std::int32_t nq = w.n_quads;
-    auto hex = [&](std::int32_t l, std::int32_t k, std::array<Vec3, 4>& t, std::array<Vec3, 4>& b) {
-      for (int c = 0; c < 4; ++c) t[c] = pos(w.corner(l, k, c)), b[c] = pos(w.corner(l + 1, k, c));
-    };
-    auto open = [&](std::int32_t l, std::int32_t k) {
-      std::uint8_t& o = w.open[static_cast<std::size_t>(l) * nq + k];
-      if (!o) ++rep.columns_opened;
-      o = 1;
-    };
     for (std::int32_t l = 0; l + 1 < w.n_surfaces; ++l)
       for (std::int32_t k = 0; k < nq; ++k) {
-        if (w.open[static_cast<std::size_t>(l) * nq + k]) continue;
+        std::uint8_t& o = w.open[static_cast<std::size_t>(l) * nq + k];
+        if (o) continue;
         std::array<Vec3, 4> t, b;
-        hex(l, k, t, b);
+        column_corners(w, l, k, pos, t, b);
         bool crossed = blade.crosses(t[0], t[2]) || blade.crosses(t[1], t[3]) || blade.crosses(b[0], b[2]) ||
                        blade.crosses(b[1], b[3]);
         for (int c = 0; c < 4 && !crossed; ++c) {
@@ -352,11 +352,8 @@ CutReport cut_model(Model& m, std::span<const Real> x, const CutDef& def, WoundC
           crossed = blade.crosses(t[c], t[d]) || blade.crosses(b[c], b[d]) || blade.crosses(t[c], b[c]) ||
                     blade.crosses(t[c], b[d]) || blade.crosses(t[d], b[c]);
         }
-        if (crossed) open(l, k);
+        if (crossed) o = 1, ++rep.columns_opened;
       }
-    std::vector<Vec3> points;
-    for (const VesselHit& h : rep.vessel_hits) points.push_back(h.point);
-    rep.columns_opened += open_columns_at(w, x, points);
   }
 
   m.finalize();

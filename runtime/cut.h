@@ -102,8 +102,9 @@ WoundColumns wound_columns(const Model& m);
 // Opens the column each point lies in (the one containing it, else the nearest
 // by centroid whose corners' sphere holds it; none for a point outside them
 // all) at the node positions `x`; returns how many it opened. A scene opens
-// those of its emitters' discs, which may reach past the column of the vessel
-// crossing (a disc on a column corner spans four).
+// those of its emitters' discs (the centre, the vessel crossing, and points on
+// the rim and half-way out), which may reach past the crossing's column (a disc
+// on a column corner spans four).
 std::int32_t open_columns_at(WoundColumns& w, std::span<const Real> x, const std::vector<Vec3>& points);
 
 // The blood's collision triangles of the columns ((n x 3) local node ids),
@@ -117,9 +118,9 @@ Vec3 cut_direction(const Model& m, const CutDef& def);
 // State::x) and re-finalizes it. Never produces non-finite data; throws
 // Error("", ...) only for an invalid def (call validate first to check).
 // With `columns` (valid), also opens the columns the blade crosses (any of
-// their edges, face diagonals or vertical edges across it) and the column
-// each vessel crossing lies in (the one containing it, else the nearest by
-// centroid): a bleeding vessel's emitter is then always inside the wound.
+// their edges, face diagonals or vertical edges across it). A scene then opens
+// the columns its new emitters' discs reach (open_columns_at), so a bleeding
+// vessel's emitter is always inside the wound.
 CutReport cut_model(Model& m, std::span<const Real> x, const CutDef& def, WoundColumns* columns = nullptr);
 
 // Segment p q against triangle a b c: true when they cross (Moller and

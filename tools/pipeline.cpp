@@ -656,10 +656,7 @@ int run_pipeline(const Args& a) {
   };
   try {
     return run_stages(a, report);
-  } catch (const UsageError& e) {
-    failed(e.what());
-    throw;
-  } catch (const Error& e) {
+  } catch (const std::runtime_error& e) {  // Error and UsageError
     failed(e.what());
     throw;
   }
