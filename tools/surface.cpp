@@ -43,7 +43,8 @@ void add_surface_command(CLI::App& app) {
     std::string labels, out, model, tissues, tissue_table, decimation = "lindstrom-turk";
     std::int64_t target_faces = 0;
     int smooth_iterations = 10, threads = 0;
-    double sigma = 0.7, lambda = 0.5, mu = -0.53, nest_clearance = 0.1, min_component_voxels = SurfaceOptions{}.min_component_voxels;
+    double sigma = 0.7, lambda = 0.5, mu = -0.53, nest_clearance = 0.1,
+           nest_gap = SurfaceOptions{}.nest_gap_vox, min_component_voxels = SurfaceOptions{}.min_component_voxels;
     bool no_fill_holes = false, no_self_check = false;
     CommonOptions common;
   };
@@ -67,6 +68,10 @@ void add_surface_command(CLI::App& app) {
   sub->add_option("--nest-clearance", a.nest_clearance,
                   "keep each nested surface this far inside its parent's, in voxels of the smallest spacing")
       ->capture_default_str();
+  sub->add_option("--nest-gap", a.nest_gap,
+                  "where a nested tissue reaches its parent's outside (a shell the voxels lost), draw its surface this "
+                  "far inside the parent's, in voxels, [0, 0.5] (0: off)")
+      ->capture_default_str();
   sub->add_flag("--no-fill-holes", a.no_fill_holes, "keep pockets the tissue encloses out of its solid");
   sub->add_option("--min-component-voxels", a.min_component_voxels,
                   "drop surface components enclosing fewer voxels (noise specks; the largest is kept; 0: keep all)")
@@ -86,6 +91,7 @@ void add_surface_command(CLI::App& app) {
     o.fill_holes = !a.no_fill_holes;
     o.check_self_intersections = !a.no_self_check;
     o.nest_clearance_vox = a.nest_clearance;
+    o.nest_gap_vox = a.nest_gap;
     o.min_component_voxels = a.min_component_voxels;
     if (a.decimation == "lindstrom-turk") o.decimation = DecimationCost::lindstrom_turk;
     else if (a.decimation == "garland-heckbert") o.decimation = DecimationCost::garland_heckbert;
@@ -181,7 +187,7 @@ void add_surface_command(CLI::App& app) {
         SurfaceOptions oi = o;
         if (outer[i] != none) oi.check_self_intersections = false;
         try {
-          results[i] = extract_surface(v, solids[i], oi);
+          results[i] = extract_surface(v, solids[i], oi, outer[i] != none ? solids[outer[i]] : std::vector<int>{});
         } catch (const Error& e) {
           failed[i] = names[i] + ": " + e.message();
         }
@@ -234,6 +240,7 @@ void add_surface_command(CLI::App& app) {
         m.filled_voxels = before.filled_voxels;
         m.smooth_volume_change = before.smooth_volume_change;
         m.dropped_components = before.dropped_components;
+        m.gap_samples = before.gap_samples;
         m.dropped_volume_m3 = before.dropped_volume_m3;
         m.solid_s = before.solid_s, m.field_s = before.field_s, m.extract_s = before.extract_s;
         m.smooth_s = before.smooth_s, m.decimate_s = before.decimate_s;
@@ -308,6 +315,7 @@ void add_surface_command(CLI::App& app) {
                                 {"euler", m.euler},
                                 {"components", m.components},
                                 {"dropped_components", m.dropped_components},
+                                {"gap_samples", m.gap_samples},
                                 {"dropped_volume_m3", m.dropped_volume_m3},
                                 {"closed", m.closed},
                                 {"manifold", m.manifold},

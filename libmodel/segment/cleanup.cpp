@@ -394,16 +394,33 @@ std::vector<std::uint8_t> ComponentTracker::resolve(const LabelInfo& info, const
       auto& b = largest_of[label_[r]];
       if (b == std::uint32_t(-1) || size_[r] > size_[b]) b = r;
     }
-    // a component of a nested tissue that touches nothing of its parent's
-    // region is out of place (bone in the skin, fat in the gel)
+    // a component of a nested tissue is out of place (bone in the skin, fat
+    // in the gel, shaded fat taken for bone in the fat) when its parent's
+    // region is not the majority of what surrounds it: faces with tissues
+    // nested in it and with vessels aside, fewer of its faces meet its place
+    // than meet the rest. Each tissue's anchor, the component meeting its
+    // place on the most faces, is out of place only when it meets none of it:
+    // a torn parent (thin skin missing over the fat) must not push the
+    // tissue itself out.
+    auto place_faces = [&](std::uint32_t r) {
+      std::array<std::int64_t, 2> io{0, 0};  // in place, out of place
+      const auto& where = info.touch[label_[r]];
+      if (auto it = adj.find(r); it != adj.end())
+        for (const auto& [nb, w] : it->second)
+          if (where[label_[nb]] < 2) io[where[label_[nb]] == 1 ? 0 : 1] += w;
+      return io;
+    };
+    std::vector<std::uint32_t> anchor(256, std::uint32_t(-1));
+    {
+      std::vector<std::int64_t> best(256, -1);
+      for (auto r : roots)
+        if (!info.touch[label_[r]].empty())
+          if (const auto in = place_faces(r)[0]; in > best[label_[r]]) best[label_[r]] = in, anchor[label_[r]] = r;
+    }
     auto misplaced = [&](std::uint32_t r) {
-      const auto& need = info.touch[label_[r]];
-      if (!o.enforce_order || need.empty()) return false;
-      auto it = adj.find(r);
-      if (it == adj.end()) return false;
-      for (const auto& [nb, w] : it->second)
-        if (need[label_[nb]]) return false;
-      return true;
+      if (!o.enforce_order || info.touch[label_[r]].empty()) return false;
+      const auto [in, out] = place_faces(r);
+      return in == 0 ? out > 0 : anchor[label_[r]] != r && in < out;
     };
     auto small = [&](std::uint32_t r) {
       const std::uint8_t l = label_[r];

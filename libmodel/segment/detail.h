@@ -35,9 +35,10 @@ struct LabelInfo {
     std::vector<std::uint8_t> allowed;    // [label] 1 if a reclassification target
   };
   std::vector<Encloser> enclosers;
-  // touch[T][L] = 1 if a 3-D component of tissue T is in place when it
-  // touches label L: L is T's parent or nested in the parent but not in T.
-  // Empty for tissues without a parent and for vessels.
+  // touch[T][L] says where label L lies for a 3-D component of tissue T:
+  // 1 in T's place (T's parent, or nested in the parent but not in T), 2 in
+  // T itself (nested in T), 0 out of T's place (vessels count as 2: they
+  // cross layers). Empty for tissues without a parent and for vessels.
   std::vector<std::vector<std::uint8_t>> touch;
 };
 LabelInfo make_label_info(const TissueTable& t, bool fill_holes);

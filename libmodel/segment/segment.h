@@ -43,7 +43,9 @@
 //     not reach the lateral border are holes and are filled by their majority
 //     neighbour; islands of a bulk tissue smaller than min_island_voxels and
 //     of a vessel tissue smaller than min_vessel_voxels, and components of a
-//     nested tissue touching nothing of their parent's region, are absorbed
+//     nested tissue out of place (their parent's region is not the majority
+//     of what surrounds them; a tissue's anchor, the component meeting its
+//     place most, only when it meets none of it), are absorbed
 //     by their majority neighbour (not a tissue's largest component when it
 //     is larger than that neighbour: then the neighbour is misplaced); then
 //     only the body (the largest 6-connected
@@ -226,7 +228,7 @@ struct SegmentMetrics {
   std::int64_t speck_changed = 0;
   std::int64_t holes_filled = 0;
   std::int64_t islands_absorbed = 0;
-  std::int64_t misplaced_absorbed = 0;  // components not touching their parent's region
+  std::int64_t misplaced_absorbed = 0;  // components out of place (their parent's region not the majority around them)
   std::int64_t detached_removed = 0;
   std::int64_t components = 0;        // 3-D same-label components before clean-up
   std::int64_t body_components = 0;   // kept non-background components

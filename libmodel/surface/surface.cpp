@@ -349,47 +349,57 @@ void drop_small_components(Surface& s, std::vector<std::uint8_t>& fixed, double 
 // union-find where runs of neighbouring rows (y +- 1, z +- 1) overlap; the
 // components with a run on a lateral face of the box (x or y at its border)
 // are outside, every other component is a hole.
+// With `box`, the grid is laid over box's (the parent's solid on the nested
+// one's grid); then a pocket reaching box's lateral faces counts as outside.
 Grid build_solid(const Volume& v, const std::vector<int>& labels, const SurfaceOptions& o, int margin,
-                 std::int64_t& solid_voxels, std::int64_t& filled_voxels) {
+                 std::int64_t& solid_voxels, std::int64_t& filled_voxels, const Grid* box = nullptr) {
   const LabelSet set(labels);
-  // bounding box, per slice then reduced
-  std::vector<std::array<int, 4>> box(static_cast<std::size_t>(v.nz), {INT_MAX, INT_MAX, -1, -1});
-  tbb::parallel_for(tbb::blocked_range<int>(0, v.nz), [&](const tbb::blocked_range<int>& r) {
-    std::vector<std::uint8_t> tmp(static_cast<std::size_t>(v.nx));
-    for (int z = r.begin(); z != r.end(); ++z) {
-      auto& b = box[static_cast<std::size_t>(z)];
-      for (int y = 0; y < v.ny; ++y) {
-        set.row(v.labels.data() + v.index(0, y, z), v.nx, tmp.data());
-        int x0, x1;
-        nonzero_range(tmp.data(), v.nx, x0, x1);
-        if (x0 > x1) continue;
-        b[0] = std::min(b[0], x0), b[2] = std::max(b[2], x1);
-        b[1] = std::min(b[1], y), b[3] = std::max(b[3], y);
-      }
-    }
-  });
-  int lo[3] = {INT_MAX, INT_MAX, INT_MAX}, hi[3] = {-1, -1, -1};
-  for (int z = 0; z < v.nz; ++z) {
-    const auto& b = box[static_cast<std::size_t>(z)];
-    if (b[2] < 0) continue;
-    lo[0] = std::min(lo[0], b[0]), hi[0] = std::max(hi[0], b[2]);
-    lo[1] = std::min(lo[1], b[1]), hi[1] = std::max(hi[1], b[3]);
-    lo[2] = std::min(lo[2], z), hi[2] = z;
-  }
-  if (hi[2] < 0) throw Error("", "no voxel has a label of the solid");
-  const int nv[3] = {v.nx, v.ny, v.nz};
   Grid g;
-  for (int k = 0; k < 3; ++k) {
-    const int a = std::max(0, lo[k] - margin), b = std::min(nv[k] - 1, hi[k] + margin);
-    g.lo[k] = a;
-    g.n[k] = b - a + 3;
-    auto& c = g.coord[static_cast<std::size_t>(k)];
-    c.resize(static_cast<std::size_t>(g.n[k]));
-    const double s = v.spacing_m[static_cast<std::size_t>(k)], org = v.origin_m[static_cast<std::size_t>(k)];
-    for (int p = 0; p < g.n[k]; ++p) c[static_cast<std::size_t>(p)] = org + (a + p - 1) * s;
-    g.cap_lo[k] = a == 0, g.cap_hi[k] = b == nv[k] - 1;
-    if (g.cap_lo[k]) c.front() = org - o.border_offset * s;
-    if (g.cap_hi[k]) c.back() = org + (b + o.border_offset) * s;
+  if (box) {
+    std::copy(box->n, box->n + 3, g.n);
+    std::copy(box->lo, box->lo + 3, g.lo);
+    g.coord = box->coord;
+    std::copy(box->cap_lo, box->cap_lo + 3, g.cap_lo);
+    std::copy(box->cap_hi, box->cap_hi + 3, g.cap_hi);
+  } else {
+    // bounding box, per slice then reduced
+    std::vector<std::array<int, 4>> slice_box(static_cast<std::size_t>(v.nz), {INT_MAX, INT_MAX, -1, -1});
+    tbb::parallel_for(tbb::blocked_range<int>(0, v.nz), [&](const tbb::blocked_range<int>& r) {
+      std::vector<std::uint8_t> tmp(static_cast<std::size_t>(v.nx));
+      for (int z = r.begin(); z != r.end(); ++z) {
+        auto& b = slice_box[static_cast<std::size_t>(z)];
+        for (int y = 0; y < v.ny; ++y) {
+          set.row(v.labels.data() + v.index(0, y, z), v.nx, tmp.data());
+          int x0, x1;
+          nonzero_range(tmp.data(), v.nx, x0, x1);
+          if (x0 > x1) continue;
+          b[0] = std::min(b[0], x0), b[2] = std::max(b[2], x1);
+          b[1] = std::min(b[1], y), b[3] = std::max(b[3], y);
+        }
+      }
+    });
+    int lo[3] = {INT_MAX, INT_MAX, INT_MAX}, hi[3] = {-1, -1, -1};
+    for (int z = 0; z < v.nz; ++z) {
+      const auto& b = slice_box[static_cast<std::size_t>(z)];
+      if (b[2] < 0) continue;
+      lo[0] = std::min(lo[0], b[0]), hi[0] = std::max(hi[0], b[2]);
+      lo[1] = std::min(lo[1], b[1]), hi[1] = std::max(hi[1], b[3]);
+      lo[2] = std::min(lo[2], z), hi[2] = z;
+    }
+    if (hi[2] < 0) throw Error("", "no voxel has a label of the solid");
+    const int nv[3] = {v.nx, v.ny, v.nz};
+    for (int k = 0; k < 3; ++k) {
+      const int a = std::max(0, lo[k] - margin), b = std::min(nv[k] - 1, hi[k] + margin);
+      g.lo[k] = a;
+      g.n[k] = b - a + 3;
+      auto& c = g.coord[static_cast<std::size_t>(k)];
+      c.resize(static_cast<std::size_t>(g.n[k]));
+      const double s = v.spacing_m[static_cast<std::size_t>(k)], org = v.origin_m[static_cast<std::size_t>(k)];
+      for (int p = 0; p < g.n[k]; ++p) c[static_cast<std::size_t>(p)] = org + (a + p - 1) * s;
+      g.cap_lo[k] = a == 0, g.cap_hi[k] = b == nv[k] - 1;
+      if (g.cap_lo[k]) c.front() = org - o.border_offset * s;
+      if (g.cap_hi[k]) c.back() = org + (b + o.border_offset) * s;
+    }
   }
   // the indicator, the first and last 1 of every row, and the runs of 0s
   const int NX = g.n[0], NY = g.n[1], NZ = g.n[2];
@@ -530,6 +540,7 @@ struct SmoothField {
   std::unique_ptr<std::uint8_t[]> s;   // sign storage
   std::vector<float> zeros, ones;      // constant rows (ones: 0 at the padding)
   std::vector<std::uint8_t> szeros, sones;
+  std::unique_ptr<float[]> c;          // rows changed by clip_field
 };
 
 void smooth_field(const Grid& g, double sigma, double iso, SmoothField& out) {
@@ -669,6 +680,53 @@ void smooth_field(const Grid& g, double sigma, double iso, SmoothField& out) {
       if (a <= b) F.first[i] = a - 1, F.last[i] = b;
     }
   });
+}
+
+// Nesting in the field: the nested field c becomes min(c, A(p)) with
+// A(f) = (f - a) / (1 - a), a = gap / (1 - iso). A fixes 1, so inside the
+// parent (p = 1) the nested field is left alone, and takes the parent's level
+// iso + gap to iso: where the two solids coincide the nested level set lies
+// where the parent's field is iso + gap. Only rows where both fields vary can
+// change: a constant-1 nested row lies in a constant-1 parent row, and a
+// constant-0 nested row adjoins no crossing. Returns the samples inside the
+// nested solid (above iso) that were lowered: where its surface moved.
+std::int64_t clip_field(SmoothField& c, const SmoothField& p, double gap, double iso) {
+  auto& F = c.F;
+  const int NX = F.n[0];
+  const std::size_t R = F.f.size();
+  const float a = static_cast<float>(gap / (1 - iso)), fiso = static_cast<float>(iso);
+  auto varies = [](const SmoothField& s, std::size_t i) {
+    return s.F.f[i] != s.zeros.data() && s.F.f[i] != s.ones.data();
+  };
+  if (!c.c) c.c.reset(new float[R * static_cast<std::size_t>(NX)]);
+  std::vector<std::int64_t> lowered(R, 0);
+  tbb::parallel_for(tbb::blocked_range<std::size_t>(0, R), [&](const tbb::blocked_range<std::size_t>& r) {
+    for (std::size_t i = r.begin(); i != r.end(); ++i) {
+      if (!varies(c, i) || !varies(p, i)) continue;
+      const float* __restrict fc = F.f[i];
+      const float* __restrict fp = p.F.f[i];
+      std::int64_t n = 0;
+      bool any = false;
+      for (int x = 0; x < NX; ++x) {
+        const bool low = (fp[x] - a) / (1 - a) < fc[x];
+        any = any || low;
+        n += low && fc[x] > fiso;
+      }
+      if (!any) continue;
+      lowered[i] = n;
+      float* __restrict o = c.c.get() + i * static_cast<std::size_t>(NX);
+      for (int x = 0; x < NX; ++x) o[x] = std::min(fc[x], (fp[x] - a) / (1 - a));
+      std::uint8_t* __restrict sg = c.s.get() + i * static_cast<std::size_t>(NX);
+      for (int x = 0; x < NX; ++x) sg[x] = o[x] > fiso;
+      F.f[i] = o;
+      F.s[i] = sg;
+      int lo, hi;
+      nonzero_range(sg, NX, lo, hi);
+      F.first[i] = lo <= hi ? lo - 1 : INT_MAX;
+      F.last[i] = lo <= hi ? hi : -1;
+    }
+  });
+  return std::accumulate(lowered.begin(), lowered.end(), std::int64_t{0});
 }
 
 // ---- marching tetrahedra ---------------------------------------------------------------------
@@ -886,6 +944,8 @@ void validate(const SurfaceOptions& o) {
   if (o.target_faces > 0 && o.target_faces < 4) bad("target-faces: must be 0 (keep all) or >= 4, got " + std::to_string(o.target_faces));
   if (!(o.nest_clearance_vox >= 0 && o.nest_clearance_vox <= 1))
     bad("nest-clearance: must be in [0, 1] voxels, got " + std::to_string(o.nest_clearance_vox));
+  if (!(o.nest_gap_vox >= 0 && o.nest_gap_vox <= 0.5))
+    bad("nest-gap: must be in [0, 0.5] voxels, got " + std::to_string(o.nest_gap_vox));
   if (!(o.min_component_voxels >= 0 && std::isfinite(o.min_component_voxels)))
     bad("min-component-voxels: must be >= 0 and finite, got " + std::to_string(o.min_component_voxels));
 }
@@ -905,6 +965,7 @@ std::string surface_parameters_json(const SurfaceOptions& o) {
   j["bounded_normal_change"] = o.bounded_normal_change;
   j["check_self_intersections"] = o.check_self_intersections;
   j["nest_clearance_vox"] = o.nest_clearance_vox;
+  j["nest_gap_vox"] = o.nest_gap_vox;
   j["min_component_voxels"] = o.min_component_voxels;
   return j.dump();
 }
@@ -1295,7 +1356,23 @@ MatX3d surface_samples(const Surface& s) {
 
 // ---- the pipeline ------------------------------------------------------------------------------------
 
-SurfaceResult extract_surface(const Volume& v, const std::vector<int>& solid_labels, const SurfaceOptions& o) {
+// Nothing lies beyond a volume border the solid is cut by: smoothing and
+// decimation move the vertices next to a flat cap (which are not held along
+// that axis) past its plane by up to a few percent of a voxel. Clamped to it,
+// the cap is the surface's extreme plane, as enforce_nesting expects of a
+// parent's caps (before, a nested tissue's cap vertices there were taken for
+// outside and pushed a clearance in, folding their rims).
+void clamp_to_caps(Surface& s, const Grid& g) {
+  for (int k = 0; k < 3; ++k) {
+    const auto& c = g.coord[static_cast<std::size_t>(k)];
+    const std::size_t n = c.size();
+    if (g.cap_lo[k]) s.vertices.col(k) = s.vertices.col(k).cwiseMax(0.5 * (c[0] + c[1]));
+    if (g.cap_hi[k]) s.vertices.col(k) = s.vertices.col(k).cwiseMin(0.5 * (c[n - 2] + c[n - 1]));
+  }
+}
+
+SurfaceResult extract_surface(const Volume& v, const std::vector<int>& solid_labels, const SurfaceOptions& o,
+                              const std::vector<int>& parent_labels) {
   validate(o);
   if (v.nx < 1 || v.ny < 1 || v.nz < 1 ||
       v.labels.size() != static_cast<std::size_t>(v.nx) * static_cast<std::size_t>(v.ny) * static_cast<std::size_t>(v.nz))
@@ -1303,14 +1380,18 @@ SurfaceResult extract_surface(const Volume& v, const std::vector<int>& solid_lab
   for (int k = 0; k < 3; ++k)
     if (!(v.spacing_m[static_cast<std::size_t>(k)] > 0) || !std::isfinite(v.spacing_m[static_cast<std::size_t>(k)]))
       throw Error("", "volume: spacing must be positive");
-  for (int l : solid_labels)
-    if (l < 1 || l > 255) throw Error("", "solid label " + std::to_string(l) + " is not in 1..255");
+  for (const auto* set : {&solid_labels, &parent_labels})
+    for (int l : *set)
+      if (l < 1 || l > 255) throw Error("", "solid label " + std::to_string(l) + " is not in 1..255");
 
   SurfaceResult res;
   SurfaceMetrics& m = res.metrics;
   auto t0 = Clock::now();
   const int w = o.sigma_vox > 0 ? std::max(1, static_cast<int>(std::ceil(3 * o.sigma_vox))) : 0;
-  Grid g = build_solid(v, solid_labels, o, w + 1, m.solid_voxels, m.filled_voxels);
+  // with a parent, a margin of 2w + 1: the parent's field within w of this
+  // solid then comes from the parent's voxels, not from the box's border
+  const bool gap = !parent_labels.empty() && o.nest_gap_vox > 0 && o.sigma_vox > 0;
+  Grid g = build_solid(v, solid_labels, o, (gap ? 2 : 1) * w + 1, m.solid_voxels, m.filled_voxels);
   m.solid_s = since(t0);
 
   Surface s;
@@ -1319,6 +1400,26 @@ SurfaceResult extract_surface(const Volume& v, const std::vector<int>& solid_lab
     t0 = Clock::now();
     SmoothField sf;
     smooth_field(g, o.sigma_vox, o.iso, sf);
+    if (gap) {
+      // the parent's solid on this grid, with this solid's filled pockets
+      std::int64_t unused_solid = 0, unused_filled = 0;
+      Grid gp = build_solid(v, parent_labels, o, 0, unused_solid, unused_filled, &g);
+      tbb::parallel_for(std::size_t{0}, g.rows(), [&](std::size_t i) {
+        if (g.one_lo[i] > g.one_hi[i]) return;
+        std::uint8_t* dst = gp.row(i);
+        const std::uint8_t* src = g.row(i);
+        for (int x = g.one_lo[i]; x <= g.one_hi[i]; ++x) dst[x] |= src[x];
+        gp.one_lo[i] = std::min(gp.one_lo[i], g.one_lo[i]);
+        gp.one_hi[i] = std::max(gp.one_hi[i], g.one_hi[i]);
+      });
+      SmoothField sp;
+      smooth_field(gp, o.sigma_vox, o.iso, sp);
+      // the level of the parent's field nest_gap_vox voxels inside its own
+      // (iso) level: across a boundary midway between voxel centres the
+      // blurred indicator's samples either side are Phi(+-1/2 sigma), so its
+      // linear interpolation rises by erf(1 / (2 sqrt(2) sigma)) a voxel
+      m.gap_samples = clip_field(sf, sp, o.nest_gap_vox * std::erf(1 / (2 * std::sqrt(2.0) * o.sigma_vox)), o.iso);
+    }
     m.field_s = since(t0);
     t0 = Clock::now();
     s = march(g, sf.F, o.iso, fixed);
@@ -1347,11 +1448,13 @@ SurfaceResult extract_surface(const Volume& v, const std::vector<int>& solid_lab
     m.smooth_volume_change = (signed_volume(s) - before) / before;
   }
   if (o.compensate_blur && o.sigma_vox > 0) compensate_impl(s, *corners, v.spacing_m, o.sigma_vox, fixed);
+  clamp_to_caps(s, g);
   m.smooth_s = since(t0);
 
   t0 = Clock::now();
   if (o.target_faces > 0 && s.faces.rows() > o.target_faces) {
     s = decimate_surface(s, o.target_faces, o.decimation, o.bounded_normal_change);
+    clamp_to_caps(s, g);
     corners.reset();
   }
   m.decimate_s = since(t0);

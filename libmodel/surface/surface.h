@@ -104,6 +104,15 @@ struct SurfaceOptions {
   // kept at least this far inside its parent's, as a fraction of the
   // smallest voxel spacing. [0, 1].
   double nest_clearance_vox = 0.1;
+  // Nesting in the field (extract_surface with the parent's solid): where a
+  // nested tissue reaches its parent's outside (the parent's shell thinner
+  // than a voxel, lost by the segmentation: fat against the gel where the
+  // skin is torn), the nested surface is drawn this far inside the parent's,
+  // in voxels along the surface normal. A shell the voxels do not resolve is
+  // between 0 and 1 voxel thick: half a voxel is its expected thickness.
+  // [0, 0.5]; 0: off (the surfaces coincide there, and only the nesting step
+  // above separates them, by moving vertices). Needs sigma_vox > 0.
+  double nest_gap_vox = 0.5;
 };
 
 // Throws Error("", "<option>: ...") naming the bad option.
@@ -125,6 +134,7 @@ struct SurfaceMetrics {
   int components = 0;                    // edge-connected components
   int dropped_components = 0;            // components dropped as specks (min_component_voxels)
   double dropped_volume_m3 = 0;          // their enclosed volume, summed (|volume| each)
+  std::int64_t gap_samples = 0;          // inside samples of the field lowered below the parent's (nest_gap_vox)
   bool closed = false;                   // every edge in exactly two faces, traversed opposite ways
   bool manifold = false;                 // every vertex a single fan of faces, no isolated vertex
   bool outward = false;                  // volume_m3 > 0
@@ -167,7 +177,14 @@ std::vector<int> solid_label_set(const Volume& v, const std::string& tissue, con
 // (values 1..255), through steps 1-6 above. Throws Error("", ...) when the
 // volume is malformed or no voxel has one of the labels, and std::logic_error
 // if the result fails the closed/manifold/outward check (a bug).
-SurfaceResult extract_surface(const Volume& v, const std::vector<int>& solid_labels, const SurfaceOptions& o);
+//
+// parent_labels: the solid labels of the tissue it is nested in (its
+// solid_label_set), or empty. Then where the two solids' blurred indicators
+// come within nest_gap_vox of each other the nested one is lowered below the
+// parent's (see nest_gap_vox): the surfaces no longer coincide where the
+// parent's shell is missing.
+SurfaceResult extract_surface(const Volume& v, const std::vector<int>& solid_labels, const SurfaceOptions& o,
+                              const std::vector<int>& parent_labels = {});
 
 // Taubin lambda|mu smoothing with uniform weights (G. Taubin, "A signal
 // processing approach to fair surface design", SIGGRAPH 1995): each iteration
