@@ -10,6 +10,7 @@
 #include <tbb/task_arena.h>
 
 #include <algorithm>
+#include <cstdio>
 #include <chrono>
 #include <cmath>
 #include <numbers>
@@ -469,7 +470,9 @@ void validate(const SceneDef& d) {
 
 struct Scene::Arena {
   tbb::task_arena arena;
-  explicit Arena(int threads) : arena(threads > 0 ? threads : tbb::info::default_concurrency()) {}
+  // at most the cores: more made TBB print its own warning, also under --quiet
+  explicit Arena(int threads)
+      : arena(threads > 0 ? std::min(threads, tbb::info::default_concurrency()) : tbb::info::default_concurrency()) {}
 };
 
 namespace {
@@ -873,7 +876,10 @@ void Scene::write_fluid_frame() {
   auto pvd = [&](const std::string& series, const std::vector<std::pair<Real, std::string>>& files) {
     write_pvd(dir + "/" + name + "_" + series + ".pvd", files);
   };
-  const std::string tag = std::to_string(k);
+  // six digits, as the tissue's frames (name_000012.vtu): listings sort in time order
+  char tag_digits[16];
+  std::snprintf(tag_digits, sizeof tag_digits, "%06d", k);
+  const std::string tag = tag_digits;
   if (def_.fluid.surface) {
     FluidSurfaceOptions so;
     so.cell = def_.fluid.surface_cell;

@@ -682,7 +682,7 @@ void smooth_field(const Grid& g, double sigma, double iso, SmoothField& out) {
   });
 }
 
-// Nesting in the field: the nested field c becomes min(c, A(p)) with
+// Nesting in the field: the nested field c becomes smin(c, A(p)) with
 // A(f) = (f - a) / (1 - a), a = gap / (1 - iso). A fixes 1, so inside the
 // parent (p = 1) the nested field is left alone, and takes the parent's level
 // iso + gap to iso: where the two solids coincide the nested level set lies
@@ -694,7 +694,7 @@ std::int64_t clip_field(SmoothField& c, const SmoothField& p, double gap, double
   auto& F = c.F;
   const int NX = F.n[0];
   const std::size_t R = F.f.size();
-  const float a = static_cast<float>(gap / (1 - iso)), fiso = static_cast<float>(iso);
+  const float a = static_cast<float>(gap / (1 - iso)), k = static_cast<float>(gap), fiso = static_cast<float>(iso);
   auto varies = [](const SmoothField& s, std::size_t i) {
     return s.F.f[i] != s.zeros.data() && s.F.f[i] != s.ones.data();
   };
@@ -705,17 +705,25 @@ std::int64_t clip_field(SmoothField& c, const SmoothField& p, double gap, double
       if (!varies(c, i) || !varies(p, i)) continue;
       const float* __restrict fc = F.f[i];
       const float* __restrict fp = p.F.f[i];
+      // the smooth minimum (polynomial, width k = gap at the nested level,
+      // narrowing to 0 inside the parent): no crease where the two fields
+      // cross, which smoothing and the blur compensation folded (4 face pairs
+      // on the phantom at noise 16, 64^3 of 1 mm), and the parent's inside
+      // stays untouched
+      float* __restrict o = c.c.get() + i * static_cast<std::size_t>(NX);
       std::int64_t n = 0;
       bool any = false;
       for (int x = 0; x < NX; ++x) {
-        const bool low = (fp[x] - a) / (1 - a) < fc[x];
+        const float b = (fp[x] - a) / (1 - a);
+        const float kb = k * std::clamp((1 - b) / (1 - fiso), 0.f, 1.f);  // 0 inside the parent
+        const float h = std::max(kb - std::abs(fc[x] - b), 0.f);
+        o[x] = kb > 0 ? std::min(fc[x], b) - h * h / (4 * kb) : std::min(fc[x], b);
+        const bool low = o[x] < fc[x];
         any = any || low;
         n += low && fc[x] > fiso;
       }
       if (!any) continue;
       lowered[i] = n;
-      float* __restrict o = c.c.get() + i * static_cast<std::size_t>(NX);
-      for (int x = 0; x < NX; ++x) o[x] = std::min(fc[x], (fp[x] - a) / (1 - a));
       std::uint8_t* __restrict sg = c.s.get() + i * static_cast<std::size_t>(NX);
       for (int x = 0; x < NX; ++x) sg[x] = o[x] > fiso;
       F.f[i] = o;

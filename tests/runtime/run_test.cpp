@@ -396,6 +396,8 @@ TEST_F(RunCli, ThreadsOutOfRangeAreRefused) {
     EXPECT_EQ(r.err, std::string("orthosim run: error: --threads must be in 0..1024, got ") + t + "\n");
   }
   expect_silent(run_cli("run " + s + " --no-output --quiet --threads 0"));
+  // more threads than cores run on the cores, without TBB's own warning line
+  expect_silent(run_cli("run " + s + " --no-output --quiet --threads 1024"));
 }
 
 // A drain that cannot reach the blood's domain is a warning (0 drained, silently).
@@ -555,15 +557,21 @@ TEST_F(RunCli, ARerunRemovesTheEarlierRunsStaleFrames) {
   EXPECT_EQ(pvd.find("tissue_000003.vtu"), std::string::npos) << pvd;
   for (const auto& f : others) EXPECT_EQ(test::read_file(dir / ("series/" + f)), "keep") << f;
 
-  // the blood series likewise (its frames are numbered without padding)
+  // the blood series likewise (its frames are numbered with six digits, as
+  // the tissue's: they were not padded until 2026-11-27, and stale frames
+  // numbered either way go)
   const auto b = scene(R"({"model": "model.h5", "fixed": ["fixed"], "integrator": "implicit", "dt": 0.005,
                            "fluid": {"spacing": 0.002, "sound_speed": 3}, "output": {"dir": "series"}})");
   test::write_file(dir / "series/tissue_blood_7.vtp", "stale");
+  test::write_file(dir / "series/tissue_blood_000008.vtp", "stale");
   test::write_file(dir / "series/tissue_blood.pvd", "stale");
   const auto rb = run_cli("run " + b + " --steps 1 --quiet");
   ASSERT_EQ(rb.code, 0) << rb.err;
   EXPECT_FALSE(fs::exists(dir / "series/tissue_blood_7.vtp"));
-  EXPECT_TRUE(fs::exists(dir / "series/tissue_blood_1.vtp"));
+  EXPECT_FALSE(fs::exists(dir / "series/tissue_blood_000008.vtp"));
+  EXPECT_TRUE(fs::exists(dir / "series/tissue_blood_000000.vtp"));
+  EXPECT_TRUE(fs::exists(dir / "series/tissue_blood_000001.vtp"));
+  EXPECT_FALSE(fs::exists(dir / "series/tissue_blood_1.vtp"));
   EXPECT_EQ(test::read_file(dir / "series/tissue_blood.pvd").find("tissue_blood_7"), std::string::npos);
   EXPECT_FALSE(fs::exists(dir / "series/tissue_000002.vtu")) << "the tissue frames of the run before";
   EXPECT_FALSE(fs::exists(dir / "series/tissue_blood_3.vtp")) << "a blood frame, not listed by the new .pvd";
