@@ -766,6 +766,28 @@ TEST(SurfaceCli, WritesStlModelAndReport) {
     EXPECT_TRUE(rep["phases_s"].contains(ph)) << ph;
 }
 
+// The phantom of that size, spacing, noise and seed, segmented, and its skin,
+// fat, muscle and bone surfaces (d/stl) made by `orthosim surface` with the
+// table's nesting: the surface report, or null after a failed command.
+nlohmann::json phantom_surfaces(const test::TempDir& d, const std::string& size, const std::string& spacing, int noise,
+                                int seed) {
+  const std::vector<std::string> commands = {
+      "phantom --out " + (d / "ph") + " --size " + size + " --spacing " + spacing + " --noise " + std::to_string(noise) +
+          " --seed " + std::to_string(seed) + " --quiet",
+      "segment --stack " + (d / "ph/slices") + " --tissues " + (d / "ph/tissues.json") + " --spacing " + spacing +
+          " --out " + (d / "seg.h5") + " --quiet",
+      "surface --labels " + (d / "seg.h5") + " --out " + (d / "stl") + " --tissues skin,fat,muscle,bone --tissue-table " +
+          (d / "ph/tissues.json") + " --quiet --report " + (d / "r.json")};
+  for (const auto& c : commands) {
+    const test::RunResult r = test::run_cli(c);
+    if (r.code != 0) {
+      ADD_FAILURE() << c << ": " << r.err;
+      return nullptr;
+    }
+  }
+  return nlohmann::json::parse(test::read_file(d / "r.json"));
+}
+
 // Nesting moved the bone's vertices that poked through the muscle onto the
 // muscle's closest points, and neighbours folded over each other: the phantom
 // segmented at noise 4 on 1.2 x 0.8 x 3.5 mm voxels (seed 17) had a bone with 6
@@ -779,15 +801,8 @@ TEST(SurfaceCli, WritesStlModelAndReport) {
 // and no surface folds.
 TEST(SurfaceCli, NestedCapsStayOnTheirParentsCaps) {
   test::TempDir d("surface-folds");
-  auto ok = [](const test::RunResult& r) {
-    ASSERT_EQ(r.code, 0) << r.err;
-  };
-  ok(test::run_cli("phantom --out " + (d / "ph") + " --size 80x120x32 --spacing 1.2,0.8,3.5 --noise 4 --seed 17 --quiet"));
-  ok(test::run_cli("segment --stack " + (d / "ph/slices") + " --tissues " + (d / "ph/tissues.json") +
-                   " --spacing 1.2,0.8,3.5 --out " + (d / "seg.h5") + " --quiet"));
-  ok(test::run_cli("surface --labels " + (d / "seg.h5") + " --out " + (d / "stl") + " --tissues skin,fat,muscle,bone --tissue-table " +
-                   (d / "ph/tissues.json") + " --quiet --report " + (d / "r.json")));
-  const nlohmann::json rep = nlohmann::json::parse(test::read_file(d / "r.json"));
+  const nlohmann::json rep = phantom_surfaces(d, "80x120x32", "1.2,0.8,3.5", 4, 17);
+  if (rep.is_null()) return;
   for (const std::string t : {"fat", "muscle", "bone"}) {
     const auto& j = rep["metrics"]["tissues"][t];
     std::printf("  %-6s nesting moved %lld, on caps %lld, folds %lld; self-intersections %lld\n", t.c_str(),
@@ -815,15 +830,8 @@ TEST(SurfaceCli, NestedCapsStayOnTheirParentsCaps) {
 // pairs, none without the gap). The smooth minimum leaves none.
 TEST(SurfaceCli, TheNestingGapLeavesNoFold) {
   test::TempDir d("surface-gap");
-  auto ok = [](const test::RunResult& r) {
-    ASSERT_EQ(r.code, 0) << r.err;
-  };
-  ok(test::run_cli("phantom --out " + (d / "ph") + " --size 64x64x64 --spacing 1,1,1 --noise 16 --seed 2 --quiet"));
-  ok(test::run_cli("segment --stack " + (d / "ph/slices") + " --tissues " + (d / "ph/tissues.json") +
-                   " --spacing 1,1,1 --out " + (d / "seg.h5") + " --quiet"));
-  ok(test::run_cli("surface --labels " + (d / "seg.h5") + " --out " + (d / "stl") + " --tissues skin,fat,muscle,bone --tissue-table " +
-                   (d / "ph/tissues.json") + " --quiet --report " + (d / "r.json")));
-  const nlohmann::json rep = nlohmann::json::parse(test::read_file(d / "r.json"));
+  const nlohmann::json rep = phantom_surfaces(d, "64x64x64", "1,1,1", 16, 2);
+  if (rep.is_null()) return;
   std::int64_t lowered = 0;
   for (const std::string t : {"skin", "fat", "muscle", "bone"}) {
     const auto& j = rep["metrics"]["tissues"][t];
