@@ -10,6 +10,7 @@
 #include <filesystem>
 #include <iostream>
 #include <iterator>
+#include <set>
 #include <sstream>
 #include <vector>
 
@@ -112,6 +113,7 @@ void add_run_command(CLI::App& app) {
     // - a cut polyline snapped farther than its depth lay off the skin (5 m off a
     //   7 cm limb was snapped onto it and cut, silently)
     const runtime::FluidBoundaries* const fb = scene->fluid_boundaries();
+    std::set<std::string> outside_domain;  // drains warned of here (not again after the run)
     for (std::size_t k = 0; k < def.tools.size(); ++k) {
       const runtime::ToolDef& t = def.tools[k];
       const int id = static_cast<int>(k);
@@ -130,11 +132,13 @@ void add_run_command(CLI::App& app) {
           const double e = std::max({fb->lo[a] - c[a], 0.0, c[a] - fb->hi[a]});
           d2 += e * e;
         }
-        if (std::sqrt(d2) > t.radius)
+        if (std::sqrt(d2) > t.radius) {
+          outside_domain.insert(t.name);
           std::cerr << "orthosim run: warning: " << scene_file << ": the drain" << quoted(t.name) << " lies "
                     << std::sqrt(d2) - t.radius
                     << " m outside the blood's domain (the loaded tissue's box grown by fluid.margin): it never "
                        "drains\n";
+        }
       } else if (t.type == runtime::ToolType::cut && scene->tool_snap_distance(id) > t.depth) {
         std::cerr << "orthosim run: warning: " << scene_file << ": the cut" << quoted(t.name)
                   << "'s polyline lies off its nodes: the snap moved a point " << scene->tool_snap_distance(id)
@@ -307,6 +311,20 @@ void add_run_command(CLI::App& app) {
                   << f.flow_rate << " m^3/s in all, but no particle was emitted: one particle ("
                   << f.particle_volume << " m^3) takes " << f.particle_volume / f.flow_rate
                   << " s of that flow; a finer fluid spacing or a higher bleed_pressure shows it\n";
+    }
+    if (const runtime::FluidState* fs = scene->fluid_state(); fs && scene->fluid_summary().emitted > 0) {
+      // a drain that removed nothing while blood was emitted never met it (a warning even with
+      // --quiet: the drained count the scene is for reads 0); drains are in the order of their tools
+      std::size_t k = 0;
+      for (const auto& t : def.tools) {
+        if (t.type != runtime::ToolType::drain) continue;
+        if (k < fs->drains.size() && fs->drains[k].drained == 0 && !outside_domain.count(t.name))
+          std::cerr << "orthosim run: warning: " << scene_file << ": the drain" << quoted(t.name)
+                    << " removed no blood of the " << scene->fluid_summary().emitted
+                    << " particles emitted: the blood never reached it (inside closed tissue, away from the wound, "
+                       "or active only while none was there)\n";
+        ++k;
+      }
     }
     if (scene->fluid_state() && !scene->model().vessels.empty() && !scene->cuts().empty()) {
       std::size_t hits = 0;

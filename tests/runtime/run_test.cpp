@@ -415,6 +415,29 @@ TEST_F(RunCli, ADrainOutsideTheBloodIsAWarning) {
   expect_silent(run_cli("run " + drain_at("[0.01, 0, 0.01]") + " --no-output --quiet"));
 }
 
+// A drain the blood never reaches (in the closed tissue far from the wound)
+// drained 0 of the emitted particles without a word; now a warning names it.
+// One at the wound drains, silently.
+TEST_F(RunCli, ADrainTheBloodNeverReachesIsAWarning) {
+  runtime::testing::write_model_file(model, runtime::testing::make_layered_block(39, 9, 4), true);  // with the artery
+  auto bleed_with_drain_at = [&](const std::string& c) {
+    return scene(R"({
+      "model": "model.h5", "fixed": ["fixed"], "gravity": [0, 9.81, 0], "integrator": "implicit",
+      "dt": 0.005, "duration": 0.06, "vessels": ["artery"],
+      "fluid": {"spacing": 0.002, "sound_speed": 3, "bleed_pressure": 500, "margin": 0.01},
+      "tools": [{"name": "scalpel", "type": "cut", "polyline": [[0.0, 0, 0.01], [0.03, 0, 0.01]], "depth": 0.008,
+                 "direction": [0, 1, 0], "snap": false, "start": 0},
+                {"name": "suction", "type": "drain", "center": )" + c + R"(, "radius": 0.004}]
+    })");
+  };
+  // in the muscle, 10 cm along the limb from the cut: inside the domain, never opened
+  const auto deep = bleed_with_drain_at("[0.13, 0.012, 0.02]");
+  const auto r = run_cli("run " + deep + " --no-output --quiet --report " + (dir / "deep.json"));
+  expect_one_warning(r, "orthosim run: warning: " + deep + ": the drain 'suction' removed no blood of the ");
+  EXPECT_GT(nlohmann::json::parse(test::read_file(dir / "deep.json"))["metrics"]["fluid"]["particles_emitted"].get<long>(), 0);
+  expect_silent(run_cli("run " + bleed_with_drain_at("[0.015, 0.004, 0.01]") + " --no-output --quiet"));
+}
+
 // A cut polyline the snap moved farther than the cut's depth lay off the
 // skin: a warning (5 m off a 7 cm limb was snapped on and cut, silently).
 TEST_F(RunCli, ACutSnappedFromFarOffIsAWarning) {
