@@ -212,8 +212,9 @@ void add_surface_command(CLI::App& app) {
     // skin), but a surface that nesting does not move is final as extracted.
     // So every tissue is first nested, side by side, against its parent as
     // extracted; then, outermost first, a result stands when the parent did
-    // not move and is recomputed against the moved parent otherwise: the same
-    // surfaces as the plain chain, in one parallel round when nothing moves.
+    // not change (no vertex moved in, no fold relaxed) and is recomputed
+    // against the changed parent otherwise: the same surfaces as the plain
+    // chain, in one parallel round when nothing changes.
     // A tissue's surface is final once nested, so its checks run in a task
     // while the tissues inside it are settled (both only read it).
     std::vector<NestingResult> nesting(names.size());
@@ -230,6 +231,7 @@ void add_surface_command(CLI::App& app) {
         return depth(v.label_of(names[x])) < depth(v.label_of(names[y]));
       });
       const double clearance = o.nest_clearance_vox * std::min({v.spacing_m[0], v.spacing_m[1], v.spacing_m[2]});
+      const std::vector<CapPlane> caps = cap_planes(v, o);
       tbb::task_group checks;
       auto check = [&](std::size_t i) {
         const auto t0 = std::chrono::steady_clock::now();
@@ -251,13 +253,13 @@ void add_surface_command(CLI::App& app) {
       tbb::parallel_for(std::size_t{0}, names.size(), [&](std::size_t i) {
         if (outer[i] == none) return;
         nested[i] = results[i].surface;
-        nesting[i] = enforce_nesting(nested[i], results[outer[i]].surface, clearance);
+        nesting[i] = enforce_nesting(nested[i], results[outer[i]].surface, clearance, caps);
       });
       try {
         for (std::size_t i : order) {
           if (outer[i] == none) continue;
-          if (nesting[outer[i]].moved > 0)  // the parent moved: nest against its final surface
-            nesting[i] = enforce_nesting(results[i].surface, results[outer[i]].surface, clearance);
+          if (nesting[outer[i]].moved > 0 || nesting[outer[i]].untangle_rounds > 0)  // the parent changed: nest against its final surface
+            nesting[i] = enforce_nesting(results[i].surface, results[outer[i]].surface, clearance, caps);
           else
             results[i].surface = std::move(nested[i]);
           if (nesting[i].still_outside > 0)

@@ -78,7 +78,7 @@ LabelInfo make_label_info(const TissueTable& t, bool fill_holes) {
     auto& m = info.touch[x.label];
     m.assign(256, 0);
     for (const auto& y : t.tissues)
-      m[y.label] = in_subtree(y, x) || info.is_vessel[y.label] ? 2 : in_subtree(y, *parent) ? 1 : 0;
+      m[y.label] = in_subtree(y, x) ? 2 : in_subtree(y, *parent) ? 1 : info.is_vessel[y.label] ? 2 : 0;
   }
   if (fill_holes) {
     LabelInfo::Encloser body;

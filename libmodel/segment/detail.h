@@ -37,8 +37,10 @@ struct LabelInfo {
   std::vector<Encloser> enclosers;
   // touch[T][L] says where label L lies for a 3-D component of tissue T:
   // 1 in T's place (T's parent, or nested in the parent but not in T), 2 in
-  // T itself (nested in T), 0 out of T's place (vessels count as 2: they
-  // cross layers). Empty for tissues without a parent and for vessels.
+  // T itself (nested in T), 0 out of T's place; other vessels count as 2
+  // (they cross layers), but a vessel that is T's parent or nested in it is
+  // T's place (a clot in a vein). Empty for tissues without a parent and for
+  // vessels.
   std::vector<std::vector<std::uint8_t>> touch;
 };
 LabelInfo make_label_info(const TissueTable& t, bool fill_holes);

@@ -1364,19 +1364,20 @@ MatX3d surface_samples(const Surface& s) {
 
 // ---- the pipeline ------------------------------------------------------------------------------------
 
-// Nothing lies beyond a volume border the solid is cut by: smoothing and
-// decimation move the vertices next to a flat cap (which are not held along
-// that axis) past its plane by up to a few percent of a voxel. Clamped to it,
-// the cap is the surface's extreme plane, as enforce_nesting expects of a
-// parent's caps (before, a nested tissue's cap vertices there were taken for
-// outside and pushed a clearance in, folding their rims).
-void clamp_to_caps(Surface& s, const Grid& g) {
+std::vector<CapPlane> cap_planes(const Volume& v, const SurfaceOptions& o) {
+  // as build_solid lays the padded coordinates and march places a cap vertex
+  // (half-way into the padding), operation for operation: the cap vertices
+  // lie on these values exactly
+  std::vector<CapPlane> planes;
+  const int nv[3] = {v.nx, v.ny, v.nz};
   for (int k = 0; k < 3; ++k) {
-    const auto& c = g.coord[static_cast<std::size_t>(k)];
-    const std::size_t n = c.size();
-    if (g.cap_lo[k]) s.vertices.col(k) = s.vertices.col(k).cwiseMax(0.5 * (c[0] + c[1]));
-    if (g.cap_hi[k]) s.vertices.col(k) = s.vertices.col(k).cwiseMin(0.5 * (c[n - 2] + c[n - 1]));
+    const double sp = v.spacing_m[static_cast<std::size_t>(k)], org = v.origin_m[static_cast<std::size_t>(k)];
+    const int b = nv[k] - 1;
+    const double reach = ((o.sigma_vox > 0 ? std::ceil(3 * o.sigma_vox) : 0) + 1) * sp;
+    planes.push_back({k, 0.5 * ((org - o.border_offset * sp) + (org + 0 * sp)), reach});
+    planes.push_back({k, 0.5 * ((org + b * sp) + (org + (b + o.border_offset) * sp)), reach});
   }
+  return planes;
 }
 
 SurfaceResult extract_surface(const Volume& v, const std::vector<int>& solid_labels, const SurfaceOptions& o,
@@ -1456,13 +1457,11 @@ SurfaceResult extract_surface(const Volume& v, const std::vector<int>& solid_lab
     m.smooth_volume_change = (signed_volume(s) - before) / before;
   }
   if (o.compensate_blur && o.sigma_vox > 0) compensate_impl(s, *corners, v.spacing_m, o.sigma_vox, fixed);
-  clamp_to_caps(s, g);
   m.smooth_s = since(t0);
 
   t0 = Clock::now();
   if (o.target_faces > 0 && s.faces.rows() > o.target_faces) {
     s = decimate_surface(s, o.target_faces, o.decimation, o.bounded_normal_change);
-    clamp_to_caps(s, g);
     corners.reset();
   }
   m.decimate_s = since(t0);

@@ -228,8 +228,10 @@ std::int64_t surface_self_intersections(const Surface& s);
 // of nested tissues are extracted, smoothed and decimated separately, so
 // where a shell is about a voxel thin (cortical bone around marrow) they can
 // cross by a fraction of a voxel; the remesh and build stages need strict
-// nesting. Vertices on a flat border cap that inner shares with outer (a
-// face of outer in a plane of its bounding box) stay. Parallel, deterministic.
+// nesting. Vertices on a flat border cap that inner shares with outer stay:
+// outer's faces whose corners lie on one of `caps` (cap_planes of the volume
+// both come from), or without caps, in a plane of outer's bounding box.
+// Parallel, deterministic.
 struct NestingResult {
   std::int64_t moved = 0;          // vertices moved
   std::int64_t outside = 0;        // of those, outside outer before
@@ -237,11 +239,34 @@ struct NestingResult {
   std::int64_t moved_again = 0;    // extra moves of vertices the first move carried through a shell thinner than the clearance
   std::int64_t still_outside = 0;  // vertices outside outer after (0 unless outer is very thin there)
   std::int64_t on_cap = 0;         // left on a border cap they share with outer (coplanar flat caps)
-  std::int64_t folds = 0;          // intersecting face pairs the moves made (near moved vertices)
+  std::int64_t folds = 0;          // intersecting face pairs after the moves (near moved vertices, and with cap_folds near inner's caps)
   int untangle_rounds = 0;         // rounds of relaxing them (each: relax, keep inside, test again)
-  std::int64_t folds_left = 0;     // intersecting pairs near moved vertices after them (0 unless 20 rounds, or 3 without progress, did not do)
+  std::int64_t folds_left = 0;     // intersecting pairs near relaxed vertices after them (0 unless 20 rounds, or 3 without progress, did not do)
 };
-NestingResult enforce_nesting(Surface& inner, const Surface& outer, double clearance_m);
+// The planes of the flat caps where a volume's border cuts a surface
+// extracted from it (extract_surface, steps 3): per axis, border_offset / 2
+// spacings outside the first and the last voxel centres, computed as the
+// extraction places a cap vertex, so the cap vertices lie on them exactly.
+// Smoothing leaves the cap vertices in their plane, but may carry the
+// vertices next to the rim slightly past it: a surface's bounding box is not
+// its caps' planes.
+struct CapPlane {
+  int axis = 0;      // 0 x, 1 y, 2 z
+  double at = 0;     // m
+  double reach = 0;  // m: how far in the border shapes the surface (the blur's reach, ceil(3 sigma) + 1 spacings)
+};
+std::vector<CapPlane> cap_planes(const Volume& v, const SurfaceOptions& o);
+
+//
+// cap_folds: the untangling also takes the folds next to inner's own caps
+// (within a plane's reach of one of `caps`): there the field is replicated
+// beyond the border and smoothing holds the cap vertices along their axis,
+// and on thin stacks the faces there fold. The caps' vertices
+// used to be moved on every stack (see CapPlane), and that untangled these
+// folds as a side effect: the real crop halved, 8 slices, kept 678 face
+// pairs in its fat where 88 were left before, until the untangling took them.
+NestingResult enforce_nesting(Surface& inner, const Surface& outer, double clearance_m,
+                              const std::vector<CapPlane>& caps = {}, bool cap_folds = true);
 
 // Unsigned distance (m) from each point (n x 3, m) to the surface's
 // triangles (CGAL AABB tree), in parallel. For accuracy tests and reports.
