@@ -37,6 +37,18 @@ struct RunCli : ::testing::Test {
     test::write_file(p, json);
     return p;
   }
+  // The block with its artery (written here), cut across the artery at t = 0
+  // so it bleeds 500 Pa; `fluid` and `tools` add keys to those blocks.
+  std::string bleeding_scene(const std::string& duration, const std::string& fluid, const std::string& tools = "") {
+    runtime::testing::write_model_file(model, runtime::testing::make_layered_block(39, 9, 4), true);
+    return scene(R"({
+      "model": "model.h5", "fixed": ["fixed"], "gravity": [0, 9.81, 0], "integrator": "implicit",
+      "dt": 0.005, "duration": )" + duration + R"(, "vessels": ["artery"],
+      "fluid": {"spacing": 0.002, "sound_speed": 3, "bleed_pressure": 500, "margin": 0.01)" + fluid + R"(},
+      "tools": [{"name": "scalpel", "type": "cut", "polyline": [[0.0, 0, 0.01], [0.03, 0, 0.01]], "depth": 0.008,
+                 "direction": [0, 1, 0], "snap": false, "start": 0})" + tools + R"(]
+    })");
+  }
 };
 
 TEST_F(RunCli, PullsTheSkinAndReports) {
@@ -200,16 +212,8 @@ TEST_F(RunCli, WhatTheRunWillNotDoIsAWarning) {
 // PCISPH solves taken unconverged are named in a warning (the report counted
 // them, the run said nothing).
 TEST_F(RunCli, UnconvergedPressureSolvesAreAWarning) {
-  runtime::testing::write_model_file(model, runtime::testing::make_layered_block(39, 9, 4), true);  // with the artery
   auto bleed = [&](const std::string& extra) {
-    return scene(R"({
-      "model": "model.h5", "fixed": ["fixed"], "gravity": [0, 9.81, 0], "integrator": "implicit",
-      "dt": 0.005, "duration": 0.1, "vessels": ["artery"],
-      "fluid": {"spacing": 0.002, "sound_speed": 3, "bleed_pressure": 500, "margin": 0.01, "pressure_solver": "pcisph")" +
-                 extra + R"(},
-      "tools": [{"name": "scalpel", "type": "cut", "polyline": [[0.0, 0, 0.01], [0.03, 0, 0.01]], "depth": 0.008,
-                 "direction": [0, 1, 0], "snap": false, "start": 0}]
-    })");
+    return bleeding_scene("0.1", R"(, "pressure_solver": "pcisph")" + extra);
   };
   const auto tight = bleed(R"(, "pcisph_tolerance": 1e-3, "pcisph_max_iterations": 3, "pcisph_target_iterations": 3)");
   const auto r = run_cli("run " + tight + " --no-output --quiet --threads 2 --report " + (dir / "p.json"));
@@ -419,16 +423,8 @@ TEST_F(RunCli, ADrainOutsideTheBloodIsAWarning) {
 // drained 0 of the emitted particles without a word; now a warning names it.
 // One at the wound drains, silently.
 TEST_F(RunCli, ADrainTheBloodNeverReachesIsAWarning) {
-  runtime::testing::write_model_file(model, runtime::testing::make_layered_block(39, 9, 4), true);  // with the artery
   auto bleed_with_drain_at = [&](const std::string& c) {
-    return scene(R"({
-      "model": "model.h5", "fixed": ["fixed"], "gravity": [0, 9.81, 0], "integrator": "implicit",
-      "dt": 0.005, "duration": 0.06, "vessels": ["artery"],
-      "fluid": {"spacing": 0.002, "sound_speed": 3, "bleed_pressure": 500, "margin": 0.01},
-      "tools": [{"name": "scalpel", "type": "cut", "polyline": [[0.0, 0, 0.01], [0.03, 0, 0.01]], "depth": 0.008,
-                 "direction": [0, 1, 0], "snap": false, "start": 0},
-                {"name": "suction", "type": "drain", "center": )" + c + R"(, "radius": 0.004}]
-    })");
+    return bleeding_scene("0.06", "", R"(, {"name": "suction", "type": "drain", "center": )" + c + R"(, "radius": 0.004})");
   };
   // in the muscle, 10 cm along the limb from the cut: inside the domain, never opened
   const auto deep = bleed_with_drain_at("[0.13, 0.012, 0.02]");
