@@ -346,7 +346,7 @@ NestingResult enforce_nesting(Surface& inner, const Surface& outer, double clear
       MatX3d next = inner.vertices;
       for (Eigen::Index i = 0; i < n; ++i) {
         const auto u = static_cast<std::size_t>(i);
-        if (!relax[u] || ring[u].empty()) continue;
+        if (!relax[u] || ring[u].empty() || in_cap[u]) continue;  // a cap stays flat (remesh finds the limb's axis by it)
         Eigen::RowVector3d mean = Eigen::RowVector3d::Zero();
         for (auto j : ring[u]) mean += inner.vertices.row(j);
         next.row(i) = mean / static_cast<double>(ring[u].size());
