@@ -344,6 +344,22 @@ void drop_small_components(Surface& s, std::vector<std::uint8_t>& fixed, double 
   if (flags) fixed = std::move(kept_fixed);
 }
 
+// The Gaussian's radius in voxels (its kernel spans -w..w): ceil(3 sigma),
+// at least 1; 0 without smoothing.
+int blur_radius(double sigma) { return sigma > 0 ? std::max(1, static_cast<int>(std::ceil(3 * sigma))) : 0; }
+
+// Coordinate (m) along axis k of volume index i, i in -1..n: -1 and n are the
+// padding beyond the volume's border, border_offset spacings outside it. The
+// padded grids and the cap planes both come from here, so a cap vertex
+// (half-way into the padding) lies on its plane exactly.
+double axis_coord(const Volume& v, const SurfaceOptions& o, int k, int i) {
+  const double s = v.spacing_m[static_cast<std::size_t>(k)], org = v.origin_m[static_cast<std::size_t>(k)];
+  const int n = k == 0 ? v.nx : k == 1 ? v.ny : v.nz;
+  if (i < 0) return org - o.border_offset * s;
+  if (i >= n) return org + (n - 1 + o.border_offset) * s;
+  return org + i * s;
+}
+
 // The solid's indicator on the padded grid, holes filled. Hole filling works
 // on runs: the maximal x-runs of non-solid voxels of every row, joined by a
 // union-find where runs of neighbouring rows (y +- 1, z +- 1) overlap; the
@@ -394,11 +410,8 @@ Grid build_solid(const Volume& v, const std::vector<int>& labels, const SurfaceO
       g.n[k] = b - a + 3;
       auto& c = g.coord[static_cast<std::size_t>(k)];
       c.resize(static_cast<std::size_t>(g.n[k]));
-      const double s = v.spacing_m[static_cast<std::size_t>(k)], org = v.origin_m[static_cast<std::size_t>(k)];
-      for (int p = 0; p < g.n[k]; ++p) c[static_cast<std::size_t>(p)] = org + (a + p - 1) * s;
+      for (int p = 0; p < g.n[k]; ++p) c[static_cast<std::size_t>(p)] = axis_coord(v, o, k, a + p - 1);
       g.cap_lo[k] = a == 0, g.cap_hi[k] = b == nv[k] - 1;
-      if (g.cap_lo[k]) c.front() = org - o.border_offset * s;
-      if (g.cap_hi[k]) c.back() = org + (b + o.border_offset) * s;
     }
   }
   // the indicator, the first and last 1 of every row, and the runs of 0s
@@ -546,7 +559,7 @@ struct SmoothField {
 void smooth_field(const Grid& g, double sigma, double iso, SmoothField& out) {
   const int NX = g.n[0], NY = g.n[1], NZ = g.n[2];
   const std::size_t R = g.rows(), cells = R * static_cast<std::size_t>(NX);
-  const int w = std::max(1, static_cast<int>(std::ceil(3 * sigma)));
+  const int w = blur_radius(sigma);
   std::vector<float> k(static_cast<std::size_t>(2 * w + 1));
   double ks = 0;
   for (int i = -w; i <= w; ++i) ks += std::exp(-0.5 * i * i / (sigma * sigma));
@@ -1365,17 +1378,13 @@ MatX3d surface_samples(const Surface& s) {
 // ---- the pipeline ------------------------------------------------------------------------------------
 
 std::vector<CapPlane> cap_planes(const Volume& v, const SurfaceOptions& o) {
-  // as build_solid lays the padded coordinates and march places a cap vertex
-  // (half-way into the padding), operation for operation: the cap vertices
-  // lie on these values exactly
+  // half-way into the padding, as march places a cap vertex
   std::vector<CapPlane> planes;
-  const int nv[3] = {v.nx, v.ny, v.nz};
   for (int k = 0; k < 3; ++k) {
-    const double sp = v.spacing_m[static_cast<std::size_t>(k)], org = v.origin_m[static_cast<std::size_t>(k)];
-    const int b = nv[k] - 1;
-    const double reach = ((o.sigma_vox > 0 ? std::ceil(3 * o.sigma_vox) : 0) + 1) * sp;
-    planes.push_back({k, 0.5 * ((org - o.border_offset * sp) + (org + 0 * sp)), reach});
-    planes.push_back({k, 0.5 * ((org + b * sp) + (org + (b + o.border_offset) * sp)), reach});
+    const int n = k == 0 ? v.nx : k == 1 ? v.ny : v.nz;
+    const double reach = (blur_radius(o.sigma_vox) + 1) * v.spacing_m[static_cast<std::size_t>(k)];
+    planes.push_back({k, 0.5 * (axis_coord(v, o, k, -1) + axis_coord(v, o, k, 0)), reach});
+    planes.push_back({k, 0.5 * (axis_coord(v, o, k, n - 1) + axis_coord(v, o, k, n)), reach});
   }
   return planes;
 }
@@ -1396,7 +1405,7 @@ SurfaceResult extract_surface(const Volume& v, const std::vector<int>& solid_lab
   SurfaceResult res;
   SurfaceMetrics& m = res.metrics;
   auto t0 = Clock::now();
-  const int w = o.sigma_vox > 0 ? std::max(1, static_cast<int>(std::ceil(3 * o.sigma_vox))) : 0;
+  const int w = blur_radius(o.sigma_vox);
   // with a parent, a margin of 2w + 1: the parent's field within w of this
   // solid then comes from the parent's voxels, not from the box's border
   const bool gap = !parent_labels.empty() && o.nest_gap_vox > 0 && o.sigma_vox > 0;
