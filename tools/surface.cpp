@@ -76,7 +76,7 @@ void add_surface_command(CLI::App& app) {
   sub->add_option("--min-component-voxels", a.min_component_voxels,
                   "drop surface components enclosing fewer voxels (noise specks; the largest is kept; 0: keep all)")
       ->capture_default_str();
-  sub->add_flag("--no-self-intersection-check", a.no_self_check, "skip the CGAL self-intersection count");
+  sub->add_flag("--no-self-intersection-check", a.no_self_check, "skip the CGAL self-intersection count (and so the untangling of the outermost surfaces)");
   sub->add_option("--threads", a.threads, "worker threads (0: all cores)")->capture_default_str();
   add_common_options(sub, a.common);
 
@@ -207,6 +207,40 @@ void add_surface_command(CLI::App& app) {
       }
     }
 
+    // ---- untangling the outermost surfaces -----------------------------------------------------
+    // Nothing nests them, so nothing else relaxes their folds (a thin, torn
+    // skin). Found by the extraction's own self-intersection test, so a surface
+    // without folds costs nothing here (with --no-self-intersection-check none is
+    // looked for, so none is untangled).
+    // A surface that changed after extraction is checked again (its extraction
+    // figures kept).
+    auto check = [&](std::size_t i) {
+      const auto t0 = std::chrono::steady_clock::now();
+      const SurfaceMetrics before = results[i].metrics;
+      SurfaceMetrics m = check_surface(results[i].surface, o.check_self_intersections);
+      m.extracted_faces = before.extracted_faces;
+      m.solid_voxels = before.solid_voxels;
+      m.filled_voxels = before.filled_voxels;
+      m.smooth_volume_change = before.smooth_volume_change;
+      m.dropped_components = before.dropped_components;
+      m.gap_samples = before.gap_samples;
+      m.dropped_volume_m3 = before.dropped_volume_m3;
+      m.solid_s = before.solid_s, m.field_s = before.field_s, m.extract_s = before.extract_s;
+      m.smooth_s = before.smooth_s, m.decimate_s = before.decimate_s;
+      m.check_s = before.check_s + std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+      results[i].metrics = m;
+    };
+    const std::vector<CapPlane> caps = cap_planes(v, o);
+    std::vector<FoldsResult> unfolded(names.size());
+    {
+      Phase p(report, "untangle");
+      tbb::parallel_for(std::size_t{0}, names.size(), [&](std::size_t i) {
+        if (outer[i] != none || results[i].metrics.self_intersections <= 0) return;
+        unfolded[i] = untangle_surface(results[i].surface, caps);
+        check(i);
+      });
+    }
+
     // ---- nesting: each surface strictly inside its parent's, outermost first ----------------------
     // Nesting is a chain (muscle inside the final fat, fat inside the final
     // skin), but a surface that nesting does not move is final as extracted.
@@ -231,24 +265,7 @@ void add_surface_command(CLI::App& app) {
         return depth(v.label_of(names[x])) < depth(v.label_of(names[y]));
       });
       const double clearance = o.nest_clearance_vox * std::min({v.spacing_m[0], v.spacing_m[1], v.spacing_m[2]});
-      const std::vector<CapPlane> caps = cap_planes(v, o);
       tbb::task_group checks;
-      auto check = [&](std::size_t i) {
-        const auto t0 = std::chrono::steady_clock::now();
-        const SurfaceMetrics before = results[i].metrics;
-        SurfaceMetrics m = check_surface(results[i].surface, o.check_self_intersections);
-        m.extracted_faces = before.extracted_faces;
-        m.solid_voxels = before.solid_voxels;
-        m.filled_voxels = before.filled_voxels;
-        m.smooth_volume_change = before.smooth_volume_change;
-        m.dropped_components = before.dropped_components;
-        m.gap_samples = before.gap_samples;
-        m.dropped_volume_m3 = before.dropped_volume_m3;
-        m.solid_s = before.solid_s, m.field_s = before.field_s, m.extract_s = before.extract_s;
-        m.smooth_s = before.smooth_s, m.decimate_s = before.decimate_s;
-        m.check_s = before.check_s + std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
-        results[i].metrics = m;
-      };
       std::vector<Surface> nested(names.size());
       tbb::parallel_for(std::size_t{0}, names.size(), [&](std::size_t i) {
         if (outer[i] == none) return;
@@ -276,6 +293,12 @@ void add_surface_command(CLI::App& app) {
       }
       checks.wait();
     }
+
+    // an outermost tissue's untangling is reported where a nested one's is
+    for (std::size_t i = 0; i < names.size(); ++i)
+      if (outer[i] == none)
+        nesting[i].folds = unfolded[i].folds, nesting[i].untangle_rounds = unfolded[i].untangle_rounds,
+        nesting[i].folds_left = unfolded[i].folds_left;
 
     // ---- outputs: the directory, then the model ------------------------------------------------
     {

@@ -268,6 +268,20 @@ std::vector<CapPlane> cap_planes(const Volume& v, const SurfaceOptions& o);
 NestingResult enforce_nesting(Surface& inner, const Surface& outer, double clearance_m,
                               const std::vector<CapPlane>& caps = {}, bool cap_folds = true);
 
+// Untangles an outermost surface (one no nesting moves: the skin): the
+// faces that intersect others (CGAL, over the whole surface), and those
+// within two rings of them, are relaxed as enforce_nesting relaxes its folds,
+// in rounds until none intersect; the vertices on one of `caps` stay (a cap
+// stays flat). Smoothing folds a thin, torn shell where it meets itself: the
+// real crop's skin as 8 slices had 196 intersecting face pairs. Untangle it
+// before nesting the tissues inside it. Deterministic.
+struct FoldsResult {
+  std::int64_t folds = 0;      // intersecting face pairs before
+  int untangle_rounds = 0;     // rounds of relaxing them
+  std::int64_t folds_left = 0; // pairs near relaxed vertices after them (0 unless the rounds ran out)
+};
+FoldsResult untangle_surface(Surface& s, const std::vector<CapPlane>& caps);
+
 // Unsigned distance (m) from each point (n x 3, m) to the surface's
 // triangles (CGAL AABB tree), in parallel. For accuracy tests and reports.
 VecXd distance_to_surface(const Surface& s, const MatX3d& points);

@@ -142,6 +142,105 @@ class RegularisedGarlandHeckbert
   using Base::operator();
 };
 
+// The vertices each vertex shares an edge with (sorted, unique).
+std::vector<std::vector<std::int32_t>> vertex_rings(const Surface& s) {
+  std::vector<std::vector<std::int32_t>> ring(static_cast<std::size_t>(s.vertices.rows()));
+  for (Eigen::Index f = 0; f < s.faces.rows(); ++f)
+    for (int k = 0; k < 3; ++k) {
+      const std::int32_t a = s.faces(f, k), b = s.faces(f, (k + 1) % 3);
+      ring[static_cast<std::size_t>(a)].push_back(b);
+      ring[static_cast<std::size_t>(b)].push_back(a);
+    }
+  for (auto& r : ring) {
+    std::sort(r.begin(), r.end());
+    r.erase(std::unique(r.begin(), r.end()), r.end());
+  }
+  return ring;
+}
+
+struct Untangled {
+  std::int64_t folds = 0;  // intersecting pairs in the first test
+  int rounds = 0;          // rounds of relaxing
+  std::int64_t left = 0;   // pairs in the last test
+};
+
+// Untangles the folds of `s` near `seeds` (one flag per vertex): the faces
+// within two rings of a seed are tested for intersecting pairs (CGAL); the
+// vertices of those faces and their neighbours are relaxed (each to the mean
+// of its neighbours, Jacobi, so the result does not depend on an order) and
+// handed to keep(i) (a constraint: the nesting's move back inside), and the
+// faces near them join the test; in rounds until none intersect (at most 20,
+// and none after 3 that left more folds than the fewest so far: on a broken
+// real segmentation (1.5 M faces, a thin, torn skin) the count fell from
+// 13 138 to ~1 100 in 6 rounds and then wandered for 14 more, 6-20 s each,
+// before the stage failed anyway). Vertices flagged in `held` stay (a flat
+// border cap: remesh finds the limb's axis by it). Without test_held, faces
+// with all three corners held are not tested (flat, and where every vertex
+// within a cap's reach is a seed their coplanar neighbours made most of the
+// test's cost; keep must then hold the vertices off the caps). Only surfaces
+// with such a fold change.
+template <class Keep>
+Untangled untangle(Surface& s, const std::vector<std::uint8_t>& seeds, const std::vector<std::uint8_t>& held, bool test_held,
+                   Keep&& keep) {
+  Untangled res;
+  const Eigen::Index n = s.vertices.rows();
+  const std::vector<std::vector<std::int32_t>> ring = vertex_rings(s);
+  std::vector<std::uint8_t> near(static_cast<std::size_t>(n), 0);
+  for (Eigen::Index i = 0; i < n; ++i)
+    if (seeds[static_cast<std::size_t>(i)]) {
+      near[static_cast<std::size_t>(i)] = 1;
+      for (auto j : ring[static_cast<std::size_t>(i)]) {
+        near[static_cast<std::size_t>(j)] = 1;
+        for (auto k : ring[static_cast<std::size_t>(j)]) near[static_cast<std::size_t>(k)] = 1;
+      }
+    }
+  std::int64_t fewest = -1;
+  int since_fewest = 0;
+  for (int round = 0; round < 20 && since_fewest < 3; ++round) {
+    const Mesh im = to_mesh(s, "untangling");
+    std::vector<Mesh::Face_index> range;
+    for (auto f : im.faces()) {
+      bool any = false, cap_face = true;
+      for (auto v : CGAL::vertices_around_face(im.halfedge(f), im))
+        any = any || near[v.idx()], cap_face = cap_face && held[v.idx()];
+      if (any && (test_held || !cap_face)) range.push_back(f);
+    }
+    std::vector<std::pair<Mesh::Face_index, Mesh::Face_index>> pairs;
+    CGAL::Polygon_mesh_processing::self_intersections(range, im, std::back_inserter(pairs));
+    res.left = static_cast<std::int64_t>(pairs.size());
+    if (pairs.empty()) break;
+    if (fewest < 0 || res.left < fewest) fewest = res.left, since_fewest = 0;
+    else ++since_fewest;
+    if (since_fewest >= 3) break;  // (the test left; no more relaxing)
+    if (round == 0) res.folds = res.left;
+    ++res.rounds;
+    std::vector<std::uint8_t> relax(static_cast<std::size_t>(n), 0);
+    for (const auto& [f1, f2] : pairs)
+      for (auto f : {f1, f2})
+        for (int k = 0; k < 3; ++k) {
+          const auto v = static_cast<std::size_t>(s.faces(static_cast<Eigen::Index>(f.idx()), k));
+          relax[v] = 1;
+          for (auto j : ring[v]) relax[static_cast<std::size_t>(j)] = 1;
+        }
+    MatX3d next = s.vertices;
+    for (Eigen::Index i = 0; i < n; ++i) {
+      const auto u = static_cast<std::size_t>(i);
+      if (!relax[u] || ring[u].empty() || held[u]) continue;
+      Eigen::RowVector3d mean = Eigen::RowVector3d::Zero();
+      for (auto j : ring[u]) mean += s.vertices.row(j);
+      next.row(i) = mean / static_cast<double>(ring[u].size());
+    }
+    s.vertices = next;
+    for (Eigen::Index i = 0; i < n; ++i)
+      if (relax[static_cast<std::size_t>(i)]) {
+        near[static_cast<std::size_t>(i)] = 1;
+        keep(i);
+      }
+  }
+  return res;
+}
+
+
 }  // namespace
 
 Surface decimate_surface(const Surface& s, std::int64_t target_faces, DecimationCost cost, bool bounded_normal_change) {
@@ -269,15 +368,11 @@ NestingResult enforce_nesting(Surface& inner, const Surface& outer, double clear
   // Untangle. Neighbouring vertices moved onto the closest points of a curved
   // outer surface can fold the inner one over itself: the phantom at noise 4
   // on 1.2 x 0.8 x 3.5 mm voxels left 6 intersecting face pairs in the bone
-  // after its 531 vertices were moved inside the muscle. Where faces within two
-  // rings of a moved vertex intersect, the vertices of those faces and their
-  // neighbours are relaxed (each to the mean of its neighbours), kept inside
-  // (the move above again), in rounds until none intersect (at most 20). Only
-  // surfaces with such a fold change.
-  // inner's vertices within a cap's reach, where it folds on thin stacks (the
-  // caps of a surface that does not reach the border lie beyond it: none)
-  // (the cap faces themselves, flat and held, are not tested: their coplanar
-  // neighbours made most of the test's cost)
+  // after its 531 vertices were moved inside the muscle. The folds near the
+  // moved vertices, and near inner's vertices within a cap's reach (where it
+  // folds on thin stacks; the caps of a surface that does not reach the
+  // border lie beyond it: none), are relaxed and kept inside (the move above
+  // again): untangle.
   std::vector<std::uint8_t> on_plane(static_cast<std::size_t>(n), 0), in_cap(static_cast<std::size_t>(n), 0);
   if (cap_folds)
     for (const CapPlane& pl : caps) {
@@ -288,76 +383,11 @@ NestingResult enforce_nesting(Surface& inner, const Surface& outer, double clear
         for (Eigen::Index i = 0; i < n; ++i)
           if (std::abs(inner.vertices(i, pl.axis) - pl.at) <= pl.reach) on_plane[static_cast<std::size_t>(i)] = 1;
     }
-  if (std::find(moved.begin(), moved.end(), 1) != moved.end() ||
-      std::find(on_plane.begin(), on_plane.end(), 1) != on_plane.end()) {
-    std::vector<std::vector<std::int32_t>> ring(static_cast<std::size_t>(n));
-    for (Eigen::Index f = 0; f < inner.faces.rows(); ++f)
-      for (int k = 0; k < 3; ++k) {
-        const std::int32_t a = inner.faces(f, k), b = inner.faces(f, (k + 1) % 3);
-        ring[static_cast<std::size_t>(a)].push_back(b);
-        ring[static_cast<std::size_t>(b)].push_back(a);
-      }
-    for (auto& r : ring) {
-      std::sort(r.begin(), r.end());
-      r.erase(std::unique(r.begin(), r.end()), r.end());
-    }
-    // the faces within two rings of the moved vertices (and of the cap vertices)
-    std::vector<std::uint8_t> near(static_cast<std::size_t>(n), 0);
-    for (Eigen::Index i = 0; i < n; ++i)
-      if (moved[static_cast<std::size_t>(i)] || on_plane[static_cast<std::size_t>(i)]) {
-        near[static_cast<std::size_t>(i)] = 1;
-        for (auto j : ring[static_cast<std::size_t>(i)]) {
-          near[static_cast<std::size_t>(j)] = 1;
-          for (auto k : ring[static_cast<std::size_t>(j)]) near[static_cast<std::size_t>(k)] = 1;
-        }
-      }
-    // at most 20 rounds, and none after 3 that left more folds than the fewest
-    // so far: on a broken real segmentation (1.5 M faces, a thin, torn skin) the
-    // count fell from 13 138 to ~1 100 in 6 rounds and then wandered for 14 more,
-    // 6-20 s each, before the stage failed anyway
-    std::int64_t fewest = -1;
-    int since_fewest = 0;
-    for (int round = 0; round < 20 && since_fewest < 3; ++round) {
-      const Mesh im = to_mesh(inner, "nesting");
-      std::vector<Mesh::Face_index> range;
-      for (auto f : im.faces()) {
-        bool any = false, cap_face = true;
-        for (auto v : CGAL::vertices_around_face(im.halfedge(f), im))
-          any = any || near[v.idx()], cap_face = cap_face && in_cap[v.idx()];
-        if (any && !cap_face) range.push_back(f);
-      }
-      std::vector<std::pair<Mesh::Face_index, Mesh::Face_index>> pairs;
-      CGAL::Polygon_mesh_processing::self_intersections(range, im, std::back_inserter(pairs));
-      res.folds_left = static_cast<std::int64_t>(pairs.size());
-      if (pairs.empty()) break;
-      if (fewest < 0 || res.folds_left < fewest) fewest = res.folds_left, since_fewest = 0;
-      else ++since_fewest;
-      if (since_fewest >= 3) break;  // (the test left; no more relaxing)
-      if (round == 0) res.folds = res.folds_left;
-      ++res.untangle_rounds;
-      std::vector<std::uint8_t> relax(static_cast<std::size_t>(n), 0);
-      for (const auto& [f1, f2] : pairs)
-        for (auto f : {f1, f2})
-          for (int k = 0; k < 3; ++k) {
-            const auto v = static_cast<std::size_t>(inner.faces(static_cast<Eigen::Index>(f.idx()), k));
-            relax[v] = 1;
-            for (auto j : ring[v]) relax[static_cast<std::size_t>(j)] = 1;
-          }
-      MatX3d next = inner.vertices;
-      for (Eigen::Index i = 0; i < n; ++i) {
-        const auto u = static_cast<std::size_t>(i);
-        if (!relax[u] || ring[u].empty() || in_cap[u]) continue;  // a cap stays flat (remesh finds the limb's axis by it)
-        Eigen::RowVector3d mean = Eigen::RowVector3d::Zero();
-        for (auto j : ring[u]) mean += inner.vertices.row(j);
-        next.row(i) = mean / static_cast<double>(ring[u].size());
-      }
-      inner.vertices = next;
-      for (Eigen::Index i = 0; i < n; ++i)
-        if (relax[static_cast<std::size_t>(i)]) {
-          near[static_cast<std::size_t>(i)] = 1;
-          fix(i);
-        }
-    }
+  std::vector<std::uint8_t> seeds(static_cast<std::size_t>(n), 0);
+  for (std::size_t u = 0; u < seeds.size(); ++u) seeds[u] = moved[u] || on_plane[u];
+  if (std::find(seeds.begin(), seeds.end(), 1) != seeds.end()) {
+    const Untangled t = untangle(inner, seeds, in_cap, false, fix);
+    res.folds = t.folds, res.untangle_rounds = t.rounds, res.folds_left = t.left;
   }
   for (Eigen::Index i = 0; i < n; ++i) {
     const auto u = static_cast<std::size_t>(i);
@@ -369,6 +399,32 @@ NestingResult enforce_nesting(Surface& inner, const Surface& outer, double clear
       ++res.still_outside;
   }
   for (auto c : on_cap) res.on_cap += c;
+  return res;
+}
+
+FoldsResult untangle_surface(Surface& s, const std::vector<CapPlane>& caps) {
+  FoldsResult res;
+  const Eigen::Index n = s.vertices.rows();
+  if (n == 0) return res;
+  std::vector<std::pair<Mesh::Face_index, Mesh::Face_index>> pairs;
+  {
+    const Mesh m = to_mesh(s, "untangling");
+    CGAL::Polygon_mesh_processing::self_intersections(faces(m), m, std::back_inserter(pairs));
+  }
+  if (pairs.empty()) return res;
+  std::vector<std::uint8_t> seeds(static_cast<std::size_t>(n), 0), held(static_cast<std::size_t>(n), 0);
+  for (const auto& [f1, f2] : pairs)
+    for (auto f : {f1, f2})
+      for (int k = 0; k < 3; ++k) seeds[static_cast<std::size_t>(s.faces(static_cast<Eigen::Index>(f.idx()), k))] = 1;
+  const Eigen::RowVector3d lo = s.vertices.colwise().minCoeff(), hi = s.vertices.colwise().maxCoeff();
+  const double tol = 1e-9 * (hi - lo).maxCoeff();  // as enforce_nesting's
+  for (const CapPlane& pl : caps)
+    for (Eigen::Index i = 0; i < n; ++i)
+      if (std::abs(s.vertices(i, pl.axis) - pl.at) <= tol) held[static_cast<std::size_t>(i)] = 1;
+  // (the seeds are the faces of the pairs, few: the cap faces among them are
+  // tested, since nothing keeps a relaxed rim vertex off its cap's plane)
+  const Untangled t = untangle(s, seeds, held, true, [](Eigen::Index) {});
+  res.folds = static_cast<std::int64_t>(pairs.size()), res.untangle_rounds = t.rounds, res.folds_left = t.left;
   return res;
 }
 

@@ -4,6 +4,7 @@
 // real cryosection, and every bad input through the CLI.
 #include "libmodel/phantom/phantom.h"
 #include "libmodel/segment/segment.h"
+#include "tests/libmodel/real_stack.h"
 #include "tests/test_util.h"
 
 #include <gtest/gtest.h>
@@ -594,20 +595,8 @@ TEST(SegmentCleanup, ATissueInAVesselStaysInIt) {
 TEST(SegmentReal, MisregisteredSlicesKeepTheBoneInPlace) {
   const std::string dir = std::string(ORTHOSIM_SOURCE_DIR) + "/data-samples/real";
   const TissueTable table = load_tissue_table(dir + "/tissues.json");
-  const RgbImage crop = read_slice(dir + "/vhp-f-1432a-arm.png");
-  const std::array<std::array<int, 2>, 8> shift{{{0, 0}, {1, -1}, {2, 1}, {-1, 2}, {-2, 0}, {0, -2}, {1, 2}, {-1, -1}}};
   test::TempDir stack("segreal3");
-  for (std::size_t z = 0; z < shift.size(); ++z) {
-    RgbImage s = crop;
-    for (int y = 0; y < crop.ny; ++y)
-      for (int x = 0; x < crop.nx; ++x) {
-        const int sx = std::clamp(x - shift[z][0], 0, crop.nx - 1), sy = std::clamp(y - shift[z][1], 0, crop.ny - 1);
-        for (int c = 0; c < 3; ++c)
-          s.rgb[static_cast<std::size_t>((y * crop.nx + x) * 3 + c)] =
-              crop.rgb[static_cast<std::size_t>((sy * crop.nx + sx) * 3 + c)];
-      }
-    write_png((stack.path / (std::string("s") + static_cast<char>('0' + z) + ".png")).string(), s);
-  }
+  test::write_shifted_arm_crop(stack.path, test::arm_crop_shifts());
   SegmentOptions o;
   o.spacing_m = {0.33e-3, 0.33e-3, 0.33e-3};
   SegmentMetrics m;

@@ -9,6 +9,7 @@
 #include "libmodel/phantom/phantom.h"
 #include "libmodel/remesh/remesh.h"
 #include "libmodel/surface/surface.h"
+#include "tests/libmodel/real_stack.h"
 #include "tests/test_util.h"
 
 #include <gtest/gtest.h>
@@ -851,6 +852,64 @@ TEST(SurfaceCli, FoldsNextToTheCapsAreUntangled) {
   EXPECT_GT(fat["nesting"]["folds"].get<std::int64_t>(), 0) << "the test needs folds";
   for (const std::string t : {"fat", "muscle", "bone"})
     EXPECT_EQ(rep["metrics"]["tissues"][t]["self_intersections"].get<std::int64_t>(), 0) << t;
+}
+
+// Nothing nests the outermost surface, so nothing relaxed its folds: where
+// a thin, torn skin meets itself smoothing folds it, and it stayed folded.
+// The real crop's upper edge (x 90-150, y 0-50 pixels) as the 8 misregistered
+// slices of SegmentReal gave a skin with 19 intersecting face pairs (the
+// whole crop 7, halved 196). The outermost surfaces are now untangled as the
+// nested ones are: here in one round, every vertex on a cap held on it, no
+// vertex moved by more than a voxel, and the fat nested in the result.
+TEST(SurfaceCli, TheOutermostSurfaceIsUntangled) {
+  test::TempDir d("surface-skinfolds");
+  fs::create_directories(d.path / "slices");
+  test::write_shifted_arm_crop(d.path / "slices", test::arm_crop_shifts(), 90, 0, 60, 50);
+  const std::string table = std::string(ORTHOSIM_SOURCE_DIR) + "/data-samples/real/tissues.json";
+  const double voxel = 0.33e-3;
+  ASSERT_EQ(test::run_cli("segment --stack " + (d / "slices") + " --tissues " + table +
+                          " --spacing 0.33,0.33,0.33 --out " + (d / "seg.h5") + " --quiet")
+                .code,
+            0);
+  const std::string surface = "surface --labels " + (d / "seg.h5") + " --tissue-table " + table + " --quiet";
+  // the surfaces as extracted: without the self-intersection test no fold is found, so none untangled
+  ASSERT_EQ(test::run_cli(surface + " --out " + (d / "plain") + " --no-self-intersection-check").code, 0);
+  const test::RunResult r = test::run_cli(surface + " --out " + (d / "stl") + " --report " + (d / "r.json"));
+  ASSERT_EQ(r.code, 0) << r.err;
+  const nlohmann::json rep = nlohmann::json::parse(test::read_file(d / "r.json"));
+  const auto& skin = rep["metrics"]["tissues"]["skin"];
+  std::printf("  skin: folds %lld, untangled in %d round(s); self-intersections %lld\n",
+              static_cast<long long>(skin["nesting"]["folds"].get<std::int64_t>()), skin["nesting"]["untangle_rounds"].get<int>(),
+              static_cast<long long>(skin["self_intersections"].get<std::int64_t>()));
+  ASSERT_GT(skin["nesting"]["folds"].get<std::int64_t>(), 0) << "the test needs a folded skin";
+  EXPECT_EQ(skin["nesting"]["folds_left"].get<std::int64_t>(), 0);
+  for (const auto& [t, j] : rep["metrics"]["tissues"].items()) EXPECT_EQ(j["self_intersections"].get<std::int64_t>(), 0) << t;
+  EXPECT_EQ(r.err.find("self-intersecting"), std::string::npos) << r.err;
+  // the same mesh, a few vertices moved, each by less than a voxel; the caps held
+  const Surface before = read_stl(d / "plain/skin.stl"), after = read_stl(d / "stl/skin.stl");
+  ASSERT_EQ(before.faces, after.faces);
+  ASSERT_EQ(before.vertices.rows(), after.vertices.rows());
+  Volume v;
+  v.nx = 60, v.ny = 50, v.nz = 8, v.spacing_m = {voxel, voxel, voxel};
+  const std::vector<CapPlane> caps = cap_planes(v, SurfaceOptions{});
+  Eigen::Index moved = 0, on_caps = 0;
+  double largest = 0;
+  for (Eigen::Index i = 0; i < before.vertices.rows(); ++i) {
+    const double m = (after.vertices.row(i) - before.vertices.row(i)).norm();
+    moved += m > 0;
+    largest = std::max(largest, m);
+    for (const CapPlane& p : caps)
+      if (std::abs(before.vertices(i, p.axis) - p.at) < 1e-8) {
+        ++on_caps;
+        EXPECT_EQ(m, 0) << "cap vertex " << i;
+      }
+  }
+  std::printf("  skin: %lld of %lld vertices moved, at most %.3f voxel; %lld on caps\n", static_cast<long long>(moved),
+              static_cast<long long>(before.vertices.rows()), largest / voxel, static_cast<long long>(on_caps));
+  EXPECT_GT(moved, 0);
+  EXPECT_LT(moved, before.vertices.rows() / 20);
+  EXPECT_LT(largest, voxel);
+  EXPECT_GT(on_caps, 0);
 }
 
 // Clamping the vertices next to a cap onto its plane (tried to the same end)
