@@ -165,11 +165,21 @@ std::vector<std::int32_t> wound_wall_triangles(const WoundColumns& w) {
 }
 
 bool segment_crosses_triangle(const Vec3& p, const Vec3& q, const Vec3& a, const Vec3& b, const Vec3& c, Real* t_out) {
+  // Half-open: the ends' sides of the triangle's plane must differ, a point
+  // on the plane counting as behind it. So of the springs of a node the blade
+  // passes through, only those to the front are crossed: the node stays with
+  // the tissue behind the blade (closed intervals cut both sides' springs and
+  // opened the quads on both sides, a zigzag along a polyline through nodes).
+  // The side of a point is one orientation sign per triangle, the same for
+  // every segment that ends there. Coplanar triangles of the blade agree when
+  // the point lies exactly in their plane, as the nodes of a grid line do.
+  const Real sp = orient(a, b, c, p), sq = orient(a, b, c, q);
+  if ((sp > 0) == (sq > 0)) return false;  // one side, or parallel, or a degenerate triangle (both 0)
   const Vec3 dir = q - p, e1 = b - a, e2 = c - a;
   const Vec3 h = cross(dir, e2);
   const Real det = dot(e1, h);
   const Real scale = norm(e1) * norm(e2) * norm(dir);
-  if (!(std::abs(det) > 1e-14 * scale)) return false;  // parallel, or a degenerate triangle or segment
+  if (!(std::abs(det) > 1e-14 * scale)) return false;  // (nearly) parallel, or a degenerate triangle or segment
   const Real inv = 1 / det;
   const Vec3 s = p - a;
   const Real u = inv * dot(s, h);
@@ -177,9 +187,7 @@ bool segment_crosses_triangle(const Vec3& p, const Vec3& q, const Vec3& a, const
   const Vec3 qv = cross(s, e1);
   const Real v = inv * dot(dir, qv);
   if (v < 0 || u + v > 1) return false;
-  const Real t = inv * dot(e2, qv);
-  if (t < 0 || t > 1) return false;
-  if (t_out) *t_out = t;
+  if (t_out) *t_out = std::clamp(sp / (sp - sq), Real(0), Real(1));
   return true;
 }
 

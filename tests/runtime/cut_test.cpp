@@ -100,6 +100,50 @@ TEST(Cut, SeversExactlyTheSpringsAcrossTheBlade) {
   EXPECT_TRUE(r.vessel_hits.empty());
 }
 
+// A blade through a column of nodes (x = 7 h exactly, where the last test
+// cut between two). The crossing test counted a segment touching the blade
+// at an end as crossing, so every spring of a node on the blade was cut, on
+// both sides: the nodes the blade passed through were detached and the quads
+// on both sides of them opened, two columns of the wound (a zigzag where a
+// polyline crosses the grid lines at nodes). Now a node on the blade counts as
+// lying on one side of it (the segment test is half-open): it keeps the
+// springs to that side, and the cut opens one column, as between two.
+TEST(Cut, ABladeThroughNodesOpensOneColumn) {
+  const Real h = 4e-3, depth = 4e-3;
+  auto cut_at = [&](Real xc, Model& m) {
+    CutDef d;
+    d.polyline = {{xc, 0, -0.01}, {xc, 0, 0.03}};
+    d.direction = {0, 1, 0};
+    d.depth = depth;
+    return cut_model(m, std::vector<Real>(m.rest_x), d);
+  };
+  Model between = block(15, 5, 4), through = block(15, 5, 4);
+  const Model before = through;
+  const CutReport rb = cut_at(7.5 * h, between), rt = cut_at(7 * h, through);
+  std::printf("  between node columns: %d springs, %d quads; through one: %d springs, %d quads, %zu nodes detached\n",
+              rb.springs_cut, rb.quads_removed, rt.springs_cut, rt.quads_removed, rt.detached.size());
+  EXPECT_TRUE(rt.detached.empty());
+  EXPECT_EQ(rt.quads_removed, rb.quads_removed);
+  // the springs of the nodes on the blade: cut towards one side only
+  const Real xc = 7 * h;
+  const auto kept = spring_pairs(through);
+  int cut_left = 0, cut_right = 0, kept_left = 0, kept_right = 0;
+  for (std::int32_t s = 0; s < before.n_springs; ++s) {
+    const Vec3 a = load3(before.rest_x.data(), before.spring_a[s]), b = load3(before.rest_x.data(), before.spring_b[s]);
+    const bool a_on = a.x == xc, b_on = b.x == xc;
+    if (a_on == b_on) continue;  // neither on the blade's plane, or both
+    const Vec3 on = a_on ? a : b, off = a_on ? b : a;
+    if (on.y > depth || on.z < -0.01 || on.z > 0.03) continue;  // the node is beyond the blade's extent
+    const bool cut = !kept.count({before.spring_a[s], before.spring_b[s]});
+    (off.x < xc ? (cut ? cut_left : kept_left) : (cut ? cut_right : kept_right))++;
+  }
+  std::printf("  springs of the nodes on the blade: cut %d left, %d right; kept %d left, %d right\n", cut_left, cut_right,
+              kept_left, kept_right);
+  EXPECT_GT(cut_left + cut_right, 0);
+  EXPECT_TRUE((cut_left == 0 && kept_right == 0) || (cut_right == 0 && kept_left == 0))
+      << "a node on the blade keeps the springs to one side and loses those to the other";
+}
+
 TEST(Cut, AutomaticDirectionPointsAtTheAxis) {
   // a long block: its principal axis runs along x through the centroid
   Model m = block(30, 3, 3);
