@@ -5,6 +5,7 @@
 #include <algorithm>
 #include <array>
 #include <cmath>
+#include <limits>
 #include <map>
 #include <utility>
 
@@ -27,14 +28,29 @@ struct Box {
   }
 };
 
-// the blade: two triangles per polyline segment
+bool crosses(const Vec3& p, const Vec3& q, const Vec3& a, const Vec3& b, const Vec3& c, Real* t_out, bool open_ac,
+             bool open_bc, bool touch = false);
+
+// the blade: two triangles per polyline segment. Its two end edges (the
+// polyline's first and last point swept along the direction) are open: a
+// spring that meets the blade only there, at a node the polyline ends on,
+// runs beside the slit's end rather than across it (closed, the wound ran a
+// quad past a snapped end).
 struct Blade {
   std::vector<std::array<Vec3, 3>> tris;
+  std::vector<std::array<bool, 2>> open;  // per triangle: edge a c, edge b c
   Box box;
   bool crosses(const Vec3& p, const Vec3& q, Real* t = nullptr) const {
     if (box.misses(p, q)) return false;
-    for (const auto& tr : tris)
-      if (segment_crosses_triangle(p, q, tr[0], tr[1], tr[2], t)) return true;
+    for (std::size_t i = 0; i < tris.size(); ++i)
+      if (runtime::crosses(p, q, tris[i][0], tris[i][1], tris[i][2], t, open[i][0], open[i][1])) return true;
+    return false;
+  }
+  // crosses, or ends on the blade (both sides' columns of a slit through nodes)
+  bool touches(const Vec3& p, const Vec3& q) const {
+    if (box.misses(p, q)) return false;
+    for (std::size_t i = 0; i < tris.size(); ++i)
+      if (runtime::crosses(p, q, tris[i][0], tris[i][1], tris[i][2], nullptr, open[i][0], open[i][1], true)) return true;
     return false;
   }
 };
@@ -45,8 +61,11 @@ Blade make_blade(const CutDef& def, const Vec3& d) {
   for (std::size_t i = 0; i + 1 < def.polyline.size(); ++i) {
     const Vec3 p0 = def.polyline[i] + back, p1 = def.polyline[i + 1] + back;
     const Vec3 q0 = def.polyline[i] + deep, q1 = def.polyline[i + 1] + deep;
-    b.tris.push_back({p0, p1, q1});
-    b.tris.push_back({p0, q1, q0});
+    const bool last = i + 2 == def.polyline.size();
+    b.tris.push_back({p0, p1, q1});  // edge b c: p1 q1, the end edge of the last segment
+    b.open.push_back({false, last});
+    b.tris.push_back({p0, q1, q0});  // edge a c: p0 q0, the start edge of the first segment
+    b.open.push_back({i == 0, false});
     for (const Vec3& p : {p0, p1, q0, q1}) b.box.add(p);
   }
   return b;
@@ -164,7 +183,13 @@ std::vector<std::int32_t> wound_wall_triangles(const WoundColumns& w) {
   return tri;
 }
 
-bool segment_crosses_triangle(const Vec3& p, const Vec3& q, const Vec3& a, const Vec3& b, const Vec3& c, Real* t_out) {
+namespace {
+
+// segment_crosses_triangle, with the triangle's edge a c (u = 0) and its edge
+// b c (u + v = 1) optionally left out (open); with touch, an end on the
+// triangle's plane (the other end off it) counts as crossing
+bool crosses(const Vec3& p, const Vec3& q, const Vec3& a, const Vec3& b, const Vec3& c, Real* t_out, bool open_ac,
+             bool open_bc, bool touch) {
   // Half-open: the ends' sides of the triangle's plane must differ, a point
   // on the plane counting as behind it. So of the springs of a node the blade
   // passes through, only those to the front are crossed: the node stays with
@@ -174,7 +199,9 @@ bool segment_crosses_triangle(const Vec3& p, const Vec3& q, const Vec3& a, const
   // every segment that ends there. Coplanar triangles of the blade agree when
   // the point lies exactly in their plane, as the nodes of a grid line do.
   const Real sp = orient(a, b, c, p), sq = orient(a, b, c, q);
-  if ((sp > 0) == (sq > 0)) return false;  // one side, or parallel, or a degenerate triangle (both 0)
+  if (touch ? (sp > 0 && sq > 0) || (sp < 0 && sq < 0) || (sp == 0 && sq == 0)
+            : (sp > 0) == (sq > 0))
+    return false;  // one side, or parallel, or a degenerate triangle (both 0)
   const Vec3 dir = q - p, e1 = b - a, e2 = c - a;
   const Vec3 h = cross(dir, e2);
   const Real det = dot(e1, h);
@@ -183,12 +210,18 @@ bool segment_crosses_triangle(const Vec3& p, const Vec3& q, const Vec3& a, const
   const Real inv = 1 / det;
   const Vec3 s = p - a;
   const Real u = inv * dot(s, h);
-  if (u < 0 || u > 1) return false;
+  if (u < 0 || u > 1 || (open_ac && !(u > 0))) return false;
   const Vec3 qv = cross(s, e1);
   const Real v = inv * dot(dir, qv);
-  if (v < 0 || u + v > 1) return false;
+  if (v < 0 || u + v > 1 || (open_bc && !(u + v < 1))) return false;
   if (t_out) *t_out = std::clamp(sp / (sp - sq), Real(0), Real(1));
   return true;
+}
+
+}  // namespace
+
+bool segment_crosses_triangle(const Vec3& p, const Vec3& q, const Vec3& a, const Vec3& b, const Vec3& c, Real* t_out) {
+  return crosses(p, q, a, b, c, t_out, false, false);
 }
 
 void validate(const CutDef& def) {
@@ -267,7 +300,53 @@ std::int32_t open_columns_at(WoundColumns& w, std::span<const Real> x, const std
   return opened;
 }
 
-CutReport cut_model(Model& m, std::span<const Real> x, const CutDef& def, WoundColumns* columns) {
+Carried carry_points(const Model& m, std::span<const Real> points, int k) {
+  Carried c;
+  const std::size_t n = points.size() / 3;
+  c.k = static_cast<int>(std::min<std::int64_t>(k, m.n_nodes));
+  c.rest.assign(points.begin(), points.begin() + static_cast<std::ptrdiff_t>(3 * n));
+  if (c.k <= 0) return c;
+  const auto kk = static_cast<std::size_t>(c.k);
+  c.node.resize(n * kk);
+  c.weight.resize(n * kk);
+  std::vector<std::pair<Real, std::int32_t>> d2(static_cast<std::size_t>(m.n_nodes));
+  for (std::size_t p = 0; p < n; ++p) {
+    const Vec3 q = load3(points.data(), static_cast<std::int64_t>(p));
+    for (std::int32_t i = 0; i < m.n_nodes; ++i) {
+      const Vec3 r = load3(m.rest_x.data(), i) - q;
+      d2[static_cast<std::size_t>(i)] = {dot(r, r), i};
+    }
+    // the k nearest, ties by index: the same choice on every machine
+    std::partial_sort(d2.begin(), d2.begin() + static_cast<std::ptrdiff_t>(kk), d2.end());
+    // s^2: a hundredth of the distance to the k-th nearest, squared
+    const Real s2 = 1e-4 * d2[kk - 1].first + std::numeric_limits<Real>::min();
+    Real sum = 0;
+    for (std::size_t j = 0; j < kk; ++j) sum += 1 / (d2[j].first + s2);
+    for (std::size_t j = 0; j < kk; ++j) {
+      c.node[p * kk + j] = d2[j].second;
+      c.weight[p * kk + j] = (1 / (d2[j].first + s2)) / sum;
+    }
+  }
+  return c;
+}
+
+std::vector<Real> carried_positions(const Carried& c, const Model& m, std::span<const Real> x) {
+  std::vector<Real> out(c.rest);
+  const std::size_t n = c.rest.size() / 3, kk = static_cast<std::size_t>(c.k);
+  for (std::size_t p = 0; p < n; ++p)
+    for (std::size_t j = 0; j < kk; ++j) {
+      const auto i = static_cast<std::size_t>(c.node[p * kk + j]);
+      const Real w = c.weight[p * kk + j];
+      for (std::size_t a = 0; a < 3; ++a) {
+        const Real u = x[3 * i + a] - m.rest_x[3 * i + a];
+        if (std::isfinite(u)) out[3 * p + a] += w * u;  // a non-finite node (never in a healthy state) does not carry
+      }
+    }
+  return out;
+}
+
+CutReport cut_model(Model& m, std::span<const Real> x, const CutDef& def, WoundColumns* columns,
+                    std::span<const std::vector<Real>> vessel_x) {
   CutReport rep;
   rep.direction = cut_direction(m, def);
   if (x.size() != 3 * static_cast<std::size_t>(m.n_nodes)) throw Error("", "cut: positions do not match the model");
@@ -317,13 +396,14 @@ CutReport cut_model(Model& m, std::span<const Real> x, const CutDef& def, WoundC
   m.quads.resize(4 * qkeep);
   m.n_quads = static_cast<std::int32_t>(qkeep);
 
-  // vessels (static centrelines, rest frame)
+  // vessels: their centrelines where the tissue has carried them (vessel_x), else at rest
   for (std::size_t vi = 0; vi < m.vessels.size(); ++vi) {
     auto& ves = m.vessels[vi];
+    const Real* vx = vi < vessel_x.size() && vessel_x[vi].size() == ves.nodes.size() ? vessel_x[vi].data() : ves.nodes.data();
     const std::size_t ne = ves.edges.size() / 2;
     for (std::size_t e = 0; e < ne; ++e) {
       const std::int32_t a = ves.edges[2 * e], b = ves.edges[2 * e + 1];
-      const Vec3 pa = load3(ves.nodes.data(), a), pb = load3(ves.nodes.data(), b);
+      const Vec3 pa = load3(vx, a), pb = load3(vx, b);
       Real t = 0;
       if (!blade.crosses(pa, pb, &t)) continue;
       if (ves.edge_cut.size() != ne) ves.edge_cut.assign(ne, 0);
@@ -335,6 +415,7 @@ CutReport cut_model(Model& m, std::span<const Real> x, const CutDef& def, WoundC
       VesselHit h;
       h.vessel = static_cast<int>(vi);
       h.edge = static_cast<std::int32_t>(e);
+      h.along = t;
       h.point = pa + t * (pb - pa);
       const Real len = norm(pb - pa);
       h.tangent = len > 0 ? (1 / len) * (pb - pa) : Vec3{0, 0, 0};
@@ -353,12 +434,17 @@ CutReport cut_model(Model& m, std::span<const Real> x, const CutDef& def, WoundC
         if (o) continue;
         std::array<Vec3, 4> t, b;
         column_corners(w, l, k, pos, t, b);
-        bool crossed = blade.crosses(t[0], t[2]) || blade.crosses(t[1], t[3]) || blade.crosses(b[0], b[2]) ||
-                       blade.crosses(b[1], b[3]);
+        // touches: a slit along the face between two columns (a blade through
+        // their shared nodes) opens both to the blood, though only one side's
+        // springs and quads go: the vessel's emitter lies on the slit, and
+        // with one column open half its jet ran into the closed one's walls
+        // (1 ms after the cut its fastest particle was 6 % past the Bernoulli speed)
+        bool crossed = blade.touches(t[0], t[2]) || blade.touches(t[1], t[3]) || blade.touches(b[0], b[2]) ||
+                       blade.touches(b[1], b[3]);
         for (int c = 0; c < 4 && !crossed; ++c) {
           const int d = (c + 1) % 4;
-          crossed = blade.crosses(t[c], t[d]) || blade.crosses(b[c], b[d]) || blade.crosses(t[c], b[c]) ||
-                    blade.crosses(t[c], b[d]) || blade.crosses(t[d], b[c]);
+          crossed = blade.touches(t[c], t[d]) || blade.touches(b[c], b[d]) || blade.touches(t[c], b[c]) ||
+                    blade.touches(t[c], b[d]) || blade.touches(t[d], b[c]);
         }
         if (crossed) o = 1, ++rep.columns_opened;
       }

@@ -207,7 +207,10 @@ ToolDef parse_tool(const json& j, std::size_t index, const std::string& file) {
     for (const auto& e : p) {
       if (!e.is_array() || e.size() != 3) o.fail(std::string(key) + " must be a list of [x, y, z]");
       for (const auto& x : e) {
-        if (!x.is_number() || !std::isfinite(x.get<Real>())) o.fail(std::string(key) + " values must be finite numbers");
+        // within +-1e9 m like every other vector (1e300 overflowed the blade's
+        // direction and was refused as "a polyline on the model's axis")
+        if (!x.is_number() || !std::isfinite(x.get<Real>()) || std::abs(x.get<Real>()) > 1e9)
+          o.fail(std::string(key) + " values must be finite numbers within +-1e9");
         if (t.polyline_relative && (x.get<Real>() < 0 || x.get<Real>() > 1)) o.fail("polyline_in_box fractions must be in [0, 1]");
         t.polyline.push_back(x.get<Real>());
       }
@@ -283,10 +286,13 @@ SceneDef parse_scene(const std::string& text, const std::string& file) {
     o.fail("layers is empty: name the layers to load, or leave the key out (or \"all\") for every layer");
   if (d.layers.size() == 1 && d.layers[0] == "all") d.layers.clear();
   d.vessels = o.strings("vessels");
-  for (std::size_t i = 0; i < d.vessels.size(); ++i)
-    for (std::size_t k = 0; k < i; ++k)
-      if (d.vessels[i] == d.vessels[k])  // each tree would bleed twice
-        o.fail("vessels: '" + d.vessels[i] + "' is named twice");
+  // a name twice: each tree would bleed twice; a layer was refused by the
+  // loader, naming the model file for the scene's mistake
+  for (const auto* names : {&d.layers, &d.vessels})
+    for (std::size_t i = 0; i < names->size(); ++i)
+      for (std::size_t k = 0; k < i; ++k)
+        if ((*names)[i] == (*names)[k])
+          o.fail(std::string(names == &d.layers ? "layers" : "vessels") + ": '" + (*names)[i] + "' is named twice");
   if (o.has("fluid")) {
     Obj f(o.at("fluid"), "fluid: ", file);
     FluidDef& fd = d.fluid;
@@ -343,7 +349,7 @@ SceneDef parse_scene(const std::string& text, const std::string& file) {
     fd.bleed_duration = f.number("bleed_duration", fd.bleed_duration, 0, 1e9, true);
     fd.surface = f.boolean("surface", fd.surface);
     fd.particles = f.boolean("particles", fd.particles);
-    fd.surface_cell = f.number("surface_cell", fd.surface_cell, 0, 2, true);
+    fd.surface_cell = f.number("surface_cell", fd.surface_cell, 0.1, 2);  // (sph_surface.h: no detail finer)
     fd.surface_volume_passes = static_cast<int>(f.integer("surface_volume_passes", fd.surface_volume_passes, 0, 64));
     f.finish();
   }
@@ -570,12 +576,14 @@ void Scene::init(const std::string& model_file) {
         if (t.snap) {
           Real best = HUGE_VAL;
           Vec3 q = p;
+          std::int32_t node = -1;
           for (auto i : candidates) {
             const Vec3 r = load3(m.rest_x.data(), i);
-            if (norm(r - p) < best) best = norm(r - p), q = r;
+            if (norm(r - p) < best) best = norm(r - p), q = r, node = i;
           }
           farthest_snap = std::max(farthest_snap, best);
           p = q;
+          run.nodes.push_back(node);  // the cut follows it: the polyline is where these nodes are then
         }
         store3(run.def.polyline.data(), static_cast<std::int64_t>(k), p);
       }
@@ -718,6 +726,7 @@ struct Scene::FluidRun {
   FluidSummary summary;
   std::vector<std::pair<Real, std::string>> frames;  // blood surface series
   WoundColumns wound;  // the tissue's columns the cuts open (cut.h); not valid: the quads as they are
+  Carried emitter_carry;  // the emitters' centres, carried by the tissue (one point per emitter)
 };
 
 Scene::~Scene() = default;
@@ -831,6 +840,12 @@ void Scene::fluid_step_now(Real dt, std::span<const Real> x_start) {
     d.enabled = tools_[i].active;
     const Vec3 c = tools_[i].def.path.at(state_.time - dt);
     d.center = {c.x, c.y, c.z};
+  }
+  // emitters follow their wounds (where the tissue carries them at the step's start)
+  if (fr.emitter_carry.rest.size() == 3 * fr.state.emitters.size() && !fr.state.emitters.empty()) {
+    const std::vector<Real> at = carried_positions(fr.emitter_carry, *model_, x_start);
+    for (std::size_t i = 0; i < fr.state.emitters.size(); ++i)
+      fr.state.emitters[i].center = {at[3 * i], at[3 * i + 1], at[3 * i + 2]};
   }
   // emitters pause while the fluid is full, and stop within the step at the cap
   fr.state.max_particles = fd.max_particles;
@@ -946,9 +961,14 @@ void Scene::update_tools(Real t) {
       }
       if (d.type == ToolType::hook) fix_nodes(m, state_, tr.nodes);
       if (d.type == ToolType::cut) {
+        // a snapped polyline runs through its nodes where they are now (the
+        // tissue may have sagged or been pulled since rest: the rest positions
+        // put the cut up to 2 cm off the skin the polyline was snapped to in
+        // the sample's bleeding scene, cut at 0.1 s); the others are in space
         CutDef cd;
         for (std::size_t k = 0; 3 * k < d.polyline.size(); ++k)
-          cd.polyline.push_back(load3(d.polyline.data(), static_cast<std::int64_t>(k)));
+          cd.polyline.push_back(tr.nodes.empty() ? load3(d.polyline.data(), static_cast<std::int64_t>(k))
+                                                 : load3(state_.x.data(), tr.nodes[k]));
         cd.depth = d.depth;
         cd.direction = {d.direction[0], d.direction[1], d.direction[2]};
         apply_cut(cd);
@@ -961,8 +981,15 @@ void Scene::update_tools(Real t) {
 }
 
 CutReport Scene::apply_cut(const CutDef& def) {
+  // the vessels where the tissue has carried them
+  if (vessel_carry_.size() != model_->vessels.size()) {
+    vessel_carry_.clear();
+    for (const auto& v : model_->vessels) vessel_carry_.push_back(carry_points(*model_, v.nodes));
+  }
+  std::vector<std::vector<Real>> vessel_x;
+  for (const Carried& c : vessel_carry_) vessel_x.push_back(carried_positions(c, *model_, state_.x));
   auto edited = std::make_shared<Model>(*model_);
-  CutReport rep = cut_model(*edited, state_.x, def, fluid_ ? &fluid_->wound : nullptr);
+  CutReport rep = cut_model(*edited, state_.x, def, fluid_ ? &fluid_->wound : nullptr, vessel_x);
   model_ = edited;
   if (!rep.detached.empty()) fix_nodes(*model_, state_, rep.detached);
   state_.step_limit = 0;
@@ -984,6 +1011,18 @@ CutReport Scene::apply_cut(const CutDef& def) {
       e.start = state_.time;
       e.end = state_.time + fd.bleed_duration;
       fluid_->state.emitters.push_back(e);
+      {  // the emitter moves with the wound: its point of the vessel at rest, carried
+        const auto& ves = model_->vessels[static_cast<std::size_t>(h.vessel)];
+        const Vec3 a = load3(ves.nodes.data(), ves.edges[2 * static_cast<std::size_t>(h.edge)]),
+                   b = load3(ves.nodes.data(), ves.edges[2 * static_cast<std::size_t>(h.edge) + 1]);
+        const Vec3 r = a + h.along * (b - a);
+        const Carried c = carry_points(*model_, std::vector<Real>{r.x, r.y, r.z});
+        Carried& all = fluid_->emitter_carry;
+        all.k = c.k;
+        all.rest.insert(all.rest.end(), c.rest.begin(), c.rest.end());
+        all.node.insert(all.node.end(), c.node.begin(), c.node.end());
+        all.weight.insert(all.weight.end(), c.weight.begin(), c.weight.end());
+      }
       // the disc's centre and 16 points on its rim and half-way out
       const Vec3 d = rep.direction;
       const Vec3 u0 = std::abs(d.x) < 0.9 ? Vec3{1, 0, 0} : Vec3{0, 1, 0};

@@ -71,7 +71,9 @@ struct ToolDef {
   // cut: the incision polyline (n x 3) m, or, with polyline_relative, as
   // fractions of the candidates' rest bounding box; with snap, each point
   // moves to the nearest candidate node at its rest position (the polyline
-  // then lies on the tissue surface). The blade goes `depth` m along
+  // then lies on the tissue surface), and the cut, at `start`, runs through
+  // those nodes where they are then (without snap the points stay where they
+  // are in space, wherever the tissue has moved). The blade goes `depth` m along
   // `direction` (zero: towards the model's axis, runtime/cut.h) at `start`.
   std::vector<Real> polyline;
   bool polyline_relative = false;
@@ -226,6 +228,7 @@ class Scene {
   void move_tool(int tool, const std::array<Real, 3>& p);
   void fix(std::span<const std::int32_t> nodes);
   void release(std::span<const std::int32_t> nodes);
+  // the nodes a tool holds or pushes; of a snapped cut, the node of each polyline point, in order
   const std::vector<std::int32_t>& tool_nodes(int tool) const;
   // m: how far the snap moved the farthest point of a cut tool's polyline onto
   // its nodes (0 for other tools, or without snap)
@@ -283,6 +286,7 @@ class Scene {
   };
   std::vector<ToolRun> tools_;
   std::vector<CutReport> cuts_;
+  std::vector<Carried> vessel_carry_;  // the vessels' centrelines, carried by the tissue (made at the first cut)
   std::vector<Real> user_force_;  // (n_nodes x 3) N, for the next step
   bool user_force_set_ = false;
   bool in_step_ = false;

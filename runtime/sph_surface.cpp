@@ -111,7 +111,7 @@ SurfaceParticles surface_particles(const Fluid& f, const FluidState& s, Real thr
 }
 
 FluidSurfaceMesh extract_fluid_surface(const Fluid& f, const FluidState& s, const FluidSurfaceOptions& o) {
-  if (!(o.cell > 0 && o.cell <= 2)) throw Error("", "fluid surface: cell must be in (0, 2] spacings");
+  if (!(o.cell >= 0.1 && o.cell <= 2)) throw Error("", "fluid surface: cell must be in [0.1, 2] spacings");
   if (!(o.iso > 0 && o.iso < 1)) throw Error("", "fluid surface: iso must be in (0, 1)");
   if (!(o.volume_passes >= 0 && o.volume_passes <= 64)) throw Error("", "fluid surface: volume_passes must be in [0, 64]");
   FluidSurfaceMesh mesh;

@@ -39,7 +39,11 @@ Real default_surface_threshold(const Fluid& f);
 SurfaceParticles surface_particles(const Fluid& f, const FluidState& s, Real threshold = 0);
 
 struct FluidSurfaceOptions {
-  Real cell = 0.5;  // grid cell size / particle spacing, (0, 2]
+  // grid cell size / particle spacing, [0.1, 2]: at 0.1, 40 cells span a
+  // kernel's support (4 spacings), and the colour field, a sum of kernels, has
+  // no detail finer; 0.001 asked for 10^8 grid bricks per particle and ran the
+  // machine out of memory (the run failed after a minute, "out of memory")
+  Real cell = 0.5;
   Real iso = 0.5;   // level of the colour field taken as the surface, (0, 1)
   // The particle volumes V_j of d = sum V_j W. 0: the paper's m / rho_j (Eq. 4).
   // k > 0: k passes of the fixed point rho_j <- sum_k m W_jk / sum_k V_k W_jk,

@@ -97,6 +97,16 @@ void add_run_command(CLI::App& app) {
                   << " s, after the run's last step starts (t = " << last_start << " s, " << n_steps
                   << " steps of " << def.dt << " s): it never acts\n";
 
+    // a --report among the series' files would replace one (tissue.pvd held the
+    // JSON report, the series broken, exit 0), or be removed as a stale frame
+    if (def.output.enabled && !common.report.empty()) {
+      namespace fs = std::filesystem;
+      const fs::path r = fs::weakly_canonical(common.report), dir = fs::weakly_canonical(def.output.dir);
+      const std::string file = r.filename().string();
+      if (r.parent_path() == dir && file.compare(0, def.output.name.size(), def.output.name) == 0)
+        throw Error(common.report, "--report names a file of the output series (" + def.output.name + "* in " +
+                                       def.output.dir + "): the report would replace it; name another file");
+    }
     report.input(scene_file);  // before the load: refuses a --report that names the scene's model
     if (std::filesystem::exists(def.model)) report.input(def.model);
     std::unique_ptr<runtime::Scene> scene;
@@ -306,7 +316,9 @@ void add_run_command(CLI::App& app) {
       if (f.emitters > 0 && f.emitted == 0 && !(f.flow_rate > 0))  // bleed_pressure 0 ("takes inf s")
         std::cerr << "orthosim run: warning: " << scene_file << ": " << f.emitters
                   << " wound(s) in the vessels, but bleed_pressure is 0: nothing flows\n";
-      else if (f.emitters > 0 && f.emitted == 0)  // a warning even with --quiet: the bleeding the scene asks for shows nothing
+      // (where the steps were truncated, the blood's clock lagged: the truncation's
+      // warning below says why, and this advice would point the wrong way)
+      else if (f.emitters > 0 && f.emitted == 0 && scene->fluid_state()->counters.truncated_steps == 0)  // a warning even with --quiet: the bleeding the scene asks for shows nothing
         std::cerr << "orthosim run: warning: " << scene_file << ": " << f.emitters << " cut vessel(s) bleed "
                   << f.flow_rate << " m^3/s in all, but no particle was emitted: one particle ("
                   << f.particle_volume << " m^3) takes " << f.particle_volume / f.flow_rate

@@ -235,6 +235,44 @@ TEST(Bleeding, WoundColumnsCloseTheTissue) {
   EXPECT_EQ(open_columns_at(w, x, {{0.010, 0.010, 0.006}, {0.5, 0.5, 0.5}}), 0);  // open already; outside them all
 }
 
+// The wound's emitter moves with the tissue the cut went through: a grasper
+// drags the skin beside the cut 3 mm along the vessel's cross direction (z)
+// after the cut, and the emitter follows (it stayed where the cut was).
+TEST(Bleeding, TheEmitterMovesWithTheWound) {
+  SceneDef def = bleeding_def(false);
+  ToolDef g;
+  g.name = "grasper";
+  g.type = ToolType::pull;
+  g.nodes = "skin";
+  g.has_center = true;
+  g.center = {0.028, 0, 0.008};
+  g.radius = 0.005;
+  g.start = 0.1;
+  g.path = Path{{0.1, 0.4}, {0, 0, 0, 0, 0, 3e-3}};
+  def.tools.push_back(g);
+  Scene scene(block_with_vessel(), def);
+  run_steps(scene, 4);  // the cut, at the step starting at 3 dt >= 0.05 s
+  ASSERT_EQ(scene.cuts().size(), 1u);
+  ASSERT_EQ(scene.fluid_state()->emitters.size(), 1u);
+  const auto start = scene.fluid_state()->emitters[0].center;
+  std::vector<Real> x0(scene.state().x);
+  run_steps(scene, 26);  // to 0.5 s: the grasp done
+  const auto end = scene.fluid_state()->emitters[0].center;
+  // the nodes next to the vessel's cut point moved about as much
+  Real moved = 0;
+  int n = 0;
+  for (std::int32_t i = 0; i < scene.model().n_nodes; ++i) {
+    const Vec3 r = load3(scene.model().rest_x.data(), i);
+    if (std::abs(r.x - 0.028) < 4.5e-3 && std::abs(r.z - 0.008) < 4.5e-3 && r.y < 7.5e-3)
+      moved += scene.state().x[3 * static_cast<std::size_t>(i) + 2] - x0[3 * static_cast<std::size_t>(i) + 2], ++n;
+  }
+  moved /= n;
+  std::printf("  emitter moved %.2f mm in z; the nodes around it %.2f mm on average\n", 1e3 * (end[2] - start[2]), 1e3 * moved);
+  ASSERT_GT(moved, 0.5e-3) << "the test needs the grasper to move the tissue";
+  EXPECT_NEAR(end[2] - start[2], moved, 0.5 * moved);
+  EXPECT_EQ(scene.counters().failed, 0);
+}
+
 // A second cut across a vessel edge an earlier cut opened adds no wound: the
 // same cut twice emitted twice the flow (3 222 particles against 1 791 in the
 // demo's bleeding scene, and "4 vessel(s) bleeding" of 2), until 2026-11-27.
@@ -338,6 +376,8 @@ TEST(Bleeding, SceneFileFluidAndDrainErrors) {
   bad(R"({"model": "m.h5", "fluid": {"eos": "ideal"}})", "eos");
   bad(R"({"model": "m.h5", "fluid": {"surface_volume_passes": 65}})", "surface_volume_passes must be in [0, 64]");
   bad(R"({"model": "m.h5", "fluid": {"surface_volume_passes": 2.5}})", "surface_volume_passes must be an integer");
+  // a surface cell of 0.001 spacing ran the machine out of memory a minute into the run
+  bad(R"({"model": "m.h5", "fluid": {"surface_cell": 0.001}})", "surface_cell must be a finite number in [0.1, 2]");
   bad(R"({"model": "m.h5", "fluid": {"pressure_solver": "dfsph"}})", "pressure_solver must be eos or pcisph");
   bad(R"({"model": "m.h5", "fluid": {"pcisph_tolerance": 0.01}})", "pcisph_tolerance given with pressure_solver 'eos'");
   bad(R"({"model": "m.h5", "fluid": {"physx_stiffness": 20, "pressure_solver": "pcisph"}})", "physical mode");

@@ -57,6 +57,44 @@ TEST(Cut, ValidatesTheBlade) {
   EXPECT_THROW(validate(d), Error);
 }
 
+// The vessels are stored at rest; the tissue carries them. Moved rigidly 4 mm
+// deeper, the block carries its vessel exactly 4 mm deeper, and a blade
+// through the moved skin meets it there (at rest it would lie above the
+// blade's reach: the cut missed it, or bled where it was no longer).
+TEST(Cut, TheBladeMeetsTheVesselsWhereTheTissueCarriedThem) {
+  Model m = block(15, 5, 4);
+  Model::Vessel v;
+  v.name = "vein";
+  v.nodes = {0, 3e-3, 0.008, 0.056, 3e-3, 0.008};
+  v.radii = {1e-3, 1e-3};
+  v.edges = {0, 1};
+  m.vessels.push_back(v);
+  std::vector<Real> x(m.rest_x);
+  for (std::size_t i = 1; i < x.size(); i += 3) x[i] += 4e-3;
+  const Carried c = carry_points(m, v.nodes);
+  const std::vector<std::vector<Real>> vx{carried_positions(c, m, x)};
+  for (std::size_t k = 0; k < v.nodes.size(); ++k) EXPECT_NEAR(vx[0][k], v.nodes[k] + (k % 3 == 1 ? 4e-3 : 0), 1e-15) << k;
+  CutDef d;
+  d.polyline = {{0.028, 4e-3, -0.01}, {0.028, 4e-3, 0.03}};
+  d.direction = {0, 1, 0};
+  d.depth = 4e-3;
+  Model carried = m, at_rest = m;
+  const CutReport r = cut_model(carried, x, d, nullptr, vx);
+  ASSERT_EQ(r.vessel_hits.size(), 1u);
+  EXPECT_NEAR(r.vessel_hits[0].point.y, 7e-3, 1e-12);
+  EXPECT_NEAR(r.vessel_hits[0].along, 0.5, 1e-12);
+  EXPECT_TRUE(cut_model(at_rest, x, d).vessel_hits.empty());
+  // a point at a node follows that node, whatever its neighbours do
+  std::mt19937_64 rng(3);
+  std::uniform_real_distribution<Real> u(-1e-3, 1e-3);
+  std::vector<Real> y(m.rest_x);
+  for (Real& e : y) e += u(rng);
+  const std::int32_t node = 40;
+  const Carried at = carry_points(m, std::vector<Real>(m.rest_x.begin() + 3 * node, m.rest_x.begin() + 3 * node + 3));
+  const std::vector<Real> p = carried_positions(at, m, y);
+  for (int k = 0; k < 3; ++k) EXPECT_NEAR(p[static_cast<std::size_t>(k)], y[3 * node + k], 2e-5) << k;  // 2 % of the 1 mm
+}
+
 // A straight cut along z at x = xc through the skin of a layered block cuts
 // exactly the springs that cross the plane x = xc inside the blade's extent.
 TEST(Cut, SeversExactlyTheSpringsAcrossTheBlade) {
@@ -107,7 +145,9 @@ TEST(Cut, SeversExactlyTheSpringsAcrossTheBlade) {
 // on both sides of them opened, two columns of the wound (a zigzag where a
 // polyline crosses the grid lines at nodes). Now a node on the blade counts as
 // lying on one side of it (the segment test is half-open): it keeps the
-// springs to that side, and the cut opens one column, as between two.
+// springs to that side, and the cut opens one column, as between two. To the
+// blood the slit opens the columns on both sides (their shared face is cut):
+// the vessel's emitter lies on it.
 TEST(Cut, ABladeThroughNodesOpensOneColumn) {
   const Real h = 4e-3, depth = 4e-3;
   auto cut_at = [&](Real xc, Model& m) {
@@ -115,7 +155,8 @@ TEST(Cut, ABladeThroughNodesOpensOneColumn) {
     d.polyline = {{xc, 0, -0.01}, {xc, 0, 0.03}};
     d.direction = {0, 1, 0};
     d.depth = depth;
-    return cut_model(m, std::vector<Real>(m.rest_x), d);
+    WoundColumns w = wound_columns(m);
+    return cut_model(m, std::vector<Real>(m.rest_x), d, &w);
   };
   Model between = block(15, 5, 4), through = block(15, 5, 4);
   const Model before = through;
@@ -124,6 +165,8 @@ TEST(Cut, ABladeThroughNodesOpensOneColumn) {
               rb.springs_cut, rb.quads_removed, rt.springs_cut, rt.quads_removed, rt.detached.size());
   EXPECT_TRUE(rt.detached.empty());
   EXPECT_EQ(rt.quads_removed, rb.quads_removed);
+  EXPECT_GT(rb.columns_opened, 0);
+  EXPECT_EQ(rt.columns_opened, 2 * rb.columns_opened);
   // the springs of the nodes on the blade: cut towards one side only
   const Real xc = 7 * h;
   const auto kept = spring_pairs(through);
@@ -142,6 +185,40 @@ TEST(Cut, ABladeThroughNodesOpensOneColumn) {
   EXPECT_GT(cut_left + cut_right, 0);
   EXPECT_TRUE((cut_left == 0 && kept_right == 0) || (cut_right == 0 && kept_left == 0))
       << "a node on the blade keeps the springs to one side and loses those to the other";
+}
+
+// A polyline that ends on nodes (as `snap` makes every cut's ends): the
+// springs that meet the blade only at such an end node run beside the slit's
+// end, not across it. With the blade's end edges closed they were cut and the
+// wound ran a quad past each end.
+TEST(Cut, TheWoundEndsWhereThePolylineEnds) {
+  const Real h = 4e-3;
+  Model m = block(15, 5, 4);
+  const Model before = m;
+  CutDef d;
+  d.polyline = {{7 * h, 0, 1 * h}, {7 * h, 0, 3 * h}};  // nodes (7, 1) and (7, 3) of the skin
+  d.direction = {0, 1, 0};
+  d.depth = 4e-3;
+  const CutReport r = cut_model(m, std::vector<Real>(m.rest_x), d);
+  std::set<std::array<std::int32_t, 4>> kept;
+  for (std::int32_t q = 0; q < m.n_quads; ++q) kept.insert({m.quads[4 * q], m.quads[4 * q + 1], m.quads[4 * q + 2], m.quads[4 * q + 3]});
+  int removed = 0, beyond = 0;
+  for (std::int32_t q = 0; q < before.n_quads; ++q) {
+    const std::array<std::int32_t, 4> v{before.quads[4 * q], before.quads[4 * q + 1], before.quads[4 * q + 2], before.quads[4 * q + 3]};
+    if (kept.count(v)) continue;
+    ++removed;
+    for (std::int32_t i : v) {
+      const Real z = before.rest_x[3 * static_cast<std::size_t>(i) + 2];
+      if (z < 1 * h - 1e-12 || z > 3 * h + 1e-12) {
+        ++beyond;
+        break;
+      }
+    }
+  }
+  std::printf("  %d quads removed, %d of them beyond the polyline's ends; %d springs cut\n", removed, beyond, r.springs_cut);
+  EXPECT_EQ(r.quads_removed, removed);
+  EXPECT_GE(removed, 2);  // the two skin quads beside the slit at least
+  EXPECT_EQ(beyond, 0);
 }
 
 TEST(Cut, AutomaticDirectionPointsAtTheAxis) {
@@ -210,11 +287,78 @@ TEST(Cut, SceneCutToolOpensTheSkinAndKeepsRunning) {
   EXPECT_EQ(scene.counters().failed, 0);
 }
 
+// A snapped cut runs through its nodes where they are when it cuts. A
+// grasper drags the skin 4 mm along the cut's normal (x) first; the cut tool,
+// snapped at rest to skin nodes of the column x = 20 mm, cuts the same springs
+// as a cut through those nodes' positions at that moment, not those of a cut
+// through their rest positions (the scene cut at rest positions before:
+// 1-2 cm off the snapped skin in the sample's bleeding scene).
+TEST(Cut, ASnappedCutFollowsItsNodes) {
+  auto b = runtime::testing::make_layered_block(15, 5, 4);
+  SceneDef def = default_scene_def();
+  def.fixed = {"fixed"};
+  def.dt = 0.01;
+  def.solver.gravity = {0, 0, 0};
+  def.solver.integrator = Integrator::implicit_euler;
+  ToolDef g;
+  g.name = "grasper";
+  g.type = ToolType::pull;
+  g.nodes = "skin";
+  g.has_center = true;
+  g.center = {0.024, 0, 0.008};
+  g.radius = 0.005;
+  g.path = Path{{0, 0.2}, {0, 0, 0, 4e-3, 0, 0}};
+  def.tools.push_back(g);
+  SceneDef with_cut = def;
+  ToolDef cut;
+  cut.name = "scalpel";
+  cut.type = ToolType::cut;
+  cut.nodes = "skin";
+  cut.polyline = {0.0201, 0, -0.001, 0.0199, 0, 0.0171};  // snaps to the skin nodes (5, 0) and (5, 4)
+  cut.depth = 3e-3;
+  cut.direction = {0, 1, 0};
+  cut.start = 0.25;
+  with_cut.tools.push_back(cut);
+  Scene a(model_from_layers(b.layers, b.sets), with_cut), moved(model_from_layers(b.layers, b.sets), def),
+      rest(model_from_layers(b.layers, b.sets), def);
+  const std::vector<std::int32_t> nodes = a.tool_nodes(1);
+  ASSERT_EQ(nodes.size(), 2u);
+  const int steps = 25;  // the cut at the start of the 26th step (t = 0.25 s)
+  for (int i = 0; i < steps; ++i) {
+    for (Scene* s : {&a, &moved, &rest}) s->simulate(def.dt), s->fetch_results();
+  }
+  ASSERT_TRUE(a.cuts().empty());
+  a.simulate(def.dt), a.fetch_results();
+  ASSERT_EQ(a.cuts().size(), 1u);
+  CutDef now, at_rest;
+  for (std::int32_t i : nodes) {
+    now.polyline.push_back(load3(moved.state().x.data(), i));
+    at_rest.polyline.push_back(load3(moved.model().rest_x.data(), i));
+  }
+  now.depth = at_rest.depth = cut.depth;
+  now.direction = at_rest.direction = {0, 1, 0};
+  const Real shift = norm(now.polyline[0] - at_rest.polyline[0]);
+  const CutReport rn = moved.cut(now), rr = rest.cut(at_rest);
+  std::printf("  the snapped nodes moved %.2f mm; springs cut: the tool %d, through the nodes now %d, at rest %d\n",
+              1e3 * shift, a.cuts()[0].springs_cut, rn.springs_cut, rr.springs_cut);
+  ASSERT_GT(shift, 1e-3) << "the test needs the grasper to move the snapped nodes";
+  EXPECT_EQ(a.cuts()[0].springs_cut, rn.springs_cut);
+  EXPECT_EQ(spring_pairs(a.model()), spring_pairs(moved.model()));
+  EXPECT_NE(spring_pairs(a.model()), spring_pairs(rest.model()));
+}
+
 TEST(Cut, SceneFileCutToolErrors) {
   const std::string base = R"({"model": "m.h5", "tools": [)";
   EXPECT_THROW(parse_scene(base + R"({"type": "cut", "polyline": [[0,0,0],[1,0,0]]}]})", "s.json"), Error);  // no depth
   EXPECT_THROW(parse_scene(base + R"({"type": "cut", "polyline": [[0,0,0]], "depth": 0.01}]})", "s.json"), Error);
   EXPECT_THROW(parse_scene(base + R"({"type": "cut", "polyline_in_box": [[0,0,2],[1,0,0]], "depth": 0.01}]})", "s.json"), Error);
+  // 1e300 overflowed the blade's direction: "the polyline lies on the model's axis"
+  try {
+    parse_scene(base + R"({"type": "cut", "polyline": [[1e300,0,0],[1e300,1,0]], "depth": 0.01}]})", "s.json");
+    ADD_FAILURE() << "accepted";
+  } catch (const Error& e) {
+    EXPECT_NE(std::string(e.what()).find("polyline values must be finite numbers within +-1e9"), std::string::npos) << e.what();
+  }
   const SceneDef d = parse_scene(base + R"({"type": "cut", "polyline": [[0,0,0],[0.01,0,0]], "depth": 0.005, "start": 0.1}]})", "s.json");
   ASSERT_EQ(d.tools.size(), 1u);
   EXPECT_EQ(d.tools[0].type, ToolType::cut);

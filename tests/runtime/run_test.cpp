@@ -391,6 +391,29 @@ TEST_F(RunCli, OutGivesAnOutputBlockItsDir) {
   EXPECT_EQ(bad.err, "orthosim run: error: " + s + ": output: dir is required (in the scene's output block, or orthosim run --out)\n");
 }
 
+// A --report among the series' own files replaced one: tissue.pvd then held
+// the JSON report and the series was broken, exit 0. Refused before any work;
+// a report beside the series under another name is fine.
+TEST_F(RunCli, AReportAmongTheSeriesFilesIsRefused) {
+  const auto s = scene(R"({"model": "model.h5", "fixed": ["fixed"], "dt": 0.005, "duration": 0.01,
+                           "output": {"every": 1, "name": "limb"}})");
+  const std::string out = dir / "series";
+  // a report beside the series under another name is fine
+  const auto ok = run_cli("run " + s + " --quiet --out " + out);
+  ASSERT_EQ(ok.code, 0) << ok.err;
+  ASSERT_EQ(run_cli("run " + s + " --quiet --out " + out + " --report " + out + "/report.json").code, 0);
+  const std::string pvd = test::read_file(out + "/limb.pvd"), frame = test::read_file(out + "/limb_000001.vtu");
+  ASSERT_NE(pvd.find("VTKFile"), std::string::npos);
+  for (const std::string f : {"limb.pvd", "limb_000001.vtu"}) {
+    const auto r = run_cli("run " + s + " --quiet --out " + out + " --report " + out + "/" + f);
+    EXPECT_EQ(r.code, 2) << f;
+    EXPECT_EQ(r.err, "orthosim run: error: " + out + "/" + f + ": --report names a file of the output series (limb* in " + out +
+                         "): the report would replace it; name another file\n");
+  }
+  EXPECT_EQ(test::read_file(out + "/limb.pvd"), pvd);
+  EXPECT_EQ(test::read_file(out + "/limb_000001.vtu"), frame);
+}
+
 // --threads -1 was the "not given" value: it ran with the scene's threads.
 TEST_F(RunCli, ThreadsOutOfRangeAreRefused) {
   const auto s = scene(R"({"model": "model.h5", "fixed": ["fixed"], "dt": 0.005, "duration": 0.01})");

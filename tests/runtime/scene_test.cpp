@@ -129,6 +129,8 @@ TEST_F(SceneTest, BadScenesAreOneLineErrorsBeforeAnyStep) {
        "direction must be three finite numbers within +-1e9"},
       // each tree bled twice
       {R"({"model": "model.h5", "vessels": ["artery", "artery"]})", "vessels: 'artery' is named twice"},
+      // the loader refused it naming the model file, not the scene
+      {R"({"model": "model.h5", "layers": ["skin", "skin"]})", "layers: 'skin' is named twice"},
       // null was taken for absent ("fixed": null ran with nothing fixed), [] for every layer
       {R"({"model": "model.h5", "fixed": null})", "fixed is null: give a value, or leave the key out"},
       {R"({"model": "model.h5", "fluid": {"spacing": null}})", "fluid: spacing is null"},
