@@ -330,7 +330,9 @@ void add_run_command(CLI::App& app) {
       std::size_t k = 0;
       for (const auto& t : def.tools) {
         if (t.type != runtime::ToolType::drain) continue;
-        if (k < fs->drains.size() && fs->drains[k].drained == 0 && !outside_domain.count(t.name))
+        // (not a drain already warned of: outside the domain, or starting after the last step)
+        if (k < fs->drains.size() && fs->drains[k].drained == 0 && !outside_domain.count(t.name) &&
+            !(t.start > last_start * (1 + 1e-12) + 1e-15))
           std::cerr << "orthosim run: warning: " << scene_file << ": the drain" << quoted(t.name)
                     << " removed no blood of the " << scene->fluid_summary().emitted
                     << " particles emitted: the blood never reached it (inside closed tissue, away from the wound, "

@@ -455,6 +455,10 @@ TEST_F(RunCli, ADrainTheBloodNeverReachesIsAWarning) {
   expect_one_warning(r, "orthosim run: warning: " + deep + ": the drain 'suction' removed no blood of the ");
   EXPECT_GT(nlohmann::json::parse(test::read_file(dir / "deep.json"))["metrics"]["fluid"]["particles_emitted"].get<long>(), 0);
   expect_silent(run_cli("run " + bleed_with_drain_at("[0.015, 0.004, 0.01]") + " --no-output --quiet"));
+  // a drain that starts after the last step is warned of once, for that (it was also said to
+  // have "removed no blood ... the blood never reached it")
+  const auto late = bleeding_scene("0.06", "", R"(, {"name": "suction", "type": "drain", "center": [0.015, 0.004, 0.01], "radius": 0.004, "start": 1})");
+  expect_one_warning(run_cli("run " + late + " --no-output --quiet"), "the drain tool 'suction' starts at t = 1 s");
 }
 
 // A cut polyline the snap moved farther than the cut's depth lay off the
