@@ -9,6 +9,7 @@
 #include "libmodel/tissues.h"
 #include "tools/common.h"
 
+#include <algorithm>
 #include <iomanip>
 #include <iostream>
 
@@ -114,6 +115,16 @@ void add_build_command(CLI::App& app) {
     if (!(min_thickness_mm >= 0)) throw UsageError("--min-thickness-mm must be >= 0");
     opt.min_thickness_m = min_thickness_mm * 1e-3;
     opt.check_intersections = !no_intersection_check;
+    // a flag out of range is the command line's error (it named the model file, and the
+    // option's internal name): "--damping-ratio must be in [0, 10]"
+    try {
+      msm::check_build_options(opt);
+    } catch (const Error& e) {
+      std::string m = e.message();
+      const std::size_t sp = m.find(' ');
+      std::replace(m.begin(), m.begin() + static_cast<std::ptrdiff_t>(sp == std::string::npos ? 0 : sp), '_', '-');
+      throw UsageError("--" + m);
+    }
     std::vector<msm::LayerSpec> requested;
     if (!layers_text.empty()) {
       try {

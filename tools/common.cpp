@@ -1,10 +1,12 @@
 #include "tools/common.h"
 
 #include "libmodel/format/atomic.h"
+#include "libmodel/format/model.h"
 #include "libmodel/provenance.h"
 
 #include <unistd.h>
 
+#include <array>
 #include <cmath>
 #include <filesystem>
 #include <iostream>
@@ -192,12 +194,19 @@ std::vector<int> parse_size(const std::string& text, int n, const std::string& f
     } catch (const UsageError&) {
       throw;
     } catch (...) {
-      throw UsageError(flag + ": expected sizes like 256x256x128, got '" + text + "'");
+      throw UsageError(flag + ": expected sizes like " + (n == 2 ? "39x9" : "256x256x128") + ", got '" + text + "'");
     }
   }
   if (static_cast<int>(out.size()) != n)
     throw UsageError(flag + ": expected " + std::to_string(n) + " sizes separated by 'x', got '" + text + "'");
   return out;
+}
+
+void check_voxel_flags(const std::vector<double>& spacing_mm, const std::vector<double>& origin_mm) {
+  std::array<double, 3> s{}, o{};
+  for (std::size_t k = 0; k < 3; ++k) s[k] = spacing_mm.at(k) * 1e-3, o[k] = origin_mm.at(k) * 1e-3;
+  const std::string why = voxel_geometry_problem(s, o);
+  if (!why.empty()) throw UsageError((why.rfind("spacing", 0) == 0 ? "--spacing: " : "--origin: ") + why);
 }
 
 std::vector<double> parse_list(const std::string& text, int n, const std::string& flag, bool positive) {

@@ -103,6 +103,9 @@ void on_run(CLI::App* sub, const std::string& command, const CommonOptions& comm
 std::vector<int> parse_size(const std::string& text, int n, const std::string& flag);
 // Parses "a,b,c" into n finite numbers; `positive` requires each > 0.
 std::vector<double> parse_list(const std::string& text, int n, const std::string& flag, bool positive);
+// --spacing X,Y,Z and --origin X,Y,Z (mm) within the voxel geometry every
+// stage takes (voxel_geometry_problem): UsageError naming the flag otherwise.
+void check_voxel_flags(const std::vector<double>& spacing_mm, const std::vector<double>& origin_mm);
 
 // A CLI11 check for seeds: decimal digits only, within 64 bits ("-1" wrapped to
 // 2^64 - 1 and 2^64 was clamped, silently).

@@ -20,6 +20,7 @@
 #include "libmodel/provenance.h"
 #include "libmodel/remesh/remesh.h"
 #include "libmodel/tissues.h"
+#include "libmodel/tune/experiment.h"
 #include "tools/common.h"
 
 #include <fcntl.h>
@@ -303,8 +304,7 @@ int run_stages(Args a, Report& report) {
       throw UsageError("--" + e.message());
     }
   }
-  parse_list(a.spacing, 3, "--spacing", true);
-  parse_list(a.origin, 3, "--origin", false);
+  check_voxel_flags(parse_list(a.spacing, 3, "--spacing", true), parse_list(a.origin, 3, "--origin", false));
   std::error_code ec;
   if (!fs::is_directory(a.stack, ec)) throw Error(a.stack, "not a folder of slices");
   if (fs::is_directory(a.out, ec)) throw Error(a.out, "is a folder; --out names a model file");
@@ -399,6 +399,19 @@ int run_stages(Args a, Report& report) {
   require_scene_needs([&](const std::string& kind, const std::string& name) {
     return kind + " '" + name + "' is not a " + (kind == "layer" ? "layered" : "vessel") + " tissue of " + a.tissues;
   });
+
+  // the tune stage's check of the tissues it will tune, before any stage runs
+  // (a modulus of 1e30 kPa was refused by tune after segment, surface, remesh and build)
+  if (a.tune)
+    for (const auto& t : layered) {
+      const Tissue* ti = table.find(t);
+      if (ti->layer == "rigid" || ti->mechanics.model == Mechanics::Model::none) continue;
+      try {
+        tune::validate(tune::target_of(*ti));
+      } catch (const Error& e) {
+        throw Error(a.tissues, "tissue '" + t + "': " + e.message() + " (the tune stage's check; --no-tune skips it)");
+      }
+    }
 
   const std::string stack_hash = hash_path(a.stack), table_hash = hash_path(a.tissues);
   Runner run(a, report);

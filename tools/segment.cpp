@@ -68,6 +68,7 @@ void add_segment_command(CLI::App& app) {
     SegmentOptions o;
     const std::vector<double> s = parse_list(a.spacing, 3, "--spacing", true);
     const std::vector<double> org = parse_list(a.origin, 3, "--origin", false);
+    check_voxel_flags(s, org);
     for (int k = 0; k < 3; ++k) o.spacing_m[k] = s[k] * 1e-3, o.origin_m[k] = org[k] * 1e-3;
     if (a.normalise == "none") o.normalise = SegmentOptions::Normalise::none;
     else if (a.normalise == "gain") o.normalise = SegmentOptions::Normalise::gain;

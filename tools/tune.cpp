@@ -27,6 +27,7 @@
 #include <iostream>
 #include <map>
 #include <numeric>
+#include <optional>
 #include <sstream>
 
 namespace orthosim::cli {
@@ -290,23 +291,21 @@ void add_tune_command(CLI::App& app) {
       }
     }
 
-    // outputs, each atomic
+    // outputs, each atomic: all written to their temporaries first, then
+    // committed together (a plot folder that could not be made failed after the
+    // model had been updated and the table written)
     {
       Phase p(report, "write");
-      if (!model.empty()) {
-        ModelWriter w(model, ModelWriter::Start::update);
+      std::optional<AtomicDir> plots;
+      if (!plot_dir.empty()) {
+        plots.emplace(plot_dir);
         for (const Job& j : jobs) {
-          w.remove("/layers/" + j.layer_name);
-          w.write_layer(j.layer_name, j.layer);
-          w.remove("/tuning/" + j.tissue);
-          w.write(j.tissue, tune::tuning_record(j.result));
+          tune::PlotOptions po;
+          po.title = j.tissue;
+          tune::write_curve_png((std::filesystem::path(plots->temp()) / (j.tissue + ".png")).string(), j.result, po);
         }
-        w.write("tune", make_provenance(command_line(), report.json()["inputs"].dump(), params.dump(),
-                                        static_cast<std::int64_t>(opt.seed),
-                                        std::accumulate(seconds.begin(), seconds.end(), 0.0)));
-        w.commit();
-        report.output(model);
       }
+      std::optional<AtomicFile> table;
       if (!out.empty()) {
         std::ifstream in(tissues_path);
         std::stringstream text;
@@ -325,25 +324,27 @@ void add_tune_command(CLI::App& app) {
             e["mechanics"]["tuned"] = tuned;
           }
         }
-        AtomicFile f(out);
-        {
-          std::ofstream o(f.temp());
-          o << t.dump(2) << "\n";
-          if (!o) throw Error(out, "could not write the tuned tissue table");
-        }
-        f.commit();
-        report.output(out);
+        table.emplace(out);
+        std::ofstream o(table->temp());
+        o << t.dump(2) << "\n";
+        if (!o) throw Error(out, "could not write the tuned tissue table");
       }
-      if (!plot_dir.empty()) {
-        AtomicDir d(plot_dir);
+      std::optional<ModelWriter> w;
+      if (!model.empty()) {
+        w.emplace(model, ModelWriter::Start::update);
         for (const Job& j : jobs) {
-          tune::PlotOptions po;
-          po.title = j.tissue;
-          tune::write_curve_png((std::filesystem::path(d.temp()) / (j.tissue + ".png")).string(), j.result, po);
+          w->remove("/layers/" + j.layer_name);
+          w->write_layer(j.layer_name, j.layer);
+          w->remove("/tuning/" + j.tissue);
+          w->write(j.tissue, tune::tuning_record(j.result));
         }
-        d.commit();
-        report.output(plot_dir);
+        w->write("tune", make_provenance(command_line(), report.json()["inputs"].dump(), params.dump(),
+                                         static_cast<std::int64_t>(opt.seed),
+                                         std::accumulate(seconds.begin(), seconds.end(), 0.0)));
       }
+      if (w) w->commit(), report.output(model);
+      if (table) table->commit(), report.output(out);
+      if (plots) plots->commit(), report.output(plot_dir);
     }
     report.metrics()["tissues"] = json::array();
     for (const Job& j : jobs) report.metrics()["tissues"].push_back(result_json(j.tissue, j.result));

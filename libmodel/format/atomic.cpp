@@ -34,7 +34,8 @@ void check_output_file(const std::string& path) {
   if (fs::is_directory(p, ec)) throw Error(path, "output path is a directory");
   fs::path parent = p.parent_path();
   if (!parent.empty() && !fs::is_directory(parent, ec))
-    throw Error(path, "output directory " + parent.string() + " does not exist");
+    throw Error(path, "output directory " + parent.string() +
+                          (fs::exists(parent, ec) ? " is not a directory" : " does not exist"));
 }
 
 void check_output_dir(const std::string& path) {
@@ -43,6 +44,14 @@ void check_output_dir(const std::string& path) {
   if (fs::exists(path, ec) && !fs::is_directory(path, ec))
     throw Error(path, "output path exists and is not a directory");
   fs::path parent = fs::path(path).parent_path();
+  // (a parent that is a file passed here, and tune failed at its end, after it had updated the model)
+  for (fs::path up = parent; !up.empty(); up = up.parent_path()) {
+    if (fs::exists(up, ec)) {
+      if (!fs::is_directory(up, ec)) throw Error(path, up.string() + " is not a directory");
+      break;
+    }
+    if (up == up.parent_path()) break;
+  }
   if (!parent.empty() && !fs::exists(parent, ec)) {
     fs::create_directories(parent, ec);
     if (ec) throw Error(path, "cannot create parent directory: " + ec.message());

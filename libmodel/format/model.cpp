@@ -3,6 +3,7 @@
 #include "libmodel/format/atomic.h"
 
 #include <algorithm>
+#include <cmath>
 #include <cstring>
 #include <filesystem>
 #include <map>
@@ -11,6 +12,24 @@
 namespace fs = std::filesystem;
 
 namespace orthosim {
+
+std::string voxel_geometry_problem(const std::array<double, 3>& spacing_m, const std::array<double, 3>& origin_m) {
+  auto num = [](double x) {
+    std::ostringstream o;
+    o << x;
+    return o.str();
+  };
+  for (int k = 0; k < 3; ++k) {
+    const double s = spacing_m[static_cast<std::size_t>(k)], o = origin_m[static_cast<std::size_t>(k)];
+    if (!(s >= kMinVoxelSpacingM && s <= kMaxVoxelSpacingM))
+      return std::string("spacing along ") + "xyz"[k] + " is " + num(s) + " m: each voxel size must be in [" +
+             num(kMinVoxelSpacingM) + ", " + num(kMaxVoxelSpacingM) + "] m";
+    if (!(std::abs(o) <= kMaxOriginM))
+      return std::string("origin along ") + "xyz"[k] + " is " + num(o) + " m: it must be finite, within +-" +
+             num(kMaxOriginM) + " m";
+  }
+  return "";
+}
 
 std::string format_version() {
   return std::to_string(kFormatMajor) + "." + std::to_string(kFormatMinor);
@@ -167,10 +186,11 @@ Volume ModelReader::volume() const {
   auto org = file_.attr_doubles(g, "origin_m");
   if (sp.size() != 3 || org.size() != 3) throw Error(path(), "/volume spacing_m and origin_m need 3 values");
   for (int i = 0; i < 3; ++i) {
-    if (!(sp[i] > 0)) throw Error(path(), "/volume spacing_m must be positive");
     v.spacing_m[i] = sp[i];
     v.origin_m[i] = org[i];
   }
+  if (const std::string why = voxel_geometry_problem(v.spacing_m, v.origin_m); !why.empty())
+    throw Error(path(), "/volume: " + why);
   v.label_names = file_.attr_strings(g, "label_names");
   return v;
 }

@@ -30,6 +30,15 @@ inline constexpr int kFormatMinor = 0;
 std::string format_version();  // "MAJOR.MINOR"
 
 // ---- /volume: the tissue label volume --------------------------------------
+// The voxel geometry every stage takes: sizes from 1 um to 10 cm, an origin
+// within 1 km. Beyond, nothing is a cryosection stack, and the stages'
+// arithmetic overflows or divides by zero (a spacing of 1e300 m was segmented
+// and then crashed surface with a floating-point exception and vessels with a
+// segmentation fault). Returns "" when valid, else the problem, e.g.
+// "spacing along x is 1e+300 m: each voxel size must be in [1e-06, 0.1] m".
+inline constexpr double kMinVoxelSpacingM = 1e-6, kMaxVoxelSpacingM = 0.1, kMaxOriginM = 1e3;
+std::string voxel_geometry_problem(const std::array<double, 3>& spacing_m, const std::array<double, 3>& origin_m);
+
 struct Volume {
   int nx = 0, ny = 0, nz = 0;
   std::array<double, 3> spacing_m{1e-3, 1e-3, 1e-3};  // voxel size along x, y, z

@@ -101,6 +101,8 @@ void validate_options(const BuildOptions& o) {
 
 }  // namespace
 
+void check_build_options(const BuildOptions& o) { validate_options(o); }
+
 std::vector<LayerSpec> parse_layer_specs(const std::string& text) {
   std::vector<LayerSpec> out;
   std::stringstream s(text);

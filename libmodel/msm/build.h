@@ -119,6 +119,10 @@ struct BuiltModel {
   BuildReport report;
 };
 
+// Throws Error("", "<option> must be ...") for an option out of its range
+// (build_layers checks them too; a CLI checks them first, to name its flag).
+void check_build_options(const BuildOptions& o);
+
 // Builds the layers. surfaces: (tissue, quads) outer to inner, one more than
 // layers; every grid has the same nu, nv and quads, counter-clockwise seen
 // from outside. Validates everything first and throws Error("", one line)

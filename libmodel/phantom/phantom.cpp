@@ -168,10 +168,7 @@ void validate(const PhantomOptions& o) {
     bad("size: in-plane sizes must be in [16, 4096] voxels, got " + std::to_string(o.nx) + "x" + std::to_string(o.ny));
   if (o.nz < 2 || o.nz > 9999) bad("size: the slice count must be in [2, 9999], got " + std::to_string(o.nz));
   if (static_cast<double>(o.nx) * o.ny * o.nz > 2147483647.0) bad("size: more than 2^31 voxels");
-  for (int k = 0; k < 3; ++k)
-    if (!std::isfinite(o.spacing_m[k]) || !(o.spacing_m[k] > 0) || o.spacing_m[k] > 0.1)
-      bad("spacing: each value must be finite and in (0, 0.1] m, got " + num(o.spacing_m[k]) + " m along " +
-          "xyz"[k]);
+  if (const std::string why = voxel_geometry_problem(o.spacing_m, {0, 0, 0}); !why.empty()) bad(why);  // as every stage
   if (!std::isfinite(o.noise_sigma) || o.noise_sigma < 0 || o.noise_sigma > 255)
     bad("noise: sigma must be in [0, 255], got " + num(o.noise_sigma));
   if (o.jpeg_quality < 1 || o.jpeg_quality > 100)

@@ -66,10 +66,7 @@ std::vector<int> nearest_table_labels(const std::vector<Prototype>& prototypes) 
 
 void validate(const SegmentOptions& o) {
   auto bad = [](const std::string& m) { throw Error("", m); };
-  for (int i = 0; i < 3; ++i) {
-    if (!(o.spacing_m[i] > 0) || !std::isfinite(o.spacing_m[i])) bad("spacing: each voxel size must be > 0");
-    if (!std::isfinite(o.origin_m[i])) bad("origin: must be finite");
-  }
+  if (const std::string why = voxel_geometry_problem(o.spacing_m, o.origin_m); !why.empty()) bad(why);
   if (o.calibration_slices < 1 || o.calibration_slices > 64) bad("calibration slices must be in 1..64");
   if (o.sample_stride < 1 || o.sample_stride > 64) bad("sample stride must be in 1..64");
   if (o.refine_iterations < 0 || o.refine_iterations > 100) bad("refine iterations must be in 0..100");

@@ -141,6 +141,36 @@ TEST(SegmentCli, BadSpacingAndTable) {
     EXPECT_EQ(test::count_lines(r.err), 1) << spacing << ": " << r.err;
     EXPECT_FALSE(fs::exists(d / "o.h5")) << spacing;
   }
+  // a spacing no stack has was segmented, then crashed surface (SIGFPE) and vessels
+  // (SIGSEGV): refused here, as by every stage that reads a label volume
+  for (const char* spacing : {"1e300,0.3,1", "1e-300,0.3,1", "0.3,0.3,1e300", "1e-4,1,1", "101,1,1"}) {
+    const auto r = test::run_cli("segment --stack " + stack().slices + " --tissues " + stack().tissues + " --spacing " +
+                                 spacing + " --out " + (d / "o.h5") + " --quiet");
+    EXPECT_EQ(r.code, 2) << spacing << ": " << r.err;
+    EXPECT_NE(r.err.find("--spacing: spacing along "), std::string::npos) << r.err;
+    EXPECT_NE(r.err.find("each voxel size must be in [1e-06, 0.1] m"), std::string::npos) << r.err;
+    EXPECT_FALSE(fs::exists(d / "o.h5")) << spacing;
+  }
+  {
+    const auto r = test::run_cli("segment --stack " + stack().slices + " --tissues " + stack().tissues +
+                                 " --spacing 1,1,2 --origin 0,1e300,0 --out " + (d / "o.h5") + " --quiet");
+    EXPECT_EQ(r.code, 2) << r.err;
+    EXPECT_NE(r.err.find("--origin: origin along y"), std::string::npos) << r.err;
+  }
+  // a label volume written elsewhere with such a spacing is refused where it is read
+  {
+    Volume v;
+    v.nx = v.ny = v.nz = 4;
+    v.labels.assign(64, 1);
+    v.label_names = {"background", "skin"};
+    v.spacing_m = {1e300, 3e-4, 1e-3};
+    ModelWriter w(d / "huge.h5", ModelWriter::Start::fresh);
+    w.write(v);
+    w.commit();
+    const auto r = test::run_cli("surface --labels " + (d / "huge.h5") + " --out " + (d / "stl") + " --quiet");
+    EXPECT_EQ(r.code, 2) << r.err;
+    EXPECT_NE(r.err.find((d / "huge.h5") + ": /volume: spacing along x is 1e+300 m"), std::string::npos) << r.err;
+  }
   test::write_file(d / "bad.json", "{\"format\": \"orthosim-tissues/1\", \"tissues\": [");
   expect_refused(test::run_cli("segment --stack " + stack().slices + " --tissues " + (d / "bad.json") +
                                " --spacing 1,1,2 --out " + (d / "o.h5") + " --quiet"),

@@ -188,6 +188,15 @@ TEST(TuneCli, TunesABuiltModel) {
   EXPECT_NE(r3.err.find((d / "nodir/t.json") + ": output directory " + (d / "nodir") + " does not exist"), std::string::npos)
       << r3.err;
   EXPECT_EQ(test::read_file(model), bytes) << "the model was changed";
+  // a --plot folder under a file: refused before any work too (it failed after the
+  // tuning, the model updated and --out written)
+  test::write_file(d / "afile", "x");
+  const auto r4 = test::run_cli("tune --tissues " + kTable + " --tissue skin --model " + model +
+                                " --max-evaluations 4000 --quiet --out " + (d / "t4.json") + " --plot " + (d / "afile/plots"));
+  EXPECT_EQ(r4.code, 2) << r4.err;
+  EXPECT_EQ(r4.err, "orthosim tune: error: " + (d / "afile/plots") + ": " + (d / "afile") + " is not a directory\n");
+  EXPECT_EQ(test::read_file(model), bytes) << "the model was changed";
+  EXPECT_FALSE(fs::exists(d / "t4.json"));
 }
 
 TEST(TuneCli, BadInputIsOneLineExit2AndWritesNothing) {

@@ -83,6 +83,15 @@ TEST(BuildCli, BadInputOneLineExit2NoOutput) {
   expect_refused("build --model " + model + " --tissues " + tissues + " --layers fat:lattice,skin:tetra", model,
                  "out of order");
   expect_refused("build --model " + model + " --tissues " + tissues + " --layers skin:cube", model, "tetra or lattice");
+  // a flag out of range is the command line's error (it named the model file, and
+  // the option's internal name, "damping_ratio")
+  for (const auto& [flag, text] : std::vector<std::pair<std::string, std::string>>{
+           {"--damping-ratio -1", "orthosim build: error: --damping-ratio must be in [0, 10]\n"},
+           {"--through-cells 0", "orthosim build: error: --through-cells must be in 1..64\n"},
+           {"--lattice-min-weight 1", "orthosim build: error: --lattice-min-weight must be in [0, 1)\n"}}) {
+    expect_refused("build --model " + model + " --tissues " + tissues + " " + flag, model, "");
+    EXPECT_EQ(test::run_cli("build --model " + model + " --tissues " + tissues + " " + flag).err, text);
+  }
   auto swapped = good;
   std::swap(swapped[0].second, swapped[1].second);
   const std::string m2 = write_model(dir, swapped, "swapped.h5");

@@ -401,6 +401,11 @@ TEST(Pipeline, BadFlags) {
                     (s.dir / "work-grid") + " --out " + (s.dir / "x.h5"));
   EXPECT_EQ(r.code, 2);
   EXPECT_EQ(r.err, "orthosim pipeline: error: --grid: nu (points around) must be in 3..10000, got 2\n");
+  // the grid's own example (it showed the phantom's 3-D size, 256x256x128)
+  r = test::run_cli("pipeline --stack " + s.stack + " --tissues " + s.tissues + " --spacing 0.75,0.75,3 --grid abc --out " +
+                    (s.dir / "x.h5"));
+  EXPECT_EQ(r.code, 2);
+  EXPECT_EQ(r.err, "orthosim pipeline: error: --grid: expected sizes like 39x9, got 'abc'\n");
   EXPECT_FALSE(fs::exists(s.dir / "work-grid"));
   // a second outermost layered tissue: refused before any stage, naming the table (it failed in
   // the build stage, naming a model file in the cache)
@@ -417,6 +422,22 @@ TEST(Pipeline, BadFlags) {
             std::string::npos)
       << r.err;
   EXPECT_FALSE(fs::exists(s.dir / "x.h5"));
+  // a modulus the tune stage refuses, refused before any stage (segment, surface, remesh and
+  // build ran first); 1e308 kPa, infinite in Pa, was "not a positive modulus"
+  for (const char* k : {"1e30", "1e308"}) {
+    nlohmann::json u = nlohmann::json::parse(test::read_file(s.tissues));
+    for (auto& e : u["tissues"])
+      if (e["name"] == "fat") e["mechanics"] = nlohmann::json::parse(std::string(R"({"model": "linear", "k_kpa": )") + k + "}");
+    const std::string stiff = s.dir / "stiff_fat.json";
+    test::write_file(stiff, u.dump(2));
+    r = test::run_cli("pipeline --stack " + s.stack + " --tissues " + stiff + " --spacing 0.75,0.75,3 --work " +
+                      (s.dir / "work-stiff") + " --out " + (s.dir / "x.h5") + " --no-texture --quiet");
+    EXPECT_EQ(r.code, 2) << k;
+    EXPECT_EQ(test::count_lines(r.err), 1) << r.err;
+    EXPECT_NE(r.err.find("orthosim pipeline: error: " + stiff + ": tissue 'fat': target K = "), std::string::npos) << r.err;
+    EXPECT_NE(r.err.find("kPa is outside a tissue's range, 1e-3 .. 1e9 kPa"), std::string::npos) << r.err;
+    EXPECT_FALSE(fs::exists(s.dir / "work-stiff")) << k;
+  }
 }
 
 // The layers nest one in another. An artery made a 'lattice' layer lies in the
