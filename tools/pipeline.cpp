@@ -162,14 +162,23 @@ class Runner {
   // this executable, so a rebuilt orthosim never reuses an older one's entries.
   Runner(const Args& a, Report& report)
       : a_(a), report_(report), tool_(version_string() + " " + hash_path("/proc/self/exe")) {}
-  ~Runner() {
-    // a stage that failed while a parallel one was running: stop and reap it
-    // (its cache entry has no manifest, so it is never used)
+  ~Runner() { stop_parallel(); }
+
+  // A stage that failed while a parallel one was running: stop and reap it
+  // (its cache entry has no manifest, so it is never used). What it said
+  // before it stopped (an error of its own, when it failed too: the one-slice
+  // stack's vessels) goes to the report (`stopped_stages`), not to stderr:
+  // the failed stage's line is the run's one error line.
+  void stop_parallel() {
     for (auto& p : pending_) {
       if (p.pid <= 0) continue;
       kill(p.pid, SIGTERM);
       wait_child(p.pid);
-      replay_stderr(stderr_file(p));  // what it said before it stopped (an error of its own)
+      p.pid = 0;
+      std::ifstream in(stderr_file(p));
+      std::string line, said;
+      while (std::getline(in, line)) said += line + "\n";
+      if (!said.empty()) report_.json()["stopped_stages"].push_back({{"stage", p.entry.stage}, {"stderr", said}});
     }
   }
 
@@ -633,6 +642,7 @@ int run_stages(Args a, Report& report) {
     }
   } catch (const Runner::StageFailed& f) {
     // the stage printed its one-line error; the previous --out and the cache stay intact
+    run.stop_parallel();
     report.json()["failed_stage"] = f.stage;
     report.json()["error"] = f.error.empty() ? json() : json(f.error);
     report.write(a.common.report);
@@ -642,6 +652,7 @@ int run_stages(Args a, Report& report) {
     // few layers): the report names the stage whose output failed them (it was
     // not written at all)
     const json& st = report.json()["stages"];
+    run.stop_parallel();
     report.json()["failed_stage"] = st.empty() ? json("pipeline") : st.back()["stage"];
     report.json()["error"] = e.what();
     report.write(a.common.report);

@@ -364,7 +364,9 @@ TEST(Pipeline, AFailingStageKeepsThePreviousModel) {
 
 // A stack of one slice: remesh fails (the limb has no length; its message said
 // "R |dn/ds| = inf"), and the report names its error. The vessels, in their
-// child process, fail too when they finish first: their stderr is replayed.
+// child process, fail too when they finish first: what they said goes to the
+// report's stopped_stages, and the run prints one error line (it printed theirs
+// too).
 TEST(Pipeline, AOneSliceStackFailsInRemeshAndSaysWhy) {
   const Sample& s = sample();
   test::TempDir one("pipeline-one");
@@ -385,6 +387,8 @@ TEST(Pipeline, AOneSliceStackFailsInRemeshAndSaysWhy) {
   EXPECT_EQ(rep["failed_stage"], "remesh");
   ASSERT_TRUE(rep["error"].is_string()) << rep.dump();
   EXPECT_NE(r.err.find("orthosim remesh: error: " + rep["error"].get<std::string>() + "\n"), std::string::npos) << r.err;
+  EXPECT_EQ(r.err.find("orthosim vessels: error"), std::string::npos) << r.err;
+  EXPECT_EQ(r.err.find("error"), r.err.rfind("error")) << "one error line: " << r.err;
 }
 
 TEST(Pipeline, BadFlags) {
