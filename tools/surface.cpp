@@ -236,7 +236,7 @@ void add_surface_command(CLI::App& app) {
       Phase p(report, "untangle");
       tbb::parallel_for(std::size_t{0}, names.size(), [&](std::size_t i) {
         if (outer[i] != none || results[i].metrics.self_intersections <= 0) return;
-        unfolded[i] = untangle_surface(results[i].surface, caps);
+        unfolded[i] = untangle_surface(results[i].surface, caps, &results[i].intersecting_pairs);
         check(i);
       });
     }

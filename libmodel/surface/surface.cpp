@@ -1250,7 +1250,8 @@ void compensate_impl(Surface& s, const Corners& c, const std::array<double, 3>& 
   });
 }
 
-SurfaceMetrics check_impl(const Surface& s, const Corners* corners, bool self_intersections) {
+SurfaceMetrics check_impl(const Surface& s, const Corners* corners, bool self_intersections,
+                          std::vector<std::array<std::int64_t, 2>>* pairs = nullptr) {
   SurfaceMetrics m;
   const std::int64_t V = s.vertices.rows(), F = s.faces.rows();
   m.vertices = V, m.faces = F;
@@ -1338,7 +1339,11 @@ SurfaceMetrics check_impl(const Surface& s, const Corners* corners, bool self_in
   m.volume_m3 = va[0];
   m.area_m2 = va[1];
   m.outward = m.volume_m3 > 0;
-  if (self_intersections && m.closed) m.self_intersections = surface_self_intersections(s);
+  if (self_intersections && m.closed) {
+    std::vector<std::array<std::int64_t, 2>> found = surface_self_intersection_pairs(s);
+    m.self_intersections = static_cast<std::int64_t>(found.size());
+    if (pairs) *pairs = std::move(found);
+  }
   return m;
 }
 
@@ -1476,7 +1481,7 @@ SurfaceResult extract_surface(const Volume& v, const std::vector<int>& solid_lab
   m.decimate_s = since(t0);
 
   t0 = Clock::now();
-  const SurfaceMetrics c = check_impl(s, corners ? &*corners : nullptr, o.check_self_intersections);
+  const SurfaceMetrics c = check_impl(s, corners ? &*corners : nullptr, o.check_self_intersections, &res.intersecting_pairs);
   m.check_s = since(t0);
   m.faces = c.faces, m.vertices = c.vertices, m.volume_m3 = c.volume_m3, m.area_m2 = c.area_m2;
   m.euler = c.euler, m.components = c.components, m.closed = c.closed, m.manifold = c.manifold;

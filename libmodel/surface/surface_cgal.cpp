@@ -22,7 +22,9 @@
 #include <tbb/parallel_for.h>
 
 #include <algorithm>
+#include <array>
 #include <cmath>
+#include <stdexcept>
 #include <vector>
 
 namespace orthosim {
@@ -272,11 +274,18 @@ Surface decimate_surface(const Surface& s, std::int64_t target_faces, Decimation
 }
 #pragma GCC diagnostic pop
 
-std::int64_t surface_self_intersections(const Surface& s) {
+std::vector<std::array<std::int64_t, 2>> surface_self_intersection_pairs(const Surface& s) {
   const Mesh m = to_mesh(s, "self-intersection test");
   std::vector<std::pair<Mesh::Face_index, Mesh::Face_index>> pairs;
   CGAL::Polygon_mesh_processing::self_intersections(faces(m), m, std::back_inserter(pairs));
-  return static_cast<std::int64_t>(pairs.size());
+  std::vector<std::array<std::int64_t, 2>> out;
+  out.reserve(pairs.size());
+  for (const auto& [a, b] : pairs) out.push_back({static_cast<std::int64_t>(a.idx()), static_cast<std::int64_t>(b.idx())});
+  return out;
+}
+
+std::int64_t surface_self_intersections(const Surface& s) {
+  return static_cast<std::int64_t>(surface_self_intersection_pairs(s).size());
 }
 
 NestingResult enforce_nesting(Surface& inner, const Surface& outer, double clearance_m, const std::vector<CapPlane>& caps,
@@ -402,20 +411,20 @@ NestingResult enforce_nesting(Surface& inner, const Surface& outer, double clear
   return res;
 }
 
-FoldsResult untangle_surface(Surface& s, const std::vector<CapPlane>& caps) {
+FoldsResult untangle_surface(Surface& s, const std::vector<CapPlane>& caps,
+                             const std::vector<std::array<std::int64_t, 2>>* known) {
   FoldsResult res;
   const Eigen::Index n = s.vertices.rows();
   if (n == 0) return res;
-  std::vector<std::pair<Mesh::Face_index, Mesh::Face_index>> pairs;
-  {
-    const Mesh m = to_mesh(s, "untangling");
-    CGAL::Polygon_mesh_processing::self_intersections(faces(m), m, std::back_inserter(pairs));
-  }
+  // (to_mesh keeps the face order, so CGAL's face ids are the rows of s.faces)
+  const std::vector<std::array<std::int64_t, 2>> pairs = known ? *known : surface_self_intersection_pairs(s);
   if (pairs.empty()) return res;
   std::vector<std::uint8_t> seeds(static_cast<std::size_t>(n), 0), held(static_cast<std::size_t>(n), 0);
-  for (const auto& [f1, f2] : pairs)
-    for (auto f : {f1, f2})
-      for (int k = 0; k < 3; ++k) seeds[static_cast<std::size_t>(s.faces(static_cast<Eigen::Index>(f.idx()), k))] = 1;
+  for (const auto& pair : pairs)
+    for (const std::int64_t f : pair) {
+      if (f < 0 || f >= s.faces.rows()) throw std::invalid_argument("untangle_surface: a pair's face is not a face of the surface");
+      for (int k = 0; k < 3; ++k) seeds[static_cast<std::size_t>(s.faces(static_cast<Eigen::Index>(f), k))] = 1;
+    }
   const Eigen::RowVector3d lo = s.vertices.colwise().minCoeff(), hi = s.vertices.colwise().maxCoeff();
   const double tol = 1e-9 * (hi - lo).maxCoeff();  // as enforce_nesting's
   for (const CapPlane& pl : caps)
