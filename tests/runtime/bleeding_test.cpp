@@ -22,12 +22,7 @@ namespace {
 Model block_with_vessel() {
   const auto b = runtime::testing::make_layered_block(15, 5, 4);
   Model m = model_from_layers(b.layers, b.sets);
-  Model::Vessel v;
-  v.name = "vein";
-  v.nodes = {0, 3e-3, 0.008, 0.056, 3e-3, 0.008};
-  v.radii = {1.5e-3, 1.5e-3};
-  v.edges = {0, 1};
-  m.vessels.push_back(v);
+  m.vessels.push_back(test::vessel_along_x("vein", 1.5e-3, 1.5e-3));
   return m;
 }
 
@@ -240,16 +235,7 @@ TEST(Bleeding, WoundColumnsCloseTheTissue) {
 // after the cut, and the emitter follows (it stayed where the cut was).
 TEST(Bleeding, TheEmitterMovesWithTheWound) {
   SceneDef def = bleeding_def(false);
-  ToolDef g;
-  g.name = "grasper";
-  g.type = ToolType::pull;
-  g.nodes = "skin";
-  g.has_center = true;
-  g.center = {0.028, 0, 0.008};
-  g.radius = 0.005;
-  g.start = 0.1;
-  g.path = Path{{0.1, 0.4}, {0, 0, 0, 0, 0, 3e-3}};
-  def.tools.push_back(g);
+  def.tools.push_back(test::skin_grasper({0.028, 0, 0.008}, 0.005, Path{{0.1, 0.4}, {0, 0, 0, 0, 0, 3e-3}}, 0.1));
   Scene scene(block_with_vessel(), def);
   run_steps(scene, 4);  // the cut, at the step starting at 3 dt >= 0.05 s
   ASSERT_EQ(scene.cuts().size(), 1u);

@@ -63,11 +63,7 @@ TEST(Cut, ValidatesTheBlade) {
 // blade's reach: the cut missed it, or bled where it was no longer).
 TEST(Cut, TheBladeMeetsTheVesselsWhereTheTissueCarriedThem) {
   Model m = block(15, 5, 4);
-  Model::Vessel v;
-  v.name = "vein";
-  v.nodes = {0, 3e-3, 0.008, 0.056, 3e-3, 0.008};
-  v.radii = {1e-3, 1e-3};
-  v.edges = {0, 1};
+  const Model::Vessel v = test::vessel_along_x("vein", 1e-3, 1e-3);
   m.vessels.push_back(v);
   std::vector<Real> x(m.rest_x);
   for (std::size_t i = 1; i < x.size(); i += 3) x[i] += 4e-3;
@@ -236,12 +232,8 @@ TEST(Cut, AutomaticDirectionPointsAtTheAxis) {
 
 TEST(Cut, ReportsTheVesselsItCrosses) {
   Model m = block(15, 5, 4);
-  Model::Vessel v;
-  v.name = "artery";
   // a vessel along x, 3 mm deep, radius 1 mm -> 2 mm along it
-  v.nodes = {0, 3e-3, 0.008, 0.056, 3e-3, 0.008};
-  v.radii = {1e-3, 2e-3};
-  v.edges = {0, 1};
+  const Model::Vessel v = test::vessel_along_x("artery", 1e-3, 2e-3);
   m.vessels.push_back(v);
   CutDef d;
   d.polyline = {{0.028, 0, -0.01}, {0.028, 0, 0.03}};
@@ -300,15 +292,7 @@ TEST(Cut, ASnappedCutFollowsItsNodes) {
   def.dt = 0.01;
   def.solver.gravity = {0, 0, 0};
   def.solver.integrator = Integrator::implicit_euler;
-  ToolDef g;
-  g.name = "grasper";
-  g.type = ToolType::pull;
-  g.nodes = "skin";
-  g.has_center = true;
-  g.center = {0.024, 0, 0.008};
-  g.radius = 0.005;
-  g.path = Path{{0, 0.2}, {0, 0, 0, 4e-3, 0, 0}};
-  def.tools.push_back(g);
+  def.tools.push_back(test::skin_grasper({0.024, 0, 0.008}, 0.005, Path{{0, 0.2}, {0, 0, 0, 4e-3, 0, 0}}, 0));
   SceneDef with_cut = def;
   ToolDef cut;
   cut.name = "scalpel";

@@ -2,9 +2,13 @@
 #pragma once
 
 #include "runtime/model.h"
+#include "runtime/scene.h"
 #include "runtime/state.h"
 
+#include <array>
 #include <cmath>
+#include <string>
+#include <utility>
 #include <vector>
 
 namespace orthosim::runtime::test {
@@ -31,6 +35,32 @@ inline Model make_model(const std::vector<Real>& x, const std::vector<Real>& mas
   m.n_springs = static_cast<std::int32_t>(springs.size());
   m.finalize();
   return m;
+}
+
+// A straight vessel along x through the layered test block (56 mm long), 3 mm
+// deep (in its second layer) at z = 8 mm, radius r0 at x = 0 to r1 at the end.
+inline Model::Vessel vessel_along_x(const std::string& name, Real r0, Real r1) {
+  Model::Vessel v;
+  v.name = name;
+  v.nodes = {0, 3e-3, 0.008, 0.056, 3e-3, 0.008};
+  v.radii = {r0, r1};
+  v.edges = {0, 1};
+  return v;
+}
+
+// A kinematic grip of the skin nodes within `radius` of `center`, moved along
+// `path` (offsets from where it grips) from `start`.
+inline ToolDef skin_grasper(const std::array<Real, 3>& center, Real radius, Path path, Real start) {
+  ToolDef g;
+  g.name = "grasper";
+  g.type = ToolType::pull;
+  g.nodes = "skin";
+  g.has_center = true;
+  g.center = center;
+  g.radius = radius;
+  g.path = std::move(path);
+  g.start = start;
+  return g;
 }
 
 inline bool all_finite(const State& s) {
