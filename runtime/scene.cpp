@@ -81,9 +81,18 @@ class Obj {
   long integer(const char* key, long fallback, long lo, long hi) {
     if (!has(key)) return fallback;
     const json& v = j_.at(key);
+    const auto range = [&] { return " must be an integer in [" + std::to_string(lo) + ", " + std::to_string(hi) + "] (got " + v.dump() + ")"; };
+    // a whole number written as a float (2.0, or beyond 64 bits, which the parser
+    // reads as a float: 1e+22 was "not an integer")
+    if (v.is_number_float() && std::isfinite(v.get<double>()) && std::floor(v.get<double>()) == v.get<double>()) {
+      const double d = v.get<double>();
+      if (d < static_cast<double>(lo) || d > static_cast<double>(hi)) fail(std::string(key) + range());
+      return static_cast<long>(d);
+    }
     if (!v.is_number_integer()) fail(std::string(key) + " must be an integer (got " + v.dump() + ")");
+    if (v.is_number_unsigned() && v.get<std::uint64_t>() > static_cast<std::uint64_t>(hi)) fail(std::string(key) + range());
     const long x = v.get<long>();
-    if (x < lo || x > hi) fail(std::string(key) + " must be in [" + std::to_string(lo) + ", " + std::to_string(hi) + "]");
+    if (x < lo || x > hi) fail(std::string(key) + range());
     return x;
   }
   bool boolean(const char* key, bool fallback) {

@@ -360,7 +360,7 @@ TEST(Bleeding, SceneFileFluidAndDrainErrors) {
   bad(R"({"model": "m.h5", "fluid": {"colour": "red"}})", "unknown key 'colour'");
   bad(R"({"model": "m.h5", "fluid": {"physx_stiffness": 20, "sound_speed": 3}})", "not both");
   bad(R"({"model": "m.h5", "fluid": {"eos": "ideal"}})", "eos");
-  bad(R"({"model": "m.h5", "fluid": {"surface_volume_passes": 65}})", "surface_volume_passes must be in [0, 64]");
+  bad(R"({"model": "m.h5", "fluid": {"surface_volume_passes": 65}})", "surface_volume_passes must be an integer in [0, 64]");
   bad(R"({"model": "m.h5", "fluid": {"surface_volume_passes": 2.5}})", "surface_volume_passes must be an integer");
   // a surface cell of 0.001 spacing ran the machine out of memory a minute into the run
   bad(R"({"model": "m.h5", "fluid": {"surface_cell": 0.001}})", "surface_cell must be a finite number in [0.1, 2]");

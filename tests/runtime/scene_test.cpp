@@ -97,7 +97,10 @@ TEST_F(SceneTest, BadScenesAreOneLineErrorsBeforeAnyStep) {
       {R"({"model": "model.h5", "dt": -0.01})", "dt must be a finite number in (0"},
       {R"({"model": "model.h5", "dt": "fast"})", "dt must be a number"},
       {R"({"model": "model.h5", "dt": 1e999})", ""},
-      {R"({"model": "model.h5", "substeps": 0})", "substeps must be in [1"},
+      {R"({"model": "model.h5", "substeps": 0})", "substeps must be an integer in [1"},
+      // beyond 64 bits the parser reads a float: it was "must be an integer (got 1e+22)"
+      {R"({"model": "model.h5", "threads": 99999999999999999999999})", "threads must be an integer in [0, "},
+      {R"({"model": "model.h5", "output": {"dir": "o", "every": 18446744073709551615}})", "every must be an integer in [1, "},
       {R"({"model": "model.h5", "gravity": [0, "down", 0]})", "gravity must be three finite numbers"},
       {R"({"model": "model.h5", "integrator": "rk4"})", "integrator must be symplectic or implicit"},
       {R"({"model": "model.h5", "dtt": 0.01})", "unknown key 'dtt'"},
@@ -164,6 +167,13 @@ TEST_F(SceneTest, BadScenesAreOneLineErrorsBeforeAnyStep) {
                                  "tools": [{"type": "pull", "center": [9, 9, 9], "radius": 0.001}]})");
   EXPECT_FALSE(error_of([&] { Scene s(parse_scene_file(p)); }).empty());
   EXPECT_FALSE(fs::exists(dir / "never"));
+}
+
+// A whole number written as a float is that integer (JSON has one number type).
+TEST(SceneFile, WholeNumbersWrittenAsFloatsAreIntegers) {
+  const SceneDef d = parse_scene(R"({"model": "m.h5", "threads": 2.0, "output": {"dir": "o", "every": 3.0}})", "s.json");
+  EXPECT_EQ(d.threads, 2);
+  EXPECT_EQ(d.output.every, 3);
 }
 
 TEST_F(SceneTest, SimulateFetchResultsAndCallsBetweenSteps) {
