@@ -77,25 +77,7 @@ void add_run_command(CLI::App& app) {
       throw Error(scene_file, "duration / dt = " + (std::ostringstream() << def.duration / def.dt).str() +
                                   " steps, more than 1e9: a larger dt or a shorter duration (or --steps)");
     const long n_steps = steps_given ? steps : std::max(1L, std::lround(def.duration / def.dt));
-    // what the scene asks for that this run will not do (even with --quiet)
-    if (!steps_given && def.duration < 0.5 * def.dt)
-      std::cerr << "orthosim run: warning: " << scene_file << ": duration " << def.duration
-                << " s is under half a step (dt = " << def.dt << " s); one step is run\n";
-    if (def.fluid.enabled && def.vessels.empty())
-      for (const auto& t : def.tools)
-        if (t.type == runtime::ToolType::cut) {
-          std::cerr << "orthosim run: warning: " << scene_file << ": the scene has blood and a cut"
-                    << quoted(t.name)
-                    << " but loads no vessel tree, so nothing can bleed (name the trees in \"vessels\")\n";
-          break;
-        }
     const double last_start = static_cast<double>(n_steps - 1) * def.dt;  // the last step starts here
-    for (const auto& t : def.tools)
-      if (t.start > last_start * (1 + 1e-12) + 1e-15)
-        std::cerr << "orthosim run: warning: " << scene_file << ": the " << runtime::to_string(t.type) << " tool"
-                  << quoted(t.name) << " starts at t = " << t.start
-                  << " s, after the run's last step starts (t = " << last_start << " s, " << n_steps
-                  << " steps of " << def.dt << " s): it never acts\n";
 
     // a --report among the series' files would replace one (tissue.pvd held the
     // JSON report, the series broken, exit 0), or be removed as a stale frame
@@ -114,6 +96,26 @@ void add_run_command(CLI::App& app) {
       Phase p(report, "load");
       scene = std::make_unique<runtime::Scene>(def);
     }
+    // what the scene asks for that this run will not do (even with --quiet); after
+    // the load, so that a scene the load refuses gets its one error line alone
+    if (!steps_given && def.duration < 0.5 * def.dt)
+      std::cerr << "orthosim run: warning: " << scene_file << ": duration " << def.duration
+                << " s is under half a step (dt = " << def.dt << " s); one step is run\n";
+    if (def.fluid.enabled && def.vessels.empty())
+      for (const auto& t : def.tools)
+        if (t.type == runtime::ToolType::cut) {
+          std::cerr << "orthosim run: warning: " << scene_file << ": the scene has blood and a cut"
+                    << quoted(t.name)
+                    << " but loads no vessel tree, so nothing can bleed (name the trees in \"vessels\")\n";
+          break;
+        }
+    for (const auto& t : def.tools)
+      if (t.start > last_start * (1 + 1e-12) + 1e-15)
+        std::cerr << "orthosim run: warning: " << scene_file << ": the " << runtime::to_string(t.type) << " tool"
+                  << quoted(t.name) << " starts at t = " << t.start
+                  << " s, after the run's last step starts (t = " << last_start << " s, " << n_steps
+                  << " steps of " << def.dt << " s): it never acts\n";
+
     const runtime::Model& m0 = scene->model();  // a cut replaces the model: not used after the steps
     // what a tool will not do (even with --quiet):
     // - a pull, hook or pressure tool whose nodes are all fixed already moves

@@ -486,6 +486,9 @@ TEST_F(RunCli, BadScenesExitTwoWithOneLine) {
       {R"({"model": "model.h5", "tools": [{"type": "pull", "center": [1, 1, 1], "radius": 0.001}]})", "takes no node"},
       {R"({"model": "model.h5", "dt": 0})", "dt must be"},
       {R"({"model": "model.h5", "duration": "long"})", "duration must be a number"},
+      // a tool that never acts was warned of before the load's error: two lines for one bad scene
+      {R"({"model": "model.h5", "dt": 0.01, "duration": 0.02, "tools": [{"type": "pull", "center": [1, 1, 1], "radius": 0.001, "start": 5}]})",
+       "takes no node"},
   };
   for (const auto& [json, expect] : cases) {
     const auto s = scene(json);
