@@ -7,6 +7,7 @@
 #include <cmath>
 #include <limits>
 #include <map>
+#include <numeric>
 #include <utility>
 
 namespace orthosim::runtime {
@@ -305,16 +306,69 @@ Carried carry_points(const Model& m, std::span<const Real> points, int k) {
   const std::size_t n = points.size() / 3;
   c.k = static_cast<int>(std::min<std::int64_t>(k, m.n_nodes));
   c.rest.assign(points.begin(), points.begin() + static_cast<std::ptrdiff_t>(3 * n));
-  if (c.k <= 0) return c;
+  if (c.k <= 0 || n == 0) return c;
   const auto kk = static_cast<std::size_t>(c.k);
   c.node.resize(n * kk);
   c.weight.resize(n * kk);
-  std::vector<std::pair<Real, std::int32_t>> d2(static_cast<std::size_t>(m.n_nodes));
+  // The nodes binned in a grid of cubes (about 8 nodes a cube where they were
+  // spread evenly through their box): each point's k nearest are found ring by
+  // ring, exactly (the same nodes as a scan of them all, ties by index), in
+  // time that does not grow with the model (a scan of every node was 10^9
+  // distance tests for a 5 000-node tree in a 400 x 100 grid's 240 000 nodes).
+  Box box;
+  for (std::int32_t i = 0; i < m.n_nodes; ++i) box.add(load3(m.rest_x.data(), i));
+  const Vec3 ext = box.hi - box.lo;
+  const Real vol = std::max(ext.x, Real(1e-12)) * std::max(ext.y, Real(1e-12)) * std::max(ext.z, Real(1e-12));
+  const Real diag = std::max(norm(ext), Real(1e-12));
+  const Real h = std::clamp(2 * std::cbrt(vol / static_cast<Real>(m.n_nodes)), diag / 256, diag);
+  const std::array<int, 3> dim{static_cast<int>(ext.x / h) + 1, static_cast<int>(ext.y / h) + 1, static_cast<int>(ext.z / h) + 1};
+  auto cell_of = [&](const Vec3& p, int a) {
+    const Real u = ((a == 0 ? p.x - box.lo.x : a == 1 ? p.y - box.lo.y : p.z - box.lo.z)) / h;
+    return static_cast<int>(std::floor(std::clamp(u, Real(-1e6), Real(1e6))));
+  };
+  auto lin = [&](int x, int y, int z) {
+    return (static_cast<std::size_t>(z) * static_cast<std::size_t>(dim[1]) + static_cast<std::size_t>(y)) *
+               static_cast<std::size_t>(dim[0]) + static_cast<std::size_t>(x);
+  };
+  std::vector<std::int32_t> start(static_cast<std::size_t>(dim[0]) * dim[1] * dim[2] + 1, 0), order(static_cast<std::size_t>(m.n_nodes));
+  std::vector<std::size_t> cell(static_cast<std::size_t>(m.n_nodes));
+  for (std::int32_t i = 0; i < m.n_nodes; ++i) {
+    const Vec3 r = load3(m.rest_x.data(), i);
+    cell[static_cast<std::size_t>(i)] = lin(std::clamp(cell_of(r, 0), 0, dim[0] - 1), std::clamp(cell_of(r, 1), 0, dim[1] - 1),
+                                            std::clamp(cell_of(r, 2), 0, dim[2] - 1));
+    ++start[cell[static_cast<std::size_t>(i)] + 1];
+  }
+  std::partial_sum(start.begin(), start.end(), start.begin());
+  {
+    std::vector<std::int32_t> fill(start.begin(), start.end() - 1);
+    for (std::int32_t i = 0; i < m.n_nodes; ++i) order[static_cast<std::size_t>(fill[cell[static_cast<std::size_t>(i)]]++)] = i;
+  }
+  std::vector<std::pair<Real, std::int32_t>> d2;
   for (std::size_t p = 0; p < n; ++p) {
     const Vec3 q = load3(points.data(), static_cast<std::int64_t>(p));
-    for (std::int32_t i = 0; i < m.n_nodes; ++i) {
-      const Vec3 r = load3(m.rest_x.data(), i) - q;
-      d2[static_cast<std::size_t>(i)] = {dot(r, r), i};
+    const int qc[3] = {cell_of(q, 0), cell_of(q, 1), cell_of(q, 2)};
+    int last = 0;  // the ring after which every cell has been seen
+    for (int a = 0; a < 3; ++a) last = std::max({last, std::abs(qc[a]), std::abs(dim[static_cast<std::size_t>(a)] - 1 - qc[a])});
+    d2.clear();
+    for (int ring = 0; ring <= last; ++ring) {
+      for (int z = std::max(qc[2] - ring, 0); z <= std::min(qc[2] + ring, dim[2] - 1); ++z)
+        for (int y = std::max(qc[1] - ring, 0); y <= std::min(qc[1] + ring, dim[1] - 1); ++y)
+          for (int x = std::max(qc[0] - ring, 0); x <= std::min(qc[0] + ring, dim[0] - 1); ++x) {
+            if (std::max({std::abs(x - qc[0]), std::abs(y - qc[1]), std::abs(z - qc[2])}) != ring) continue;
+            const std::size_t l = lin(x, y, z);
+            for (std::int32_t o = start[l]; o < start[l + 1]; ++o) {
+              const std::int32_t i = order[static_cast<std::size_t>(o)];
+              const Vec3 r = load3(m.rest_x.data(), i) - q;
+              d2.push_back({dot(r, r), i});
+            }
+          }
+      // every node within ring h of q has been seen (a node clamped into the
+      // grid's edge cells lies beyond them, so no nearer than its cell says)
+      if (d2.size() >= kk) {
+        std::nth_element(d2.begin(), d2.begin() + static_cast<std::ptrdiff_t>(kk - 1), d2.end());
+        const Real reach = ring * h;
+        if (d2[kk - 1].first <= reach * reach) break;
+      }
     }
     // the k nearest, ties by index: the same choice on every machine
     std::partial_sort(d2.begin(), d2.begin() + static_cast<std::ptrdiff_t>(kk), d2.end());

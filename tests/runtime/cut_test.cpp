@@ -80,6 +80,25 @@ TEST(Cut, TheBladeMeetsTheVesselsWhereTheTissueCarriedThem) {
   EXPECT_NEAR(r.vessel_hits[0].point.y, 7e-3, 1e-12);
   EXPECT_NEAR(r.vessel_hits[0].along, 0.5, 1e-12);
   EXPECT_TRUE(cut_model(at_rest, x, d).vessel_hits.empty());
+  // the nearest nodes are a scan's (ties by index), for points inside the block and around it
+  {
+    std::mt19937_64 r(11);
+    std::uniform_real_distribution<Real> px(-0.02, 0.08), py(-0.02, 0.04), pz(-0.02, 0.04);
+    std::vector<Real> pts;
+    for (int i = 0; i < 200; ++i) pts.insert(pts.end(), {px(r), py(r), pz(r)});
+    pts.insert(pts.end(), m.rest_x.begin() + 30, m.rest_x.begin() + 33);  // on a node
+    const Carried grid = carry_points(m, pts);
+    ASSERT_EQ(grid.k, 8);
+    for (std::size_t p = 0; p < pts.size() / 3; ++p) {
+      std::vector<std::pair<Real, std::int32_t>> all;
+      for (std::int32_t i = 0; i < m.n_nodes; ++i) {
+        const Vec3 e = load3(m.rest_x.data(), i) - load3(pts.data(), static_cast<std::int64_t>(p));
+        all.push_back({dot(e, e), i});
+      }
+      std::partial_sort(all.begin(), all.begin() + 8, all.end());
+      for (std::size_t j = 0; j < 8; ++j) EXPECT_EQ(grid.node[p * 8 + j], all[j].second) << "point " << p << ", rank " << j;
+    }
+  }
   // a point at a node follows that node, whatever its neighbours do
   std::mt19937_64 rng(3);
   std::uniform_real_distribution<Real> u(-1e-3, 1e-3);
