@@ -853,8 +853,14 @@ void Scene::fluid_step_now(Real dt, std::span<const Real> x_start) {
   // emitters follow their wounds (where the tissue carries them at the step's start)
   if (fr.emitter_carry.rest.size() == 3 * fr.state.emitters.size() && !fr.state.emitters.empty()) {
     const std::vector<Real> at = carried_positions(fr.emitter_carry, *model_, x_start);
-    for (std::size_t i = 0; i < fr.state.emitters.size(); ++i)
+    bool outside = false;
+    for (std::size_t i = 0; i < fr.state.emitters.size(); ++i) {
       fr.state.emitters[i].center = {at[3 * i], at[3 * i + 1], at[3 * i + 2]};
+      const bool live = state_.time - dt >= fr.state.emitters[i].start && state_.time - dt < fr.state.emitters[i].end;
+      for (std::size_t a = 0; a < 3; ++a)
+        outside = outside || (live && (at[3 * i + a] < fr.bounds.lo[a] || at[3 * i + a] > fr.bounds.hi[a]));
+    }
+    if (outside) ++fr.summary.emitter_outside_steps;
   }
   // emitters pause while the fluid is full, and stop within the step at the cap
   fr.state.max_particles = fd.max_particles;

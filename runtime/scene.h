@@ -247,6 +247,10 @@ class Scene {
   // What the fluid did over the run: particles emitted, drained, lost, paused emitter steps.
   struct FluidSummary {
     std::int64_t particles = 0, emitted = 0, drained = 0, left_domain = 0, nonfinite = 0, paused_steps = 0;
+    // steps in which an emitter, moved with its wound, lay outside the blood's
+    // domain (its blood leaves it at once; the domain is the loaded tissue's rest
+    // box grown by the margin, and the tissue was carried farther)
+    std::int64_t emitter_outside_steps = 0;
     Real emitted_volume = 0, drained_volume = 0;  // m^3
     int emitters = 0;                              // cut vessels bleeding (ever)
     Real flow_rate = 0;                            // m^3/s, their flows (bleeding_flow_rate) summed

@@ -10,6 +10,7 @@
 #include <filesystem>
 #include <iostream>
 #include <iterator>
+#include <regex>
 #include <set>
 #include <sstream>
 #include <vector>
@@ -84,8 +85,13 @@ void add_run_command(CLI::App& app) {
     if (def.output.enabled && !common.report.empty()) {
       namespace fs = std::filesystem;
       const fs::path r = fs::weakly_canonical(common.report), dir = fs::weakly_canonical(def.output.dir);
-      const std::string file = r.filename().string();
-      if (r.parent_path() == dir && file.compare(0, def.output.name.size(), def.output.name) == 0)
+      // the series' own names (vtk.h, Scene::write_vessels): <name>.pvd, <name>_NNNNNN.vtu,
+      // <name>_blood.pvd and _blood_NNNNNN.vtp, the same for _particles, <name>_vessels.vtp
+      // and _centrelines.vtp; another name that starts with <name> is fine (tissue_report.json)
+      const std::regex series("(|_blood|_particles)(\\.pvd|_[0-9]+\\.(vtu|vtp))|_vessels\\.vtp|_centrelines\\.vtp");
+      const std::string file = r.filename().string(), prefix = def.output.name;
+      if (r.parent_path() == dir && file.compare(0, prefix.size(), prefix) == 0 &&
+          std::regex_match(file.substr(prefix.size()), series))
         throw Error(common.report, "--report names a file of the output series (" + def.output.name + "* in " +
                                        def.output.dir + "): the report would replace it; name another file");
     }
@@ -249,6 +255,7 @@ void add_run_command(CLI::App& app) {
                       {"bleeding_vessels", f.emitters},
                       {"bleeding_flow_m3_s", f.flow_rate},
                       {"emitter_paused_steps", f.paused_steps},
+                      {"emitter_outside_steps", f.emitter_outside_steps},
                       {"max_compression", f.max_compression},
                       {"substeps", fs->counters.substeps},
                       {"substeps_set_by", substep_limits(fs->counters)},
@@ -326,6 +333,12 @@ void add_run_command(CLI::App& app) {
                   << f.particle_volume << " m^3) takes " << f.particle_volume / f.flow_rate
                   << " s of that flow; a finer fluid spacing or a higher bleed_pressure shows it\n";
     }
+    if (scene->fluid_state() && scene->fluid_summary().emitter_outside_steps > 0)  // even with --quiet: the blood is thrown away
+      std::cerr << "orthosim run: warning: " << scene_file << ": a wound's emitter, moved with the tissue, lay outside the "
+                << "blood's domain in " << scene->fluid_summary().emitter_outside_steps << " step(s), so its blood was emitted "
+                << "outside it (" << scene->fluid_summary().left_domain << " of " << scene->fluid_summary().emitted
+                << " particles left the domain); a larger fluid.margin keeps it inside (the domain is the tissue's rest "
+                   "box grown by it)\n";
     if (const runtime::FluidState* fs = scene->fluid_state(); fs && scene->fluid_summary().emitted > 0) {
       // a drain that removed nothing while blood was emitted never met it (a warning even with
       // --quiet: the drained count the scene is for reads 0); drains are in the order of their tools

@@ -6,6 +6,7 @@
 #include <cmath>
 #include <cstring>
 #include <filesystem>
+#include <iomanip>
 #include <map>
 #include <sstream>
 
@@ -14,9 +15,9 @@ namespace fs = std::filesystem;
 namespace orthosim {
 
 std::string voxel_geometry_problem(const std::array<double, 3>& spacing_m, const std::array<double, 3>& origin_m) {
-  auto num = [](double x) {
+  auto num = [](double x) {  // enough digits that a value out of range does not print as the bound
     std::ostringstream o;
-    o << x;
+    o << std::setprecision(10) << x;
     return o.str();
   };
   for (int k = 0; k < 3; ++k) {

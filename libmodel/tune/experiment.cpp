@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <iomanip>
 #include <limits>
 #include <sstream>
 #include <string>
@@ -48,8 +49,11 @@ void validate(const Target& q) {
   auto modulus = [&](double v, const char* name) {
     // (a table's 1e308 kPa overflows to inf in Pa: out of range, not "not positive")
     if (!(v > 0)) throw Error("", std::string("target ") + name + " must be a positive modulus");
-    if (v < 1 || !(v <= 1e12))
-      throw Error("", std::string("target ") + name + " = " + (std::ostringstream() << v / 1e3).str() +
+    if (!std::isfinite(v))
+      throw Error("", std::string("target ") + name +
+                          " overflows a double in Pa: it is outside a tissue's range, 1e-3 .. 1e9 kPa (a unit slip?)");
+    if (v < 1 || v > 1e12)
+      throw Error("", std::string("target ") + name + " = " + (std::ostringstream() << std::setprecision(10) << v / 1e3).str() +
                           " kPa is outside a tissue's range, 1e-3 .. 1e9 kPa (a unit slip?)");
   };
   if (q.biphasic) {

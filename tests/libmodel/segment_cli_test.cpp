@@ -157,6 +157,12 @@ TEST(SegmentCli, BadSpacingAndTable) {
     EXPECT_EQ(r.code, 2) << r.err;
     EXPECT_NE(r.err.find("--origin: origin along y"), std::string::npos) << r.err;
   }
+  // a value just out of range prints as itself, not rounded to the bound ("0.1 m")
+  {
+    const auto r = test::run_cli("segment --stack " + stack().slices + " --tissues " + stack().tissues +
+                                 " --spacing 100.0001,1,1 --out " + (d / "o.h5") + " --quiet");
+    EXPECT_NE(r.err.find("spacing along x is 0.1000001 m"), std::string::npos) << r.err;
+  }
   // a label volume written elsewhere with such a spacing is refused where it is read
   {
     Volume v;

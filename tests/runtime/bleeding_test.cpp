@@ -259,6 +259,30 @@ TEST(Bleeding, TheEmitterMovesWithTheWound) {
   EXPECT_EQ(scene.counters().failed, 0);
 }
 
+// The blood's domain is the tissue's rest box grown by the margin; the wound's
+// emitter moves with the tissue and can leave it. Its blood was then emitted
+// outside the domain with no word (a sweep: 1 061 of 1 071 particles left it,
+// exit 0). The steps it lay outside are counted (orthosim run warns of them).
+TEST(Bleeding, AnEmitterCarriedOutOfTheDomainIsCounted) {
+  SceneDef def = bleeding_def(false);
+  def.fluid.margin = 0.005;
+  // the skin over the wound dragged 2 cm out of the block (-y) after the cut
+  def.tools.push_back(test::skin_grasper({0.028, 0, 0.008}, 0.012, Path{{0.1, 0.3}, {0, 0, 0, 0, -0.02, 0}}, 0.1));
+  Scene scene(block_with_vessel(), def);
+  run_steps(scene, 30);
+  ASSERT_EQ(scene.fluid_state()->emitters.size(), 1u);
+  const auto f = scene.fluid_summary();
+  std::printf("  emitter at y = %.1f mm; %lld steps outside; %lld of %lld particles left the domain\n",
+              1e3 * scene.fluid_state()->emitters[0].center[1], static_cast<long long>(f.emitter_outside_steps),
+              static_cast<long long>(f.left_domain), static_cast<long long>(f.emitted));
+  ASSERT_LT(scene.fluid_state()->emitters[0].center[1], -0.005) << "the test needs the emitter carried out";
+  EXPECT_GT(f.emitter_outside_steps, 0);
+  // without the drag it stays inside
+  Scene still(block_with_vessel(), bleeding_def(false));
+  run_steps(still, 30);
+  EXPECT_EQ(still.fluid_summary().emitter_outside_steps, 0);
+}
+
 // A second cut across a vessel edge an earlier cut opened adds no wound: the
 // same cut twice emitted twice the flow (3 222 particles against 1 791 in the
 // demo's bleeding scene, and "4 vessel(s) bleeding" of 2), until 2026-11-27.

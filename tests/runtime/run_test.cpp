@@ -412,6 +412,9 @@ TEST_F(RunCli, AReportAmongTheSeriesFilesIsRefused) {
   }
   EXPECT_EQ(test::read_file(out + "/limb.pvd"), pvd);
   EXPECT_EQ(test::read_file(out + "/limb_000001.vtu"), frame);
+  // names that only start like the series' are reports like any other
+  for (const std::string f : {"limb_report.json", "limbreport.json"})
+    EXPECT_EQ(run_cli("run " + s + " --quiet --out " + out + " --report " + out + "/" + f).code, 0) << f;
 }
 
 // --threads -1 was the "not given" value: it ran with the scene's threads.
