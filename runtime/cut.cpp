@@ -254,9 +254,17 @@ Vec3 cut_direction(const Model& m, const CutDef& def) {
   }
   const Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> es(cov);
   const Eigen::Vector3d axis = es.eigenvectors().col(2);
+  // the path's midpoint (its segments' midpoints weighted by their lengths):
+  // the mean of the points moved with a repeated point, and the same path cut
+  // one vessel or two
   Vec3 mid{0, 0, 0};
-  for (const Vec3& p : def.polyline) mid += p;
-  mid = (1.0 / static_cast<Real>(def.polyline.size())) * mid;
+  Real length = 0;
+  for (std::size_t i = 0; i + 1 < def.polyline.size(); ++i) {
+    const Real l = norm(def.polyline[i + 1] - def.polyline[i]);
+    mid += (Real(0.5) * l) * (def.polyline[i] + def.polyline[i + 1]);
+    length += l;
+  }
+  mid = (1 / length) * mid;  // > 0: validate refuses a zero-length polyline
   const Eigen::Vector3d mm(mid.x, mid.y, mid.z);
   const Eigen::Vector3d foot = c + (mm - c).dot(axis) * axis;
   const Eigen::Vector3d d = foot - mm;

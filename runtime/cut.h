@@ -36,8 +36,9 @@ namespace orthosim::runtime {
 struct CutDef {
   std::vector<Vec3> polyline;  // (>= 2 points) m, on or just outside the tissue surface
   // Inward unit direction of the blade. Zero: automatic, from the polyline's
-  // midpoint towards the nearest point of the principal axis of the model's
-  // rest positions (the limb axis of a limb-like model).
+  // midpoint (along its length: a repeated point does not move it) towards the
+  // nearest point of the principal axis of the model's rest positions (the limb
+  // axis of a limb-like model).
   Vec3 direction{0, 0, 0};
   Real depth = 0;   // m, > 0: how deep the blade goes along `direction`
   Real lead = 0.1;  // the blade starts lead x depth outside the polyline, [0, 1]

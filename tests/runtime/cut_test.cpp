@@ -247,6 +247,15 @@ TEST(Cut, AutomaticDirectionPointsAtTheAxis) {
   d.depth = 0.01;
   const Vec3 dir = cut_direction(m, d);
   EXPECT_GT(dir.y, 0.99);
+  // the same path with a point repeated, at either end: the same blade (the mean of the
+  // points moved with the repetition, and the same path cut one vessel or two)
+  CutDef a = d, b = d;
+  a.polyline = {d.polyline[0], d.polyline[0], {c.x, c.y - 0.05, c.z + 0.02}, d.polyline[1]};
+  b.polyline = {d.polyline[0], {c.x, c.y - 0.05, c.z + 0.02}, d.polyline[1], d.polyline[1]};
+  const Vec3 da = cut_direction(m, a), db = cut_direction(m, b);
+  EXPECT_NEAR(da.x, db.x, 1e-15);
+  EXPECT_NEAR(da.y, db.y, 1e-15);
+  EXPECT_NEAR(da.z, db.z, 1e-15);
 }
 
 TEST(Cut, ReportsTheVesselsItCrosses) {
