@@ -41,19 +41,14 @@ struct Blade {
   std::vector<std::array<Vec3, 3>> tris;
   std::vector<std::array<bool, 2>> open;  // per triangle: edge a c, edge b c
   Box box;
-  bool crosses(const Vec3& p, const Vec3& q, Real* t = nullptr) const {
+  // touch: an end on the blade counts too (both sides' columns of a slit through nodes)
+  bool crosses(const Vec3& p, const Vec3& q, Real* t = nullptr, bool touch = false) const {
     if (box.misses(p, q)) return false;
     for (std::size_t i = 0; i < tris.size(); ++i)
-      if (runtime::crosses(p, q, tris[i][0], tris[i][1], tris[i][2], t, open[i][0], open[i][1])) return true;
+      if (runtime::crosses(p, q, tris[i][0], tris[i][1], tris[i][2], t, open[i][0], open[i][1], touch)) return true;
     return false;
   }
-  // crosses, or ends on the blade (both sides' columns of a slit through nodes)
-  bool touches(const Vec3& p, const Vec3& q) const {
-    if (box.misses(p, q)) return false;
-    for (std::size_t i = 0; i < tris.size(); ++i)
-      if (runtime::crosses(p, q, tris[i][0], tris[i][1], tris[i][2], nullptr, open[i][0], open[i][1], true)) return true;
-    return false;
-  }
+  bool touches(const Vec3& p, const Vec3& q) const { return crosses(p, q, nullptr, true); }
 };
 
 Blade make_blade(const CutDef& def, const Vec3& d) {

@@ -9,6 +9,7 @@
 #include <fstream>
 #include <iomanip>
 #include <sstream>
+#include <utility>
 
 namespace orthosim::runtime {
 
@@ -166,22 +167,35 @@ void VtkSeries::write(const Model& m, const State& s) {
   write_pvd(pvd_path(), files_);
 }
 
+namespace {
+
+// f is <prefix><digits><extension>
+bool is_frame(const std::string& f, const std::string& prefix, const std::string& extension) {
+  if (f.size() <= prefix.size() + extension.size() || f.compare(0, prefix.size(), prefix) != 0 ||
+      f.compare(f.size() - extension.size(), extension.size(), extension) != 0)
+    return false;
+  for (std::size_t i = prefix.size(); i < f.size() - extension.size(); ++i)
+    if (f[i] < '0' || f[i] > '9') return false;
+  return true;
+}
+
+}  // namespace
+
+bool is_series_file(const std::string& name, const std::string& file) {
+  if (file == name + "_vessels.vtp" || file == name + "_centrelines.vtp") return true;
+  for (const auto& [part, extension] : {std::pair<std::string, std::string>{"", ".vtu"}, {"_blood", ".vtp"}, {"_particles", ".vtp"}})
+    if (file == name + part + ".pvd" || is_frame(file, name + part + "_", extension)) return true;
+  return false;
+}
+
 int remove_series_frames(const std::string& dir, const std::string& prefix, const std::string& extension,
                          const std::string& pvd) {
   namespace fs = std::filesystem;
-  auto is_frame = [&](const std::string& f) {
-    if (f.size() <= prefix.size() + extension.size() || f.compare(0, prefix.size(), prefix) != 0 ||
-        f.compare(f.size() - extension.size(), extension.size(), extension) != 0)
-      return false;
-    for (std::size_t i = prefix.size(); i < f.size() - extension.size(); ++i)
-      if (f[i] < '0' || f[i] > '9') return false;
-    return true;
-  };
   std::vector<fs::path> stale;
   std::error_code ec;
   for (fs::directory_iterator it(dir, ec), end; !ec && it != end; it.increment(ec)) {
     const std::string f = it->path().filename().string();
-    if ((is_frame(f) || (!pvd.empty() && f == pvd)) && it->is_regular_file(ec)) stale.push_back(it->path());
+    if ((is_frame(f, prefix, extension) || (!pvd.empty() && f == pvd)) && it->is_regular_file(ec)) stale.push_back(it->path());
   }
   if (ec) throw Error(dir, "cannot list the output directory: " + ec.message());
   for (const auto& p : stale)

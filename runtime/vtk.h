@@ -66,6 +66,12 @@ void write_pvd(const std::string& path, const std::vector<std::pair<double, std:
 int remove_series_frames(const std::string& dir, const std::string& prefix, const std::string& extension,
                          const std::string& pvd = "");
 
+// Whether `file` (a file name) is one a scene's series named `name` writes:
+// <name>.pvd and <name>_NNNNNN.vtu, the same for <name>_blood and
+// <name>_particles (.vtp frames), <name>_vessels.vtp, <name>_centrelines.vtp.
+// Other names that start with <name> (tissue_report.json) are not.
+bool is_series_file(const std::string& name, const std::string& file);
+
 // ---- PolyData (.vtp), added for the fluid (issue 9) --------------------------
 
 // One point-data array of write_vtp: (n_points x components) values.

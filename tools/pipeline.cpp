@@ -411,10 +411,16 @@ int run_stages(Args a, Report& report) {
 
   // the tune stage's check of the tissues it will tune, before any stage runs
   // (a modulus of 1e30 kPa was refused by tune after segment, surface, remesh and build)
+  // (the tissues the tune stage takes: layered, not rigid, with mechanics, in the scene's layers)
+  auto tunes = [&](const std::string& t) {
+    const Tissue* ti = table.find(t);
+    return ti->layer != "rigid" && ti->mechanics.model != Mechanics::Model::none &&
+           (scene.layers.empty() || std::find(scene.layers.begin(), scene.layers.end(), t) != scene.layers.end());
+  };
   if (a.tune)
     for (const auto& t : layered) {
+      if (!tunes(t)) continue;
       const Tissue* ti = table.find(t);
-      if (ti->layer == "rigid" || ti->mechanics.model == Mechanics::Model::none) continue;
       try {
         tune::validate(tune::target_of(*ti));
       } catch (const Error& e) {
@@ -560,12 +566,8 @@ int run_stages(Args a, Report& report) {
 #ifdef ORTHOSIM_HAVE_TUNE
     if (a.tune) {
       std::vector<std::string> tuned;
-      for (const auto& t : layered) {
-        const Tissue* ti = table.find(t);
-        if (ti->layer == "rigid" || ti->mechanics.model == Mechanics::Model::none) continue;
-        if (!scene.layers.empty() && std::find(scene.layers.begin(), scene.layers.end(), t) == scene.layers.end()) continue;
-        tuned.push_back(t);
-      }
+      for (const auto& t : layered)
+        if (tunes(t)) tuned.push_back(t);
       if (tuned.empty()) {
         run.skip("tune", "the scene loads no tissue with mechanics to tune");
       } else {

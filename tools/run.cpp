@@ -10,7 +10,6 @@
 #include <filesystem>
 #include <iostream>
 #include <iterator>
-#include <regex>
 #include <set>
 #include <sstream>
 #include <vector>
@@ -79,19 +78,15 @@ void add_run_command(CLI::App& app) {
                                   " steps, more than 1e9: a larger dt or a shorter duration (or --steps)");
     const long n_steps = steps_given ? steps : std::max(1L, std::lround(def.duration / def.dt));
     const double last_start = static_cast<double>(n_steps - 1) * def.dt;  // the last step starts here
+    auto never_acts = [&](const runtime::ToolDef& t) { return t.start > last_start * (1 + 1e-12) + 1e-15; };
 
     // a --report among the series' files would replace one (tissue.pvd held the
     // JSON report, the series broken, exit 0), or be removed as a stale frame
     if (def.output.enabled && !common.report.empty()) {
       namespace fs = std::filesystem;
       const fs::path r = fs::weakly_canonical(common.report), dir = fs::weakly_canonical(def.output.dir);
-      // the series' own names (vtk.h, Scene::write_vessels): <name>.pvd, <name>_NNNNNN.vtu,
-      // <name>_blood.pvd and _blood_NNNNNN.vtp, the same for _particles, <name>_vessels.vtp
-      // and _centrelines.vtp; another name that starts with <name> is fine (tissue_report.json)
-      const std::regex series("(|_blood|_particles)(\\.pvd|_[0-9]+\\.(vtu|vtp))|_vessels\\.vtp|_centrelines\\.vtp");
-      const std::string file = r.filename().string(), prefix = def.output.name;
-      if (r.parent_path() == dir && file.compare(0, prefix.size(), prefix) == 0 &&
-          std::regex_match(file.substr(prefix.size()), series))
+      // (only the series' own names: tissue_report.json is fine)
+      if (r.parent_path() == dir && runtime::is_series_file(def.output.name, r.filename().string()))
         throw Error(common.report, "--report names a file of the output series (" + def.output.name + "* in " +
                                        def.output.dir + "): the report would replace it; name another file");
     }
@@ -116,7 +111,7 @@ void add_run_command(CLI::App& app) {
           break;
         }
     for (const auto& t : def.tools)
-      if (t.start > last_start * (1 + 1e-12) + 1e-15)
+      if (never_acts(t))
         std::cerr << "orthosim run: warning: " << scene_file << ": the " << runtime::to_string(t.type) << " tool"
                   << quoted(t.name) << " starts at t = " << t.start
                   << " s, after the run's last step starts (t = " << last_start << " s, " << n_steps
@@ -347,7 +342,7 @@ void add_run_command(CLI::App& app) {
         if (t.type != runtime::ToolType::drain) continue;
         // (not a drain already warned of: outside the domain, or starting after the last step)
         if (k < fs->drains.size() && fs->drains[k].drained == 0 && !outside_domain.count(t.name) &&
-            !(t.start > last_start * (1 + 1e-12) + 1e-15))
+            !never_acts(t))
           std::cerr << "orthosim run: warning: " << scene_file << ": the drain" << quoted(t.name)
                     << " removed no blood of the " << scene->fluid_summary().emitted
                     << " particles emitted: the blood never reached it (inside closed tissue, away from the wound, "
