@@ -135,8 +135,11 @@ TissueTable parse_tissue_table(const std::string& text, const std::string& path)
   std::string twice;
   try {
     j = parse_json_noting_repeats(text, twice);
-  } catch (const json::parse_error& e) {
-    throw Error(path, std::string("not valid JSON: ") + e.what());
+  } catch (const json::exception& e) {  // parse errors, and numbers beyond double's range (1e400)
+    std::string what = e.what();
+    for (auto& c : what)
+      if (c == '\n') c = ' ';
+    throw Error(path, "not valid JSON: " + what);
   }
   if (!twice.empty()) throw Error(path, "not valid JSON: the key '" + twice + "' appears twice in one object");
   if (!j.is_object()) throw Error(path, "tissue table must be a JSON object");
@@ -195,6 +198,10 @@ TissueTable parse_tissue_table(const std::string& text, const std::string& path)
       throw Error(path, "a tissue has no name");
     Tissue ts;
     ts.name = e["name"];
+    // names become file names (surfaces/<name>.stl, plots/<name>.png) and HDF5 groups
+    if (ts.name.size() > 64)
+      throw Error(path, "tissue '" + ts.name.substr(0, 32) + "...': names may be at most 64 characters long (this one has " +
+                            std::to_string(ts.name.size()) + ")");
     if (ts.name == t.background_name)
       throw Error(path, "tissue '" + ts.name + "' has the background's name (label 0 is the background; rename the tissue)");
     const std::string where = "tissue '" + ts.name + "'";

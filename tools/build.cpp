@@ -165,6 +165,10 @@ void add_build_command(CLI::App& app) {
       Phase p(report, "write");
       ModelWriter w(model, ModelWriter::Start::update);
       w.remove("/layers");
+      // an earlier tune's records describe the springs just replaced (a later
+      // tune read them as the springs' laws, and inspect called the model tuned)
+      w.remove("/tuning");
+      w.remove("/provenance/tune");
       for (std::size_t l = 0; l < built.layers.size(); ++l) w.write_layer(built.names[l], built.layers[l]);
       for (const auto& [name, ids] : built.node_sets) w.write_node_set(name, ids);
       w.write("build", make_provenance(command_line(), report.json()["inputs"].dump(),

@@ -91,6 +91,8 @@ json experiment_json(const tune::ExperimentOptions& e) {
           {"stretch", e.stretch},
           {"linear_steps", e.linear_steps},
           {"linear_strain", e.linear_strain},
+          {"body_diagonals", e.body_diagonals},
+          {"lattice_min_weight", e.lattice_min_weight},
           {"force_tolerance", e.solver.force_tolerance},
           {"newton_iterations", e.solver.max_iterations}};
 }
@@ -125,9 +127,25 @@ void find_layer(const ModelReader& m, Job& job) {
       throw Error(m.path(), "layer '" + named.first + "' has no layer below it to give its thickness");
     job.layer_name = named.first;
     job.layer = m.layer(named.first);
-    job.experiment = tune::experiment_for_layer(job.layer, below->second.second, tune::ExperimentOptions{});
-    if (m.has("/tuning/" + job.tissue)) job.current = tune::params_of(m.tuning(job.tissue));
-    else job.current = tune::rule_params(job.target);
+    // the specimen's cells as the build made the layer's (a specimen without
+    // the body diagonals measured another rule than the layer's)
+    tune::ExperimentOptions defaults;
+    const auto prov = m.provenance();
+    if (const auto b = prov.find("build"); b != prov.end()) {
+      const json p = json::parse(b->second.parameters_json, nullptr, false);
+      if (p.is_object()) {
+        if (p.contains("body_diagonals") && p["body_diagonals"].is_boolean()) defaults.body_diagonals = p["body_diagonals"].get<bool>();
+        if (p.contains("lattice_min_weight") && p["lattice_min_weight"].is_number())
+          defaults.lattice_min_weight = p["lattice_min_weight"].get<double>();
+      }
+    }
+    job.experiment = tune::experiment_for_layer(job.layer, below->second.second, defaults);
+    // the laws the springs carry: recorded with the layer (any table may then
+    // retarget it), else as before 2026-11-27; checked before any tuning
+    std::optional<Tuning> record;
+    if (m.has("/tuning/" + job.tissue)) record = m.tuning(job.tissue);
+    job.current = tune::current_params(job.layer, record ? &*record : nullptr, job.target);
+    tune::check_layer_law(job.layer, job.current);
     return;
   }
   throw Error(m.path(), "no built layer for tissue '" + job.tissue + "' in /layers: run orthosim build first");
@@ -179,7 +197,11 @@ void add_tune_command(CLI::App& app) {
 
     // the tissues and their targets, all checked before any work
     std::vector<Job> jobs;
+    // rigid layers and vessels have no springs: their mechanics are unused
+    auto springless = [](const Tissue& t) { return t.layer == "rigid" || t.layer == "vessel"; };
     auto add = [&](const Tissue& t) {
+      if (springless(t))
+        throw Error(tissues_path, "tissue '" + t.name + "' is a " + t.layer + " tissue: it has no springs to tune");
       Job j;
       j.tissue = t.name;
       try {
@@ -193,7 +215,7 @@ void add_tune_command(CLI::App& app) {
     };
     if (names.empty()) {
       for (const Tissue& t : table.tissues)
-        if (t.mechanics.model != Mechanics::Model::none) add(t);
+        if (t.mechanics.model != Mechanics::Model::none && !springless(t)) add(t);
       if (jobs.empty()) throw Error(tissues_path, "no tissue has mechanics to tune");
     } else {
       for (const auto& n : names) {

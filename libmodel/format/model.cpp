@@ -219,6 +219,15 @@ void read_layer_attrs(const h5::File& f, const std::string& g, Layer& l) {
   l.kind = f.attr_string(g, "kind");
   l.order = static_cast<int>(f.attr_int(g, "order"));
   l.node_offset = f.attr_int(g, "node_offset");
+  if (f.has_attr(g, "spring_law")) {
+    l.spring_law = f.attr_doubles(g, "spring_law");
+    if (l.spring_law.size() != 12) throw Error(f.path(), g + ": attribute spring_law must hold 12 values (3 for each of 4 spring classes)");
+    for (std::size_t k = 0; k < 12; ++k) {
+      const double v = l.spring_law[k];
+      if (!(std::isfinite(v) && (k % 3 == 1 ? v >= 0 : v > 0)))
+        throw Error(f.path(), g + ": attribute spring_law holds an invalid value (" + std::to_string(v) + ")");
+    }
+  }
 }
 }  // namespace
 
@@ -342,6 +351,7 @@ void ModelWriter::write_layer(const std::string& name, const Layer& l) {
   file_->set_attr(g, "kind", l.kind);
   file_->set_attr(g, "order", static_cast<std::int64_t>(l.order));
   file_->set_attr(g, "node_offset", l.node_offset);
+  if (!l.spring_law.empty()) file_->set_attr(g, "spring_law", l.spring_law);
 }
 
 void ModelWriter::write_node_set(const std::string& name, const VecXi& ids) {

@@ -121,6 +121,13 @@ struct Layer {
   VecXu8 lin_slack;       // (n_lin) 1: acts only when stretched beyond its rest length
   MatX4i tets;            // (n_tets x 4) global node ids (tetra layers)
   MatX4i quads;           // (n_quads x 4) global node ids of this layer's top surface
+  // The law its springs follow, per spring class (structural, shear,
+  // inter-layer, body) k1 Pa, turning strain, k2 Pa (12 values; every spring
+  // s of class c has k1 = k1_c k_per_pa(s), k2 = k2_c k_per_pa(s), turning
+  // length L0 (1 + t_c)): written by build (the tissue table's law in every
+  // class) and by tune (the tuned laws); attribute "spring_law" of the layer
+  // group. Empty in rigid layers and in files written before 2026-11-27.
+  std::vector<double> spring_law;
 
   template <class V> void fields(V&& v) {
     v(nodes, "nodes", "n_nodes", "m", "rest positions (n_nodes x 3)");

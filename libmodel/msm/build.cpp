@@ -403,6 +403,7 @@ BuiltModel build_layers(const std::vector<std::pair<std::string, QuadSurface>>& 
     L.k1 = law.k1_pa * m.k_per_pa;
     L.k2 = law.k2_pa * m.k_per_pa;
     L.turning_length = m.rest_length * (1 + law.turning_strain);
+    for (int c = 0; c < 4; ++c) L.spring_law.insert(L.spring_law.end(), {law.k1_pa, law.turning_strain, law.k2_pa});
     L.damping.resize(m.pairs.rows());
     for (Eigen::Index s = 0; s < m.pairs.rows(); ++s) {
       const double ma = mass(m.pairs(s, 0)), mb = mass(m.pairs(s, 1));

@@ -213,6 +213,7 @@ Specimen make_specimen(const SpecimenOptions& o) {
     LatticeOptions lo;
     lo.through_cells = cz;
     lo.body_diagonals = o.body_diagonals;
+    lo.min_weight = o.lattice_min_weight;
     blocks.bottom = ng + ng * (cz - 1);
     cells = lattice_cells(top, bottom, quads, blocks, lo);
   } else {

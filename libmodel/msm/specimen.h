@@ -68,6 +68,7 @@ struct SpecimenOptions {
   std::array<int, 3> cells{4, 4, 4};     // along x, y, z in 1..200; tetra: one prism layer, cells[2] sets its height
   std::array<double, 3> cell_m{1e-3, 1e-3, 1e-3};  // cell size along x, y, z (m), > 0
   bool body_diagonals = false;           // lattice only
+  double lattice_min_weight = 0.01;      // lattice only: the rule's floor (LatticeOptions::min_weight)
   ProjectionOptions projection;          // tetra only
 };
 

@@ -118,6 +118,7 @@ void validate(const ExperimentOptions& o) {
   if (!(o.stretch > 1 && o.stretch <= 3)) throw Error("", "stretch (largest strain / turning strain) must be in (1, 3]");
   if (o.linear_steps < 1 || o.linear_steps > 1000) throw Error("", "linear_steps must be in 1..1000");
   if (!(o.linear_strain > 0 && o.linear_strain <= 0.2)) throw Error("", "linear_strain must be in (0, 0.2]");
+  if (!(o.lattice_min_weight >= 0 && o.lattice_min_weight < 1)) throw Error("", "lattice_min_weight must be in [0, 1)");
 }
 
 std::vector<double> strain_schedule(const Target& q, const ExperimentOptions& o) {
@@ -138,6 +139,8 @@ msm::Specimen make_tissue_specimen(const ExperimentOptions& o) {
   so.kind = o.kind;
   so.cells = o.cells;
   so.cell_m = o.cell_m;
+  so.body_diagonals = o.body_diagonals;
+  so.lattice_min_weight = o.lattice_min_weight;
   return msm::make_specimen(so);
 }
 

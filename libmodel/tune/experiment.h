@@ -72,6 +72,10 @@ struct ExperimentOptions {
   double linear_strain = 0.01;              // largest strain of a linear experiment, (0, 0.2]
   FitWeighting weighting = FitWeighting::relative;
   msm::StaticOptions solver{1e-9, 60};      // Newton: relative force tolerance, iterations per step
+  // lattice cells as the model's build made them (its --body-diagonals and
+  // --lattice-min-weight; tune --model reads them from /provenance/build)
+  bool body_diagonals = false;
+  double lattice_min_weight = 0.01;
 };
 // Throws Error("", ...) for out-of-range options.
 void validate(const ExperimentOptions& options);

@@ -332,30 +332,61 @@ ExperimentOptions experiment_for_layer(const Layer& layer, const Layer& below, c
   return o;
 }
 
-void apply_to_layer(Layer& l, const SpringParams& current, const SpringParams& tuned) {
+SpringParams current_params(const Layer& l, const Tuning* record, const Target& table) {
+  if (l.spring_law.size() == 3 * kSpringClasses) {
+    SpringParams p;
+    for (int c = 0; c < kSpringClasses; ++c)
+      p[static_cast<std::size_t>(c)] = {l.spring_law[3 * c], l.spring_law[3 * c + 1], l.spring_law[3 * c + 2]};
+    return p;
+  }
+  return record ? params_of(*record) : rule_params(table);
+}
+
+std::vector<double> law_values(const SpringParams& p) {
+  std::vector<double> v;
+  for (const ClassLaw& c : p) v.insert(v.end(), {c.k1_pa, c.turning_strain, std::max(c.k2_pa, c.k1_pa)});
+  return v;
+}
+
+void check_layer_law(const Layer& l, const SpringParams& current) {
   const Eigen::Index n = l.springs.rows();
   if (l.spring_class.size() != n || l.k1.size() != n || l.k2.size() != n || l.turning_length.size() != n ||
       l.rest_length.size() != n || l.damping.size() != n)
     throw Error("", "layer '" + l.tissue + "' has inconsistent spring arrays");
+  const bool recorded = l.spring_law.size() == 3 * kSpringClasses;
   for (Eigen::Index s = 0; s < n; ++s) {
     const int c = l.spring_class(s);
     if (c < 0 || c >= kSpringClasses) throw Error("", "layer '" + l.tissue + "' has a spring of unknown class");
     const ClassLaw& cur = current[static_cast<std::size_t>(c)];
-    const ClassLaw& t = tuned[static_cast<std::size_t>(c)];
     if (!(cur.k1_pa > 0)) throw Error("", "layer '" + l.tissue + "': no current law for its spring class " + std::to_string(c));
     const double k_per_pa = l.k1(s) / cur.k1_pa;
     // the layer must follow the law it is said to carry
     const double k2_expected = cur.k2_pa * k_per_pa, lt_expected = l.rest_length(s) * (1 + cur.turning_strain);
     if (std::abs(l.k2(s) - k2_expected) > 1e-6 * std::abs(k2_expected) + 1e-300 ||
         std::abs(l.turning_length(s) - lt_expected) > 1e-9 * l.rest_length(s))
-      throw Error("", "layer '" + l.tissue + "': its springs do not follow the tissue table's law (spring " +
-                          std::to_string(s) + "); was the model built with another tissue table?");
+      throw Error("", "layer '" + l.tissue + "': its springs do not follow " +
+                          (recorded ? std::string("the law recorded with it (spring_law)")
+                                    : std::string("the tissue table's law (a model written before layers recorded their "
+                                                  "law: was it built with another tissue table? build it again)")) +
+                          " (spring " + std::to_string(s) + ")");
+  }
+}
+
+void apply_to_layer(Layer& l, const SpringParams& current, const SpringParams& tuned) {
+  check_layer_law(l, current);
+  const Eigen::Index n = l.springs.rows();
+  for (Eigen::Index s = 0; s < n; ++s) {
+    const int c = l.spring_class(s);
+    const ClassLaw& cur = current[static_cast<std::size_t>(c)];
+    const ClassLaw& t = tuned[static_cast<std::size_t>(c)];
+    const double k_per_pa = l.k1(s) / cur.k1_pa;
     const double k1_new = t.k1_pa * k_per_pa;
     if (l.k1(s) > 0) l.damping(s) *= std::sqrt(k1_new / l.k1(s));
     l.k1(s) = k1_new;
     l.k2(s) = std::max(t.k2_pa, t.k1_pa) * k_per_pa;
     l.turning_length(s) = l.rest_length(s) * (1 + t.turning_strain);
   }
+  l.spring_law = law_values(tuned);
   msm::decompose_biphasic(l);
 }
 

@@ -105,11 +105,23 @@ TuneResult tune_target(const Target& target, const ExperimentOptions& experiment
 // fields of `defaults` are kept.
 ExperimentOptions experiment_for_layer(const Layer& layer, const Layer& below, const ExperimentOptions& defaults);
 
+// The laws a layer's springs follow now: its spring_law (written by build and
+// tune since 2026-11-27); in older files the /tuning record of an earlier
+// tune (`record`, or null), else the tissue table's law (`table`).
+SpringParams current_params(const Layer& layer, const Tuning* record, const Target& table);
+std::vector<double> law_values(const SpringParams& p);  // Layer::spring_law's 12 values
+
+// Throws Error("", ...) unless every spring of the layer follows `current`
+// (its k2 / k1 and turning length those of its class's law): the check
+// apply_to_layer makes, to be run before any tuning.
+void check_layer_law(const Layer& layer, const SpringParams& current);
+
 // Re-sets a built layer's springs from tuned per-class laws and redoes its
 // linear decomposition. Each spring's rule stiffness is recovered from its
 // current k1 and its class's current modulus (`current`: the laws the layer
-// was built or last tuned with); damping keeps its ratio (c scales with
-// sqrt(k1)). Throws Error("", ...) if the layer does not match `current`.
+// was built or last tuned with, current_params); damping keeps its ratio (c
+// scales with sqrt(k1)); spring_law becomes the tuned laws. Throws Error("",
+// ...) if the layer does not match `current`.
 void apply_to_layer(Layer& layer, const SpringParams& current, const SpringParams& tuned);
 
 // The /tuning/<tissue> record of a result. spring_params: per class code

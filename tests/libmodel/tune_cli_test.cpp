@@ -199,10 +199,83 @@ TEST(TuneCli, TunesABuiltModel) {
   EXPECT_FALSE(fs::exists(d / "t4.json"));
 }
 
+// The layers record the law their springs follow (Layer::spring_law), so a
+// model built with one table is tuned to another's targets exactly as one
+// built with that table: fat's modulus 2.3 -> 10 kPa left every fat spring at
+// 0.23 of it until 2026-11-27 (the rule stiffness was recovered from the new
+// table's modulus). A rebuild drops the old /tuning records (a later tune read
+// them as the new springs' laws and changed nothing).
+TEST(TuneCli, RetargetsAModelBuiltWithAnotherTable) {
+  test::TempDir d("tune-cli-retarget");
+  const std::string stiff = table_with(d, "fat", {{"model", "linear"}, {"k_kpa", 10}});
+  auto built = [&](const std::string& name, const std::string& table) {
+    const std::string model = d / name;
+    ModelWriter w(model, ModelWriter::Start::fresh);
+    for (const auto& [tissue, q] : test::cylinder_stack(15, 5)) w.write(tissue, q);
+    w.commit();
+    const auto b = test::run_cli("build --model " + model + " --tissues " + table + " --quiet");
+    EXPECT_EQ(b.code, 0) << b.err;
+    return model;
+  };
+  const std::string a = built("a.h5", kTable), b = built("b.h5", stiff);
+  const Layer untuned = ModelReader(a).layer("fat");
+  ASSERT_EQ(untuned.spring_law.size(), 12u);
+  EXPECT_DOUBLE_EQ(untuned.spring_law[0], 2300.0);
+  EXPECT_DOUBLE_EQ(ModelReader(b).layer("fat").spring_law[0], 10000.0);
+  for (const std::string& m : {a, b}) {
+    const auto r = test::run_cli("tune --tissues " + stiff + " --tissue fat --model " + m + " --max-evaluations 2000 --quiet");
+    ASSERT_EQ(r.code, 0) << r.err;
+  }
+  const Layer fa = ModelReader(a).layer("fat"), fb = ModelReader(b).layer("fat");
+  ASSERT_EQ(fa.k1.size(), fb.k1.size());
+  for (Eigen::Index s = 0; s < fa.k1.size(); ++s) EXPECT_NEAR(fa.k1(s), fb.k1(s), 1e-9 * fb.k1(s)) << s;
+  EXPECT_EQ(fa.spring_law, fb.spring_law);
+  EXPECT_NEAR(ModelReader(a).tuning("fat").achieved(0), 1e4, 0.01 * 1e4);
+  // rebuilt: the tuning records go with the springs they described
+  const auto rb = test::run_cli("build --model " + a + " --tissues " + kTable + " --quiet");
+  ASSERT_EQ(rb.code, 0) << rb.err;
+  EXPECT_FALSE(ModelReader(a).has("/tuning"));
+  EXPECT_FALSE(ModelReader(a).has("/provenance/tune"));
+  const Layer rebuilt = ModelReader(a).layer("fat");
+  for (Eigen::Index s = 0; s < rebuilt.k1.size(); ++s) EXPECT_NEAR(rebuilt.k1(s), untuned.k1(s), 1e-12 * untuned.k1(s));
+  const auto rt = test::run_cli("tune --tissues " + stiff + " --tissue fat --model " + a + " --max-evaluations 2000 --quiet");
+  ASSERT_EQ(rt.code, 0) << rt.err;
+  const Layer again = ModelReader(a).layer("fat");
+  for (Eigen::Index s = 0; s < again.k1.size(); ++s) EXPECT_NEAR(again.k1(s), fb.k1(s), 1e-9 * fb.k1(s)) << s;
+}
+
+// A model built with --body-diagonals is tuned on a specimen with them: its
+// body springs are tuned with the rest (they were left as built, and the
+// specimen measured a layer without them).
+TEST(TuneCli, TheSpecimenHasTheBuildsCells) {
+  test::TempDir d("tune-cli-body");
+  const std::string model = d / "m.h5";
+  {
+    ModelWriter w(model, ModelWriter::Start::fresh);
+    for (const auto& [tissue, q] : test::cylinder_stack(15, 5)) w.write(tissue, q);
+    w.commit();
+  }
+  const auto b = test::run_cli("build --model " + model + " --tissues " + kTable + " --body-diagonals --quiet");
+  ASSERT_EQ(b.code, 0) << b.err;
+  const Layer before = ModelReader(model).layer("fat");
+  const auto r = test::run_cli("tune --tissues " + kTable + " --tissue fat --model " + model +
+                               " --max-evaluations 2000 --quiet --report " + (d / "r.json"));
+  ASSERT_EQ(r.code, 0) << r.err;
+  const json rep = json::parse(test::read_file(d / "r.json"));
+  EXPECT_TRUE(rep["parameters"]["tissues"][0]["experiment"]["body_diagonals"].get<bool>());
+  const Layer after = ModelReader(model).layer("fat");
+  int body = 0, changed = 0;
+  for (Eigen::Index s = 0; s < after.k1.size(); ++s)
+    if (after.spring_class(s) == 3) ++body, changed += std::abs(after.k1(s) / before.k1(s) - 1) > 1e-6;
+  ASSERT_GT(body, 0);
+  EXPECT_EQ(changed, body);
+  EXPECT_NEAR(ModelReader(model).tuning("fat").achieved(0), 2300, 0.01 * 2300);
+}
+
 TEST(TuneCli, BadInputIsOneLineExit2AndWritesNothing) {
   test::TempDir d("tune-cli-bad");
   expect_refused(d, "--tissues " + kTable + " --tissue tendon", "unknown tissue 'tendon'");
-  expect_refused(d, "--tissues " + kTable + " --tissue bone", "no mechanics");
+  expect_refused(d, "--tissues " + kTable + " --tissue bone", "rigid tissue: it has no springs to tune");
   expect_refused(d, "--tissues " + kTable + " --budget-s 0", "budget");
   expect_refused(d, "--tissues " + kTable + " --budget-s -3", "budget");
   expect_refused(d, "--tissues " + kTable + " --method annealing", "unknown method 'annealing'");
@@ -226,4 +299,25 @@ TEST(TuneCli, BadInputIsOneLineExit2AndWritesNothing) {
                  "k2_kpa must not be smaller than k1_kpa");
   expect_refused(d, "--tissues " + table_with(d, "fat", {{"model", "linear"}, {"k_kpa", -2}}), "fat");
   expect_refused(d, "--tissues " + kTable + " --model " + (d / "none.h5"), "none.h5");
+  // rigid and vessel tissues have no springs (a rigid bone given mechanics was tuned, exit 0)
+  expect_refused(d, "--tissues " + table_with(d, "bone", {{"model", "linear"}, {"k_kpa", 1e6}}) + " --tissue bone",
+                 "tissue 'bone' is a rigid tissue: it has no springs to tune");
+  expect_refused(d, "--tissues " + table_with(d, "artery", {{"model", "linear"}, {"k_kpa", 100}}) + " --tissue artery",
+                 "tissue 'artery' is a vessel tissue");
+  // a number beyond double's range: the table's JSON error (an 'internal error' before)
+  {
+    std::string t = test::read_file(kTable);
+    t.replace(t.find("\"k_kpa\": 2.3"), 12, "\"k_kpa\": 1e400");
+    test::write_file(d / "e400.json", t);
+    expect_refused(d, "--tissues " + (d / "e400.json"), (d / "e400.json") + ": not valid JSON");
+  }
+  // names become file names: at most 64 characters
+  {
+    json t = json::parse(test::read_file(kTable));
+    t["tissues"][1]["name"] = std::string(65, 'f');
+    for (json& e : t["tissues"])
+      if (e.contains("inside") && e["inside"] == "fat") e["inside"] = std::string(65, 'f');
+    test::write_file(d / "long.json", t.dump());
+    expect_refused(d, "--tissues " + (d / "long.json"), "at most 64 characters");
+  }
 }
