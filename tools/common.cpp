@@ -72,6 +72,49 @@ void check_report_is_not_an_operand(const CLI::App* sub, const std::string& repo
   }
 }
 
+// An output option naming an input (or another output) would replace it:
+// `segment --out tissues.json` turned the tissue table into HDF5, `--out x.h5
+// --nrrd x.h5` left an NRRD where the model was, `--out stack/slice_0003.png`
+// replaced a slice; all exit 0. Refused before any work. (--report: above.)
+void check_outputs_are_not_inputs(const CLI::App* sub) {
+  static const std::vector<std::string> outputs{"--out", "--nrrd", "--export", "--plot", "--work"};
+  static const std::vector<std::string> inputs{"--stack", "--tissues", "--tissue-table", "--labels", "--truth",
+                                               "--surface", "--scene", "--model", "--plot-script"};
+  auto given = [&](const std::vector<std::string>& names) {
+    std::vector<std::pair<std::string, std::string>> v;
+    for (const CLI::Option* opt : sub->get_options())
+      if (opt->count() > 0 && std::find(names.begin(), names.end(), opt->get_name()) != names.end())
+        for (const std::string& x : opt->results())
+          if (!x.empty()) v.emplace_back(opt->get_name(), x);
+    return v;
+  };
+  const auto outs = given(outputs), ins = given(inputs);
+  namespace fs = std::filesystem;
+  for (std::size_t a = 0; a < outs.size(); ++a) {
+    const auto& [oname, o] = outs[a];
+    for (std::size_t b = a + 1; b < outs.size(); ++b)
+      if (same_file(o, outs[b].second))
+        throw Error(o, oname + " and " + outs[b].first + " name the same file: one would replace the other");
+    for (const auto& [iname, i] : ins) {
+      // --model is the model a stage updates in place where it is not read as an
+      // input of another file (build --model m.h5 --out: no such option); --out
+      // naming it is the same file twice
+      if (same_file(o, i))
+        throw Error(o, oname + " names the same file as " + iname + " " + i + ": writing it would replace the input");
+      // a file written into the slice folder becomes (or replaces) a slice
+      std::error_code e1, e2;
+      if (iname == "--stack" && fs::is_directory(i, e1)) {
+        const fs::path dir = fs::weakly_canonical(i, e1), out = fs::weakly_canonical(o, e2);
+        if (!e1 && !e2) {
+          const auto rel = out.lexically_relative(dir);
+          if (!rel.empty() && *rel.begin() != ".." && rel != ".")
+            throw Error(o, oname + " lies in the --stack folder " + i + ": it would become one of its slices");
+        }
+      }
+    }
+  }
+}
+
 }  // namespace
 
 Report::Report(std::string command) : start_(std::chrono::steady_clock::now()) {
@@ -152,6 +195,11 @@ int guarded(const std::string& command, const std::function<void()>& body) {
   }
 }
 
+void check_operands(const CLI::App* sub, const std::string& report) {
+  check_report_is_not_an_operand(sub, report);
+  check_outputs_are_not_inputs(sub);
+}
+
 void on_run(CLI::App* sub, const std::string& command, const CommonOptions& common, std::function<void()> body) {
   sub->callback([sub, command, &common, body = std::move(body)] {
     exit_code() = 0;  // the body may set a code of its own (run: 3, steps failed)
@@ -162,7 +210,7 @@ void on_run(CLI::App* sub, const std::string& command, const CommonOptions& comm
     } current;
     const int code = guarded(command, [&] {
       check_common_options(common);  // before any work: a run never ends on an unwritable report
-      check_report_is_not_an_operand(sub, common.report);
+      check_operands(sub, common.report);
       current_report() = common.report;
       body();
     });

@@ -93,6 +93,12 @@ int& exit_code();
 // <command>: error: " prefix ("" when none): the pipeline's report names a
 // failed stage's error with it.
 std::string& last_error();
+// Refuses (Error naming the file) a --report naming any operand, and an
+// output option (--out, --nrrd, --export, --plot, --work) naming an input
+// (--stack and files in it, --tissues, --tissue-table, --labels, --truth,
+// --surface, --scene, --model) or another output. on_run calls it; a command
+// with its own callback (pipeline) calls it before any work.
+void check_operands(const CLI::App* sub, const std::string& report);
 // Registers `body` as the subcommand's callback, run through guarded()
 // after check_common_options(common):
 //   on_run(sub, "phantom", a.common, [&] { ... });

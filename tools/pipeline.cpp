@@ -717,10 +717,11 @@ void add_pipeline_command(CLI::App& app) {
   sub->add_option("--seed", a.seed, "seed of the tuning")
       ->check(seed_check())->capture_default_str();
   add_common_options(sub, a.common);
-  sub->callback([] {
+  sub->callback([sub] {
     int stage_code = 0;
     const int code = guarded("pipeline", [&] {
       check_common_options(a.common);  // before any stage runs
+      check_operands(sub, a.common.report);
       stage_code = run_pipeline(a);
     });
     exit_code() = code != 0 ? code : stage_code;

@@ -231,6 +231,38 @@ TEST(Cli, ReportNeverReplacesAnOperand) {
   EXPECT_FALSE(fs::exists(d / "l.h5"));
 }
 
+// An output naming an input or another output: refused before any work, the
+// files untouched (segment --out TABLE turned the tissue table into HDF5,
+// --out X --nrrd X left an NRRD for the model, --out STACK/slice.png replaced
+// a slice, pipeline --out TABLE; all exit 0 until 2026-11-27).
+TEST(Cli, OutputsNeverReplaceInputs) {
+  const PhantomStack& ph = phantom_stack();
+  test::TempDir d("cli-output-input");
+  const std::string table_bytes = test::read_file(ph.tissues);
+  const std::string slice = ph.slices + "/" + fs::directory_iterator(ph.slices)->path().filename().string();
+  const std::string slice_bytes = test::read_file(slice);
+  const std::string seg = "segment --stack " + ph.slices + " --tissues " + ph.tissues + " --spacing 1,1,2 --quiet";
+  const std::vector<std::tuple<std::string, std::string, std::string>> cases = {
+      {seg + " --out " + ph.tissues, ph.tissues, "--out names the same file as --tissues " + ph.tissues},
+      {seg + " --out " + (d / "l.h5") + " --nrrd " + ph.tissues, ph.tissues, "--nrrd names the same file as --tissues"},
+      {seg + " --out " + slice, slice, "--out lies in the --stack folder " + ph.slices},
+      {seg + " --out " + (ph.slices + "/new.h5"), ph.slices + "/new.h5", "--out lies in the --stack folder " + ph.slices},
+      {seg + " --out " + (d / "x.h5") + " --nrrd " + (d / "x.h5"), d / "x.h5", "--out and --nrrd name the same file"},
+      {"pipeline --stack " + ph.slices + " --tissues " + ph.tissues + " --spacing 1,1,2 --quiet --out " + ph.tissues,
+       ph.tissues, "--out names the same file as --tissues"},
+  };
+  for (const auto& [args, file, what] : cases) {
+    SCOPED_TRACE(args);
+    const auto r = test::run_cli(args);
+    expect_refused(r, file, what);
+    EXPECT_EQ(test::read_file(ph.tissues), table_bytes);
+    EXPECT_EQ(test::read_file(slice), slice_bytes);
+  }
+  EXPECT_FALSE(fs::exists(d / "l.h5"));
+  EXPECT_FALSE(fs::exists(d / "x.h5"));
+  EXPECT_FALSE(fs::exists(ph.slices + "/new.h5"));
+}
+
 // --truth of another size than the stack: refused before --out is written
 // (segment wrote --out, then failed on the Dice).
 TEST(Cli, SegmentChecksTheTruthBeforeWriting) {
