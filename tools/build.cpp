@@ -136,6 +136,7 @@ void add_build_command(CLI::App& app) {
     const TissueTable table = load_tissue_table(tissues_path);
     msm::BuiltModel built;
     msm::Stack stack;
+    std::string fixed_bottom;  // a layered tissue made the fixed bottom (no rigid one)
     {
       ModelReader m(model);
       if (!m.has("/quads"))
@@ -147,6 +148,16 @@ void add_build_command(CLI::App& app) {
       report.input(tissues_path);
       try {
         stack = msm::resolve_stack(requested, present, table);
+        // no rigid tissue below the layers: the innermost layered one is the fixed bottom
+        if (requested.empty() && stack.surfaces.size() == stack.layers.size() + 1) {
+          const Tissue* bottom = table.find(stack.surfaces.back());
+          if (bottom && bottom->layer != "rigid") {
+            std::cerr << "orthosim build: warning: " << model << ": no rigid tissue among /quads: '" << bottom->name
+                      << "' (" << bottom->layer << " in " << tissues_path
+                      << ") is the model's fixed bottom (its surface, every node fixed), not a layer\n";
+            fixed_bottom = bottom->name;
+          }
+        }
         std::vector<std::pair<std::string, QuadSurface>> surfaces;
         {
           Phase p(report, "read");
@@ -178,6 +189,7 @@ void add_build_command(CLI::App& app) {
     }
     report.output(model);
     report.metrics() = report_json(built.report);
+    if (!fixed_bottom.empty()) report.metrics()["fixed_bottom"] = fixed_bottom;
     if (!common.quiet) {
       const auto& r = built.report;
       std::cout << "build: " << r.nodes << " nodes, " << r.springs << " springs (" << r.lin_springs

@@ -333,6 +333,7 @@ int run_stages(Args a, Report& report) {
   // tissues of the layers (table order is outer to inner) and of the vessels
   std::vector<std::string> layered, vessels;
   std::vector<std::string> beside;  // layered tissues after the floor, not in it (checked once segmented)
+  std::string fixed_bottom;         // a layered tissue build makes the fixed bottom (no rigid one segmented)
   // The stack ends at the first rigid tissue: what lies inside it (marrow in
   // bone) moves with it and adds no layer.
   // Outer to inner by the table's nesting ('inside': its depth), ties in table
@@ -490,6 +491,17 @@ int run_stages(Args a, Report& report) {
       present(vessels);
       present(beside);
       report.metrics()["absent_tissues"] = absent;
+      // Without a rigid tissue the innermost layered one is the model's fixed
+      // bottom (build: its surface, every node fixed), not a layer: said, and
+      // not tuned (its tune failed on 'built as a rigid layer', a cache path
+      // named; with --no-tune the muscle became rigid without a word)
+      if (!layered.empty() && table.find(layered.back())->layer != "rigid") {
+        fixed_bottom = layered.back();
+        std::cerr << "orthosim pipeline: warning: " << a.stack << ": no rigid tissue of " << a.tissues
+                  << " was segmented: the innermost layered tissue '" << fixed_bottom << "' ("
+                  << table.find(fixed_bottom)->layer << " in the table) becomes the model's fixed bottom, not a layer\n";
+      }
+      report.metrics()["fixed_bottom"] = fixed_bottom;
       require_layers_nest();
       if (layered.size() < 2)
         throw Error(a.stack, "the segmented stack shows " + std::to_string(layered.size()) +
@@ -567,7 +579,7 @@ int run_stages(Args a, Report& report) {
     if (a.tune) {
       std::vector<std::string> tuned;
       for (const auto& t : layered)
-        if (tunes(t)) tuned.push_back(t);
+        if (tunes(t) && t != fixed_bottom) tuned.push_back(t);
       if (tuned.empty()) {
         run.skip("tune", "the scene loads no tissue with mechanics to tune");
       } else {

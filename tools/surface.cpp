@@ -222,6 +222,7 @@ void add_surface_command(CLI::App& app) {
       m.solid_voxels = before.solid_voxels;
       m.filled_voxels = before.filled_voxels;
       m.smooth_volume_change = before.smooth_volume_change;
+      m.clamped_to_caps = before.clamped_to_caps;
       m.dropped_components = before.dropped_components;
       m.gap_samples = before.gap_samples;
       m.dropped_volume_m3 = before.dropped_volume_m3;
@@ -337,6 +338,7 @@ void add_surface_command(CLI::App& app) {
                                 {"volume_m3", m.volume_m3},
                                 {"area_m2", m.area_m2},
                                 {"smooth_volume_change", m.smooth_volume_change},
+                                {"clamped_to_caps", m.clamped_to_caps},
                                 {"euler", m.euler},
                                 {"components", m.components},
                                 {"dropped_components", m.dropped_components},

@@ -1471,6 +1471,26 @@ SurfaceResult extract_surface(const Volume& v, const std::vector<int>& solid_lab
     m.smooth_volume_change = (signed_volume(s) - before) / before;
   }
   if (o.compensate_blur && o.sigma_vox > 0) compensate_impl(s, *corners, v.spacing_m, o.sigma_vox, fixed);
+  // Nothing lies beyond the volume's border: Taubin's inflating (mu) pass and
+  // the blur compensation's push along the normals carry rim vertices past a
+  // flat cap's plane where a jagged (misregistered) wall meets it; such a cap
+  // no longer ends the limb for remesh ("not tube-like": 20 skin vertices past
+  // the caps of a stack shifted by a pixel a slice, the stack 60 mm long and
+  // the axis found 75 mm). Those vertices go back to 1 % of a spacing inside
+  // the plane (never onto it: a rim vertex in the cap's plane could overlap
+  // the cap's faces); the cap vertices themselves never move along their axis.
+  if (o.smooth_iterations > 0 || (o.compensate_blur && o.sigma_vox > 0))
+    for (std::size_t k = 0; const CapPlane& pl : cap_planes(v, o)) {
+      const double inside = 0.01 * v.spacing_m[static_cast<std::size_t>(pl.axis)];
+      const bool low = k++ % 2 == 0;  // cap_planes: each axis's low plane, then its high one
+      const double bound = low ? pl.at + inside : pl.at - inside;
+      for (Eigen::Index i = 0; i < s.vertices.rows(); ++i) {
+        if (fixed.size() == static_cast<std::size_t>(s.vertices.rows()) && (fixed[static_cast<std::size_t>(i)] >> pl.axis & 1u))
+          continue;
+        double& x = s.vertices(i, pl.axis);
+        if (low ? x < bound : x > bound) x = bound, ++m.clamped_to_caps;
+      }
+    }
   m.smooth_s = since(t0);
 
   t0 = Clock::now();

@@ -130,6 +130,7 @@ struct SurfaceMetrics {
   double volume_m3 = 0;                  // signed (> 0: outward)
   double area_m2 = 0;
   double smooth_volume_change = 0;       // (V after Taubin - V before) / V before
+  std::int64_t clamped_to_caps = 0;      // vertices smoothing had carried past the volume's border planes, moved back
   int euler = 0;                         // V - E + F over all components
   int components = 0;                    // edge-connected components
   int dropped_components = 0;            // components dropped as specks (min_component_voxels)

@@ -74,6 +74,29 @@ TEST(BuildCli, WritesLayersSetsAndReport) {
   EXPECT_NE(r.out.find("kind=\"tetra\""), std::string::npos) << r.out;
 }
 
+// Without a rigid tissue among the surfaces the innermost layered one is the
+// fixed bottom: said on stderr and in the report (it was silent; the pipeline's
+// tune then failed on it against a cache path).
+TEST(BuildCli, ALayeredFixedBottomIsAWarning) {
+  test::TempDir dir("build-nobone");
+  const std::string model = write_model(dir, test::cylinder_stack(16, 5, 0.12, {0.030, 0.028, 0.022}));
+  const std::string tissues = write_table(dir);
+  auto r = test::run_cli("build --model " + model + " --tissues " + tissues + " --report " + (dir / "r.json"));
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_EQ(test::count_lines(r.err), 1) << r.err;
+  EXPECT_NE(r.err.find("orthosim build: warning: " + model + ": no rigid tissue among /quads: 'muscle' (lattice in " + tissues +
+                       ") is the model's fixed bottom"),
+            std::string::npos)
+      << r.err;
+  EXPECT_EQ(nlohmann::json::parse(test::read_file(dir / "r.json"))["metrics"]["fixed_bottom"], "muscle");
+  EXPECT_EQ(ModelReader(model).layer("muscle").kind, "rigid");
+  // with the bone: no warning
+  const std::string full = write_model(dir, test::cylinder_stack(16, 5), "full.h5");
+  r = test::run_cli("build --model " + full + " --tissues " + tissues + " --quiet");
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_EQ(r.err, "");
+}
+
 TEST(BuildCli, BadInputOneLineExit2NoOutput) {
   test::TempDir dir("build-bad");
   const auto good = test::cylinder_stack(16, 5);
