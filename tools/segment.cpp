@@ -19,7 +19,7 @@ void add_segment_command(CLI::App& app) {
   auto* sub = app.add_subcommand("segment", "classify a colour slice stack into tissue labels (/volume)");
   struct Args {
     std::string stack, tissues, spacing, origin = "0,0,0", out, nrrd, truth, normalise = "plane", classify = "mahalanobis", scratch_dir;
-    bool no_cleanup = false, no_order = false, no_fill_holes = false;
+    bool no_cleanup = false, no_order = false, no_fill_holes = false, no_exposure = false;
     int speck_support = 2, calibration_slices = 9, refine_iterations = 8, slab = 8, threads = 0;
     std::int64_t min_island = 64, min_vessel = 4;
     double refine_max_shift = 30, lightness_weight = 1, min_body_fraction = 0.1;
@@ -56,6 +56,9 @@ void add_segment_command(CLI::App& app) {
       ->capture_default_str();
   sub->add_option("--refine-max-shift", a.refine_max_shift, "largest prototype move by the calibration, CIE76 units")
       ->capture_default_str();
+  sub->add_flag("--no-exposure", a.no_exposure,
+                "keep the table's colours whatever the stack's exposure (by default a border of the table background's "
+                "hue, brighter or darker by more than 20 %, scales them)");
   sub->add_option("--lightness-weight", a.lightness_weight, "weight of lightness against chroma")
       ->capture_default_str();
   sub->add_option("--slab", a.slab, "slices classified together (memory ~ slab x slice size)")
@@ -87,6 +90,7 @@ void add_segment_command(CLI::App& app) {
     o.calibration_slices = a.calibration_slices;
     o.refine_iterations = a.refine_iterations;
     o.refine_max_shift = a.refine_max_shift;
+    o.exposure_from_border = !a.no_exposure;
     o.lightness_weight = a.lightness_weight;
     o.slab = a.slab;
     o.scratch_dir = a.scratch_dir;
@@ -197,6 +201,7 @@ void add_segment_command(CLI::App& app) {
                     << "colours and 'inside' in " << a.tissues << ")\n";
       }
     }
+    j["exposure"] = m.exposure;
     j["gain_min"] = m.gain_min;
     j["gain_max"] = m.gain_max;
     j["normalise_fallbacks"] = m.normalise_fallbacks;

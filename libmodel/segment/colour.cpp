@@ -352,6 +352,53 @@ void calibrate(ColourModel& m, const std::vector<std::vector<std::uint8_t>>& sli
   std::vector<Samples> samples;
   for (const auto& s : slices) samples.push_back(grid_samples(s.data(), nx, ny, stride, /*median3=*/true));
 
+  // 0. The stack's exposure. The calibration moves each prototype at most
+  // refine_max_shift from its table colour, so a stack exposed darker or
+  // brighter than the table's slices as a whole (a camera's gain, a scanner's
+  // white balance) fell off a cliff: at 0.70 of the sample's brightness every
+  // tissue came out right, at 0.65 fat, bone, marrow and the vessels were lost,
+  // exit 0. The slices' border is the embedding medium around the specimen in a
+  // cryosection series: where its per-channel median has the table background's
+  // chromaticity (the three observed / table ratios within 25 % of each other,
+  // each in [1/4, 4]) and its brightness (the ratio of the channel sums) is
+  // off by more than 20 %, that ratio is the stack's exposure and every
+  // centre's table colour is seen under it (scaled, clamped to 0..255). One
+  // gain, not three: the table's background colour is only roughly right, and
+  // its per-channel error, carried to every tissue, lost the skin of a stack
+  // whose table colours were each moved by 10 (the calibration's own job).
+  // Within 20 % the calibration follows the stack by itself. A border of
+  // another colour (a crop inside the body) changes nothing.
+  if (nb > 0 && o.exposure_from_border) {
+    std::array<std::vector<double>, 3> border;
+    const int w = std::max(1, std::min(nx, ny) / 16);
+    for (const auto& s : slices)
+      for (int y = 0; y < ny; y += stride)
+        for (int x = 0; x < nx; x += stride) {
+          if (!(y < w || y >= ny - w || x < w || x >= nx - w)) continue;  // the frame w pixels wide
+          for (int k = 0; k < 3; ++k) border[k].push_back(s[(static_cast<std::size_t>(y) * nx + x) * 3 + k]);
+        }
+    const std::array<double, 3> table = m.centres[0].table_rgb;
+    if (border[0].size() >= 32) {
+      std::array<double, 3> g{}, b{};
+      bool ok = true;
+      for (int k = 0; k < 3; ++k) {
+        b[k] = median_inplace(border[k]);
+        g[k] = table[k] > 0 ? b[k] / table[k] : 0;
+        ok = ok && g[k] >= 0.25 && g[k] <= 4;
+      }
+      const double gmin = std::min({g[0], g[1], g[2]}), gmax = std::max({g[0], g[1], g[2]});
+      const double gain = (b[0] + b[1] + b[2]) / std::max(1.0, table[0] + table[1] + table[2]);
+      if (ok && gmax <= 1.25 * gmin && std::abs(gain - 1) > 0.2) {
+        m.exposure = {gain, gain, gain};
+        for (Centre& c : m.centres) {
+          for (int k = 0; k < 3; ++k) c.table_rgb[k] = std::clamp(c.table_rgb[k] * gain, 0.0, 255.0);
+          c.table_lab = c.lab = srgb_to_lab(c.table_rgb[0], c.table_rgb[1], c.table_rgb[2]);
+        }
+        m.reset_table();
+      }
+    }
+  }
+
   // 1. reference background colours: medians of the raw background pixels
   m.bg_reference.clear();
   if (nb > 0 && o.normalise != SegmentOptions::Normalise::none) {

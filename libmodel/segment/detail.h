@@ -68,6 +68,10 @@ struct ColourModel {
   // calibration slices; normalisation maps a slice's background onto it.
   std::vector<std::array<double, 3>> bg_reference;
   std::vector<std::uint8_t> centre_label;
+  // The stack's exposure against the table (calibrate: observed / table
+  // brightness from the slices' border, where the embedding medium is); the
+  // centres' table colours were scaled by it. {1, 1, 1}: none applied.
+  std::array<double, 3> exposure{1, 1, 1};
 
   int n_background() const {
     int n = 0;

@@ -92,6 +92,7 @@ std::string segment_parameters_json(const SegmentOptions& o) {
   j["refine_iterations"] = o.refine_iterations;
   j["refine_prior"] = o.refine_prior;
   j["refine_max_shift"] = o.refine_max_shift;
+  j["exposure_from_border"] = o.exposure_from_border;
   j["lightness_weight"] = o.lightness_weight;
   j["cleanup"] = o.cleanup;
   j["enforce_order"] = o.enforce_order;
@@ -236,6 +237,7 @@ SegmentMetrics segment(const SliceSource& src, const TissueTable& table, const S
     calibrate(model, slices, nx, ny, opt);
   }
   met.calibrate_s = seconds_since(t0);
+  met.exposure = model.exposure;
   for (const auto& c : model.centres) {
     Prototype p;
     p.label = c.label;

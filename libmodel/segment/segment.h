@@ -154,6 +154,11 @@ struct SegmentOptions {
   double refine_prior = 0.05;
   // Largest move of a prototype by the refinement (CIE76 units), >= 0.
   double refine_max_shift = 30;
+  // The stack's exposure from the slices' border (the embedding medium):
+  // where it has the table background's chromaticity and its brightness is
+  // off by more than 20 %, every table colour is scaled by that ratio before
+  // the calibration (docs/segment.md).
+  bool exposure_from_border = true;
   // Weight of lightness against chroma in the colour distance, > 0.
   // Values below 1 make the classification more robust to brightness.
   double lightness_weight = 1.0;
@@ -223,6 +228,10 @@ struct SegmentMetrics {
   // (1 = no correction), and slices where it fell back to a constant or none.
   double gain_min = 1, gain_max = 1;
   int normalise_fallbacks = 0;
+  // The stack's exposure (observed / table brightness, the same in each RGB
+  // channel) the table colours were scaled by; {1, 1, 1}: none
+  // (SegmentOptions::exposure_from_border).
+  std::array<double, 3> exposure{1, 1, 1};
   // Voxels changed by each clean-up step.
   std::int64_t order_changed = 0;
   std::int64_t speck_changed = 0;

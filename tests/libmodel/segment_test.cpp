@@ -315,6 +315,41 @@ TEST(SegmentPhantom, PerturbedPrototypesAndIllumination) {
   expect_dice(dice, tv, table, "perturbed");
 }
 
+// The whole stack exposed darker or brighter than the table's slices (a
+// camera's gain): the calibration moves a prototype at most refine_max_shift,
+// so at 0.65 of the phantom's brightness fat, bone, marrow and the vessels
+// were lost, exit 0 (0.70 was fine: a cliff; a helper's sweep found it). The
+// slices' border, the gel, gives the exposure. Also 0.5 and 1.3 (where the
+// skin turned to bone), and a crop with no gel at its border is left alone.
+TEST(SegmentPhantom, TheStacksExposureComesFromTheGel) {
+  PhantomOptions p = test_phantom();
+  p.nz = 16;
+  const Volume truth = phantom_labels(p);
+  const TissueTable table = phantom_tissue_table();
+  for (const double gain : {0.5, 0.65, 1.3}) {
+    std::vector<RgbImage> slices(static_cast<std::size_t>(p.nz));
+    for (int z = 0; z < p.nz; ++z) {
+      auto& s = slices[static_cast<std::size_t>(z)];
+      s.nx = p.nx, s.ny = p.ny;
+      phantom_slice_rgb(p, truth, z, s.rgb);
+      for (auto& v : s.rgb) v = static_cast<std::uint8_t>(std::clamp(std::lround(v * gain), 0L, 255L));
+    }
+    SegmentMetrics m;
+    const Volume v = segment_volume(memory_source(std::move(slices)), table, phantom_segment_options(p), &m);
+    std::map<std::string, std::int64_t> tv;
+    const auto dice = dice_per_tissue(v, truth, &tv);
+    const std::string what = "gain " + std::to_string(gain);
+    for (const auto& [k, d] : dice) std::printf("  %s: %-8s dice %.4f\n", what.c_str(), k.c_str(), d);
+    std::printf("  %s: exposure %.3f %.3f %.3f\n", what.c_str(), m.exposure[0], m.exposure[1], m.exposure[2]);
+    expect_dice(dice, tv, table, what);
+    for (int k = 0; k < 3; ++k) EXPECT_NEAR(m.exposure[static_cast<std::size_t>(k)], gain, 0.05 * gain) << what;
+  }
+  // the sample's own exposure: nothing scaled
+  SegmentMetrics m;
+  segment_volume(phantom_source(p, truth), table, phantom_segment_options(p), &m);
+  EXPECT_EQ(m.exposure, (std::array<double, 3>{1, 1, 1}));
+}
+
 // ---- the real cryosection --------------------------------------------------------------
 //
 // data-samples/real/vhp-f-1432a-arm.png: a 300 x 410 crop of the left upper arm
