@@ -22,6 +22,7 @@ void add_segment_command(CLI::App& app) {
     bool no_cleanup = false, no_order = false, no_fill_holes = false, no_exposure = false;
     int speck_support = 2, calibration_slices = 9, refine_iterations = 8, slab = 8, threads = 0;
     std::int64_t min_island = 64, min_vessel = 4;
+    double min_island_mm3 = 10;
     double refine_max_shift = 30, lightness_weight = 1, min_body_fraction = 0.1;
     CommonOptions common;
   };
@@ -43,7 +44,11 @@ void add_segment_command(CLI::App& app) {
   sub->add_flag("--no-fill-holes", a.no_fill_holes, "keep background enclosed by the body");
   sub->add_option("--speck-support", a.speck_support, "like neighbours (of 26) a voxel needs to keep its label")
       ->capture_default_str();
-  sub->add_option("--min-island", a.min_island, "smallest 3-D island of a bulk tissue kept, voxels")
+  sub->add_option("--min-island", a.min_island, "smallest 3-D island of a bulk tissue kept, voxels (see --min-island-mm3)")
+      ->capture_default_str();
+  sub->add_option("--min-island-mm3", a.min_island_mm3,
+                  "an island below --min-island voxels goes only if also below this volume (mm^3): coarse stacks keep "
+                  "anatomy that size")
       ->capture_default_str();
   sub->add_option("--min-vessel", a.min_vessel, "smallest 3-D island of a vessel tissue kept, voxels")
       ->capture_default_str();
@@ -85,6 +90,7 @@ void add_segment_command(CLI::App& app) {
     o.fill_holes = !a.no_fill_holes;
     o.speck_support = a.speck_support;
     o.min_island_voxels = a.min_island;
+    o.min_island_mm3 = a.min_island_mm3;
     o.min_vessel_voxels = a.min_vessel;
     o.min_body_fraction = a.min_body_fraction;
     o.calibration_slices = a.calibration_slices;

@@ -3,6 +3,7 @@
 #include "libmodel/segment/detail.h"
 
 #include <algorithm>
+#include <cmath>
 #include <cstring>
 #include <map>
 #include <numeric>
@@ -422,11 +423,16 @@ std::vector<std::uint8_t> ComponentTracker::resolve(const LabelInfo& info, const
       const auto [in, out] = place_faces(r);
       return in == 0 ? out > 0 : anchor[label_[r]] != r && in < out;
     };
+    // the island rule's size in voxels: min_island_voxels, or fewer where
+    // those would hold more than min_island_mm3 (coarse stacks)
+    const double voxel_mm3 = 1e9 * o.spacing_m[0] * o.spacing_m[1] * o.spacing_m[2];
+    const std::int64_t min_island = std::min<std::int64_t>(
+        o.min_island_voxels, voxel_mm3 > 0 ? static_cast<std::int64_t>(std::ceil(o.min_island_mm3 / voxel_mm3 - 1e-9)) : 0);
     auto small = [&](std::uint32_t r) {
       const std::uint8_t l = label_[r];
       if (l == 0) return o.fill_holes && !lateral_[r];
       if (info.is_vessel[l]) return size_[r] < o.min_vessel_voxels;
-      return size_[r] < o.min_island_voxels || misplaced(r);
+      return size_[r] < min_island || misplaced(r);
     };
     std::vector<std::uint32_t> cand;
     for (auto r : roots)
@@ -448,9 +454,9 @@ std::vector<std::uint8_t> ComponentTracker::resolve(const LabelInfo& info, const
       // misplaced (shaded fat taken for bone ringing the muscle; absorbing
       // the muscle into that ring deleted it on the real arm slice), as the
       // slices' order rule keeps a pocket larger than its outline
-      if (label_[c] != 0 && size_[c] >= o.min_island_voxels && largest_of[label_[c]] == c && size_[c] > size_[t])
+      if (label_[c] != 0 && size_[c] >= min_island && largest_of[label_[c]] == c && size_[c] > size_[t])
         continue;
-      (label_[c] == 0 ? dec.holes_filled : size_[c] < o.min_island_voxels ? dec.islands_absorbed
+      (label_[c] == 0 ? dec.holes_filled : size_[c] < min_island ? dec.islands_absorbed
                                                                            : dec.misplaced_absorbed) += size_[c];
       // merge c into t
       auto nbs = std::move(it->second);

@@ -75,6 +75,7 @@ void validate(const SegmentOptions& o) {
   if (!(o.lightness_weight > 0) || !std::isfinite(o.lightness_weight)) bad("lightness weight must be > 0");
   if (o.speck_support < 0 || o.speck_support > 26) bad("speck support must be in 0..26");
   if (o.min_island_voxels < 0) bad("min island voxels must be >= 0");
+  if (!(o.min_island_mm3 >= 0) || !std::isfinite(o.min_island_mm3)) bad("min island volume must be >= 0 mm^3");
   if (o.min_vessel_voxels < 0) bad("min vessel voxels must be >= 0");
   if (!(o.min_body_fraction > 0 && o.min_body_fraction <= 1)) bad("min body fraction must be in (0, 1]");
   if (o.slab < 1 || o.slab > 256) bad("slab must be in 1..256");
@@ -99,6 +100,7 @@ std::string segment_parameters_json(const SegmentOptions& o) {
   j["fill_holes"] = o.fill_holes;
   j["speck_support"] = o.speck_support;
   j["min_island_voxels"] = o.min_island_voxels;
+  j["min_island_mm3"] = o.min_island_mm3;
   j["min_vessel_voxels"] = o.min_vessel_voxels;
   j["min_body_fraction"] = o.min_body_fraction;
   j["slab"] = o.slab;
