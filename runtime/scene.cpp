@@ -325,12 +325,7 @@ SceneDef parse_scene(const std::string& text, const std::string& file) {
     const std::string solver = f.string("pressure_solver", "eos");
     if (solver == "eos") p.pressure_solver = PressureSolver::eos;
     else if (solver == "pcisph") p.pressure_solver = PressureSolver::pcisph;
-    else if (solver == "pbf") p.pressure_solver = PressureSolver::pbf;
-    else f.fail("pressure_solver must be eos, pcisph or pbf (got '" + solver + "')");
-    for (const char* k : {"pbf_iterations", "pbf_relaxation"})
-      if (f.has(k) && p.pressure_solver != PressureSolver::pbf) f.fail(std::string(k) + " given with pressure_solver '" + solver + "'");
-    p.pbf_iterations = static_cast<int>(f.integer("pbf_iterations", p.pbf_iterations, 1, 100));
-    p.pbf_relaxation = f.number("pbf_relaxation", p.pbf_relaxation, 1e-6, 10);
+    else f.fail("pressure_solver must be eos or pcisph (got '" + solver + "')");
     for (const char* k : {"pcisph_tolerance", "pcisph_target_iterations", "pcisph_max_iterations", "pcisph_stall_repeats"})
       if (f.has(k) && p.pressure_solver != PressureSolver::pcisph) f.fail(std::string(k) + " given with pressure_solver '" + solver + "'");
     p.pcisph_tolerance = f.number("pcisph_tolerance", p.pcisph_tolerance, 0, 0.5, true);

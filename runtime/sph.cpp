@@ -896,91 +896,6 @@ void predicted_sum_cell(const Pass& c, const Real* px, const Real* py, const Rea
     out[i] = 1 + hsum(kernel_sums(c, list_of(c, i), c.count[i], i, px, py, pz).acc);  // lists padded with i past the count
 }
 
-// pbf: over particle i's list at the predicted positions (x, y, z), with
-// t = 1 - q (pairs beyond H give 0): the kernel sum sum_j t^4 (1 + 4 q)
-// (self excluded), sum_j t^3 r_ij and sum_j t^6 r_ij^2 (the gradient of
-// Wendland C2 is -(210 / (pi H^5)) t^3 r_ij), r_ij = x_i - x_j.
-struct PbfSums {
-  V acc, gx, gy, gz, g2;
-};
-ORTHOSIM_SPH_INLINE PbfSums pbf_sums(const Pass& c, const std::int32_t* list, std::int32_t cnt, std::int32_t i, const Real* x,
-                                     const Real* y, const Real* z) {
-  const Real invH = 1 / c.f->H;
-  const V zero = {0, 0, 0, 0}, one = {1, 1, 1, 1}, lane = {0, 1, 2, 3};
-  const bool periodic = c.period[0] > 0 || c.period[1] > 0 || c.period[2] > 0;
-  PbfSums k{zero, zero, zero, zero, zero};
-  const Real xi = x[i], yi = y[i], zi = z[i];
-  for (std::int32_t b = 0; b < cnt; b += 4) {
-    const std::int32_t* j = list + b;
-    auto gather = [&](const Real* a) ORTHOSIM_SPH_LAMBDA { return V{a[j[0]], a[j[1]], a[j[2]], a[j[3]]}; };
-    V dx = xi - gather(x), dy = yi - gather(y), dz = zi - gather(z);
-    if (periodic) {
-      dx = minimum_image(dx, c.period[0]);
-      dy = minimum_image(dy, c.period[1]);
-      dz = minimum_image(dz, c.period[2]);
-    }
-    const V mask = (lane + static_cast<Real>(b)) < static_cast<Real>(cnt) ? one : zero;
-    const V r2 = dx * dx + dy * dy + dz * dz;
-    const V q = vsqrt(r2) * invH;
-    V t = 1 - q;
-    t = t > 0 ? t * mask : zero;
-    const V t3 = t * t * t;
-    k.acc += t3 * t * (1 + 4 * q);
-    k.gx += t3 * dx, k.gy += t3 * dy, k.gz += t3 * dz;
-    k.g2 += t3 * t3 * r2;
-  }
-  return k;
-}
-
-// pbf: the pair part of particle i's correction, sum_j (lambda_i + lambda_j) t^3 r_ij
-// (times -(m / rho0) (210 / (pi H^5)) by the caller), over its list at (x, y, z).
-ORTHOSIM_SPH_INLINE Vec3 pbf_pair_correction(const Pass& c, const std::int32_t* list, std::int32_t cnt, std::int32_t i,
-                                             const Real* x, const Real* y, const Real* z, const Real* lambda) {
-  const Real invH = 1 / c.f->H;
-  const V zero = {0, 0, 0, 0}, one = {1, 1, 1, 1}, lane = {0, 1, 2, 3};
-  const bool periodic = c.period[0] > 0 || c.period[1] > 0 || c.period[2] > 0;
-  V cx = zero, cy = zero, cz = zero;
-  const Real xi = x[i], yi = y[i], zi = z[i], li = lambda[i];
-  for (std::int32_t b = 0; b < cnt; b += 4) {
-    const std::int32_t* j = list + b;
-    auto gather = [&](const Real* a) ORTHOSIM_SPH_LAMBDA { return V{a[j[0]], a[j[1]], a[j[2]], a[j[3]]}; };
-    V dx = xi - gather(x), dy = yi - gather(y), dz = zi - gather(z);
-    if (periodic) {
-      dx = minimum_image(dx, c.period[0]);
-      dy = minimum_image(dy, c.period[1]);
-      dz = minimum_image(dz, c.period[2]);
-    }
-    const V mask = (lane + static_cast<Real>(b)) < static_cast<Real>(cnt) ? one : zero;
-    const V q = vsqrt(dx * dx + dy * dy + dz * dz) * invH;
-    V t = 1 - q;
-    t = t > 0 ? t * mask : zero;
-    const V w = t * t * t * (li + gather(lambda));
-    cx += w * dx, cy += w * dy, cz += w * dz;
-  }
-  return {hsum(cx), hsum(cy), hsum(cz)};
-}
-
-// pbf: the constraint pass of one cell (PressureSolver::pbf, Stepper::pbf):
-// each particle's kernel sums and gradient sums at the predicted positions.
-ORTHOSIM_SPH_CLONES
-void pbf_sums_cell(const Pass& c, const Real* px, const Real* py, const Real* pz, std::int32_t cell, Real* ks, Real* gx,
-                   Real* gy, Real* gz, Real* g2) {
-  for (std::int32_t i = c.g->start[cell]; i < c.g->start[cell + 1]; ++i) {
-    const PbfSums k = pbf_sums(c, list_of(c, i), c.count[i], i, px, py, pz);
-    ks[i] = 1 + hsum(k.acc), gx[i] = hsum(k.gx), gy[i] = hsum(k.gy), gz[i] = hsum(k.gz), g2[i] = hsum(k.g2);
-  }
-}
-
-// pbf: the pair corrections of one cell's particles (added to cx, cy, cz).
-ORTHOSIM_SPH_CLONES
-void pbf_correction_cell(const Pass& c, const Real* px, const Real* py, const Real* pz, const Real* lambda, Real scale,
-                         std::int32_t cell, Real* cx, Real* cy, Real* cz) {
-  for (std::int32_t i = c.g->start[cell]; i < c.g->start[cell + 1]; ++i) {
-    const Vec3 d = pbf_pair_correction(c, list_of(c, i), c.count[i], i, px, py, pz, lambda);
-    cx[i] += scale * d.x, cy[i] += scale * d.y, cz[i] += scale * d.z;
-  }
-}
-
 // Pair accelerations (without the mass factor):
 //   a_i = m sum_j g_ij [ (P_i + P_j + Pi_ij) r_ij - 2 mu / (rho_i rho_j) r_ij^2 / (r_ij^2 + eta^2) v_ij ]
 // with grad_i W_ij = -g_ij r_ij (Wendland C2), P = p / rho^2 (Monaghan 1992),
@@ -1201,23 +1116,18 @@ struct Reaction {
 //   artificial viscosity with the mirrored sites (see WallTables::av)
 //   no-slip viscosity (Morris et al. 1997 ghost velocities, summed):
 //     a = 2 mu / rho_i vm / H^2 (v_i - u)
-// (pbf: without the pressure term; its projections hold the fluid off the walls)
 template <class Pw, class Sink>
 Vec3 wall_acceleration(const Fluid& f, const Walls& w, const Vec3& p, const Vec3& v, Real rho, Real pr, Real mu, Pw&& pw_fn,
                        Real tau, Sink&& reaction, Contact* cache) {
-  const bool pressure = f.params.pressure_solver != PressureSolver::pbf;
   Vec3 total;
   Real pw = -1;
   const Vec3 g = vec(f.params.gravity);
   w.contacts(p, tau, [&](const Contact& c) {
     const Real q = c.d / f.H;
-    Vec3 a;
-    if (pressure) {
-      if (pw < 0) pw = pw_fn();
-      const Real an = (pr + pw) * WallTables::at(f.walls.g0, f.walls.n, q) / (f.H * rho) -
-                      dot(g, c.n) * WallTables::at(f.walls.g1, f.walls.n, q);
-      a = std::max(Real(0), an) * c.n;
-    }
+    if (pw < 0) pw = pw_fn();
+    const Real an = (pr + pw) * WallTables::at(f.walls.g0, f.walls.n, q) / (f.H * rho) -
+                    dot(g, c.n) * WallTables::at(f.walls.g1, f.walls.n, q);
+    Vec3 a = std::max(Real(0), an) * c.n;
     // artificial viscosity with the mirrored particles (velocity reflected
     // in the wall), for approaching particles: a = -2 alpha c0 h v_n av / H^2 n
     const Real vn = dot(v - c.u, c.n);
@@ -1479,7 +1389,7 @@ struct Stepper {
     const Real rho0 = f.params.rest_density;
     const int gamma = f.params.tait_gamma;
     const bool clamp = f.params.clamp_negative_pressure;
-    const bool pci = f.params.pressure_solver != PressureSolver::eos;  // pcisph and pbf: p = 0
+    const bool pci = f.params.pressure_solver == PressureSolver::pcisph;
     const std::size_t ntw = walls.n_triangle_walls();  // the triangle contacts are cached for the force pass
     contact_cache.resize(ntw * static_cast<std::size_t>(c.n));
     // the last drift's contacts, by the particles' order before the sort
@@ -1508,7 +1418,7 @@ struct Stepper {
               if (cached) std::copy_n(end_contacts.data() + static_cast<std::size_t>(row) * ntw, ntw, cache);
               const Real rho =
                   mk * c.ksum[i] + (near ? rho0 * wall_fraction(f, walls, p, c.tau, cache, cached, hint) : Real(0));
-              Real pr = pci ? 0 : eos_pressure(f.eos, rho, rho0, f.c0, gamma);  // pcisph: its solver starts from 0; pbf: none
+              Real pr = pci ? 0 : eos_pressure(f.eos, rho, rho0, f.c0, gamma);  // pcisph: its solver starts from 0
               if (clamp) pr = std::max(Real(0), pr);
               c.rho[i] = rho;
               c.p[i] = pr;
@@ -1586,9 +1496,8 @@ struct Stepper {
   // without pressure), and at most the substep its solver asked for last (fluid_step)
   std::pair<Real, int> limit(const std::array<Real, 2>& maxima) const {
     const bool pci = f.params.pressure_solver == PressureSolver::pcisph;
-    const bool incompressible = f.params.pressure_solver != PressureSolver::eos;
     const Real vmax = std::sqrt(maxima[1]), amax = std::sqrt(maxima[0]);
-    const Real speed = (incompressible ? 0 : f.c0) + vmax;
+    const Real speed = (pci ? 0 : f.c0) + vmax;
     Real h = speed > 0 ? f.params.cfl * f.h / speed : HUGE_VAL;
     int which = 1;
     auto take = [&](Real l, int k) {
@@ -1711,137 +1620,6 @@ struct Stepper {
     }
     *iterations = it;
     *compression = err;
-  }
-
-  // pbf (PressureSolver::pbf): pbf_iterations Jacobi projections of the
-  // density constraints at the positions predicted from the pass's
-  // accelerations (forces without pressure) over a substep of h. Adds the
-  // projections' correction to the accelerations as dx / (damp h^2), so the
-  // drift lands on the projected positions; sets p = -rho0 sum lambda / h^2
-  // and appends the moving surfaces' reactions to the walls' part of the
-  // correction. Sets the largest constraint rho*/rho0 - 1 before the first
-  // projection (first) and before the last (compression).
-  void pbf(const Pass& c, Real h, std::vector<Reaction>& reactions, Real* compression, Real* first) {
-    const std::int32_t np = c.n;
-    const std::size_t nz = static_cast<std::size_t>(np);
-    FluidScratch& sc = s.scratch;
-    for (int k = 0; k < 3; ++k) {
-      sc.pred[k].resize(nz);
-      sc.pred0[k].resize(nz);
-      sc.corr[k].resize(nz);
-    }
-    sc.pred_sum.resize(nz);
-    sc.lambda.resize(nz);
-    sc.grad2.resize(nz);
-    const std::size_t ntw = walls.n_triangle_walls();
-    sc.wall_grad.assign(nz * ntw, 0);
-    sc.wall_moved.assign(nz * ntw, 0);
-    Real* px = sc.pred[0].data();
-    Real* py = sc.pred[1].data();
-    Real* pz = sc.pred[2].data();
-    Real* cx = sc.corr[0].data();
-    Real* cy = sc.corr[1].data();
-    Real* cz = sc.corr[2].data();
-    Real* lam = sc.lambda.data();
-    const FluidParams& fp = f.params;
-    const Real rho0 = fp.rest_density, H = f.H;
-    const Real mr = f.mass / rho0;                                // m^3, the particle's volume
-    const Real mk = f.mass * Real(21) / (2 * kPi * H * H * H);  // kg/m^3 per kernel sum
-    const Real gk = Real(210) / (kPi * H * H * H * H * H);        // 1/m^5: grad W = -gk t^3 r
-    const Real eps = fp.pbf_relaxation * mr * mr * f.lattice_grad2;
-    const Real gs = f.gradient_scale;
-    const Vec3 g = vec(fp.gravity);
-    const Real damp = 1 / (1 + fp.damping * h);
-    const bool clamp = fp.clamp_negative_pressure;
-    // the pressure whose (lattice-calibrated) SPH gradient is the pair correction over h^2
-    const Real to_pressure = -rho0 / (gs * h * h);
-    tbb::parallel_for(tbb::blocked_range<std::int32_t>(0, np, 1024), [&](const auto& r) {
-      for (std::int32_t i = r.begin(); i < r.end(); ++i) {
-        const Vec3 v = damp * (Vec3{c.vx[i], c.vy[i], c.vz[i]} + h * (Vec3{c.ax[i], c.ay[i], c.az[i]} + g));
-        px[i] = c.x[i] + h * v.x, py[i] = c.y[i] + h * v.y, pz[i] = c.z[i] + h * v.z;
-        sc.pred0[0][i] = px[i], sc.pred0[1][i] = py[i], sc.pred0[2][i] = pz[i];
-        c.p[i] = 0;
-      }
-    });
-    const auto& occ = c.g->occupied;
-    const int iterations = fp.pbf_iterations;
-    for (int it = 0; it < iterations; ++it) {
-      // the constraints, their multipliers, and the walls' part of the correction (in corr)
-      const Real worst = tbb::parallel_reduce(
-          tbb::blocked_range<std::size_t>(0, occ.size(), 16), Real(-HUGE_VAL),
-          [&](const tbb::blocked_range<std::size_t>& r, Real best) {
-            for (std::size_t k = r.begin(); k < r.end(); ++k) {
-              const std::int32_t cell = occ[k];
-              pbf_sums_cell(c, px, py, pz, cell, sc.pred_sum.data(), cx, cy, cz, sc.grad2.data());
-              for (std::int32_t i = c.g->start[cell]; i < c.g->start[cell + 1]; ++i) {
-                const Vec3 p{px[i], py[i], pz[i]};
-                Real rho = mk * sc.pred_sum[i];
-                Vec3 wg;  // grad_i of the walls' share
-                if (walls.maybe_near(p)) {
-                  // as pcisph: box faces and planes at the predicted position, a triangle
-                  // wall by the substep's contact, its distance moved along its normal
-                  const Vec3 moved = p - Vec3{c.x[i], c.y[i], c.z[i]};
-                  Contact* cache = ntw > 0 ? contact_cache.data() + static_cast<std::size_t>(i) * ntw : nullptr;
-                  Real share = 0;
-                  std::size_t slot = 0;  // the triangle contacts come in slot order
-                  walls.contacts(p, c.tau, [&](const Contact& w) {
-                    const Real d = w.tri >= 0 ? std::max(Real(0), w.d + dot(moved - h * w.u, w.n)) : w.d;
-                    share += WallTables::at(f.walls.f0, f.walls.n, d / H);
-                    const Real slope = -WallTables::at(f.walls.g0, f.walls.n, d / H) / (gs * H);  // d share / d distance
-                    wg += slope * w.n;
-                    if (w.tri >= 0) {
-                      while (slot < ntw && !cache[slot].wall) ++slot;
-                      if (slot < ntw && w.surface >= 0) sc.wall_grad[static_cast<std::size_t>(i) * ntw + slot] = slope;
-                      ++slot;
-                    }
-                  }, cache, true);
-                  rho += rho0 * share;
-                }
-                const Real err = rho / rho0 - 1;
-                best = std::max(best, err);
-                const Real C = clamp ? std::max(Real(0), err) : err;
-                const Vec3 gi = Vec3{-mr * gk * cx[i], -mr * gk * cy[i], -mr * gk * cz[i]} + wg;
-                const Real den = mr * mr * gk * gk * sc.grad2[i] + dot(gi, gi) + eps;
-                const Real l = -C / den;
-                lam[i] = l;
-                c.p[i] += to_pressure * l;
-                // the walls' sites take the particle's multiplier (as the EOS's walls
-                // mirror its pressure): lambda_i grad_i C_i + lambda_i grad_i C_wall
-                cx[i] = 2 * l * wg.x, cy[i] = 2 * l * wg.y, cz[i] = 2 * l * wg.z;
-                for (std::size_t w = 0; w < ntw; ++w)
-                  sc.wall_moved[static_cast<std::size_t>(i) * ntw + w] += 2 * l * sc.wall_grad[static_cast<std::size_t>(i) * ntw + w];
-              }
-            }
-            return best;
-          },
-          [](Real a, Real b2) { return std::max(a, b2); });
-      if (it == 0) *first = worst;
-      *compression = worst;
-      // the pair part, then the projection (Jacobi: every correction from the same positions)
-      tbb::parallel_for(tbb::blocked_range<std::size_t>(0, occ.size(), 16), [&](const tbb::blocked_range<std::size_t>& r) {
-        for (std::size_t k = r.begin(); k < r.end(); ++k) pbf_correction_cell(c, px, py, pz, lam, -mr * gk, occ[k], cx, cy, cz);
-      });
-      tbb::parallel_for(tbb::blocked_range<std::int32_t>(0, np, 4096), [&](const auto& r) {
-        for (std::int32_t i = r.begin(); i < r.end(); ++i) px[i] += cx[i], py[i] += cy[i], pz[i] += cz[i];
-      });
-    }
-    // the correction as an acceleration; the walls' part pushes the surfaces back
-    const Real to_acc = 1 / (damp * h * h);
-    tbb::parallel_for(tbb::blocked_range<std::int32_t>(0, np, 4096), [&](const auto& r) {
-      for (std::int32_t i = r.begin(); i < r.end(); ++i) {
-        c.ax[i] += to_acc * (px[i] - sc.pred0[0][i]);
-        c.ay[i] += to_acc * (py[i] - sc.pred0[1][i]);
-        c.az[i] += to_acc * (pz[i] - sc.pred0[2][i]);
-      }
-    });
-    if (ntw > 0)
-      for (std::int32_t i = 0; i < np; ++i)
-        for (std::size_t w = 0; w < ntw; ++w) {
-          const Real m = sc.wall_moved[static_cast<std::size_t>(i) * ntw + w];
-          if (m == 0) continue;
-          const Contact& ct = contact_cache[static_cast<std::size_t>(i) * ntw + w];
-          reactions.push_back({i, ct.surface, ct.tri, ct.w0, ct.w1, ct.w2, (-f.mass * to_acc * m) * ct.n});
-        }
   }
 
   void add_reaction(const Reaction& r, Real weight) {
@@ -2126,9 +1904,7 @@ struct Stepper {
 
 const char* to_string(Eos e) { return e == Eos::linear ? "linear" : "tait"; }
 const char* to_string(Rheology r) { return r == Rheology::carreau ? "carreau" : "newtonian"; }
-const char* to_string(PressureSolver p) {
-  return p == PressureSolver::pcisph ? "pcisph" : p == PressureSolver::pbf ? "pbf" : "eos";
-}
+const char* to_string(PressureSolver p) { return p == PressureSolver::pcisph ? "pcisph" : "eos"; }
 const char* fluid_phase_name(int k) {
   static const char* names[] = {"prepare", "density", "forces", "pressure", "integrate", "emit"};
   return k >= 0 && k < static_cast<int>(std::size(names)) ? names[k] : "?";
@@ -2237,12 +2013,6 @@ void validate(const FluidParams& p) {
     fail("surface_grid_slack must be in [0, 1] (got " + str(p.surface_grid_slack) + ")");
   if (!(p.neighbour_skin >= 0 && p.neighbour_skin <= 1))
     fail("neighbour_skin must be in [0, 1] (got " + str(p.neighbour_skin) + ")");
-  if (p.pressure_solver == PressureSolver::pbf) {
-    if (p.pbf_iterations < 1 || p.pbf_iterations > 100)
-      fail("pbf_iterations must be in [1, 100] (got " + str(p.pbf_iterations) + ")");
-    if (!(p.pbf_relaxation >= 1e-6 && p.pbf_relaxation <= 10))
-      fail("pbf_relaxation must be in [1e-6, 10] (got " + str(p.pbf_relaxation) + ")");
-  }
   if (p.pressure_solver == PressureSolver::pcisph) {
     if (p.physx_stiffness > 0) fail("pressure_solver pcisph needs the physical mode (physx_stiffness 0)");
     if (p.pcisph_target_iterations < 1 || p.pcisph_target_iterations > p.pcisph_max_iterations)
@@ -2631,15 +2401,6 @@ FluidStepInfo fluid_step(const Fluid& f, FluidState& s, Real dt, const FluidBoun
         reactions.clear();
         st.forces(c, reactions, false);
       }
-      lap(3);
-    }
-    if (f.params.pressure_solver == PressureSolver::pbf && st.n() > 0) {
-      Real err = 0, first = 0;
-      st.pbf(c, h, reactions, &err, &first);
-      ++s.counters.pressure_solves;
-      s.counters.pressure_iterations += f.params.pbf_iterations;
-      info.pressure_iterations += f.params.pbf_iterations;
-      info.max_predicted_compression = std::max(info.max_predicted_compression, err);
       lap(3);
     }
     ++s.counters.substep_limit[static_cast<std::size_t>(which)];

@@ -173,20 +173,7 @@ const char* to_string(Rheology r);
 //   pcisph_target_iterations corrections. c0 still sets the artificial
 //   viscosity. The pressures are a partly converged
 //   iterate: their noise is about delta rho0 tolerance (docs/sph.md).
-// - pbf: position-based fluids (Macklin & Mueller 2013; the later PhysX and
-//   FleX fluid). Each substep predicts the positions from the forces without
-//   pressure, then makes pbf_iterations Jacobi projections of the density
-//   constraints C_i = rho_i / rho0 - 1 (rho_i at the predicted positions over
-//   the substep's lists, the walls' share included; C_i >= 0 only where
-//   clamp_negative_pressure): lambda_i = -C_i / (sum_k |grad_k C_i|^2 + eps),
-//   dx_i = -(m / rho0) sum_j (lambda_i + lambda_j) g_ij r_ij + lambda_i grad_i share_i,
-//   eps = pbf_relaxation times the rest lattice's sum. The correction enters
-//   the kick as the acceleration dx / h^2, so the drift, the walls'
-//   collisions, drains and the reactions on moving surfaces are those of
-//   the other solvers; p_i = -rho0 sum lambda_i / h^2 (Pa) is its pressure.
-//   The sound speed leaves the CFL limit (cfl h / |v|max) and sets only the
-//   artificial viscosity; valid in both modes.
-enum class PressureSolver { eos, pcisph, pbf };
+enum class PressureSolver { eos, pcisph };
 const char* to_string(PressureSolver p);
 
 struct FluidParams {
@@ -221,10 +208,6 @@ struct FluidParams {
   // (counted as stalled) and is redone at half the substep like one that ran
   // out of corrections; [0, 1000], 0 = never (it runs to pcisph_max_iterations).
   int pcisph_stall_repeats = 4;
-  // pbf: Jacobi projections per substep, [1, 100], and the constraint
-  // relaxation eps as a fraction of the rest lattice's sum_k |grad_k C|^2, [1e-6, 10]
-  int pbf_iterations = 4;
-  Real pbf_relaxation = 0.1;
   Real artificial_viscosity = 0.02;  // alpha of Monaghan (1992), [0, 1]; 0 = physical viscosity only
   Real damping = 0;           // 1/s, velocity damping v /= 1 + damping h per substep (settling), >= 0
   bool clamp_negative_pressure = true;  // p = max(p, 0): no tension at free surfaces
@@ -491,8 +474,8 @@ struct FluidCounters {
   std::int64_t contacts_reused = 0;  // particle-substeps whose density pass read the drift's triangle contacts
   std::int64_t list_builds = 0;      // substeps that sorted the particles and built the neighbour lists
   std::int64_t list_reuses = 0;      // substeps that kept the last lists (neighbour_skin)
-  std::int64_t pressure_solves = 0;       // pcisph: solves, the redone ones included; pbf: substeps
-  std::int64_t pressure_iterations = 0;   // pcisph: corrections, all substeps; pbf: projections
+  std::int64_t pressure_solves = 0;       // pcisph: solves, the redone ones included
+  std::int64_t pressure_iterations = 0;   // pcisph: corrections, all substeps
   std::int64_t pressure_unconverged = 0;  // pcisph: solves taken unconverged (after 10 halvings, at the EOS substep, or where halving cannot help)
   std::int64_t pressure_retries = 0;      // pcisph: solves redone at half the substep (not converged)
   std::int64_t pressure_stalled = 0;      // pcisph: solves stopped early, cycling between two states (then redone or taken)
@@ -526,8 +509,8 @@ struct FluidStepInfo {
   bool truncated = false;
   Real min_substep = 0, max_substep = 0;  // s
   Real max_compression = 0;   // max (rho / rho0 - 1) over particles and substeps
-  Real max_predicted_compression = 0;  // pcisph: the largest last predicted rho*/rho0 - 1 of the substeps (pbf: before its last projection)
-  std::int64_t pressure_iterations = 0;  // pcisph: corrections in this step; pbf: projections
+  Real max_predicted_compression = 0;  // pcisph: the largest last predicted rho*/rho0 - 1 of the substeps
+  std::int64_t pressure_iterations = 0;  // pcisph: corrections in this step
   Real mean_neighbours = 0;   // particles within H, self included, last substep
   Real max_speed = 0;         // m/s, at the end
   std::int64_t removed = 0;   // particles removed in this step
@@ -542,12 +525,7 @@ struct FluidScratch {
   std::array<std::vector<Real>, 3> a;   // (3)(n) m/s^2, particle forces / mass
   std::array<std::vector<Real>, 3> aw;  // (3)(n) m/s^2, of which from walls
   std::array<std::vector<Real>, 3> pred; // (3)(n) m, pcisph: predicted positions
-  std::vector<Real> pred_sum;           // (n) pcisph and pbf: kernel sums there
-  std::vector<Real> lambda, grad2;      // (n) pbf: the constraints' multipliers (m^2), sum_j t^6 r_ij^2 (m^2)
-  std::array<std::vector<Real>, 3> pred0; // (3)(n) m, pbf: the predicted positions before the projections
-  std::array<std::vector<Real>, 3> corr;  // (3)(n) m, pbf: an iteration's corrections (first the gradient sums)
-  std::vector<Real> wall_grad;          // (n x triangle walls) 1/m, pbf: d share / d n of each triangle contact
-  std::vector<Real> wall_moved;         // (n x triangle walls) m, pbf: the walls' corrections along their normals
+  std::vector<Real> pred_sum;           // (n) pcisph: kernel sums there
   std::vector<std::uint8_t> near;       // (n) 1 where a wall may be within H
   std::vector<Real> psum;               // (n) Pa, the walls' Shepard pressure sums (where near)
   std::vector<Real> inv_rho;            // (n) 1 / rho

@@ -10,7 +10,6 @@
 //             [--slack=F] [--requery]  with surface_grid_slack F (default 0.125), without the contacts' reuse
 //             [--cfl=F]             with the fluid's CFL number F (default 0.4)
 //             [--sound-speed=C]     physical blood with sound speed C m/s (default: PhysX stiffness 20)
-//             [--pbf=K]             the position-based pressure solver with K projections a substep
 //   sph_bench --pressure-solvers    the EOS against PCISPH: time and error on the dam break and the
 //                                   hydrostatic column at three density errors each (medians of 3)
 //   sph_bench --skins               Verlet neighbour lists: the dam break's time per substep at neighbour_skin 0 ... 0.3
@@ -485,7 +484,6 @@ struct SceneKnobs {
   bool reuse_contacts = true;
   double cfl = rt::FluidParams{}.cfl;
   double sound_speed = 0;  // > 0: physical blood with this c0 (m/s) in place of the PhysX stiffness 20
-  int pbf_iterations = 0;  // > 0: the pbf pressure solver with this many projections
 };
 
 PaperScene paper_scene(double dt, std::int64_t particles, int steps, int threads, const SceneKnobs& knobs = {}) {
@@ -511,10 +509,6 @@ PaperScene paper_scene(double dt, std::int64_t particles, int steps, int threads
   def.fluid.params.surface_grid_slack = knobs.slack;
   def.fluid.params.reuse_wall_contacts = knobs.reuse_contacts;
   def.fluid.params.cfl = knobs.cfl;
-  if (knobs.pbf_iterations > 0) {
-    def.fluid.params.pressure_solver = rt::PressureSolver::pbf;
-    def.fluid.params.pbf_iterations = knobs.pbf_iterations;
-  }
   def.fluid.margin = 0.02;
   def.fluid.max_particles = 4 * particles;
   rt::ToolDef cut;
@@ -571,7 +565,6 @@ void print_paper_scene(int threads, std::int64_t particles, const SceneKnobs& kn
                 knobs.sound_speed);
   else
     std::printf("Integrated paper scene: 39x9x4 lattice (implicit), PhysX blood (stiffness 20, dx = 2 mm), a cut vein emitting,\n");
-  if (knobs.pbf_iterations > 0) std::printf("pressure solver pbf, %d projections a substep\n", knobs.pbf_iterations);
   std::printf("two-way coupled layer quads and wound walls; one step = tissue step + fluid advanced by dt\n");
   std::printf("%9s %7s %12s %10s %14s %14s %12s %10s %12s %11s\n", "dt ms", "threads", "particles", "steps/s",
               "sim s/wall s", "fluid substeps", "fluid share", "neighbours", "max drho %", "warm-up s");
@@ -867,10 +860,6 @@ int main(int argc, char** argv) {
     } else if (std::strncmp(a, "--sound-speed=", 14) == 0) {
       knobs.sound_speed = number(a + 14);
       if (!(knobs.sound_speed > 0 && knobs.sound_speed <= 1e3)) return usage_error("--sound-speed must be a number in (0, 1000] (m/s)", a + 14);
-    } else if (std::strncmp(a, "--pbf=", 6) == 0) {
-      const double v = number(a + 6);
-      if (!(v >= 1 && v <= 100 && v == std::floor(v))) return usage_error("--pbf must be a whole number of projections in [1, 100]", a + 6);
-      knobs.pbf_iterations = static_cast<int>(v);
     } else if (std::strcmp(a, "--requery") == 0) {
       knobs.reuse_contacts = false;
     } else if (std::strcmp(a, "--full") == 0) {

@@ -219,9 +219,6 @@ void hydrostatic_column(PressureSolver solver) {
   p.eos = Eos::linear;
   p.max_speed = std::sqrt(9.81 * depth);  // c0 = 10 sqrt(g D): ~1 % density variation
   p.damping = 40;                          // settle (critically damps the column's acoustic mode)
-  if (getenv("PBF_IT")) p.pbf_iterations = atoi(getenv("PBF_IT"));
-  if (getenv("PBF_EPS")) p.pbf_relaxation = atof(getenv("PBF_EPS"));
-  if (getenv("PBF_MAXSUB")) p.max_substep = atof(getenv("PBF_MAXSUB"));
   const Fluid f = make_fluid(p);
   FluidBoundaries b = make_box_boundaries({0, 0, 0}, {width, 2 * depth, width});
   b.faces = {Face::periodic, Face::periodic, Face::wall, Face::open, Face::periodic, Face::periodic};
@@ -254,10 +251,7 @@ void hydrostatic_column(PressureSolver solver) {
   std::printf("  %s: bottom layer p / (weight per area) %.4f, drho/rho0 %.5f, max compression %.5f, %lld substeps, %lld corrections\n",
               to_string(solver), psum / nb / weight_per_area, drho / p.rest_density, s.last.max_compression,
               static_cast<long long>(s.counters.substeps), static_cast<long long>(s.counters.pressure_iterations));
-  if (solver == PressureSolver::pbf) {
-    std::printf("  pbf: %lld substeps, bottom drho/rho0 %.5f, max predicted %.5f\n", static_cast<long long>(s.counters.substeps),
-                drho / p.rest_density, s.last.max_predicted_compression);
-  } else if (solver == PressureSolver::eos) {
+  if (solver == PressureSolver::eos) {
     EXPECT_NEAR(drho, predicted, 0.05 * predicted);
     EXPECT_NEAR(s.last.max_compression, predicted / p.rest_density, 0.1 * predicted / p.rest_density);
   } else {
@@ -279,13 +273,11 @@ void hydrostatic_column(PressureSolver solver) {
     ASSERT_GT(k, 0);
     const Real top = s.size() * f.volume / (width * width);  // the column's rest height
     EXPECT_NEAR(ps / k, p.rest_density * 9.81 * (top - ys / k), 0.04 * weight_per_area) << "y = " << y;
-    std::printf("  y %.3f: p / rho g (top - y) %.4f\n", y, ps / k / (p.rest_density * 9.81 * (top - ys / k)));
   }
 }
 
 TEST(SphPhysics, HydrostaticColumn) { hydrostatic_column(PressureSolver::eos); }
 TEST(SphPcisph, HydrostaticColumn) { hydrostatic_column(PressureSolver::pcisph); }
-TEST(SphPbf, HydrostaticColumn) { hydrostatic_column(PressureSolver::pbf); }
 
 // ---- dam break against Martin & Moyce (1952) ------------------------------------------
 
@@ -477,17 +469,6 @@ TEST(SphPcisph, UnreachableToleranceKeepsTheEosSubstep) {
               static_cast<long long>(pci.pressure_unconverged), static_cast<long long>(pci.pressure_retries));
   EXPECT_GT(pci.pressure_unconverged, 0);
   EXPECT_LE(pci.substeps, eos.substeps * 3 / 2);
-}
-
-TEST(SphPbf, DamBreakSurgeFront) {
-  const DamBreakResult r = dam_break(16, 0.02, PressureSolver::pbf);
-  for (const auto& q : r.points) std::printf("  T %.2f  Z %.3f  (Martin & Moyce %.2f)\n", q[0], q[1], q[2]);
-  std::printf("  %lld particles; 1.3 <= Z <= 3: max error %.1f %%, speed ratio %.3f, lead %.3f T, max error after the lead %.1f %%\n",
-              static_cast<long long>(r.particles), 100 * r.max_error, r.speed_ratio, r.offset_T, 100 * r.max_error_offset);
-  std::printf("  %lld substeps (the EOS's CFL limit: at least %.0f), %lld projections\n",
-              static_cast<long long>(r.substeps), r.eos_substeps, static_cast<long long>(r.pressure_iterations));
-  EXPECT_NEAR(r.speed_ratio, 1, 0.05);
-  EXPECT_LT(r.max_error_offset, 0.05);
 }
 
 TEST(SphPcisph, DamBreakSurgeFront) {
