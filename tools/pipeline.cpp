@@ -366,7 +366,14 @@ int run_stages(Args a, Report& report) {
     // the muscle next to the bone)
     if (!lies_in(t, floor->name)) beside.push_back(t.name);
   }
-  if (layered.size() < 2) throw Error(a.tissues, "the pipeline needs at least two layered tissues (tetra, lattice or rigid)");
+  if (layered.size() < 2) {
+    // a rigid outermost tissue ends the stack at once (the table may list more layered tissues)
+    if (layered.size() == 1 && floor)
+      throw Error(a.tissues, "the outermost layered tissue '" + layered[0] +
+                                 "' is rigid: the layers end at the first rigid tissue, so none is left to build (make it "
+                                 "tetra or lattice)");
+    throw Error(a.tissues, "the pipeline needs at least two layered tissues (tetra, lattice or rigid)");
+  }
   // The layers nest: each layered tissue lies, through its 'inside' chain, in
   // one outside it. A second outermost one ('inside': null) failed in the build
   // with an error against a file in the cache.

@@ -22,7 +22,7 @@ void add_segment_command(CLI::App& app) {
     bool no_cleanup = false, no_order = false, no_fill_holes = false, no_exposure = false;
     int speck_support = 2, calibration_slices = 9, refine_iterations = 8, slab = 8, threads = 0;
     std::int64_t min_island = 64, min_vessel = 4;
-    double min_island_mm3 = 10;
+    double min_island_mm3 = 20;
     double refine_max_shift = 30, lightness_weight = 1, min_body_fraction = 0.1;
     CommonOptions common;
   };

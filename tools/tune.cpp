@@ -334,16 +334,34 @@ void add_tune_command(CLI::App& app) {
         text << in.rdbuf();
         json t = json::parse(text.str());
         for (json& e : t["tissues"]) {
+          bool tuned_now = false;
           for (const Job& j : jobs) {
             if (e.value("name", "") != j.tissue) continue;
+            tuned_now = true;
             json tuned = result_json(j.tissue, j.result);
-            tuned.erase("name");
-            tuned.erase("target");
+            tuned.erase("name");  // (its target stays: a later run tells a stale block by it)
             // wall times stay in the report: the same table, options and seed give
             // the same file byte for byte (they made it differ in two fields)
             tuned.erase("seconds");
             tuned.erase("seconds_per_experiment");
             e["mechanics"]["tuned"] = tuned;
+          }
+          // a tissue not tuned now keeps an earlier run's block only while the
+          // table still holds the targets it was tuned to (a block for k_kpa
+          // 2.3 stood next to k_kpa 10, 'reached': true)
+          if (!tuned_now && e.contains("mechanics") && e["mechanics"].is_object() && e["mechanics"].contains("tuned")) {
+            json& mech = e["mechanics"];
+            const json& target = mech["tuned"].is_object() && mech["tuned"].contains("target") ? mech["tuned"]["target"] : json();
+            bool same = target.is_object();
+            if (same)
+              for (const auto& [k, v] : target.items())
+                same = same && v.is_number() && mech.contains(k) && mech[k].is_number() &&
+                       std::abs(mech[k].get<double>() - v.get<double>()) <= 1e-9 * std::abs(v.get<double>());
+            if (!same) {
+              mech.erase("tuned");
+              std::cerr << "tune: warning: " << tissues_path << ": tissue '" << e.value("name", "")
+                        << "': its 'tuned' block was for other targets (or names none); not copied to " << out << "\n";
+            }
           }
         }
         table.emplace(out);

@@ -107,6 +107,33 @@ TEST(TuneCli, TunesTheSampleTableWithTableReportAndPlots) {
 // A tissue whose tuning misses its tolerance gets a warning on stderr, also
 // with --quiet (the pipeline runs tune so, and it said nothing of a skin left
 // at 10 % error); one that reaches it gets none.
+// A tuned table tuned again: the tissues not tuned now keep their 'tuned'
+// block while the table still holds its targets, and lose it (with a
+// warning) where a value changed (a block for k_kpa 2.3 stood next to 10,
+// 'reached': true).
+TEST(TuneCli, AStaleTunedBlockIsNotCopied) {
+  test::TempDir d("tune-cli-stale");
+  const auto r1 = test::run_cli("tune --tissues " + kTable + " --tissue fat --tissue muscle --max-evaluations 200 --quiet --out " +
+                                (d / "t1.json"));
+  ASSERT_EQ(r1.code, 0) << r1.err;
+  json t = json::parse(test::read_file(d / "t1.json"));
+  for (json& e : t["tissues"])
+    if (e["name"] == "fat") e["mechanics"]["k_kpa"] = 10;
+  test::write_file(d / "t2.json", t.dump(2));
+  const auto r2 = test::run_cli("tune --tissues " + (d / "t2.json") + " --tissue skin --max-evaluations 200 --quiet --out " +
+                                (d / "t3.json"));
+  ASSERT_EQ(r2.code, 0) << r2.err;
+  EXPECT_NE(r2.err.find("tissue 'fat': its 'tuned' block was for other targets"), std::string::npos) << r2.err;
+  EXPECT_EQ(r2.err.find("'muscle'"), std::string::npos) << r2.err;
+  const json out = json::parse(test::read_file(d / "t3.json"));
+  for (const json& e : out["tissues"]) {
+    if (!e.contains("mechanics")) continue;
+    const bool has = e["mechanics"].contains("tuned");
+    if (e["name"] == "fat") EXPECT_FALSE(has);
+    else EXPECT_TRUE(has) << e["name"];
+  }
+}
+
 TEST(TuneCli, AMissedToleranceIsAWarning) {
   test::TempDir d("tune-cli-miss");
   const auto miss = test::run_cli("tune --tissues " + kTable + " --tissue skin --max-evaluations 20 --quiet");
