@@ -77,7 +77,7 @@ void check_report_is_not_an_operand(const CLI::App* sub, const std::string& repo
 // --nrrd x.h5` left an NRRD where the model was, `--out stack/slice_0003.png`
 // replaced a slice; all exit 0. Refused before any work. (--report: above.)
 void check_outputs_are_not_inputs(const CLI::App* sub) {
-  static const std::vector<std::string> outputs{"--out", "--nrrd", "--export", "--plot", "--work"};
+  static const std::vector<std::string> outputs{"--out", "--nrrd", "--export", "--plot", "--work", "--report"};
   static const std::vector<std::string> inputs{"--stack", "--tissues", "--tissue-table", "--labels", "--truth",
                                                "--surface", "--scene", "--model", "--plot-script"};
   auto given = [&](const std::vector<std::string>& names) {
@@ -108,7 +108,8 @@ void check_outputs_are_not_inputs(const CLI::App* sub) {
         if (!e1 && !e2) {
           const auto rel = out.lexically_relative(dir);
           if (!rel.empty() && *rel.begin() != ".." && rel != ".")
-            throw Error(o, oname + " lies in the --stack folder " + i + ": it would become one of its slices");
+            throw Error(o, oname + " lies in the --stack folder " + i + ": that folder holds the slices (an image written "
+                               "there becomes one, or replaces one)");
         }
       }
     }

@@ -19,7 +19,7 @@ void add_segment_command(CLI::App& app) {
   auto* sub = app.add_subcommand("segment", "classify a colour slice stack into tissue labels (/volume)");
   struct Args {
     std::string stack, tissues, spacing, origin = "0,0,0", out, nrrd, truth, normalise = "plane", classify = "mahalanobis", scratch_dir;
-    bool no_cleanup = false, no_order = false, no_fill_holes = false, no_exposure = false;
+    bool no_cleanup = false, no_order = false, no_fill_holes = false, exposure = false;
     int speck_support = 2, calibration_slices = 9, refine_iterations = 8, slab = 8, threads = 0;
     std::int64_t min_island = 64, min_vessel = 4;
     double min_island_mm3 = 20;
@@ -61,9 +61,10 @@ void add_segment_command(CLI::App& app) {
       ->capture_default_str();
   sub->add_option("--refine-max-shift", a.refine_max_shift, "largest prototype move by the calibration, CIE76 units")
       ->capture_default_str();
-  sub->add_flag("--no-exposure", a.no_exposure,
-                "keep the table's colours whatever the stack's exposure (by default a border of the table background's "
-                "hue, brighter or darker by more than 20 %, scales them)");
+  sub->add_flag("--exposure-from-border", a.exposure,
+                "scale the table's colours by the stack's exposure, read from a border of the table background's hue "
+                "brighter or darker by more than 20 % (for a stack exposed darker or brighter as a whole; not for "
+                "vignetted slices)");
   sub->add_option("--lightness-weight", a.lightness_weight, "weight of lightness against chroma")
       ->capture_default_str();
   sub->add_option("--slab", a.slab, "slices classified together (memory ~ slab x slice size)")
@@ -96,7 +97,7 @@ void add_segment_command(CLI::App& app) {
     o.calibration_slices = a.calibration_slices;
     o.refine_iterations = a.refine_iterations;
     o.refine_max_shift = a.refine_max_shift;
-    o.exposure_from_border = !a.no_exposure;
+    o.exposure_from_border = a.exposure;
     o.lightness_weight = a.lightness_weight;
     o.slab = a.slab;
     o.scratch_dir = a.scratch_dir;

@@ -230,6 +230,24 @@ void add_tune_command(CLI::App& app) {
       ModelReader m(model);
       if (!m.has("/layers")) throw Error(model, "no /layers in the model: run orthosim build first");
       report.input(model);
+      // without --tissue, a tissue the build made rigid (the fixed bottom of a
+      // model without a rigid tissue) is not tuned (it was an error)
+      if (names.empty()) {
+        std::map<std::string, std::string> kind;
+        for (const auto& name : m.names("/layers"))
+          if (m.h5().is_group("/layers/" + name) && name != "sets") {
+            const Layer l = m.layer_fields(name, {});
+            kind[l.tissue] = l.kind;
+          }
+        std::erase_if(jobs, [&](const Job& j) {
+          const auto k = kind.find(j.tissue);
+          if (k == kind.end() || k->second != "rigid") return false;
+          std::cerr << "tune: note: " << model << ": '" << j.tissue << "' is built as a rigid layer (the model's fixed "
+                    << "bottom): not tuned\n";
+          return true;
+        });
+        if (jobs.empty()) throw Error(model, "no tissue with mechanics has a tetra or lattice layer in the model");
+      }
       for (Job& j : jobs) {
         try {
           find_layer(m, j);

@@ -157,8 +157,9 @@ struct SegmentOptions {
   // The stack's exposure from the slices' border (the embedding medium):
   // where it has the table background's chromaticity and its brightness is
   // off by more than 20 %, every table colour is scaled by that ratio before
-  // the calibration (docs/segment.md).
-  bool exposure_from_border = true;
+  // the calibration (docs/segment.md). Off by default: a vignetted stack's
+  // dark border is not its exposure.
+  bool exposure_from_border = false;
   // Weight of lightness against chroma in the colour distance, > 0.
   // Values below 1 make the classification more robust to brightness.
   double lightness_weight = 1.0;

@@ -48,6 +48,15 @@ void expect_refused(const test::TempDir& d, const std::string& args, const std::
   EXPECT_FALSE(fs::exists(d / "bad_report.json"));
 }
 
+// a model file holding the quad surfaces of concentric cylinders (nu x nv)
+std::string cylinders(const test::TempDir& d, const std::string& name, int nu, int nv) {
+  const std::string model = d / name;
+  ModelWriter w(model, ModelWriter::Start::fresh);
+  for (const auto& [tissue, q] : test::cylinder_stack(nu, nv)) w.write(tissue, q);
+  w.commit();
+  return model;
+}
+
 }  // namespace
 
 TEST(TuneCli, TunesTheSampleTableWithTableReportAndPlots) {
@@ -166,12 +175,7 @@ TEST(TuneCli, SameSeedSameTable) {
 
 TEST(TuneCli, TunesABuiltModel) {
   test::TempDir d("tune-cli-model");
-  const std::string model = d / "m.h5";
-  {
-    ModelWriter w(model, ModelWriter::Start::fresh);
-    for (const auto& [tissue, q] : test::cylinder_stack(39, 9)) w.write(tissue, q);
-    w.commit();
-  }
+  const std::string model = cylinders(d, "m.h5", 39, 9);
   auto b = test::run_cli("build --model " + model + " --tissues " + kTable + " --quiet");
   ASSERT_EQ(b.code, 0) << b.err;
   const Layer before = ModelReader(model).layer("skin");
@@ -236,10 +240,7 @@ TEST(TuneCli, RetargetsAModelBuiltWithAnotherTable) {
   test::TempDir d("tune-cli-retarget");
   const std::string stiff = table_with(d, "fat", {{"model", "linear"}, {"k_kpa", 10}});
   auto built = [&](const std::string& name, const std::string& table) {
-    const std::string model = d / name;
-    ModelWriter w(model, ModelWriter::Start::fresh);
-    for (const auto& [tissue, q] : test::cylinder_stack(15, 5)) w.write(tissue, q);
-    w.commit();
+    const std::string model = cylinders(d, name, 15, 5);
     const auto b = test::run_cli("build --model " + model + " --tissues " + table + " --quiet");
     EXPECT_EQ(b.code, 0) << b.err;
     return model;
@@ -276,12 +277,7 @@ TEST(TuneCli, RetargetsAModelBuiltWithAnotherTable) {
 // specimen measured a layer without them).
 TEST(TuneCli, TheSpecimenHasTheBuildsCells) {
   test::TempDir d("tune-cli-body");
-  const std::string model = d / "m.h5";
-  {
-    ModelWriter w(model, ModelWriter::Start::fresh);
-    for (const auto& [tissue, q] : test::cylinder_stack(15, 5)) w.write(tissue, q);
-    w.commit();
-  }
+  const std::string model = cylinders(d, "m.h5", 15, 5);
   const auto b = test::run_cli("build --model " + model + " --tissues " + kTable + " --body-diagonals --quiet");
   ASSERT_EQ(b.code, 0) << b.err;
   const Layer before = ModelReader(model).layer("fat");
@@ -297,6 +293,30 @@ TEST(TuneCli, TheSpecimenHasTheBuildsCells) {
   ASSERT_GT(body, 0);
   EXPECT_EQ(changed, body);
   EXPECT_NEAR(ModelReader(model).tuning("fat").achieved(0), 2300, 0.01 * 2300);
+}
+
+// A model without a rigid tissue: its innermost layered tissue is the fixed
+// bottom (rigid). Without --tissue it is not tuned (a note says so); it was an
+// error ("built as a rigid layer"). Named, it still is one.
+TEST(TuneCli, TheFixedBottomIsNotTunedByDefault) {
+  test::TempDir d("tune-cli-nobone");
+  const std::string model = d / "m.h5";
+  {
+    ModelWriter w(model, ModelWriter::Start::fresh);
+    for (const auto& [tissue, q] : test::cylinder_stack(15, 5, 0.12, {0.030, 0.028, 0.022})) w.write(tissue, q);
+    w.commit();
+  }
+  ASSERT_EQ(test::run_cli("build --model " + model + " --tissues " + kTable + " --quiet").code, 0);
+  const auto r = test::run_cli("tune --tissues " + kTable + " --model " + model + " --max-evaluations 100 --quiet");
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_NE(r.err.find("tune: note: " + model + ": 'muscle' is built as a rigid layer"), std::string::npos) << r.err;
+  ModelReader m(model);
+  EXPECT_TRUE(m.has("/tuning/skin"));
+  EXPECT_TRUE(m.has("/tuning/fat"));
+  EXPECT_FALSE(m.has("/tuning/muscle"));
+  const auto named = test::run_cli("tune --tissues " + kTable + " --model " + model + " --tissue muscle --max-evaluations 100");
+  EXPECT_EQ(named.code, 2);
+  EXPECT_NE(named.err.find("'muscle' is built as a rigid layer"), std::string::npos) << named.err;
 }
 
 TEST(TuneCli, BadInputIsOneLineExit2AndWritesNothing) {

@@ -247,6 +247,7 @@ TEST(Cli, OutputsNeverReplaceInputs) {
       {seg + " --out " + (d / "l.h5") + " --nrrd " + ph.tissues, ph.tissues, "--nrrd names the same file as --tissues"},
       {seg + " --out " + slice, slice, "--out lies in the --stack folder " + ph.slices},
       {seg + " --out " + (ph.slices + "/new.h5"), ph.slices + "/new.h5", "--out lies in the --stack folder " + ph.slices},
+      {seg + " --out " + (d / "r.h5") + " --report " + slice, slice, "--report lies in the --stack folder " + ph.slices},
       {seg + " --out " + (d / "x.h5") + " --nrrd " + (d / "x.h5"), d / "x.h5", "--out and --nrrd name the same file"},
       {"pipeline --stack " + ph.slices + " --tissues " + ph.tissues + " --spacing 1,1,2 --quiet --out " + ph.tissues,
        ph.tissues, "--out names the same file as --tissues"},
