@@ -279,6 +279,25 @@ TEST(SegmentCalibration, NearestTableColourNamesACapturedPrototype) {
   EXPECT_EQ(nearest_table_labels(p)[2], 7);
 }
 
+// The phantom's slices under an illumination: each channel c of pixel (x, y)
+// of slice z multiplied by light(x, y, z, c), rounded and clamped to 0..255.
+std::vector<RgbImage> lit_slices(const PhantomOptions& p, const Volume& truth,
+                                 const std::function<double(int, int, int, int)>& light) {
+  std::vector<RgbImage> slices(static_cast<std::size_t>(p.nz));
+  for (int z = 0; z < p.nz; ++z) {
+    auto& s = slices[static_cast<std::size_t>(z)];
+    s.nx = p.nx, s.ny = p.ny;
+    phantom_slice_rgb(p, truth, z, s.rgb);
+    for (int y = 0; y < p.ny; ++y)
+      for (int x = 0; x < p.nx; ++x)
+        for (int c = 0; c < 3; ++c) {
+          auto& v = s.rgb[(static_cast<std::size_t>(y) * p.nx + x) * 3 + c];
+          v = static_cast<std::uint8_t>(std::clamp(std::lround(v * light(x, y, z, c)), 0L, 255L));
+        }
+  }
+  return slices;
+}
+
 TEST(SegmentPhantom, PerturbedPrototypesAndIllumination) {
   const PhantomOptions p = test_phantom();
   const Volume truth = phantom_labels(p);
@@ -292,20 +311,9 @@ TEST(SegmentPhantom, PerturbedPrototypesAndIllumination) {
   for (auto& t : table.tissues)
     for (auto& c : t.rgb) jiggle(c);
   // a global illumination shift: 12 % darker, warmer, plus a gradient across the slices
-  std::vector<RgbImage> slices(static_cast<std::size_t>(p.nz));
-  for (int z = 0; z < p.nz; ++z) {
-    auto& s = slices[static_cast<std::size_t>(z)];
-    s.nx = p.nx, s.ny = p.ny;
-    phantom_slice_rgb(p, truth, z, s.rgb);
-    for (int y = 0; y < p.ny; ++y)
-      for (int x = 0; x < p.nx; ++x)
-        for (int c = 0; c < 3; ++c) {
-          const double gain = 0.88 * (c == 0 ? 1.04 : c == 2 ? 0.95 : 1.0) * (1 + 0.08 * (x - p.nx / 2) / p.nx) *
-                              (1 + 0.05 * std::sin(0.2 * z));
-          auto& v = s.rgb[(static_cast<std::size_t>(y) * p.nx + x) * 3 + c];
-          v = static_cast<std::uint8_t>(std::clamp(std::lround(v * gain), 0L, 255L));
-        }
-  }
+  std::vector<RgbImage> slices = lit_slices(p, truth, [&](int x, int, int z, int c) {
+    return 0.88 * (c == 0 ? 1.04 : c == 2 ? 0.95 : 1.0) * (1 + 0.08 * (x - p.nx / 2) / p.nx) * (1 + 0.05 * std::sin(0.2 * z));
+  });
   SegmentMetrics m;
   const Volume v = segment_volume(memory_source(std::move(slices)), table, phantom_segment_options(p), &m);
   std::map<std::string, std::int64_t> tv;
@@ -328,13 +336,7 @@ TEST(SegmentPhantom, TheStacksExposureComesFromTheGel) {
   const Volume truth = phantom_labels(p);
   const TissueTable table = phantom_tissue_table();
   for (const double gain : {0.5, 0.65, 1.3}) {
-    std::vector<RgbImage> slices(static_cast<std::size_t>(p.nz));
-    for (int z = 0; z < p.nz; ++z) {
-      auto& s = slices[static_cast<std::size_t>(z)];
-      s.nx = p.nx, s.ny = p.ny;
-      phantom_slice_rgb(p, truth, z, s.rgb);
-      for (auto& v : s.rgb) v = static_cast<std::uint8_t>(std::clamp(std::lround(v * gain), 0L, 255L));
-    }
+    std::vector<RgbImage> slices = lit_slices(p, truth, [&](int, int, int, int) { return gain; });
     SegmentMetrics m;
     SegmentOptions o = phantom_segment_options(p);
     o.exposure_from_border = true;
@@ -357,21 +359,11 @@ TEST(SegmentPhantom, TheStacksExposureComesFromTheGel) {
   // well-exposed specimen. With the option on, the border says 0.64 and the
   // muscle is labelled artery; by default (off) every tissue is right
   {
-    std::vector<RgbImage> slices(static_cast<std::size_t>(p.nz));
     const double r2max = 0.25 * (p.nx * p.nx + p.ny * p.ny);
-    for (int z = 0; z < p.nz; ++z) {
-      auto& s = slices[static_cast<std::size_t>(z)];
-      s.nx = p.nx, s.ny = p.ny;
-      phantom_slice_rgb(p, truth, z, s.rgb);
-      for (int y = 0; y < p.ny; ++y)
-        for (int x = 0; x < p.nx; ++x) {
-          const double dx = x - 0.5 * p.nx, dy = y - 0.5 * p.ny, f = 1 - 0.6 * (dx * dx + dy * dy) / r2max;
-          for (int c = 0; c < 3; ++c) {
-            auto& v = s.rgb[(static_cast<std::size_t>(y) * p.nx + x) * 3 + c];
-            v = static_cast<std::uint8_t>(std::clamp(std::lround(v * f), 0L, 255L));
-          }
-        }
-    }
+    std::vector<RgbImage> slices = lit_slices(p, truth, [&](int x, int y, int, int) {
+      const double dx = x - 0.5 * p.nx, dy = y - 0.5 * p.ny;
+      return 1 - 0.6 * (dx * dx + dy * dy) / r2max;
+    });
     SegmentMetrics mv;
     const Volume v = segment_volume(memory_source(std::move(slices)), table, phantom_segment_options(p), &mv);
     std::map<std::string, std::int64_t> tv;
