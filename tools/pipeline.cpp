@@ -319,7 +319,25 @@ int run_stages(Args a, Report& report) {
   if (fs::is_directory(a.out, ec)) throw Error(a.out, "is a folder; --out names a model file");
   check_output_file(a.out);
   check_output_dir(a.work);
-  if (!a.export_dir.empty()) check_output_dir(a.export_dir);
+  if (!a.export_dir.empty()) {
+    check_output_dir(a.export_dir);
+    // the export's own entries replace what is there: --out EXPORT/labels.h5 was
+    // replaced by the labels (exit 0). Other files beside them are fine (the demo
+    // keeps the model and the reports in its export folder).
+    const fs::path ex = fs::weakly_canonical(a.export_dir, ec);
+    for (const auto& [flag, path] : {std::pair<std::string, std::string>{"--out", a.out}, {"--report", a.common.report},
+                                     {"--work", a.work}}) {
+      if (path.empty() || ec) continue;
+      std::error_code e2;
+      const fs::path rel = fs::weakly_canonical(path, e2).lexically_relative(ex);
+      if (e2 || rel.empty() || *rel.begin() == "..") continue;
+      const std::string first = rel.begin()->string();
+      for (const char* entry : {"labels.h5", "labels.nrrd", "quads", "vessels", "tuned_tissues.json", "tune", "surfaces", "reports"})
+        if (first == entry || rel == ".")
+          throw Error(path, flag + " names " + (rel == "." ? std::string("the --export folder") : "'" + first + "' of the --export folder " + a.export_dir) +
+                                ", which the export replaces");
+    }
+  }
   const TissueTable table = load_tissue_table(a.tissues);
   require_background_colour(table);  // the segment stage's, before any stage runs
   const SceneNeeds scene = read_scene(a.scene);

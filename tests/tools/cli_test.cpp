@@ -242,6 +242,7 @@ TEST(Cli, OutputsNeverReplaceInputs) {
   const std::string slice = ph.slices + "/" + fs::directory_iterator(ph.slices)->path().filename().string();
   const std::string slice_bytes = test::read_file(slice);
   const std::string seg = "segment --stack " + ph.slices + " --tissues " + ph.tissues + " --spacing 1,1,2 --quiet";
+  fs::create_directories(d / "exp");
   const std::vector<std::tuple<std::string, std::string, std::string>> cases = {
       {seg + " --out " + ph.tissues, ph.tissues, "--out names the same file as --tissues " + ph.tissues},
       {seg + " --out " + (d / "l.h5") + " --nrrd " + ph.tissues, ph.tissues, "--nrrd names the same file as --tissues"},
@@ -251,6 +252,10 @@ TEST(Cli, OutputsNeverReplaceInputs) {
       {seg + " --out " + (d / "x.h5") + " --nrrd " + (d / "x.h5"), d / "x.h5", "--out and --nrrd name the same file"},
       {"pipeline --stack " + ph.slices + " --tissues " + ph.tissues + " --spacing 1,1,2 --quiet --out " + ph.tissues,
        ph.tissues, "--out names the same file as --tissues"},
+      // an entry the export writes (the model was replaced by the exported labels)
+      {"pipeline --stack " + ph.slices + " --tissues " + ph.tissues + " --spacing 1,1,2 --quiet --export " + (d / "exp") +
+           " --out " + (d / "exp/labels.h5"),
+       d / "exp/labels.h5", "--out names 'labels.h5' of the --export folder " + (d / "exp")},
   };
   for (const auto& [args, file, what] : cases) {
     SCOPED_TRACE(args);
@@ -262,6 +267,7 @@ TEST(Cli, OutputsNeverReplaceInputs) {
   EXPECT_FALSE(fs::exists(d / "l.h5"));
   EXPECT_FALSE(fs::exists(d / "x.h5"));
   EXPECT_FALSE(fs::exists(ph.slices + "/new.h5"));
+  EXPECT_FALSE(fs::exists(d / "exp/labels.h5"));
 }
 
 // --truth of another size than the stack: refused before --out is written
