@@ -6,10 +6,12 @@
 
 #include <unistd.h>
 
+#include <algorithm>
 #include <array>
 #include <cmath>
 #include <filesystem>
 #include <iostream>
+#include <map>
 #include <sstream>
 
 namespace orthosim::cli {
@@ -90,6 +92,44 @@ void check_outputs_are_not_inputs(const CLI::App* sub) {
   };
   const auto outs = given(outputs), ins = given(inputs);
   namespace fs = std::filesystem;
+  // A folder output's writer replaces files of its kinds in it: another output
+  // there under such a name was replaced (surface --out S --report S/fat.stl,
+  // tune --plot P --report P/fat.png, vessels --out V --model V/artery_tube.obj;
+  // exit 0). Those names are refused; a report.json beside a run's series stays
+  // allowed.
+  {
+    // the kinds of file each folder output writes (the command's --out, tune's --plot)
+    static const std::map<std::string, std::vector<std::string>> out_writes{
+        {"surface", {".stl"}},
+        {"remesh", {".obj", ".mtl", ".png", ".gltf", ".glb", ".bin"}},
+        {"vessels", {".stl", ".obj"}},
+        {"run", {".vtp", ".vtu", ".pvd"}},
+        {"phantom", {".png", ".h5"}}};
+    auto all = outs;
+    for (const auto& m : given({"--model"})) all.push_back(m);
+    for (const auto& [fname, folder] : outs) {
+      const auto cmd = out_writes.find(sub->get_name());
+      static const std::vector<std::string> none, png{".png"};
+      const std::vector<std::string>& written =
+          fname == "--plot" ? png : fname == "--out" && cmd != out_writes.end() ? cmd->second : none;
+      if (written.empty()) continue;
+      std::error_code e1;
+      const fs::path dir = fs::weakly_canonical(folder, e1);
+      if (e1) continue;
+      for (const auto& [oname, o] : all) {
+        if (oname == fname) continue;
+        std::error_code e2;
+        const fs::path p = fs::weakly_canonical(o, e2);
+        const fs::path rel = p.lexically_relative(dir);
+        if (e2 || rel.empty() || *rel.begin() == ".." || rel == ".") continue;
+        std::string ext = p.extension().string();
+        for (auto& c : ext) c = static_cast<char>(std::tolower(static_cast<unsigned char>(c)));
+        if (std::find(written.begin(), written.end(), ext) != written.end())
+          throw Error(o, oname + " lies in the " + fname + " folder " + folder + " under a kind of name it writes (" + ext +
+                             "): one would replace the other");
+      }
+    }
+  }
   for (std::size_t a = 0; a < outs.size(); ++a) {
     const auto& [oname, o] = outs[a];
     for (std::size_t b = a + 1; b < outs.size(); ++b)

@@ -243,6 +243,7 @@ TEST(Cli, OutputsNeverReplaceInputs) {
   const std::string slice_bytes = test::read_file(slice);
   const std::string seg = "segment --stack " + ph.slices + " --tissues " + ph.tissues + " --spacing 1,1,2 --quiet";
   fs::create_directories(d / "exp");
+  fs::create_directories(d / "plots");  // a second run's: the report's folder exists
   const std::vector<std::tuple<std::string, std::string, std::string>> cases = {
       {seg + " --out " + ph.tissues, ph.tissues, "--out names the same file as --tissues " + ph.tissues},
       {seg + " --out " + (d / "l.h5") + " --nrrd " + ph.tissues, ph.tissues, "--nrrd names the same file as --tissues"},
@@ -252,6 +253,9 @@ TEST(Cli, OutputsNeverReplaceInputs) {
       {seg + " --out " + (d / "x.h5") + " --nrrd " + (d / "x.h5"), d / "x.h5", "--out and --nrrd name the same file"},
       {"pipeline --stack " + ph.slices + " --tissues " + ph.tissues + " --spacing 1,1,2 --quiet --out " + ph.tissues,
        ph.tissues, "--out names the same file as --tissues"},
+      // a file of a kind a folder output writes, in that folder (the STL became the report)
+      {"tune --tissues " + ph.tissues + " --plot " + (d / "plots") + " --report " + (d / "plots/skin.png"), d / "plots/skin.png",
+       "--report lies in the --plot folder " + (d / "plots") + " under a kind of name it writes (.png)"},
       // an entry the export writes (the model was replaced by the exported labels)
       {"pipeline --stack " + ph.slices + " --tissues " + ph.tissues + " --spacing 1,1,2 --quiet --export " + (d / "exp") +
            " --out " + (d / "exp/labels.h5"),
@@ -268,6 +272,7 @@ TEST(Cli, OutputsNeverReplaceInputs) {
   EXPECT_FALSE(fs::exists(d / "x.h5"));
   EXPECT_FALSE(fs::exists(ph.slices + "/new.h5"));
   EXPECT_FALSE(fs::exists(d / "exp/labels.h5"));
+  EXPECT_TRUE(fs::is_empty(d / "plots"));
 }
 
 // --truth of another size than the stack: refused before --out is written
