@@ -103,8 +103,7 @@ void check_outputs_are_not_inputs(const CLI::App* sub) {
         {"surface", {".stl"}},
         {"remesh", {".obj", ".mtl", ".png", ".gltf", ".glb", ".bin"}},
         {"vessels", {".stl", ".obj"}},
-        {"run", {".vtp", ".vtu", ".pvd"}},
-        {"phantom", {".png", ".h5"}}};
+        {"phantom", {".png", ".h5"}}};  // (run checks its series' own names: vtk.h, is_series_file)
     auto all = outs;
     for (const auto& m : given({"--model"})) all.push_back(m);
     for (const auto& [fname, folder] : outs) {
