@@ -149,14 +149,11 @@ void add_build_command(CLI::App& app) {
       try {
         stack = msm::resolve_stack(requested, present, table);
         // no rigid tissue below the layers: the innermost layered one is the fixed bottom
-        if (requested.empty() && stack.surfaces.size() == stack.layers.size() + 1) {
-          const Tissue* bottom = table.find(stack.surfaces.back());
-          if (bottom && bottom->layer != "rigid") {
-            std::cerr << "orthosim build: warning: " << model << ": no rigid tissue among /quads: '" << bottom->name
-                      << "' (" << bottom->layer << " in " << tissues_path
-                      << ") is the model's fixed bottom (its surface, every node fixed), not a layer\n";
-            fixed_bottom = bottom->name;
-          }
+        if (!stack.layered_bottom.empty()) {
+          fixed_bottom = stack.layered_bottom;
+          std::cerr << "orthosim build: warning: " << model << ": no rigid tissue among /quads: '" << fixed_bottom
+                    << "' (" << table.find(fixed_bottom)->layer << " in " << tissues_path
+                    << ") is the model's fixed bottom (its surface, every node fixed), not a layer\n";
         }
         std::vector<std::pair<std::string, QuadSurface>> surfaces;
         {

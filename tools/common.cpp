@@ -74,6 +74,19 @@ void check_report_is_not_an_operand(const CLI::App* sub, const std::string& repo
   }
 }
 
+}  // namespace
+
+std::filesystem::path path_within(const std::string& path, const std::string& folder) {
+  namespace fs = std::filesystem;
+  std::error_code e1, e2;
+  const fs::path p = fs::weakly_canonical(path, e1), dir = fs::weakly_canonical(folder, e2);
+  if (e1 || e2) return {};
+  const fs::path rel = p.lexically_relative(dir);
+  return rel.empty() || *rel.begin() == ".." ? fs::path() : rel;
+}
+
+namespace {
+
 // An output option naming an input (or another output) would replace it:
 // `segment --out tissues.json` turned the tissue table into HDF5, `--out x.h5
 // --nrrd x.h5` left an NRRD where the model was, `--out stack/slice_0003.png`
@@ -106,22 +119,17 @@ void check_outputs_are_not_inputs(const CLI::App* sub) {
         {"phantom", {".png", ".h5"}}};  // (run checks its series' own names: vtk.h, is_series_file)
     auto all = outs;
     for (const auto& m : given({"--model"})) all.push_back(m);
+    const auto cmd = out_writes.find(sub->get_name());
+    static const std::vector<std::string> none, png{".png"};
     for (const auto& [fname, folder] : outs) {
-      const auto cmd = out_writes.find(sub->get_name());
-      static const std::vector<std::string> none, png{".png"};
       const std::vector<std::string>& written =
           fname == "--plot" ? png : fname == "--out" && cmd != out_writes.end() ? cmd->second : none;
       if (written.empty()) continue;
-      std::error_code e1;
-      const fs::path dir = fs::weakly_canonical(folder, e1);
-      if (e1) continue;
       for (const auto& [oname, o] : all) {
         if (oname == fname) continue;
-        std::error_code e2;
-        const fs::path p = fs::weakly_canonical(o, e2);
-        const fs::path rel = p.lexically_relative(dir);
-        if (e2 || rel.empty() || *rel.begin() == ".." || rel == ".") continue;
-        std::string ext = p.extension().string();
+        const fs::path rel = path_within(o, folder);
+        if (rel.empty() || rel == ".") continue;
+        std::string ext = rel.extension().string();
         for (auto& c : ext) c = static_cast<char>(std::tolower(static_cast<unsigned char>(c)));
         if (std::find(written.begin(), written.end(), ext) != written.end())
           throw Error(o, oname + " lies in the " + fname + " folder " + folder + " under a kind of name it writes (" + ext +
@@ -135,21 +143,16 @@ void check_outputs_are_not_inputs(const CLI::App* sub) {
       if (same_file(o, outs[b].second))
         throw Error(o, oname + " and " + outs[b].first + " name the same file: one would replace the other");
     for (const auto& [iname, i] : ins) {
-      // --model is the model a stage updates in place where it is not read as an
-      // input of another file (build --model m.h5 --out: no such option); --out
-      // naming it is the same file twice
+      // (an output naming --model is the same file twice: no command takes both)
       if (same_file(o, i))
         throw Error(o, oname + " names the same file as " + iname + " " + i + ": writing it would replace the input");
       // a file written into the slice folder becomes (or replaces) a slice
-      std::error_code e1, e2;
-      if (iname == "--stack" && fs::is_directory(i, e1)) {
-        const fs::path dir = fs::weakly_canonical(i, e1), out = fs::weakly_canonical(o, e2);
-        if (!e1 && !e2) {
-          const auto rel = out.lexically_relative(dir);
-          if (!rel.empty() && *rel.begin() != ".." && rel != ".")
-            throw Error(o, oname + " lies in the --stack folder " + i + ": that folder holds the slices (an image written "
-                               "there becomes one, or replaces one)");
-        }
+      std::error_code ec;
+      if (iname == "--stack" && fs::is_directory(i, ec)) {
+        const fs::path rel = path_within(o, i);
+        if (!rel.empty() && rel != ".")
+          throw Error(o, oname + " lies in the --stack folder " + i + ": that folder holds the slices (an image written "
+                             "there becomes one, or replaces one)");
       }
     }
   }

@@ -93,6 +93,11 @@ int& exit_code();
 // <command>: error: " prefix ("" when none): the pipeline's report names a
 // failed stage's error with it.
 std::string& last_error();
+// `path` relative to `folder` where it lies in it (both weakly canonical:
+// links and ".." resolved), "." for the folder itself; empty where it lies
+// outside or either cannot be resolved.
+std::filesystem::path path_within(const std::string& path, const std::string& folder);
+
 // Refuses (Error naming the file) a --report naming any operand, and an
 // output option (--out, --nrrd, --export, --plot, --work) naming an input
 // (--stack and files in it, --tissues, --tissue-table, --labels, --truth,

@@ -16,6 +16,7 @@
 // docs/pipeline.md.
 #include "libmodel/format/atomic.h"
 #include "libmodel/format/model.h"
+#include "libmodel/msm/build.h"
 #include "libmodel/pipeline/cache.h"
 #include "libmodel/provenance.h"
 #include "libmodel/remesh/remesh.h"
@@ -28,6 +29,7 @@
 #include <sys/wait.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <cerrno>
 #include <chrono>
 #include <array>
@@ -46,6 +48,16 @@ namespace {
 
 namespace fs = std::filesystem;
 using nlohmann::json;
+
+// What --export copies: (stage, its output, the entry in the export folder);
+// besides these, surfaces/<tissue>.stl and reports/<stage>.json (kExportFolders).
+const std::array<std::array<std::string, 3>, 6> kExportItems = {{{"segment", "labels.h5", "labels.h5"},
+                                                                 {"segment", "labels.nrrd", "labels.nrrd"},
+                                                                 {"remesh", "quads", "quads"},
+                                                                 {"vessels", "meshes", "vessels"},
+                                                                 {"tune", "tuned_tissues.json", "tuned_tissues.json"},
+                                                                 {"tune", "plots", "tune"}}};
+const std::array<std::string, 2> kExportFolders = {"surfaces", "reports"};
 
 struct Args {
   std::string stack, tissues, spacing, origin = "0,0,0", scene, grid = "39x9", work, out, export_dir;
@@ -324,18 +336,17 @@ int run_stages(Args a, Report& report) {
     // the export's own entries replace what is there: --out EXPORT/labels.h5 was
     // replaced by the labels (exit 0). Other files beside them are fine (the demo
     // keeps the model and the reports in its export folder).
-    const fs::path ex = fs::weakly_canonical(a.export_dir, ec);
     for (const auto& [flag, path] : {std::pair<std::string, std::string>{"--out", a.out}, {"--report", a.common.report},
                                      {"--work", a.work}}) {
-      if (path.empty() || ec) continue;
-      std::error_code e2;
-      const fs::path rel = fs::weakly_canonical(path, e2).lexically_relative(ex);
-      if (e2 || rel.empty() || *rel.begin() == "..") continue;
+      const fs::path rel = path.empty() ? fs::path() : path_within(path, a.export_dir);
+      if (rel.empty()) continue;
+      if (rel == ".") throw Error(path, flag + " names the --export folder, which the export replaces");
       const std::string first = rel.begin()->string();
-      for (const char* entry : {"labels.h5", "labels.nrrd", "quads", "vessels", "tuned_tissues.json", "tune", "surfaces", "reports"})
-        if (first == entry || rel == ".")
-          throw Error(path, flag + " names " + (rel == "." ? std::string("the --export folder") : "'" + first + "' of the --export folder " + a.export_dir) +
-                                ", which the export replaces");
+      // (each entry of the export replaces what was there)
+      const bool entry = std::find(kExportFolders.begin(), kExportFolders.end(), first) != kExportFolders.end() ||
+                         std::any_of(kExportItems.begin(), kExportItems.end(), [&](const auto& it) { return it[2] == first; });
+      if (entry)
+        throw Error(path, flag + " names '" + first + "' of the --export folder " + a.export_dir + ", which the export replaces");
     }
   }
   const TissueTable table = load_tissue_table(a.tissues);
@@ -520,8 +531,13 @@ int run_stages(Args a, Report& report) {
       // bottom (build: its surface, every node fixed), not a layer: said, and
       // not tuned (its tune failed on 'built as a rigid layer', a cache path
       // named; with --no-tune the muscle became rigid without a word)
-      if (!layered.empty() && table.find(layered.back())->layer != "rigid") {
-        fixed_bottom = layered.back();
+      // (build's rule: msm::resolve_stack over the segmented layered tissues)
+      try {
+        fixed_bottom = msm::resolve_stack({}, layered, table).layered_bottom;
+      } catch (const Error&) {
+        // no layer at all: the build stage says so
+      }
+      if (!fixed_bottom.empty()) {
         std::cerr << "orthosim pipeline: warning: " << a.stack << ": no rigid tissue of " << a.tissues
                   << " was segmented: the innermost layered tissue '" << fixed_bottom << "' ("
                   << table.find(fixed_bottom)->layer << " in the table) becomes the model's fixed bottom, not a layer\n";
@@ -666,12 +682,7 @@ int run_stages(Args a, Report& report) {
       std::map<std::string, std::string> dirs;
       for (const auto& st : report.json()["stages"])
         if (st.contains("dir")) dirs[st["stage"].get<std::string>()] = st["dir"].get<std::string>();
-      const std::vector<std::array<std::string, 3>> items = {
-          {"segment", "labels.h5", "labels.h5"},          {"segment", "labels.nrrd", "labels.nrrd"},
-          {"remesh", "quads", "quads"},
-          {"vessels", "meshes", "vessels"},               {"tune", "tuned_tissues.json", "tuned_tissues.json"},
-          {"tune", "plots", "tune"}};
-      for (const auto& [stage, from, to] : items)
+      for (const auto& [stage, from, to] : kExportItems)
         if (dirs.count(stage)) copy_path(fs::path(dirs[stage]) / from, t / to);
       if (dirs.count("surface"))
         for (const auto& tissue : layered) copy_path(fs::path(dirs["surface"]) / (tissue + ".stl"), t / "surfaces" / (tissue + ".stl"));

@@ -145,6 +145,7 @@ Stack resolve_stack(const std::vector<LayerSpec>& requested, const std::vector<s
     }
     if (!st.layers.empty() && st.surfaces.size() == st.layers.size()) {
       // no rigid tissue: the innermost layer's surface becomes the fixed bottom
+      st.layered_bottom = st.layers.back().tissue;
       st.layers.pop_back();
     }
     if (st.layers.empty())

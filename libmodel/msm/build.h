@@ -49,6 +49,10 @@ std::vector<LayerSpec> parse_layer_specs(const std::string& text);
 struct Stack {
   std::vector<std::string> surfaces;  // layers.size() + 1 tissue names; the last is the fixed bottom
   std::vector<LayerSpec> layers;
+  // Without requested layers and without a rigid tissue among the present
+  // ones: the innermost tetra or lattice tissue, whose surface became the
+  // fixed bottom instead of a layer (build and the pipeline warn); else "".
+  std::string layered_bottom;
 };
 
 // Chooses the stack from the tissues that have quad surfaces (`present`) and
