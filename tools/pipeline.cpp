@@ -562,11 +562,15 @@ int run_stages(Args a, Report& report) {
       run.skip("vessels", scene.given ? "the scene uses no vessels" : "the tissue table has no vessel tissue");
     } else {
       vessel_job = run.start(
-          "vessels", {seg.key, join(want)},
+          "vessels", {seg.key, join(want), scene.given ? "all-required" : "skip-unformed"},
           [&](const std::string& d) {
             std::vector<std::string> args{"vessels", "--labels", labels, "--model", d + "/vessels.h5", "--out",
                                           d + "/meshes"};
             for (const auto& v : want) args.insert(args.end(), {"--tissue", v});
+            // without a scene no tree is required: a vessel tissue whose few
+            // voxels form no vessel is left out with a warning (it stopped the
+            // whole pipeline); a scene's vessels must be there
+            if (!scene.given) args.push_back("--skip-unformed");
             return args;
           },
           {"vessels.h5", "meshes"});
@@ -650,6 +654,16 @@ int run_stages(Args a, Report& report) {
     // 7. assemble: the vessel trees join the tuned model
     if (vessel_job) {
       const auto ves = run.finish(*vessel_job);
+      {
+        json left_out = json::array();
+        try {
+          const json vr = json::parse(std::ifstream(ves.dir + "/report.json"));
+          for (const auto& e : vr["metrics"].value("left_out", json::array())) left_out.push_back(e["tissue"]);
+        } catch (const std::exception&) {
+          // an entry from before the report listed them: none left out
+        }
+        report.metrics()["vessels_left_out"] = left_out;
+      }
       const std::string from = last;
       const auto asm_entry = run.stage(
           "assemble", {last_key, ves.key},

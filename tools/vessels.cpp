@@ -103,7 +103,7 @@ void add_vessels_command(CLI::App& app) {
     std::vector<std::string> tissues, roots;
     double tolerance_mm = 0;
     int ring_vertices = 24, threads = 0, max_children = 3;
-    bool no_self_intersection_check = false, refuse_excess_children = false;
+    bool no_self_intersection_check = false, refuse_excess_children = false, skip_unformed = false;
     CommonOptions common;
   };
   static Args a;
@@ -128,6 +128,9 @@ void add_vessels_command(CLI::App& app) {
       ->capture_default_str();
   sub->add_flag("--refuse-excess-children", a.refuse_excess_children,
                 "refuse a junction with more children instead of dropping its shortest leaf children");
+  sub->add_flag("--skip-unformed", a.skip_unformed,
+                "leave out, with a warning, a tissue whose voxels form no vessel (every piece too short for its "
+                "radius) instead of failing; the others are written");
   sub->add_flag("--no-self-intersection-check", a.no_self_intersection_check,
                 "skip counting the tube's self-intersections (CGAL)");
   sub->add_option("--threads", a.threads, "worker threads (0: all cores)")->capture_default_str();
@@ -199,16 +202,25 @@ void add_vessels_command(CLI::App& app) {
     // ---- every tissue, all before any output ---------------------------------------
     std::vector<VesselResult> results;
     std::vector<char> root_used(o.roots_m.size(), 0);
+    json left_out = json::array();
+    std::vector<std::string> unformed;
     for (const std::string& t : tissues) {
       Phase p(report, "extract." + t);
       try {
         results.push_back(extract_vessels(v, t, o));
+      } catch (const NoVesselError& e) {
+        if (!a.skip_unformed) throw Error(a.labels, e.message());
+        left_out.push_back({{"tissue", t}, {"why", e.message()}});
+        unformed.push_back(t);
+        std::cerr << "orthosim vessels: warning: " << a.labels << ": " << e.message() << "; it is left out\n";
+        continue;
       } catch (const Error& e) {
         if (!e.file().empty()) throw;
         throw Error(a.labels, e.message());
       }
       for (int i : results.back().metrics.roots_used) root_used[static_cast<std::size_t>(i)] = 1;
     }
+    for (const std::string& t : unformed) tissues.erase(std::find(tissues.begin(), tissues.end(), t));
     for (std::size_t i = 0; i < o.roots_m.size(); ++i)
       if (!root_used[i]) {
         // the nearest vessel end, to say how far off the point is
@@ -258,6 +270,7 @@ void add_vessels_command(CLI::App& app) {
     j["volume"] = {{"size", {v.nx, v.ny, v.nz}},
                    {"spacing_m", {v.spacing_m[0], v.spacing_m[1], v.spacing_m[2]}}};
     j["tissues"] = json::object();
+    j["left_out"] = left_out;
     for (std::size_t i = 0; i < tissues.size(); ++i) j["tissues"][tissues[i]] = metrics_json(results[i].metrics);
     report.write(a.common.report);
     for (std::size_t i = 0; i < tissues.size(); ++i) {

@@ -144,7 +144,7 @@ VesselResult extract_vessels(const Volume& v, const std::string& tissue, const V
   if (f.branches.empty()) {
     std::ostringstream ratio;  // "3", not std::to_string's "3.000000"
     ratio << o.min_length_ratio;
-    throw Error("", "tissue '" + tissue + "': its " + std::to_string(M.voxels) +
+    throw NoVesselError("", "tissue '" + tissue + "': its " + std::to_string(M.voxels) +
                         " voxels form no vessel (every piece is shorter than " + ratio.str() + " radii)");
   }
 

@@ -139,7 +139,15 @@ struct VesselResult {
 // Throws Error("", ...) when the tissue is not in v.label_names, has no
 // voxels, leaves nothing after clean-up, or has a junction with more than
 // max_children children that pruning (prune_excess_children) cannot mend.
+// A tissue whose voxels form no vessel (every piece shorter than
+// min_length_ratio radii) throws NoVesselError, so a caller may leave that
+// tissue out (orthosim vessels --skip-unformed) instead of failing.
 VesselResult extract_vessels(const Volume& v, const std::string& tissue, const VesselOptions& o);
+
+class NoVesselError : public Error {
+ public:
+  using Error::Error;
+};
 
 // ---- Bezier evaluation -------------------------------------------------------------
 // Number of cubic pieces of branch b.

@@ -44,6 +44,14 @@ struct Files {
       w.write(nv);
       w.commit();
     }
+    {  // the vein reduced to a speck of 4 voxels: no vessel
+      Volume sv = v;
+      std::replace(sv.labels.begin(), sv.labels.end(), std::uint8_t{kPhantomVein}, std::uint8_t{kPhantomMuscle});
+      for (int i = 0; i < 4; ++i) sv.labels[sv.index(30 + i % 2, 30 + i / 2, 20)] = kPhantomVein;
+      ModelWriter w(d / "speck_vein.h5", ModelWriter::Start::fresh);
+      w.write(sv);
+      w.commit();
+    }
     {  // a model file without /volume
       ModelWriter w(d / "empty.h5", ModelWriter::Start::fresh);
       w.commit();
@@ -162,6 +170,40 @@ TEST(VesselsCli, SelfIntersectingTubeIsAWarning) {
                        " self-intersecting face pair(s)"),
             std::string::npos)
       << r.err;
+}
+
+// A vessel tissue whose few voxels form no vessel fails the stage, unless
+// --skip-unformed leaves it out with a warning and writes the others (the
+// pipeline passes it: a speck of vein stopped the whole pipeline).
+TEST(VesselsCli, AnUnformedVesselIsLeftOutOnlyWhenAsked) {
+  Files f;
+  const std::string labels = f / "speck_vein.h5", model = f / "m.h5", out = f / "out";
+  const std::string base = "vessels -q --labels " + labels + " --tissue artery,vein --model " + model + " --out " + out;
+  expect_error(test::run_cli(base), "tissue 'vein': its 4 voxels form no vessel");
+  EXPECT_FALSE(fs::exists(model));
+  EXPECT_FALSE(fs::exists(out));
+  const auto r = test::run_cli(base + " --skip-unformed --report " + (f / "r.json"));
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_EQ(test::count_lines(r.err), 1) << r.err;
+  EXPECT_EQ(r.err.rfind("orthosim vessels: warning: " + labels + ": tissue 'vein': its 4 voxels form no vessel", 0), 0u)
+      << r.err;
+  EXPECT_NE(r.err.find("; it is left out\n"), std::string::npos) << r.err;
+  ModelReader m(model);
+  EXPECT_EQ(m.names("/vessels"), (std::vector<std::string>{"artery"}));
+  EXPECT_EQ(sorted_parents(m.vessels("artery")), (std::vector<int>{-1, 0, 0}));
+  EXPECT_TRUE(fs::exists(out + "/artery_tube.stl"));
+  EXPECT_FALSE(fs::exists(out + "/vein_tube.stl"));
+  const auto j = nlohmann::json::parse(test::read_file(f / "r.json"));
+  ASSERT_EQ(j["metrics"]["left_out"].size(), 1u) << j["metrics"].dump();
+  EXPECT_EQ(j["metrics"]["left_out"][0]["tissue"], "vein");
+  EXPECT_FALSE(j["metrics"]["tissues"].contains("vein"));
+  EXPECT_TRUE(j["metrics"]["tissues"].contains("artery"));
+  // every tissue left out: a model with no tree, still written with its provenance
+  const auto only = test::run_cli("vessels -q --labels " + labels + " --tissue vein --skip-unformed --model " + (f / "none.h5"));
+  ASSERT_EQ(only.code, 0) << only.err;
+  ModelReader none(f / "none.h5");
+  EXPECT_TRUE(none.names("/vessels").empty());
+  EXPECT_TRUE(none.has("/provenance/vessels"));
 }
 
 TEST(VesselsCli, AddsToAnExistingModelAndKeepsItsGroups) {

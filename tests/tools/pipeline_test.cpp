@@ -3,11 +3,13 @@
 // vessels skips the vessel stage, a corrupt cache entry is rebuilt, and a
 // failing stage reports its own one-line error and leaves the previous model.
 #include "libmodel/format/model.h"
+#include "libmodel/phantom/phantom.h"
 #include "libmodel/pipeline/cache.h"
 #include "tests/test_util.h"
 
 #include <gtest/gtest.h>
 #include <nlohmann/json.hpp>
+#include <opencv2/imgcodecs.hpp>
 
 #include <algorithm>
 #include <filesystem>
@@ -337,6 +339,55 @@ TEST(Pipeline, SceneWithoutVesselsSkipsThem) {
   EXPECT_TRUE(skipped);
   ModelReader m(s.dir / "model.h5");
   EXPECT_FALSE(m.h5().is_group("/vessels"));
+}
+
+// A vein seen on one slice only (26 voxels, a piece shorter than 3 radii)
+// forms no vessel: without a scene it is left out with a warning and the
+// model has the artery (the vessel stage's error stopped the whole pipeline);
+// a scene that uses the vein still fails.
+TEST(Pipeline, AVesselTooShortToFormATreeIsLeftOut) {
+  const Sample& s = sample();
+  const fs::path stack = s.dir / "short_vein";
+  fs::create_directories(stack);
+  const Volume truth = ModelReader(s.dir / "ph/truth.h5").volume();
+  int kept = 0;
+  for (int z = 0; z < truth.nz; ++z) {
+    char name[32];
+    std::snprintf(name, sizeof name, "slice_%04d.png", z);
+    cv::Mat im = cv::imread(s.stack + "/" + name, cv::IMREAD_COLOR);
+    ASSERT_FALSE(im.empty()) << name;
+    for (int y = 0; y < truth.ny; ++y)
+      for (int x = 0; x < truth.nx; ++x)
+        if (truth.labels[truth.index(x, y, z)] == kPhantomVein) {
+          if (z == truth.nz / 2) ++kept;
+          else im.at<cv::Vec3b>(y, x) = cv::Vec3b(38, 42, 136);  // the muscle's colour (BGR)
+        }
+    ASSERT_TRUE(cv::imwrite((stack / name).string(), im));
+  }
+  ASSERT_GT(kept, 0);
+  const std::string base = "pipeline --stack " + stack.string() + " --tissues " + s.tissues + " --spacing 0.75,0.75,3 --work " +
+                           (s.dir / "work") + " --no-texture --no-tune --quiet ";
+  const auto r = test::run_cli(base + "--out " + (s.dir / "short_vein.h5") + " --report " + (s.dir / "short_vein.json"));
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_EQ(test::count_lines(r.err), 1) << r.err;
+  EXPECT_EQ(r.err.rfind("orthosim vessels: warning: ", 0), 0u) << r.err;
+  EXPECT_NE(r.err.find(": tissue 'vein': its "), std::string::npos) << r.err;
+  EXPECT_NE(r.err.find(" voxels form no vessel (every piece is shorter than 3 radii); it is left out\n"), std::string::npos)
+      << r.err;
+  EXPECT_EQ(nlohmann::json::parse(test::read_file(s.dir / "short_vein.json"))["metrics"]["vessels_left_out"],
+            nlohmann::json::array({"vein"}));
+  {
+    ModelReader m(s.dir / "short_vein.h5");
+    EXPECT_EQ(m.names("/vessels"), (std::vector<std::string>{"artery"}));
+    for (const char* l : {"skin", "fat", "muscle"}) EXPECT_TRUE(m.h5().is_group(std::string("/layers/") + l)) << l;
+  }
+  // a scene that uses the vein needs its tree
+  test::write_file(s.dir / "vein_scene.json", R"({"model": "m.h5", "layers": ["skin", "fat"], "vessels": ["vein"]})");
+  const auto bad = test::run_cli(base + "--out " + (s.dir / "short_vein2.h5") + " --scene " + (s.dir / "vein_scene.json"));
+  EXPECT_EQ(bad.code, 2) << bad.err;
+  EXPECT_NE(bad.err.find("orthosim vessels: error: "), std::string::npos) << bad.err;
+  EXPECT_NE(bad.err.find(" voxels form no vessel"), std::string::npos) << bad.err;
+  EXPECT_FALSE(fs::exists(s.dir / "short_vein2.h5"));
 }
 
 TEST(Pipeline, AFailingStageKeepsThePreviousModel) {
