@@ -439,10 +439,12 @@ void add_bench_command(CLI::App& app) {
 
   // like on_run, but a run with a failed program or a missed goal exits 1
   static bool bench_failed = false;
-  sub->callback([] {
+  sub->callback([sub] {
     bench_failed = false;
-    const int rc = guarded("bench", [] {
+    const int rc = guarded("bench", [sub] {
     check_common_options(a.common);
+    // (--render prev.json --report prev.json replaced the results it rendered, exit 0)
+    check_operands(sub, a.common.report);
     Report report("bench");
     if (!a.render.empty()) {
       json j;
@@ -453,10 +455,19 @@ void add_bench_command(CLI::App& app) {
       } catch (const json::exception& e) {
         throw Error(a.render, std::string("invalid JSON: ") + e.what());
       }
+      // rendered before anything is written: a file with the keys but not
+      // their contents was an "internal error" (a JSON type error)
+      std::string csv, md;
+      try {
+        csv = to_csv(j["rows"]);
+        md = summary(j);
+      } catch (const json::exception& e) {
+        throw Error(a.render, std::string("not the results.json of an orthosim bench run: ") + e.what());
+      }
       AtomicDir out(a.out);
       write_text_file(out.temp_path("results.json"), j.dump(1) + "\n");
-      write_text_file(out.temp_path("results.csv"), to_csv(j["rows"]));
-      write_text_file(out.temp_path("summary.md"), summary(j));
+      write_text_file(out.temp_path("results.csv"), csv);
+      write_text_file(out.temp_path("summary.md"), md);
       out.commit();
       report.input(a.render);
       report.parameters() = {{"render", a.render}};

@@ -94,7 +94,7 @@ namespace {
 void check_outputs_are_not_inputs(const CLI::App* sub) {
   static const std::vector<std::string> outputs{"--out", "--nrrd", "--export", "--plot", "--work", "--report"};
   static const std::vector<std::string> inputs{"--stack", "--tissues", "--tissue-table", "--labels", "--truth",
-                                               "--surface", "--scene", "--model", "--plot-script"};
+                                               "--surface", "--scene", "--model", "--plot-script", "--render"};
   auto given = [&](const std::vector<std::string>& names) {
     std::vector<std::pair<std::string, std::string>> v;
     for (const CLI::Option* opt : sub->get_options())
@@ -111,12 +111,14 @@ void check_outputs_are_not_inputs(const CLI::App* sub) {
   // exit 0). Those names are refused; a report.json beside a run's series stays
   // allowed.
   {
-    // the kinds of file each folder output writes (the command's --out, tune's --plot)
+    // the kinds of file each folder output writes (the command's --out, tune's
+    // --plot): ".ext" a kind of name, anything else one exact name
     static const std::map<std::string, std::vector<std::string>> out_writes{
         {"surface", {".stl"}},
         {"remesh", {".obj", ".mtl", ".png", ".gltf", ".glb", ".bin"}},
         {"vessels", {".stl", ".obj"}},
-        {"phantom", {".png", ".h5"}}};  // (run checks its series' own names: vtk.h, is_series_file)
+        {"phantom", {".png", ".h5"}},
+        {"bench", {"results.json", "results.csv", "summary.md", ".png"}}};  // (run checks its series' own names: vtk.h, is_series_file)
     auto all = outs;
     for (const auto& m : given({"--model"})) all.push_back(m);
     const auto cmd = out_writes.find(sub->get_name());
@@ -133,6 +135,9 @@ void check_outputs_are_not_inputs(const CLI::App* sub) {
         for (auto& c : ext) c = static_cast<char>(std::tolower(static_cast<unsigned char>(c)));
         if (std::find(written.begin(), written.end(), ext) != written.end())
           throw Error(o, oname + " lies in the " + fname + " folder " + folder + " under a kind of name it writes (" + ext +
+                             "): one would replace the other");
+        if (std::find(written.begin(), written.end(), rel.string()) != written.end())
+          throw Error(o, oname + " lies in the " + fname + " folder " + folder + " under a name it writes (" + rel.string() +
                              "): one would replace the other");
       }
     }

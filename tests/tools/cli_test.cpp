@@ -273,6 +273,29 @@ TEST(Cli, OutputsNeverReplaceInputs) {
   EXPECT_FALSE(fs::exists(ph.slices + "/new.h5"));
   EXPECT_FALSE(fs::exists(d / "exp/labels.h5"));
   EXPECT_TRUE(fs::is_empty(d / "plots"));
+  // bench: the report over the results it renders (replaced, exit 0, until
+  // 2026-11-27), or over a file its --out folder writes
+  const std::string prev = d / "prev.json",
+                    prev_bytes = R"({"command": "orthosim bench", "quick": true, "seconds": 0, "rows": [], "stages": [],
+                                    "goals": {"checked": 0, "met": 0}, "notes": [], "machine": {"cpu": "test", "cores": 2}})";
+  test::write_file(prev, prev_bytes);
+  fs::create_directories(d / "bo");  // a second run's: the report's folder exists
+  expect_refused(test::run_cli("bench --render " + prev + " --out " + (d / "bo") + " --report " + prev), prev,
+                 "--report names the same file as --render " + prev);
+  expect_refused(test::run_cli("bench --render " + prev + " --out " + (d / "bo") + " --report " + (d / "bo/summary.md")),
+                 d / "bo/summary.md", "--report lies in the --out folder " + (d / "bo") + " under a name it writes (summary.md)");
+  EXPECT_EQ(test::read_file(prev), prev_bytes);
+  EXPECT_TRUE(fs::is_empty(d / "bo"));
+  // (a report beside them is fine)
+  const auto ok = test::run_cli("bench --render " + prev + " --out " + (d / "bo") + " --report " + (d / "bo/report.json"));
+  EXPECT_EQ(ok.code, 0) << ok.err;
+  EXPECT_TRUE(fs::exists(d / "bo/summary.md"));
+  EXPECT_TRUE(fs::exists(d / "bo/report.json"));
+  // a file with the keys but not their contents: one line naming it (it was an "internal error")
+  test::write_file(d / "mangled.json", R"({"rows": [], "stages": [], "goals": [], "machine": {}})");
+  expect_refused(test::run_cli("bench --render " + (d / "mangled.json") + " --out " + (d / "bo2")), d / "mangled.json",
+                 "not the results.json of an orthosim bench run: ");
+  EXPECT_FALSE(fs::exists(d / "bo2"));
 }
 
 // --truth of another size than the stack: refused before --out is written
