@@ -142,7 +142,10 @@ inline Sym3 inverse(const Sym3& s) {
 inline Real symplectic_limit(Real omega, Real gamma) {
   if (!(omega > 0)) return gamma > 0 ? Real(2) / gamma : HUGE_VAL;
   const Real z = gamma / (2 * omega);
-  return (2 / omega) * (std::sqrt(1 + z * z) - z);
+  // (2 / omega) (sqrt(1 + z^2) - z) without the cancellation: that form was 0
+  // for z above ~1e8 (a heavily damped spring), read as "no limit", and the
+  // run took one substep a step and blew up without a word
+  return (2 / omega) / (std::hypot(Real(1), z) + z);
 }
 
 }  // namespace orthosim::runtime

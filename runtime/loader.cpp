@@ -186,9 +186,9 @@ Model load_model(const ModelReader& r, const LoadRequest& req) {
     for (auto e : v.edges)
       if (e < 0 || static_cast<std::uint64_t>(e) >= dn[0]) throw Error(path, g + "/edges has a node id out of range");
     for (auto x : v.nodes)
-      if (!std::isfinite(x)) throw Error(path, g + "/nodes has a non-finite value");
+      if (!(std::isfinite(x) && std::abs(x) <= kMaxLength)) throw Error(path, g + "/nodes has a non-finite value or one beyond 1e6 m");
     for (auto x : v.radii)
-      if (!(std::isfinite(x) && x >= 0)) throw Error(path, g + "/radii has a negative or non-finite value");
+      if (!(std::isfinite(x) && x >= 0 && x <= kMaxLength)) throw Error(path, g + "/radii has a negative or non-finite value or one beyond 1e6 m");
     if (req.vessel_tubes && f.exists(g + "/tube_vertices")) {
       std::vector<std::uint64_t> dv, dq, dt;
       v.tube_vertices = f.read<double>(g + "/tube_vertices", &dv);
@@ -201,7 +201,7 @@ Model load_model(const ModelReader& r, const LoadRequest& req) {
           (!tris.empty() && (dt.size() != 2 || dt[1] != 3)))
         throw Error(path, g + ": tube_vertices (n x 3), tube_quads (n x 4) and tube_tris (n x 3) have wrong shapes");
       for (auto x : v.tube_vertices)
-        if (!std::isfinite(x)) throw Error(path, g + "/tube_vertices has a non-finite value");
+        if (!(std::isfinite(x) && std::abs(x) <= kMaxLength)) throw Error(path, g + "/tube_vertices has a non-finite value or one beyond 1e6 m");
       for (const auto* ids : {&quads, &tris})
         for (auto i : *ids)
           if (i < 0 || static_cast<std::uint64_t>(i) >= nt) throw Error(path, g + ": a tube face has a vertex id out of range");

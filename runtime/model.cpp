@@ -11,6 +11,9 @@ namespace orthosim::runtime {
 namespace {
 
 bool finite_nonneg(Real x) { return std::isfinite(x) && x >= 0; }
+// Positions and lengths beyond 1e6 m are no anatomy, and their squares (1e300
+// -> inf) made every step non-finite and wrote inf strains into the series
+bool in_range(Real x) { return std::isfinite(x) && std::abs(x) <= kMaxLength; }
 
 template <class T>
 void permute(std::vector<T>& v, const std::vector<std::int32_t>& order) {
@@ -45,7 +48,8 @@ void Model::finalize() {
 
   // nodes: finite positions, non-negative finite masses
   for (std::size_t i = 0; i < 3 * n; ++i)
-    if (!std::isfinite(rest_x[i])) throw Error("", "model: node " + std::to_string(i / 3) + " has a non-finite position");
+    if (!in_range(rest_x[i]))
+      throw Error("", "model: node " + std::to_string(i / 3) + " has a non-finite position or one beyond 1e6 m");
   for (std::size_t i = 0; i < n; ++i)
     if (!finite_nonneg(mass[i]) || !finite_nonneg(inv_mass[i]))
       throw Error("", "model: node " + std::to_string(i) + " has an invalid mass");
@@ -57,8 +61,9 @@ void Model::finalize() {
     if (a < 0 || b < 0 || a >= n_nodes || b >= n_nodes)
       throw Error("", "model: spring " + std::to_string(s) + " has an end outside [0, " + std::to_string(n_nodes) + ")");
     if (a == b) throw Error("", "model: spring " + std::to_string(s) + " joins node " + std::to_string(a) + " to itself");
-    if (!finite_nonneg(spring_rest[s]) || !finite_nonneg(spring_k[s]) || !finite_nonneg(spring_c[s]))
-      throw Error("", "model: spring " + std::to_string(s) + " has a negative or non-finite rest length, stiffness or damping");
+    if (!finite_nonneg(spring_rest[s]) || !in_range(spring_rest[s]) || !finite_nonneg(spring_k[s]) || !finite_nonneg(spring_c[s]))
+      throw Error("", "model: spring " + std::to_string(s) +
+                          " has a negative or non-finite rest length, stiffness or damping, or a rest length beyond 1e6 m");
     if (a > b) std::swap(a, b);
   }
   std::vector<std::int32_t> order(ns);
@@ -184,7 +189,8 @@ void append_springs(const Layer& l, const std::string& file, const std::string& 
     if (a < 0 || b < 0) continue;  // reaches nothing loaded: dropped
     const Real rest = l.lin_rest_length[s], k = l.lin_k[s], c = l.lin_damping[s];
     if (a == b) throw Error(file, what + ": linear spring " + std::to_string(s) + " joins a node to itself");
-    if (!finite_nonneg(rest)) throw Error(file, what + ": linear spring " + std::to_string(s) + " has an invalid rest length");
+    if (!finite_nonneg(rest) || !in_range(rest))
+      throw Error(file, what + ": linear spring " + std::to_string(s) + " has an invalid rest length (negative, non-finite or beyond 1e6 m)");
     if (!finite_nonneg(k)) throw Error(file, what + ": linear spring " + std::to_string(s) + " has a negative or non-finite stiffness");
     if (!finite_nonneg(c)) throw Error(file, what + ": linear spring " + std::to_string(s) + " has a negative or non-finite damping");
     m.spring_a.push_back(a);
@@ -223,8 +229,8 @@ Model assemble_model(const ModelSource& src) {
       if (!(std::isfinite(mass) && mass > 0))
         throw Error(file, "/layers/" + name + ": node " + std::to_string(gid) + " has a non-positive or non-finite mass");
       for (int k = 0; k < 3; ++k) {
-        if (!std::isfinite(l.nodes(i, k)))
-          throw Error(file, "/layers/" + name + ": node " + std::to_string(gid) + " has a non-finite position");
+        if (!in_range(l.nodes(i, k)))
+          throw Error(file, "/layers/" + name + ": node " + std::to_string(gid) + " has a non-finite position or one beyond 1e6 m");
         m.rest_x.push_back(l.nodes(i, k));
       }
       m.mass.push_back(mass);

@@ -37,6 +37,10 @@
 
 namespace orthosim::runtime {
 
+// The largest coordinate or length (m) a model may hold: nothing anatomical
+// comes near it, and squares of it stay far from overflow.
+inline constexpr Real kMaxLength = 1e6;
+
 struct Model {
   // ---- counts
   std::int32_t n_nodes = 0;    // simulated nodes, anchors included

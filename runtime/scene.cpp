@@ -245,7 +245,10 @@ ToolDef parse_tool(const json& j, std::size_t index, const std::string& file) {
       for (const auto& e : p) {
         if (!e.is_array() || e.size() != 4) o.fail("path must be a list of [t, dx, dy, dz]");
         for (const auto& x : e)
-          if (!x.is_number() || !std::isfinite(x.get<Real>())) o.fail("path values must be finite numbers");
+          // within +-1e9 (s, m) like every other time and vector: a path of 1e155 m
+          // overflowed the implicit solve's tolerance and a spring grip did nothing, exit 0
+          if (!x.is_number() || !std::isfinite(x.get<Real>()) || std::abs(x.get<Real>()) > 1e9)
+            o.fail("path values must be finite numbers within +-1e9 (s, m)");
         const Real tt = e[0].get<Real>();
         if (tt < 0 || (!t.path.t.empty() && !(tt > t.path.t.back()))) o.fail("path times must be >= 0 and increasing");
         t.path.t.push_back(tt);
@@ -364,6 +367,11 @@ SceneDef parse_scene(const std::string& text, const std::string& file) {
   }
   d.fixed = o.strings("fixed");
   d.sets = o.strings("sets");
+  for (const auto* names : {&d.fixed, &d.sets})  // (as layers and vessels above; these were accepted)
+    for (std::size_t i = 0; i < names->size(); ++i)
+      for (std::size_t k = 0; k < i; ++k)
+        if ((*names)[i] == (*names)[k])
+          o.fail(std::string(names == &d.fixed ? "fixed" : "sets") + ": '" + (*names)[i] + "' is named twice");
   d.couple_unloaded = o.boolean("couple_unloaded_layers", true);
   d.solver.gravity = o.vec3("gravity", d.solver.gravity);
   if (o.has("damping")) {
@@ -392,6 +400,9 @@ SceneDef parse_scene(const std::string& text, const std::string& file) {
     s.finish();
   }
   if (o.has("implicit")) {
+    // settings the symplectic integrator would ignore: an error, as every ignored key
+    if (d.solver.integrator != Integrator::implicit_euler)
+      o.fail("implicit: its settings apply to \"integrator\": \"implicit\" only (the scene's is symplectic)");
     Obj s(o.at("implicit"), "implicit: ", file);
     d.solver.cg_tolerance = s.number("cg_tolerance", d.solver.cg_tolerance, 0, 1, true);
     if (!(d.solver.cg_tolerance < 1))  // the solver's range is open at 1 (it said so without the prefix)
@@ -419,6 +430,17 @@ SceneDef parse_scene(const std::string& text, const std::string& file) {
     d.output.name = out.string("name", d.output.name);
     if (d.output.name.find_first_of("/\\") != std::string::npos || d.output.name == "." || d.output.name == "..")
       out.fail("name must be a file name without a folder (got '" + d.output.name + "'): the series goes into dir");
+    // the longest frame file is name + "_particles_000000.vtp": within a file
+    // name's 255 bytes (a 250-character name failed after loading the model,
+    // leaving a frame behind); no control characters (a newline split the
+    // one-line messages) and no blank at either end
+    if (d.output.name.empty() || d.output.name.size() > kMaxOutputName)
+      out.fail("name must have 1 to " + std::to_string(kMaxOutputName) + " characters (got " +
+               std::to_string(d.output.name.size()) + ")");
+    for (const unsigned char c : d.output.name)
+      if (c < 0x20 || c == 0x7f) out.fail("name must not contain control characters (a newline, a tab)");
+    if (d.output.name.front() == ' ' || d.output.name.back() == ' ')
+      out.fail("name must not begin or end with a blank (got '" + d.output.name + "')");
     d.output.every = static_cast<int>(out.integer("every", 1, 1, 1 << 30));
     const std::string f = out.string("format", "binary");
     if (f == "binary") d.output.vtk.binary = true;
@@ -685,10 +707,16 @@ void Scene::init(const std::string& model_file) {
     // the later frames of the earlier one beside the new .pvd)
     const std::string& dir = def_.output.dir;
     const std::string& name = def_.output.name;
+    // Every series of the name goes, whether this run writes it or not (a run
+    // without particles left an earlier run's particle series beside its own)
     remove_series_frames(dir, name + "_", ".vtu", name + ".pvd");
-    if (def_.fluid.enabled && def_.fluid.surface) remove_series_frames(dir, name + "_blood_", ".vtp", name + "_blood.pvd");
-    if (def_.fluid.enabled && def_.fluid.particles)
-      remove_series_frames(dir, name + "_particles_", ".vtp", name + "_particles.pvd");
+    remove_series_frames(dir, name + "_blood_", ".vtp", name + "_blood.pvd");
+    remove_series_frames(dir, name + "_particles_", ".vtp", name + "_particles.pvd");
+    for (const char* once : {"_vessels.vtp", "_centrelines.vtp"}) {
+      const fs::path p = fs::path(dir) / (name + once);
+      if (fs::is_regular_file(p, ec) && !fs::remove(p, ec) && ec)
+        throw Error(p.string(), "cannot remove a file of an earlier run: " + ec.message());
+    }
     vtk_ = std::make_unique<VtkSeries>(m, def_.output.dir, def_.output.name, def_.output.vtk);
     write_vessels();
   }

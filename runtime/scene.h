@@ -138,6 +138,10 @@ EmitterProfile bleeding_profile(Real radius, Real pressure, const FluidParams& p
 // (<name>_vessels.vtp, <name>_centrelines.vtp). The frames and .pvd of an
 // earlier run of the same series in `dir` are removed when the scene is
 // created (after validation), so that no stale frame outlives a shorter run.
+// The longest name an output series may have (its longest file, name +
+// "_particles_000000.vtp", stays well within 255 bytes).
+inline constexpr std::size_t kMaxOutputName = 200;
+
 struct OutputDef {
   bool enabled = false;
   std::string dir;            // created after validation

@@ -566,7 +566,10 @@ Real symplectic_step_limit(const Model& m, State& s, const SolverOptions& o) {
   }
   gam += o.mass_damping;
   s.step_limit = symplectic_limit(std::sqrt(w2), gam);
-  if (!(s.step_limit > 0)) s.step_limit = HUGE_VAL;
+  // a limit that underflows (omega^2 = k / m overflowing for a node of
+  // 1e-300 kg) is the smallest step, never "no limit": the substeps then
+  // reach max_substeps and the run says why
+  if (!(s.step_limit > 0)) s.step_limit = std::numeric_limits<Real>::min();
   return s.step_limit;
 }
 

@@ -111,9 +111,10 @@ void VtkSeries::write(const Model& m, const State& s) {
   std::vector<Array> cells{make_array("Int64", "connectivity", 1, connectivity_),
                            make_array("Int64", "offsets", 1, offsets_), make_array("UInt8", "types", 1, types_)};
 
-  char file[64];
-  std::snprintf(file, sizeof file, "%s_%06d.vtu", name_.c_str(), frames());
-  const std::string target = dir_ + "/" + file;
+  // (a char[64] cut names over 52 characters: every frame one file, exit 0)
+  char digits[16];
+  std::snprintf(digits, sizeof digits, "_%06d.vtu", frames());
+  const std::string target = dir_ + "/" + name_ + digits;
   AtomicFile out(target);
   {
     std::ofstream os(out.temp(), std::ios::binary);
@@ -162,7 +163,7 @@ void VtkSeries::write(const Model& m, const State& s) {
     bytes_ += static_cast<std::int64_t>(os.tellp());
   }
   out.commit();
-  files_.emplace_back(s.time, file);
+  files_.emplace_back(s.time, name_ + digits);
 
   write_pvd(pvd_path(), files_);
 }

@@ -65,6 +65,8 @@ void add_run_command(CLI::App& app) {
     const bool threads_given = threads_flag->count() > 0;
     if (threads_given && (threads < 0 || threads > 1024))
       throw UsageError("--threads must be in 0..1024, got " + std::to_string(threads));
+    // (both ran with no output and no word)
+    if (no_output && !out_override.empty()) throw UsageError("--no-output and --out contradict each other: give one");
     runtime::SceneDef def = runtime::parse_scene_file(scene_file);
     if (!model_override.empty()) def.model = model_override;
     if (!out_override.empty()) {
@@ -397,7 +399,7 @@ void add_run_command(CLI::App& app) {
           def.dt / limit > def.solver.max_substeps)
         std::cerr << ": the symplectic stability limit is " << limit << " s, " << def.dt / limit
                   << " substeps a step, more than max_substeps (" << def.solver.max_substeps
-                  << "): a stiffer spring or grip than the step allows (the implicit integrator, a smaller dt or "
+                  << "): a stiffer (or more heavily damped) spring or grip than the step allows (the implicit integrator, a smaller dt or "
                      "a softer grip)";
       std::cerr << "\n";
       exit_code() = 3;

@@ -133,6 +133,36 @@ TEST_F(LoaderTest, InvalidSpringDataIsRejected) {
   }
 }
 
+// Finite but absurd: a node at 1e300 m or a rest length of 1e300 m (their
+// squares overflow) made every step non-finite and wrote inf strains into the
+// series; refused naming the file, the layer and the node or spring.
+TEST_F(LoaderTest, CoordinatesAndLengthsBeyondAMillionMetresAreRejected) {
+  auto expect_refused = [&](const char* name, auto&& spoil, const std::string& what) {
+    auto bad = block;
+    spoil(bad);
+    const std::string f2 = dir / name;
+    write_model_file(f2, bad);
+    ModelReader r(f2);
+    try {
+      load_model(r, LoadRequest{});
+      FAIL() << what << ": accepted";
+    } catch (const Error& e) {
+      EXPECT_EQ(std::string(e.what()).rfind(f2 + ": ", 0), 0u) << e.what();
+      EXPECT_NE(std::string(e.what()).find(what), std::string::npos) << e.what();
+    }
+  };
+  expect_refused("far.h5", [](auto& b) { b.layers[1].second.nodes(5, 1) = 1e300; },
+                 "has a non-finite position or one beyond 1e6 m");
+  expect_refused("long.h5", [](auto& b) { b.layers[1].second.lin_rest_length[0] = 1e300; },
+                 "linear spring 0 has an invalid rest length (negative, non-finite or beyond 1e6 m)");
+  // a kilometre is still a (strange) model
+  auto ok = block;
+  ok.layers[1].second.nodes(5, 1) += 1e3;
+  write_model_file(dir / "km.h5", ok);
+  ModelReader r(dir / "km.h5");
+  EXPECT_NO_THROW(load_model(r, LoadRequest{}));
+}
+
 TEST_F(LoaderTest, VesselTubesAreReadOnRequestAndChecked) {
   {
     ModelReader r(file);

@@ -8,6 +8,7 @@
 #include <cstdio>
 #include <cmath>
 #include <filesystem>
+#include <set>
 
 namespace orthosim {
 namespace {
@@ -549,7 +550,7 @@ TEST_F(RunCli, FailedStepsExitThree) {
                                 "gravity": [0, -100, 0], "stability": {"max_substeps": 2, "max_retries": 1}})");
   const auto rc = run_cli("run " + capped + " --steps 3 --no-output --quiet");
   EXPECT_EQ(rc.code, 3) << rc.err;
-  EXPECT_NE(rc.err.find("substeps a step, more than max_substeps (2): a stiffer spring or grip than the step allows"),
+  EXPECT_NE(rc.err.find("substeps a step, more than max_substeps (2): a stiffer (or more heavily damped) spring or grip than the step allows"),
             std::string::npos)
       << rc.err;
 }
@@ -595,7 +596,8 @@ TEST_F(RunCli, ARerunRemovesTheEarlierRunsStaleFrames) {
   ASSERT_TRUE(fs::exists(dir / "series/tissue_000006.vtu"));
   // other files in the folder: none of them is a frame of the series
   const std::vector<std::string> others = {"tissue_notes.vtu", "tissue_000009.vtp", "other_000009.vtu", "tissue_12a.vtu",
-                                           "tissue_.vtu", "xtissue_000009.vtu", "tissue_blood_3.vtp", "notes.txt"};
+                                           "tissue_.vtu", "xtissue_000009.vtu", "notes.txt"};
+  test::write_file(dir / "series/tissue_blood_3.vtp", "stale");  // the blood series of the name goes too
   for (const auto& f : others) test::write_file(dir / ("series/" + f), "keep");
   const auto r = run_cli("run " + s + " --steps 2 --quiet");
   ASSERT_EQ(r.code, 0) << r.err;
@@ -626,9 +628,42 @@ TEST_F(RunCli, ARerunRemovesTheEarlierRunsStaleFrames) {
   EXPECT_FALSE(fs::exists(dir / "series/tissue_blood_1.vtp"));
   EXPECT_EQ(test::read_file(dir / "series/tissue_blood.pvd").find("tissue_blood_7"), std::string::npos);
   EXPECT_FALSE(fs::exists(dir / "series/tissue_000002.vtu")) << "the tissue frames of the run before";
-  EXPECT_FALSE(fs::exists(dir / "series/tissue_blood_3.vtp")) << "a blood frame, not listed by the new .pvd";
+  EXPECT_FALSE(fs::exists(dir / "series/tissue_blood_3.vtp")) << "a blood frame of the run before";
   EXPECT_EQ(test::read_file(dir / "series/other_000009.vtu"), "keep");
   EXPECT_EQ(test::read_file(dir / "series/tissue_notes.vtu"), "keep");
+
+  // a run without a fluid removes the blood and particle series of the run
+  // before too (they stayed beside its tissue series until 2026-11-27)
+  test::write_file(dir / "series/tissue_particles_000004.vtp", "stale");
+  test::write_file(dir / "series/tissue_particles.pvd", "stale");
+  const auto dry = scene(R"({"model": "model.h5", "fixed": ["fixed"], "integrator": "implicit", "dt": 0.01,
+                             "output": {"dir": "series"}})");  // (scene() rewrote s's file for b)
+  ASSERT_EQ(run_cli("run " + dry + " --steps 1 --quiet").code, 0);
+  for (const char* f : {"tissue_blood_000000.vtp", "tissue_blood_000001.vtp", "tissue_blood.pvd",
+                        "tissue_particles_000004.vtp", "tissue_particles.pvd"})
+    EXPECT_FALSE(fs::exists(dir / (std::string("series/") + f))) << f;
+  EXPECT_TRUE(fs::exists(dir / "series/tissue_000001.vtu"));
+  EXPECT_EQ(test::read_file(dir / "series/other_000009.vtu"), "keep");
+}
+
+// A long series name: every frame its own file (a char[64] cut names over 52
+// characters, so every frame overwrote one file and the .pvd listed it three
+// times, exit 0); --no-output with --out is a contradiction, not a silent no-op.
+TEST_F(RunCli, LongSeriesNamesKeepEveryFrame) {
+  const std::string name(190, 'y');
+  const auto s = scene(R"({"model": "model.h5", "fixed": ["fixed"], "integrator": "implicit", "dt": 0.01,
+                           "output": {"dir": "long", "name": ")" + name + R"("}})");
+  const auto r = run_cli("run " + s + " --steps 2 --quiet");
+  ASSERT_EQ(r.code, 0) << r.err;
+  std::set<std::string> frames;
+  for (const auto& e : fs::directory_iterator(dir / "long")) frames.insert(e.path().filename().string());
+  EXPECT_EQ(frames, (std::set<std::string>{name + "_000000.vtu", name + "_000001.vtu", name + "_000002.vtu", name + ".pvd"}));
+  const std::string pvd = test::read_file(dir / ("long/" + name + ".pvd"));
+  for (int k = 0; k <= 2; ++k) EXPECT_NE(pvd.find(name + "_00000" + std::to_string(k) + ".vtu"), std::string::npos) << k;
+  const auto c = run_cli("run " + s + " --steps 1 --no-output --out " + (dir / "other") + " --quiet");
+  EXPECT_EQ(c.code, 2) << c.err;
+  EXPECT_NE(c.err.find("--no-output and --out contradict each other"), std::string::npos) << c.err;
+  EXPECT_FALSE(fs::exists(dir / "other"));
 }
 
 }  // namespace

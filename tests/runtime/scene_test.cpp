@@ -139,7 +139,26 @@ TEST_F(SceneTest, BadScenesAreOneLineErrorsBeforeAnyStep) {
       {R"({"model": "model.h5", "fluid": {"spacing": null}})", "fluid: spacing is null"},
       {R"({"model": "model.h5", "layers": []})", "layers is empty"},
       // 1 passed the scene's range and the solver refused it without the prefix
-      {R"({"model": "model.h5", "implicit": {"cg_tolerance": 1}})", "implicit: cg_tolerance must be a finite number in (0, 1)"},
+      {R"({"model": "model.h5", "integrator": "implicit", "implicit": {"cg_tolerance": 1}})",
+       "implicit: cg_tolerance must be a finite number in (0, 1)"},
+      // settings the integrator ignores, names twice, output names that broke the series
+      // (all accepted until 2026-11-27)
+      {R"({"model": "model.h5", "implicit": {"cg_tolerance": 1e-4}})",
+       "implicit: its settings apply to \"integrator\": \"implicit\" only"},
+      {R"({"model": "model.h5", "fixed": ["fixed", "fixed"]})", "fixed: 'fixed' is named twice"},
+      {R"({"model": "model.h5", "sets": ["skin", "skin"]})", "sets: 'skin' is named twice"},
+      {R"({"model": "model.h5", "tools": [{"type": "pull", "nodes": "skin", "center": [0, 0, 0], "radius": 0.01,
+           "stiffness": 1000, "path": [[0, 0, 0, 0], [0.05, 0, -1e155, 0]]}]})",
+       "path values must be finite numbers within +-1e9 (s, m)"},
+      {R"({"model": "model.h5", "tools": [{"type": "pull", "nodes": "skin", "center": [0, 0, 0], "radius": 0.01,
+           "path": [[0, 0, 0, 0], [1e300, 0, 0, 0]]}]})",
+       "path values must be finite numbers within +-1e9 (s, m)"},
+      {R"({"model": "model.h5", "output": {"dir": "o", "name": ")" + std::string(201, 'y') + R"("}})",
+       "output: name must have 1 to 200 characters (got 201)"},
+      {R"({"model": "model.h5", "output": {"dir": "o", "name": ""}})", "output: name must not be empty"},
+      {R"({"model": "model.h5", "output": {"dir": "o", "name": "a\nb"}})",
+       "output: name must not contain control characters"},
+      {R"({"model": "model.h5", "output": {"dir": "o", "name": " a"}})", "output: name must not begin or end with a blank"},
       // keys that were ignored
       {R"({"model": "model.h5", "fluid": {"physx_stiffness": 20, "eos": "tait"}})", "the PhysX mode's equation of state is linear"},
       {R"({"model": "model.h5", "tools": [{"type": "cut", "polyline": [[0, 0, 0], [0.01, 0, 0]], "depth": 0.004, "end": 1}]})",

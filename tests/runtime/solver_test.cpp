@@ -1,4 +1,5 @@
 // Accuracy, conservation and determinism of the mass-spring solver.
+#include "runtime/kernels.h"
 #include "runtime/solver.h"
 #include "runtime/testing/lattice.h"
 #include "runtime/testing/newton.h"
@@ -545,6 +546,39 @@ TEST(Solver, TooLargeFixedSubstepIsDetectedAndRedone) {
   }
   EXPECT_GT(t.counters.failed, 0);
   EXPECT_NEAR(last_time, 30 * dt, 1e-12);
+}
+
+// The damped oscillator's limit (2 / omega)(sqrt(1 + z^2) - z), z = gamma / (2 omega),
+// tends to 2 / gamma for heavy damping; it was computed as 0 for z > ~1e8 (read as no
+// limit: one substep a step, a blow-up, no word), and a node of 1e-300 kg made it
+// "no limit" too.
+TEST(Solver, TheStabilityLimitHoldsForHeavyDampingAndTinyMasses) {
+  for (const Real z : {0.0, 1e-3, 1.0, 1e4, 1e8, 1e12, 1e200}) {
+    const Real omega = 50, gamma = 2 * z * omega;
+    const Real exact = z < 1e4 ? (2 / omega) * (std::sqrt(1 + z * z) - z) : (2 / omega) / (2 * z) * (1 - 1 / (4 * z * z));
+    EXPECT_NEAR(symplectic_limit(omega, gamma) / exact, 1.0, 1e-12) << "z = " << z;
+  }
+  const auto block = make_layered_block(6, 3, 3);
+  Model m = model_from_layers(block.layers, block.sets);
+  SolverOptions o;
+  {
+    State s = make_state(m);
+    fix_nodes(m, s, m.set("fixed"));
+    const Real light = symplectic_step_limit(m, s, o);
+    for (auto& g : m.gamma) g *= 1e12;  // damping 1e12 times the model's
+    s.step_limit = 0;
+    const Real damped = symplectic_step_limit(m, s, o);
+    EXPECT_GT(damped, 0);
+    EXPECT_LT(damped, 1e-6 * light);
+    const auto info = step(m, s, 1.0 / 60, o);
+    EXPECT_EQ(info.substeps, o.max_substeps) << "a heavily damped model needs more substeps than allowed";
+  }
+  Model tiny = model_from_layers(block.layers, block.sets);
+  for (std::int32_t i = 0; i < tiny.n_nodes; ++i) tiny.omega2[i] = HUGE_VAL;  // k / m of a 1e-300 kg node
+  State t = make_state(tiny);
+  fix_nodes(tiny, t, tiny.set("fixed"));
+  EXPECT_GT(symplectic_step_limit(tiny, t, o), 0);
+  EXPECT_LT(symplectic_step_limit(tiny, t, o), 1e-300);
 }
 
 TEST(Solver, AutomaticSubstepsFollowTheStabilityLimit) {
