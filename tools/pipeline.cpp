@@ -61,7 +61,7 @@ const std::array<std::string, 2> kExportFolders = {"surfaces", "reports"};
 
 struct Args {
   std::string stack, tissues, spacing, origin = "0,0,0", scene, grid = "39x9", work, out, export_dir;
-  bool texture = true, tune = true;
+  bool texture = true, tune = true, register_slices = false;
   // virtual experiments per tuned tissue: the bound that keeps the pipeline
   // reproducible; the wall-clock budget is only a safety cap (a run it cuts
   // depends on the machine's speed, and tune warns)
@@ -470,10 +470,13 @@ int run_stages(Args a, Report& report) {
   try {
     // 1. segment
     const auto seg = run.stage(
-        "segment", {stack_hash, table_hash, a.spacing, a.origin}, run.command([&](const std::string& d) {
-          return std::vector<std::string>{"segment", "--stack", a.stack, "--tissues", a.tissues, "--spacing",
-                                          a.spacing, "--origin", a.origin, "--out", d + "/labels.h5",
-                                          "--nrrd", d + "/labels.nrrd"};
+        "segment", {stack_hash, table_hash, a.spacing, a.origin, a.register_slices ? "registered" : "as-is"},
+        run.command([&](const std::string& d) {
+          std::vector<std::string> args{"segment", "--stack", a.stack, "--tissues", a.tissues, "--spacing",
+                                        a.spacing, "--origin", a.origin, "--out", d + "/labels.h5",
+                                        "--nrrd", d + "/labels.nrrd"};
+          if (a.register_slices) args.push_back("--register");
+          return args;
         }),
         {"labels.h5", "labels.nrrd"});
     const std::string labels = seg.dir + "/labels.h5";
@@ -769,6 +772,8 @@ void add_pipeline_command(CLI::App& app) {
                   "also copy every stage's outputs (labels, STL surfaces, quad layers and texture, vessel meshes, "
                   "tuned table and plots, stage reports) into this folder");
   sub->add_flag("!--no-texture", a.texture, "skip the skin texture");
+  sub->add_flag("--register", a.register_slices,
+                "register the slices before segmentation (segment --register: their jitter undone, the drift kept)");
   sub->add_flag("!--no-tune", a.tune, "skip spring tuning");
   sub->add_option("--tune-evaluations", a.tune_evaluations,
                   "virtual experiments per tuned tissue: the bound that keeps the pipeline reproducible")

@@ -206,7 +206,20 @@ void add_remesh_command(CLI::App& app) {
         for (int k = 0; k < 3; ++k) origin[k] = s[k] * 1e-3;
       }
       if (!have_spacing) throw UsageError("--texture needs the voxel size: --spacing X,Y,Z (mm) or a --model with /volume");
-      const ColourStack st = open_colour_stack(a.stack, spacing, origin);
+      ColourStack st = open_colour_stack(a.stack, spacing, origin);
+      // a registered segmentation moved its slices: the texture's colours move with them
+      if (!a.model.empty() && std::filesystem::exists(a.model)) {
+        ModelReader m(a.model);
+        if (m.h5().exists("/volume/slice_shift_px")) {
+          std::vector<std::uint64_t> d;
+          const auto sh = m.h5().read<std::int32_t>("/volume/slice_shift_px", &d);
+          if (d.size() != 2 || d[1] != 2 || d[0] != st.files.size())
+            throw Error(a.model, "/volume/slice_shift_px has " + std::to_string(d.empty() ? 0 : d[0]) +
+                                     " rows, but --stack " + a.stack + " has " + std::to_string(st.files.size()) +
+                                     " slices");
+          for (std::size_t k = 0; k < d[0]; ++k) st.shift.push_back({sh[2 * k], sh[2 * k + 1]});
+        }
+      }
       report.input(a.stack);
       TextureOptions to;
       to.texel_m = a.texel_mm * 1e-3;

@@ -19,7 +19,9 @@ void add_segment_command(CLI::App& app) {
   auto* sub = app.add_subcommand("segment", "classify a colour slice stack into tissue labels (/volume)");
   struct Args {
     std::string stack, tissues, spacing, origin = "0,0,0", out, nrrd, truth, normalise = "plane", classify = "mahalanobis", scratch_dir;
-    bool no_cleanup = false, no_order = false, no_fill_holes = false, exposure = false;
+    bool no_cleanup = false, no_order = false, no_fill_holes = false, exposure = false, register_slices = false;
+    int register_window = 8;
+    double register_max_shift = 32;
     int speck_support = 2, calibration_slices = 9, refine_iterations = 8, slab = 8, threads = 0;
     std::int64_t min_island = 64, min_vessel = 4;
     double min_island_mm3 = 20;
@@ -65,6 +67,14 @@ void add_segment_command(CLI::App& app) {
                 "scale the table's colours by the stack's exposure, read from a border of the table background's hue "
                 "brighter or darker by more than 20 % (for a stack exposed darker or brighter as a whole; not for "
                 "vignetted slices)");
+  sub->add_flag("--register", a.register_slices,
+                "undo the slices' jitter: each slice's shift against the one before by phase correlation, the stack's "
+                "smooth drift kept (a line over 2 x --register-window + 1 slices), the rest undone in whole pixels");
+  sub->add_option("--register-window", a.register_window, "--register: slices each side of the drift's local line")
+      ->capture_default_str();
+  sub->add_option("--register-max-shift", a.register_max_shift,
+                  "--register: a slice-to-slice shift beyond this many pixels is taken as none (another structure's match)")
+      ->capture_default_str();
   sub->add_option("--lightness-weight", a.lightness_weight, "weight of lightness against chroma")
       ->capture_default_str();
   sub->add_option("--slab", a.slab, "slices classified together (memory ~ slab x slice size)")
@@ -98,6 +108,9 @@ void add_segment_command(CLI::App& app) {
     o.refine_iterations = a.refine_iterations;
     o.refine_max_shift = a.refine_max_shift;
     o.exposure_from_border = a.exposure;
+    o.register_slices = a.register_slices;
+    o.registration.half_window = a.register_window;
+    o.registration.max_shift_px = a.register_max_shift;
     o.lightness_weight = a.lightness_weight;
     o.slab = a.slab;
     o.scratch_dir = a.scratch_dir;
@@ -209,6 +222,12 @@ void add_segment_command(CLI::App& app) {
       }
     }
     j["exposure"] = m.exposure;
+    if (a.register_slices) {
+      const SliceRegistration& g = m.registration;
+      j["registration"] = {{"shift_px", g.shift},       {"pairwise_px", g.pairwise}, {"response", g.response},
+                           {"moved_slices", g.moved},   {"rejected_pairs", g.rejected},
+                           {"max_shift_px", g.max_shift_px}, {"min_response", g.min_response}, {"seconds", g.seconds}};
+    }
     j["gain_min"] = m.gain_min;
     j["gain_max"] = m.gain_max;
     j["normalise_fallbacks"] = m.normalise_fallbacks;

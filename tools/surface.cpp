@@ -376,8 +376,9 @@ void add_surface_command(CLI::App& app) {
                                         std::to_string(m.euler) + ", " + std::to_string(m.components) +
                                         " component(s))"
                                   : std::string())
-                  << ": noise or misclassified voxels in the labels (the segment report's Dice), or a tissue only a "
-                     "few voxels thin at this spacing; remesh needs layers without handles\n";
+                  << ": noise or misclassified voxels in the labels (the segment report's Dice), a tissue only a "
+                     "few voxels thin at this spacing, or slices off each other (segment --register); remesh needs "
+                     "layers without handles\n";
     }
     if (!a.common.quiet) {
       std::cout << std::fixed;

@@ -484,7 +484,8 @@ const Loop& tube_loop(const std::vector<Loop>& loops, const std::string& name, d
   if (loops.empty()) throw Error(name, "not tube-like: " + where + " misses the surface");
   if (loops.size() > 1)
     throw Error(name, "not tube-like: " + where + " cuts the surface in " + std::to_string(loops.size()) +
-                          " loops (branching, folded or ring-shaped surface); remesh needs a single tube");
+                          " loops (branching, folded or ring-shaped surface, or jagged by slices off each other: segment "
+                          "--register); remesh needs a single tube");
   if (remesh_detail::winding(loops[0], Vec2(0, 0)) == 0)
     throw Error(name, "not tube-like: the axis leaves the surface at " + where);
   return loops[0];

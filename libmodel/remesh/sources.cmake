@@ -9,5 +9,5 @@ add_library(orthosim_remesh STATIC
   ${CMAKE_CURRENT_LIST_DIR}/stl.cpp
   ${CMAKE_CURRENT_LIST_DIR}/texture.cpp
   ${CMAKE_CURRENT_LIST_DIR}/export.cpp)
-target_link_libraries(orthosim_remesh PUBLIC orthosim_core PRIVATE CGAL::CGAL ${OpenCV_LIBS} assimp::assimp TBB::tbb)
+target_link_libraries(orthosim_remesh PUBLIC orthosim_core PRIVATE orthosim_segment CGAL::CGAL ${OpenCV_LIBS} assimp::assimp TBB::tbb)
 target_include_directories(orthosim_remesh SYSTEM PRIVATE ${OpenCV_INCLUDE_DIRS})

@@ -3,6 +3,7 @@
 
 #include "libmodel/format/atomic.h"
 #include "libmodel/remesh/detail.h"
+#include "libmodel/segment/segment.h"
 
 #include <opencv2/core.hpp>
 #include <opencv2/imgcodecs.hpp>
@@ -30,15 +31,9 @@ ColourStack open_colour_stack(const std::string& dir, const std::array<double, 3
   std::error_code ec;
   if (!fs::is_directory(root, ec)) throw Error(dir, "not a directory of colour slices");
   if (fs::is_directory(root / "slices", ec)) root /= "slices";
-  for (const auto& e : fs::directory_iterator(root, ec)) {
-    if (!e.is_regular_file()) continue;
-    std::string ext = e.path().extension().string();
-    std::transform(ext.begin(), ext.end(), ext.begin(), [](unsigned char c) { return std::tolower(c); });
-    if (ext == ".png" || ext == ".jpg" || ext == ".jpeg" || ext == ".tif" || ext == ".tiff" || ext == ".bmp")
-      st.files.push_back(e.path().string());
-  }
-  std::sort(st.files.begin(), st.files.end());
-  if (st.files.empty()) throw Error(dir, "no colour slices (png, jpg, tif, bmp)");
+  // the order and the files segment read (a plain sort put s10 before s2:
+  // the texture's slices scrambled against the labels')
+  st.files = list_stack(root.string());
   cv::Mat first = cv::imread(st.files[0], cv::IMREAD_COLOR);
   if (first.empty()) throw Error(st.files[0], "cannot read the image");
   st.nx = first.cols, st.ny = first.rows;
@@ -61,6 +56,15 @@ class SliceCache {
     if (m.empty()) throw Error(s_.files[k], "cannot read the image");
     if (m.cols != s_.nx || m.rows != s_.ny)
       throw Error(s_.files[k], "slice size differs from the first slice's");
+    if (!s_.shift.empty()) {
+      const auto [dx, dy] = s_.shift[static_cast<std::size_t>(k)];
+      if (dx != 0 || dy != 0) {  // as segment moved it: content to (x + dx, y + dy), edges replicated
+        const cv::Mat t = (cv::Mat_<double>(2, 3) << 1, 0, dx, 0, 1, dy);
+        cv::Mat moved;
+        cv::warpAffine(m, moved, t, m.size(), cv::INTER_NEAREST, cv::BORDER_REPLICATE);
+        m = std::move(moved);
+      }
+    }
     if (static_cast<int>(map_.size()) >= cap_) {
       map_.erase(lru_.back());
       lru_.pop_back();

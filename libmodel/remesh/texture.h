@@ -19,11 +19,14 @@ struct ColourStack {
   int nx = 0, ny = 0;              // image width and height (pixels)
   std::array<double, 3> spacing_m{1e-3, 1e-3, 1e-3};
   std::array<double, 3> origin_m{0, 0, 0};
+  // px (x, y) each slice is moved by before sampling (segment --register's
+  // /volume/slice_shift_px); empty: none
+  std::vector<std::array<int, 2>> shift;
 };
 
-// Lists DIR/slices/* (or DIR/* when DIR has no slices/ folder) with the
-// extensions png, jpg, jpeg, tif, tiff, bmp, sorted by name, and reads the
-// first slice for the image size. Throws Error(dir, ...) when there is no
+// Lists DIR/slices/* (or DIR/* when DIR has no slices/ folder) as segment
+// does (list_stack: its image extensions, hidden files left out, natural name
+// order: s2 before s10), and reads the first slice for the image size. Throws Error(dir, ...) when there is no
 // slice, or spacing is not positive.
 ColourStack open_colour_stack(const std::string& dir, const std::array<double, 3>& spacing_m,
                               const std::array<double, 3>& origin_m);

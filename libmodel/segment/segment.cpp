@@ -80,6 +80,10 @@ void validate(const SegmentOptions& o) {
   if (!(o.min_body_fraction > 0 && o.min_body_fraction <= 1)) bad("min body fraction must be in (0, 1]");
   if (o.slab < 1 || o.slab > 256) bad("slab must be in 1..256");
   if (o.scratch_memory_bytes < 0) bad("scratch memory must be >= 0");
+  if (o.registration.half_window < 1 || o.registration.half_window > 100000)
+    bad("register half window must be in 1..100000 slices");
+  if (!(o.registration.max_shift_px > 0 && o.registration.max_shift_px <= 1e6))
+    bad("register max shift must be in (0, 1e6] pixels");
 }
 
 std::string segment_parameters_json(const SegmentOptions& o) {
@@ -94,6 +98,9 @@ std::string segment_parameters_json(const SegmentOptions& o) {
   j["refine_prior"] = o.refine_prior;
   j["refine_max_shift"] = o.refine_max_shift;
   j["exposure_from_border"] = o.exposure_from_border;
+  j["register_slices"] = o.register_slices;
+  if (o.register_slices)
+    j["registration"] = {{"half_window", o.registration.half_window}, {"max_shift_px", o.registration.max_shift_px}};
   j["lightness_weight"] = o.lightness_weight;
   j["cleanup"] = o.cleanup;
   j["enforce_order"] = o.enforce_order;
@@ -212,15 +219,18 @@ void check_table(const TissueTable& table) {
 
 // ---- the driver --------------------------------------------------------------------
 
-SegmentMetrics segment(const SliceSource& src, const TissueTable& table, const SegmentOptions& opt,
+SegmentMetrics segment(const SliceSource& stack, const TissueTable& table, const SegmentOptions& opt,
                        const LabelSink& sink, const std::function<void(long, long)>& progress) {
   validate(opt);
   check_table(table);
-  if (src.nx <= 0 || src.ny <= 0 || src.nz <= 0) throw Error(src.name, "empty stack");
-  const int nx = src.nx, ny = src.ny, nz = src.nz;
-  const std::size_t plane = static_cast<std::size_t>(nx) * ny;
+  if (stack.nx <= 0 || stack.ny <= 0 || stack.nz <= 0) throw Error(stack.name, "empty stack");
   CvThreads cv_threads;
   SegmentMetrics met;
+  // registered: every later read (calibration, both passes) sees moved slices
+  if (opt.register_slices) met.registration = register_slices(stack, opt.registration);
+  const SliceSource src = opt.register_slices ? shifted_source(stack, met.registration.shift) : stack;
+  const int nx = src.nx, ny = src.ny, nz = src.nz;
+  const std::size_t plane = static_cast<std::size_t>(nx) * ny;
   met.nx = nx, met.ny = ny, met.nz = nz;
   auto report = [&](long done) {
     if (progress) progress(done, 2L * nz);
@@ -447,6 +457,13 @@ SegmentMetrics segment_stack(const SegmentFiles& files, const TissueTable& table
   w.h5().set_attr(g, "origin_m", std::vector<double>(opt.origin_m.begin(), opt.origin_m.end()));
   w.h5().set_attr(g, "label_names", names);
   w.h5().set_attr(g, "label_inside", label_inside(table));
+  if (opt.register_slices) {
+    // what anything reading colours from the stack must apply too (remesh's texture)
+    std::vector<std::int32_t> sh;
+    for (const auto& s : m.registration.shift) sh.push_back(s[0]), sh.push_back(s[1]);
+    w.h5().write<std::int32_t>(g + "/slice_shift_px", sh.data(), {static_cast<std::uint64_t>(src.nz), 2}, "px",
+                               "(x, y) each slice was moved by before segmentation (segment --register)");
+  }
 
   std::string inputs = files.inputs_json;
   if (inputs.empty()) {

@@ -126,6 +126,40 @@ SliceSource stack_source(const std::string& dir);
 // A source over images held in memory (tests, benchmarks). All the same size.
 SliceSource memory_source(std::vector<RgbImage> slices, std::string name = "memory");
 
+// ---- slice registration --------------------------------------------------
+// Cryosection slices are photographed one by one, and a stack's slices can sit
+// a few pixels off each other (the real arm crop's, docs/segment.md): every
+// tissue wall then zigzags from slice to slice, the surfaces fold and the
+// quad remesher fails. register_slices finds each slice's translation against
+// the one before by phase correlation (OpenCV, Hann window) of its luma; the
+// path the stack's content takes through the slices, summed from those, is
+// split into its smooth part (the least-squares line over 2 half_window + 1
+// slices around each: the anatomy's own drift, kept) and the rest (the
+// jitter), which `shift` undoes in whole pixels.
+struct RegisterOptions {
+  int half_window = 8;         // slices each side of the local line (1..100000)
+  double max_shift_px = 32;    // a slice-to-slice match beyond this is rejected (taken as 0)
+};
+
+struct SliceRegistration {
+  std::vector<std::array<double, 2>> pairwise;  // px (x, y) slice z's content moved against z - 1; [0] = 0
+  std::vector<double> response;                // the phase correlation's peak, 0..1 ([0] = 1)
+  std::vector<std::array<int, 2>> shift;       // px (x, y) slice z is moved by
+  int moved = 0;                               // slices with a non-zero shift
+  int rejected = 0;                            // pairs beyond max_shift_px
+  int max_shift_px = 0;                        // largest |shift| component
+  double min_response = 1;
+  double seconds = 0;
+};
+
+// Reads every slice once (and one slice per 8 twice). Deterministic for any
+// thread count. Stacks of one slice, or slices under 8 px, are left as they are.
+SliceRegistration register_slices(const SliceSource& src, const RegisterOptions& o = {});
+
+// `src` with slice z moved by shift[z] (content at (x, y) goes to (x + dx,
+// y + dy); edge pixels fill what comes in).
+SliceSource shifted_source(SliceSource src, std::vector<std::array<int, 2>> shift);
+
 // ---- segmentation --------------------------------------------------------
 
 struct SegmentOptions {
@@ -133,6 +167,11 @@ struct SegmentOptions {
   // the position of voxel (0,0,0).
   std::array<double, 3> spacing_m{1e-3, 1e-3, 1e-3};
   std::array<double, 3> origin_m{0, 0, 0};
+
+  // -- registration (off by default: a registered stack has no jitter to undo,
+  // and a stack's true slice-to-slice drift stays either way) --
+  bool register_slices = false;
+  RegisterOptions registration;
 
   // -- colour model --
   // Slices read before the main pass to calibrate colours (spread evenly,
@@ -240,6 +279,8 @@ struct SegmentMetrics {
   // channel) the table colours were scaled by; {1, 1, 1}: none
   // (SegmentOptions::exposure_from_border).
   std::array<double, 3> exposure{1, 1, 1};
+  // The slices' registration (SegmentOptions::register_slices; empty without).
+  SliceRegistration registration;
   // Voxels changed by each clean-up step.
   std::int64_t order_changed = 0;
   std::int64_t speck_changed = 0;

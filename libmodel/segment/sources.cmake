@@ -4,7 +4,8 @@ add_library(orthosim_segment STATIC
   ${CMAKE_CURRENT_LIST_DIR}/stack.cpp
   ${CMAKE_CURRENT_LIST_DIR}/colour.cpp
   ${CMAKE_CURRENT_LIST_DIR}/cleanup.cpp
-  ${CMAKE_CURRENT_LIST_DIR}/segment.cpp)
+  ${CMAKE_CURRENT_LIST_DIR}/segment.cpp
+  ${CMAKE_CURRENT_LIST_DIR}/register.cpp)
 target_link_libraries(orthosim_segment
   PUBLIC orthosim_core orthosim_flags
   PRIVATE opencv_core opencv_imgproc opencv_imgcodecs TBB::tbb nlohmann_json::nlohmann_json)

@@ -6,8 +6,11 @@
 
 #include <gtest/gtest.h>
 #include <nlohmann/json.hpp>
+#include <opencv2/core.hpp>
 #include <opencv2/imgcodecs.hpp>
 
+#include <algorithm>
+#include <array>
 #include <filesystem>
 
 using namespace orthosim;
@@ -101,6 +104,80 @@ TEST(RemeshCli, TextureExports) {
   expect_usage_error(test::run_cli("remesh --surface " + f / "skin.stl" + " --out " + f / "t3" + " --stack " + f / "stack" +
                                    " --texture --spacing 1,1,1 --texture-depth -1"),
                      "--texture-depth must be >= 0", f / "t3");
+}
+
+// The texture reads the slices as segment does: in natural name order (a
+// plain sort put s10 before s2, scrambling the texture's rows against the
+// labels'), and moved by the model's /volume/slice_shift_px (segment
+// --register) so that its colours stay on the registered labels.
+TEST(RemeshCli, TextureFollowsTheSlicesOrderAndRegistration) {
+  Files f;
+  const int n = 80, nz = 101;
+  std::vector<std::array<int, 2>> jitter(nz);
+  for (int k = 0; k < nz; ++k) jitter[static_cast<std::size_t>(k)] = {(k * 7) % 5 - 2, (k * 3) % 5 - 2};
+  auto slice = [&](int k, int dx, int dy) {  // colours vary along x, y and z; content moved by (dx, dy)
+    cv::Mat img(n, n, CV_8UC3);
+    for (int y = 0; y < n; ++y)
+      for (int x = 0; x < n; ++x) {
+        const int sx = std::clamp(x - dx, 0, n - 1), sy = std::clamp(y - dy, 0, n - 1);
+        img.at<cv::Vec3b>(y, x) = cv::Vec3b(static_cast<std::uint8_t>(3 * sx), static_cast<std::uint8_t>(3 * sy),
+                                            static_cast<std::uint8_t>(2 * k));
+      }
+    return img;
+  };
+  for (const char* d : {"padded", "natural", "jittered"}) fs::create_directories(f / d);
+  for (int k = 0; k < nz; ++k) {
+    char name[64];
+    std::snprintf(name, sizeof name, "slice_%04d.png", k);
+    cv::imwrite(f / (std::string("padded/") + name), slice(k, 0, 0));
+    cv::imwrite(f / ("natural/s" + std::to_string(k) + ".png"), slice(k, 0, 0));
+    cv::imwrite(f / (std::string("jittered/") + name), slice(k, jitter[static_cast<std::size_t>(k)][0], jitter[static_cast<std::size_t>(k)][1]));
+  }
+  // the model the registered segmentation would have written: /volume with the shifts undoing the jitter
+  {
+    Volume v;
+    v.nx = v.ny = n, v.nz = nz;
+    v.spacing_m = {1e-3, 1e-3, 1e-3};
+    v.origin_m = {-39.5e-3, -39.5e-3, 0};
+    v.labels.assign(static_cast<std::size_t>(n) * n * nz, 0);
+    v.label_names = {"background", "skin"};
+    ModelWriter w(f / "registered.h5", ModelWriter::Start::fresh);
+    w.write(v);
+    std::vector<std::int32_t> sh;
+    for (const auto& j : jitter) sh.push_back(-j[0]), sh.push_back(-j[1]);
+    w.h5().write<std::int32_t>("/volume/slice_shift_px", sh.data(), {static_cast<std::uint64_t>(nz), 2}, "px");
+    w.commit();
+  }
+  auto texture = [&](const std::string& stack, const std::string& out, const std::string& extra) {
+    const auto r = test::run_cli("remesh -q --surface " + f / "skin.stl" + " --grid 39x9 --out " + f / out + " --stack " +
+                                 f / stack + " --texture " + extra);
+    EXPECT_EQ(r.code, 0) << r.err;
+    return cv::imread(f / (out + "/skin_texture.png"));
+  };
+  const std::string frame = "--spacing 1,1,1 --origin -39.5,-39.5,0";
+  const cv::Mat plain = texture("padded", "t_padded", frame);
+  ASSERT_FALSE(plain.empty());
+  auto same = [](const cv::Mat& a, const cv::Mat& b) { return a.size() == b.size() && cv::norm(a, b, cv::NORM_INF) == 0; };
+  EXPECT_TRUE(same(plain, texture("natural", "t_natural", frame))) << "s2 .. s100 read in another order than slice_0002 ..";
+  const cv::Mat moved = texture("jittered", "t_jittered", frame);
+  EXPECT_FALSE(same(plain, moved)) << "the jitter should show (the test could not fail)";
+  EXPECT_TRUE(same(plain, texture("jittered", "t_registered", "--model " + f / "registered.h5")))
+      << "the model's slice shifts were not applied";
+  // shifts for another number of slices: refused
+  {
+    ModelWriter w(f / "registered.h5", ModelWriter::Start::update);
+    w.h5().remove("/volume/slice_shift_px");
+    std::vector<std::int32_t> sh(2 * 5, 0);
+    w.h5().write<std::int32_t>("/volume/slice_shift_px", sh.data(), {5, 2}, "px");
+    w.commit();
+  }
+  const auto bad = test::run_cli("remesh -q --surface " + f / "skin.stl" + " --grid 39x9 --out " + f / "t_bad" + " --stack " +
+                                 f / "jittered --texture --model " + f / "registered.h5");
+  EXPECT_EQ(bad.code, 2) << bad.err;
+  EXPECT_NE(bad.err.find("/volume/slice_shift_px has 5 rows, but --stack " + f / "jittered" + " has 101 slices"),
+            std::string::npos)
+      << bad.err;
+  EXPECT_FALSE(fs::exists(f / "t_bad"));
 }
 
 TEST(RemeshCli, BadInputExitsTwoWithoutOutput) {

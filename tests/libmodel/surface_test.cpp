@@ -995,8 +995,9 @@ TEST(SurfaceCli, HandlesAreAWarning) {
   EXPECT_EQ(test::count_lines(r.err), 1) << r.err;
   EXPECT_EQ(r.err, "orthosim surface: warning: " + (d / "ring.h5") +
                        ": solid: the surface has 1 handle(s) (Euler characteristic 0, 1 component(s)): noise or "
-                       "misclassified voxels in the labels (the segment report's Dice), or a tissue only a few voxels "
-                       "thin at this spacing; remesh needs layers without handles\n");
+                       "misclassified voxels in the labels (the segment report's Dice), a tissue only a few voxels "
+                       "thin at this spacing, or slices off each other (segment --register); remesh needs layers "
+                       "without handles\n");
   // the phantom's tissues: none
   const CliFiles& f = cli_files();
   const test::RunResult q = test::run_cli("surface --labels " + (f / "labels.h5") + " --out " + (d / "ph") + " --quiet");

@@ -10,6 +10,7 @@
 #include <gtest/gtest.h>
 #include <nlohmann/json.hpp>
 #include <opencv2/imgcodecs.hpp>
+#include <opencv2/imgproc.hpp>
 
 #include <algorithm>
 #include <filesystem>
@@ -388,6 +389,46 @@ TEST(Pipeline, AVesselTooShortToFormATreeIsLeftOut) {
   EXPECT_NE(bad.err.find("orthosim vessels: error: "), std::string::npos) << bad.err;
   EXPECT_NE(bad.err.find(" voxels form no vessel"), std::string::npos) << bad.err;
   EXPECT_FALSE(fs::exists(s.dir / "short_vein2.h5"));
+}
+
+// --register reaches segment (its shifts in the labels, and the cache keeps
+// registered and unregistered labels apart); the model is built from them.
+TEST(Pipeline, RegisterMovesTheSlicesBeforeSegmenting) {
+  const Sample& s = sample();
+  const fs::path stack = s.dir / "jittered";
+  fs::create_directories(stack);
+  int z = 0;
+  std::vector<std::string> files;
+  for (const auto& e : fs::directory_iterator(s.stack)) files.push_back(e.path().string());
+  std::sort(files.begin(), files.end());
+  for (const auto& f : files) {
+    const cv::Mat im = cv::imread(f, cv::IMREAD_COLOR);
+    ASSERT_FALSE(im.empty()) << f;
+    const int dx = (z * 7) % 5 - 2, dy = (z * 3) % 5 - 2;  // up to 2 px a slice
+    cv::Mat moved;
+    const cv::Mat t = (cv::Mat_<double>(2, 3) << 1, 0, dx, 0, 1, dy);
+    cv::warpAffine(im, moved, t, im.size(), cv::INTER_NEAREST, cv::BORDER_REPLICATE);
+    ASSERT_TRUE(cv::imwrite((stack / fs::path(f).filename()).string(), moved));
+    ++z;
+  }
+  const std::string base = "pipeline --stack " + stack.string() + " --tissues " + s.tissues + " --spacing 0.75,0.75,3 --work " +
+                           (s.dir / "work") + " --no-texture --no-tune --quiet --out " + (s.dir / "registered.h5") +
+                           " --export " + (s.dir / "registered_export") + " --report " + (s.dir / "registered.json");
+  const auto r = test::run_cli(base + " --register");
+  ASSERT_EQ(r.code, 0) << r.err;
+  ModelReader labels(s.dir / "registered_export/labels.h5");
+  std::vector<std::uint64_t> d;
+  const auto shift = labels.h5().read<std::int32_t>("/volume/slice_shift_px", &d);
+  ASSERT_EQ(d, (std::vector<std::uint64_t>{static_cast<std::uint64_t>(z), 2}));
+  int moved = 0;
+  for (auto v : shift) moved += v != 0;
+  EXPECT_GT(moved, z / 2) << "most slices were moved back";
+  ModelReader m(s.dir / "registered.h5");
+  for (const char* l : {"skin", "fat", "muscle"}) EXPECT_TRUE(m.h5().is_group(std::string("/layers/") + l)) << l;
+  // without the flag: other labels (another cache entry), no shifts
+  const auto plain = test::run_cli(base);
+  ASSERT_EQ(plain.code, 0) << plain.err;
+  EXPECT_FALSE(ModelReader(s.dir / "registered_export/labels.h5").h5().exists("/volume/slice_shift_px"));
 }
 
 TEST(Pipeline, AFailingStageKeepsThePreviousModel) {
