@@ -4,6 +4,7 @@
 
 #include <algorithm>
 #include <cstdio>
+#include <cstdlib>
 #include <ctime>
 #include <filesystem>
 #include <fstream>
@@ -63,8 +64,19 @@ std::string hash_path(const std::string& path) {
   return out;
 }
 
+bool reproducible_run() {
+  const char* e = std::getenv("SOURCE_DATE_EPOCH");
+  return e != nullptr && *e != 0;
+}
+
 std::string now_utc() {
   std::time_t t = std::time(nullptr);
+  if (const char* e = std::getenv("SOURCE_DATE_EPOCH"); e != nullptr && *e != 0) {
+    // the reproducible-builds convention: seconds since 1970 stand for "now"
+    char* end = nullptr;
+    const long long v = std::strtoll(e, &end, 10);
+    t = (*end == 0 && v >= 0) ? static_cast<std::time_t>(v) : 0;
+  }
   std::tm tm{};
   gmtime_r(&t, &tm);
   char buf[32];
@@ -81,7 +93,7 @@ Provenance make_provenance(const std::string& command_line, const std::string& i
   p.parameters_json = parameters_json;
   p.seed = seed;
   p.time_utc = now_utc();
-  p.wall_s = wall_s;
+  p.wall_s = reproducible_run() ? 0 : wall_s;
   return p;
 }
 

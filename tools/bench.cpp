@@ -333,7 +333,7 @@ std::string fmt(const json& v, const char* f = "%.4g") {
   return v.dump();
 }
 
-std::string time_cell(const json& r, const char* med, const char* mn, const char* mx) {
+std::string time_cell(json r, const char* med, const char* mn, const char* mx) {  // (a copy: [] of a missing key)
   if (r.value(med, json()).is_null()) return "";
   const double m = r[med].get<double>();
   const char* unit = m < 1e-3 ? "us" : m < 1 ? "ms" : "s";
@@ -359,9 +359,12 @@ std::string highlights(const json& extra) {
   return out;
 }
 
-std::string summary(const json& j) {
+// A copy, and no const: operator[] of a const json on a missing key is
+// undefined (a results.json without "memory_gib" crashed --render); on a
+// mutable one it is null, which fmt() writes as an empty cell.
+std::string summary(json j) {
   std::ostringstream o;
-  const json& m = j["machine"];
+  json& m = j["machine"];
   o << "# orthosim bench" << (j["quick"].get<bool>() ? " --quick" : "") << "\n\n"
     << "Machine: " << fmt(m["cpu"]) << ", " << fmt(m["cores"]) << " cores, " << fmt(m["memory_gib"]) << " GiB; "
     << fmt(m["compiler"]) << ", " << fmt(m["build_type"]) << "; commit " << fmt(m["commit"]) << "; " << fmt(m["date"])
@@ -369,9 +372,9 @@ std::string summary(const json& j) {
     << ". Total " << fmt(j["seconds"], "%.0f") << " s.\n\n"
     << "Times: median of the repeats (min-max in brackets). Ratio: peer median / ours, timed in alternation in the "
        "same run (> 1: ours faster). Goal: the accuracy goal of the error metric.\n\n";
-  const json& g = j["goals"];
+  json& g = j["goals"];
   o << "Accuracy goals met: " << g["met"].get<int>() << " of " << g["checked"].get<int>() << ".\n\n";
-  for (const json& st : j["stages"]) {
+  for (json& st : j["stages"]) {
     const std::string name = st["stage"];
     o << "## " << name << "\n\n" << fmt(st["what"]) << " (`" << fmt(st["program"]) << "`, " << fmt(st["status"]);
     if (!st["seconds"].is_null()) o << ", " << fmt(st["seconds"], "%.1f") << " s";
@@ -380,7 +383,7 @@ std::string summary(const json& j) {
     // one table per workload, in the order the workloads first appear (a
     // program may interleave them, e.g. Fig. 3(a)'s two integrators per grid)
     std::vector<std::string> workloads;
-    for (const json& r : j["rows"])
+    for (json& r : j["rows"])
       if (r["stage"] == name && std::find(workloads.begin(), workloads.end(), r["workload"]) == workloads.end())
         workloads.push_back(r["workload"]);
     const bool any = !workloads.empty();
@@ -388,7 +391,7 @@ std::string summary(const json& j) {
       o << (w ? "\n" : "") << "**" << workloads[w] << "**\n\n"
         << "| setting | time | error metric | value | goal | met | peer | peer time | peer error | ratio | also |\n"
         << "|---|---|---|---|---|---|---|---|---|---|---|\n";
-      for (const json& r : j["rows"]) {
+      for (json& r : j["rows"]) {
         if (r["stage"] != name || r["workload"] != workloads[w]) continue;
         o << "| " << fmt(r["setting"]) << " | " << time_cell(r, "time_median_s", "time_min_s", "time_max_s") << " | "
           << fmt(r["error_metric"]) << " | " << fmt(r["error_value"]) << " | " << fmt(r["goal"]) << " | "

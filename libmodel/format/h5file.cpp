@@ -167,7 +167,11 @@ std::vector<std::string> File::children(const std::string& group) const {
 void File::make_groups(const std::string& group) {
   if (group == "/" || exists(group)) return;
   make_groups(parent_of(group));
-  Handle g(H5Gcreate2(id_, group.c_str(), H5P_DEFAULT, H5P_DEFAULT, H5P_DEFAULT), H5Gclose);
+  // no object times: the same content makes the same bytes (HDF5 stamps
+  // each object's creation time by default)
+  Handle gcpl(H5Pcreate(H5P_GROUP_CREATE), H5Pclose);
+  H5Pset_obj_track_times(gcpl, 0);
+  Handle g(H5Gcreate2(id_, group.c_str(), H5P_DEFAULT, gcpl, H5P_DEFAULT), H5Gclose);
   if (g.id < 0) throw Error(path_, "cannot create group " + group);
 }
 
@@ -187,6 +191,7 @@ void File::write_raw(const std::string& object, DType type, const void* data,
   Handle space(H5Screate_simple(static_cast<int>(hd.size()), hd.data(), nullptr), H5Sclose);
   if (space.id < 0) throw Error(path_, "cannot create dataspace for " + object);
   Handle dcpl(H5Pcreate(H5P_DATASET_CREATE), H5Pclose);
+  H5Pset_obj_track_times(dcpl, 0);  // (as make_groups)
   if (n > 0 && !hd.empty()) {
     // chunks of ~64k elements along the first axis, whole rows
     std::vector<hsize_t> chunk = hd;
@@ -217,6 +222,7 @@ void File::create_raw(const std::string& object, DType type, const std::vector<s
   Handle space(H5Screate_simple(static_cast<int>(hd.size()), hd.data(), nullptr), H5Sclose);
   if (space.id < 0) throw Error(path_, "cannot create dataspace for " + object);
   Handle dcpl(H5Pcreate(H5P_DATASET_CREATE), H5Pclose);
+  H5Pset_obj_track_times(dcpl, 0);  // (as make_groups)
   std::vector<hsize_t> chunk = hd;
   chunk[0] = 1;
   H5Pset_chunk(dcpl, static_cast<int>(chunk.size()), chunk.data());

@@ -1,5 +1,7 @@
 #include "libmodel/tune/tune.h"
 
+#include "libmodel/provenance.h"
+
 #include "libmodel/msm/biphasic.h"
 
 #include <nlopt.hpp>
@@ -396,7 +398,7 @@ Tuning tuning_record(const TuneResult& r) {
   t.seed = static_cast<std::int64_t>(r.seed);
   t.psi = r.psi;
   t.evaluations = r.evaluations;
-  t.seconds = r.seconds;
+  t.seconds = reproducible_run() ? 0 : r.seconds;  // (SOURCE_DATE_EPOCH: the same bytes each run)
   const auto q = r.target.values();
   t.target = Eigen::Map<const VecXd>(q.data(), static_cast<Eigen::Index>(q.size()));
   t.weights = Eigen::Map<const VecXd>(r.target.weights.data(), static_cast<Eigen::Index>(r.target.weights.size()));

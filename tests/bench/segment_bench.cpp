@@ -51,6 +51,7 @@
 #include <iostream>
 #include <map>
 #include <memory>
+#include <random>
 #include <sstream>
 
 using namespace orthosim;
@@ -564,6 +565,41 @@ void results(const std::string& path, bool quick) {
     row.x = voxels / ob::median(row.seconds);
     row.extra = {{"source", st.source}, {"voxels_per_s", voxels / ob::median(row.seconds)}, {"dice", x.dice},
                  {"min_dice", x.min_dice()}, {"error_1_minus_min_dice", 1 - x.min_dice()}, {"phases", phases(x.m)}};
+    out.add(row);
+  }
+  // Registration (--register) on the phantom with every slice moved by up to
+  // 2 px (seeded): the mean step left between neighbouring slices' jitter,
+  // against the unregistered segmentation of the same stack timed in
+  // alternation (the peer: the ratio is registration's cost).
+  {
+    std::mt19937 rng(11);
+    std::uniform_int_distribution<int> u(-2, 2);
+    std::vector<std::array<int, 2>> jitter(d.slices.size());
+    for (std::size_t z = 1; z < jitter.size(); ++z) jitter[z] = {u(rng), u(rng)};
+    const SliceSource moved = shifted_source(memory_source(d.slices, "memory"), jitter);
+    SegmentOptions o = options_for(d.p), plain = o;
+    o.register_slices = true;
+    SegmentMetrics m;
+    ob::Row row;
+    row.workload = "phantom " + std::to_string(d.p.nx) + "x" + std::to_string(d.p.ny) + "x" + std::to_string(d.p.nz) +
+                   " moved up to 2 px a slice, " + std::to_string(g_threads) + " threads";
+    row.setting = "--register";
+    row.peer = "unregistered";
+    ob::time_alternating(
+        3, [&] { m = segment(moved, phantom_tissue_table(), o, [](int, int, const std::uint8_t*) {}); },
+        [&] { segment(moved, phantom_tissue_table(), plain, [](int, int, const std::uint8_t*) {}); }, &row.seconds,
+        &row.peer_seconds);
+    auto mean_step = [&](const std::vector<std::array<int, 2>>& shift) {
+      double sum = 0;
+      for (std::size_t z = 1; z < jitter.size(); ++z)
+        for (int c = 0; c < 2; ++c)
+          sum += std::abs((jitter[z][c] + (shift.empty() ? 0 : shift[z][c])) - (jitter[z - 1][c] + (shift.empty() ? 0 : shift[z - 1][c])));
+      return sum / (2.0 * static_cast<double>(jitter.size() - 1));
+    };
+    row.error("mean step left between neighbouring slices (px)", mean_step(m.registration.shift), "<=", 0.25);
+    row.peer_error = mean_step({});
+    row.extra = {{"registration_s", m.registration.seconds}, {"max_shift_px", m.registration.max_shift_px},
+                 {"moved_slices", m.registration.moved}, {"min_response", m.registration.min_response}};
     out.add(row);
   }
   out.write(path);

@@ -11,6 +11,7 @@
 #include <nlohmann/json.hpp>
 
 #include <cmath>
+#include <cstdlib>
 #include <filesystem>
 
 using namespace orthosim;
@@ -228,6 +229,42 @@ TEST(TuneCli, TunesABuiltModel) {
   EXPECT_EQ(r4.err, "orthosim tune: error: " + (d / "afile/plots") + ": " + (d / "afile") + " is not a directory\n");
   EXPECT_EQ(test::read_file(model), bytes) << "the model was changed";
   EXPECT_FALSE(fs::exists(d / "t4.json"));
+}
+
+// With SOURCE_DATE_EPOCH set (the reproducible-builds convention) a build and
+// a tune of the same inputs give the same model file byte for byte: no wall
+// times (provenance wall_s, /tuning seconds), the given time for the clock's,
+// and no HDF5 object times (every group and dataset carried its creation time).
+// Without it the science is the same and only those records differ.
+TEST(TuneCli, TheSameRunGivesTheSameBytesWithSourceDateEpoch) {
+  test::TempDir d("tune-cli-bytes");
+  const std::string quads = cylinders(d, "quads.h5", 15, 5);
+  auto run = [&] {
+    fs::copy_file(quads, d / "m.h5", fs::copy_options::overwrite_existing);
+    auto b = test::run_cli("build --model " + (d / "m.h5") + " --tissues " + kTable + " --quiet");
+    EXPECT_EQ(b.code, 0) << b.err;
+    const auto r = test::run_cli("tune --tissues " + kTable + " --tissue fat --model " + (d / "m.h5") +
+                                 " --max-evaluations 40 --quiet");
+    EXPECT_EQ(r.code, 0) << r.err;
+    return test::read_file(d / "m.h5");
+  };
+  ::setenv("SOURCE_DATE_EPOCH", "1700000000", 1);
+  const std::string first = run(), second = run();
+  ::unsetenv("SOURCE_DATE_EPOCH");
+  EXPECT_TRUE(first == second) << "the same run wrote other bytes";
+  {
+    fs::copy_file(quads, d / "m.h5", fs::copy_options::overwrite_existing);  // (read what the last run wrote)
+    test::write_file(d / "m.h5", second);
+    ModelReader m(d / "m.h5");
+    const auto prov = m.provenance();
+    EXPECT_EQ(prov.at("tune").time_utc, "2023-11-14T22:13:20Z");
+    EXPECT_EQ(prov.at("tune").wall_s, 0.0);
+    EXPECT_EQ(m.tuning("fat").seconds, 0.0);
+  }
+  const std::string clock = run();
+  EXPECT_FALSE(clock == second) << "without it the wall times are recorded";
+  ModelReader m(d / "m.h5");
+  EXPECT_GT(m.tuning("fat").seconds, 0.0);
 }
 
 // The layers record the law their springs follow (Layer::spring_law), so a
