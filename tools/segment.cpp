@@ -21,7 +21,7 @@ void add_segment_command(CLI::App& app) {
     std::string stack, tissues, spacing, origin = "0,0,0", out, nrrd, truth, normalise = "plane", classify = "mahalanobis", scratch_dir;
     bool no_cleanup = false, no_order = false, no_fill_holes = false, exposure = false, register_slices = false;
     int register_window = 8;
-    double register_max_shift = 32;
+    double register_max_shift = 32, register_min_response = 0.1;
     int speck_support = 2, calibration_slices = 9, refine_iterations = 8, slab = 8, threads = 0;
     std::int64_t min_island = 64, min_vessel = 4;
     double min_island_mm3 = 20;
@@ -75,6 +75,9 @@ void add_segment_command(CLI::App& app) {
   sub->add_option("--register-max-shift", a.register_max_shift,
                   "--register: a slice-to-slice shift beyond this many pixels is taken as none (another structure's match)")
       ->capture_default_str();
+  sub->add_option("--register-min-response", a.register_min_response,
+                  "--register: a slice-to-slice match whose phase-correlation peak (0..1) is below this is not used")
+      ->capture_default_str();
   sub->add_option("--lightness-weight", a.lightness_weight, "weight of lightness against chroma")
       ->capture_default_str();
   sub->add_option("--slab", a.slab, "slices classified together (memory ~ slab x slice size)")
@@ -111,6 +114,7 @@ void add_segment_command(CLI::App& app) {
     o.register_slices = a.register_slices;
     o.registration.half_window = a.register_window;
     o.registration.max_shift_px = a.register_max_shift;
+    o.registration.min_response = a.register_min_response;
     o.lightness_weight = a.lightness_weight;
     o.slab = a.slab;
     o.scratch_dir = a.scratch_dir;
@@ -226,7 +230,19 @@ void add_segment_command(CLI::App& app) {
       const SliceRegistration& g = m.registration;
       j["registration"] = {{"shift_px", g.shift},       {"pairwise_px", g.pairwise}, {"response", g.response},
                            {"moved_slices", g.moved},   {"rejected_pairs", g.rejected},
-                           {"max_shift_px", g.max_shift_px}, {"min_response", g.min_response}, {"seconds", g.seconds}};
+                           {"max_shift_px", g.max_shift_px}, {"min_response", g.min_response}, {"seconds", g.seconds},
+                           {"weak_slices", g.weak}};
+      // even with --quiet: where the slices did not match, they were not registered
+      if (!g.weak.empty()) {
+        std::string list;
+        for (std::size_t k = 0; k < g.weak.size() && k < 8; ++k) list += (k ? ", " : "") + std::to_string(g.weak[k]);
+        if (g.weak.size() > 8) list += ", ...";
+        std::cerr << "orthosim segment: warning: " << a.stack << ": --register: " << g.weak.size()
+                  << " slice(s) match the one before too weakly to be placed by it (phase-correlation peak below "
+                  << a.register_min_response << "; slices " << list
+                  << "): the slices may lie too far apart for their detail, and those are registered only through "
+                     "their other neighbours\n";
+      }
     }
     j["gain_min"] = m.gain_min;
     j["gain_max"] = m.gain_max;

@@ -84,6 +84,8 @@ void validate(const SegmentOptions& o) {
     bad("register half window must be in 1..100000 slices");
   if (!(o.registration.max_shift_px > 0 && o.registration.max_shift_px <= 1e6))
     bad("register max shift must be in (0, 1e6] pixels");
+  if (!(o.registration.min_response >= 0 && o.registration.min_response < 1))
+    bad("register min response must be in [0, 1)");
 }
 
 std::string segment_parameters_json(const SegmentOptions& o) {
@@ -100,7 +102,9 @@ std::string segment_parameters_json(const SegmentOptions& o) {
   j["exposure_from_border"] = o.exposure_from_border;
   j["register_slices"] = o.register_slices;
   if (o.register_slices)
-    j["registration"] = {{"half_window", o.registration.half_window}, {"max_shift_px", o.registration.max_shift_px}};
+    j["registration"] = {{"half_window", o.registration.half_window},
+                         {"max_shift_px", o.registration.max_shift_px},
+                         {"min_response", o.registration.min_response}};
   j["lightness_weight"] = o.lightness_weight;
   j["cleanup"] = o.cleanup;
   j["enforce_order"] = o.enforce_order;

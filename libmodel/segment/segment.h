@@ -139,6 +139,7 @@ SliceSource memory_source(std::vector<RgbImage> slices, std::string name = "memo
 struct RegisterOptions {
   int half_window = 8;         // slices each side of the local line (1..100000)
   double max_shift_px = 32;    // a slice-to-slice match beyond this is rejected (taken as 0)
+  double min_response = 0.1;   // a match whose phase-correlation peak is below this is rejected
 };
 
 struct SliceRegistration {
@@ -146,7 +147,8 @@ struct SliceRegistration {
   std::vector<double> response;                // the phase correlation's peak, 0..1 ([0] = 1)
   std::vector<std::array<int, 2>> shift;       // px (x, y) slice z is moved by
   int moved = 0;                               // slices with a non-zero shift
-  int rejected = 0;                            // pairs beyond max_shift_px
+  int rejected = 0;                            // pairs beyond max_shift_px or below min_response
+  std::vector<int> weak;                       // slices with no accepted match to the one before
   int max_shift_px = 0;                        // largest |shift| component
   double min_response = 1;
   double seconds = 0;
