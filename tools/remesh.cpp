@@ -9,6 +9,7 @@
 #include "libmodel/remesh/texture.h"
 #include "tools/common.h"
 
+#include <cctype>
 #include <cmath>
 #include <filesystem>
 #include <iomanip>
@@ -131,9 +132,21 @@ void add_remesh_command(CLI::App& app) {
     } else {
       for (const auto& f : files) names.push_back(std::filesystem::path(f).stem().string());
     }
-    for (std::size_t i = 0; i < names.size(); ++i)
+    // names become files (<name>_quads.obj) and model groups (/quads/<name>):
+    // the tissue table's rule ("sk/in" failed after all the work naming a
+    // temporary path, ".." wrote a hidden file and a group /quads/..)
+    for (std::size_t i = 0; i < names.size(); ++i) {
+      const std::string& n = names[i];
+      bool ok = !n.empty() && n.size() <= 64;
+      for (const char c : n) ok = ok && (std::isalnum(static_cast<unsigned char>(c)) || c == '_' || c == '-');
+      if (!ok)
+        throw UsageError((a.names.empty() ? "the surface " + files[i] + " gives the tissue name '" + n + "'"
+                                          : "--names: '" + n + "'") +
+                         ": tissue names have 1 to 64 letters, digits, '_' or '-'" +
+                         (a.names.empty() ? " (name it with --names)" : ""));
       for (std::size_t j = 0; j < i; ++j)
-        if (names[i] == names[j]) throw UsageError("two surfaces are named '" + names[i] + "': use --names");
+        if (n == names[j]) throw UsageError("two surfaces are named '" + n + "': use --names");
+    }
     if (a.texture && a.stack.empty()) throw UsageError("--texture needs --stack DIR");
     if (!(a.texel_mm >= 0)) throw UsageError("--texel must be >= 0");
     if (a.depth->count() > 0 && !(a.depth_mm >= 0 && std::isfinite(a.depth_mm)))
@@ -184,6 +197,7 @@ void add_remesh_command(CLI::App& app) {
 
     // ---- texture -----------------------------------------------------------------
     TextureImage tex;
+    std::vector<std::string> stale;  // model groups built from the quads this run replaces
     if (a.texture) {
       Phase p(report, "texture");
       std::array<double, 3> spacing{0, 0, 0}, origin{0, 0, 0};
@@ -226,6 +240,18 @@ void add_remesh_command(CLI::App& app) {
       to.depth_m = a.depth->count() > 0 ? a.depth_mm * 1e-3 : -1;
       tex = bake_texture(in[0].surface, r.sweep, o.around, o.arc_window, st, to, names[0]);
       report.metrics()["texture"] = {{"width", tex.width}, {"height", tex.height}, {"outside", tex.outside}};
+      // a texture sampled off the stack is one flat colour (an --origin of
+      // 1000 mm wrote it, exit 0, nothing said): refused when all of it is,
+      // said when much of it is
+      const double texels = static_cast<double>(tex.width) * tex.height;
+      if (texels > 0 && static_cast<double>(tex.outside) >= texels)
+        throw Error(a.stack, "every texel of the texture samples outside the stack: --spacing and --origin (or the "
+                             "model's /volume) do not place the slices around the surface");
+      if (texels > 0 && static_cast<double>(tex.outside) > 0.1 * texels)
+        std::cerr << "orthosim remesh: warning: " << a.stack << ": " << std::fixed << std::setprecision(0)
+                  << 100.0 * static_cast<double>(tex.outside) / texels
+                  << " % of the texture samples outside the stack (clamped to its edge): check --spacing, --origin "
+                     "and --texture-depth\n";
     }
 
     // ---- outputs: the directory, then the model ------------------------------------
@@ -247,6 +273,13 @@ void add_remesh_command(CLI::App& app) {
       if (!a.model.empty()) {
         w.emplace(a.model, ModelWriter::Start::update);
         w->remove("/quads");
+        // what was built and tuned from the old quads describes another mesh
+        // (a 15x5 /quads beside 39x9 /layers and their /tuning, exit 0)
+        for (const char* g : {"/layers", "/tuning", "/provenance/build", "/provenance/tune"})
+          if (w->h5().exists(g)) {
+            w->remove(g);
+            stale.push_back(g);
+          }
         for (std::size_t l = 0; l < r.layers.size(); ++l) w->write(names[l], r.layers[l]);
         w->write("remesh", make_provenance(command_line(), report.json()["inputs"].dump(),
                                            report.parameters().dump(), 0, r.total_s));
@@ -254,6 +287,13 @@ void add_remesh_command(CLI::App& app) {
       dir.commit();
       if (w) w->commit();
     }
+    if (!stale.empty() && !a.common.quiet) {
+      std::string list;
+      for (const auto& g : stale) list += (list.empty() ? "" : ", ") + g;
+      std::cerr << "remesh: removed " << list << " from " << a.model
+                << ": they were built from the quads it replaced (run build, and tune, again)\n";
+    }
+    report.metrics()["removed_groups"] = stale;
     for (const auto& n : names) report.output(a.out + "/" + n + "_quads.obj");
     if (!a.model.empty()) report.output(a.model);
 

@@ -132,4 +132,8 @@ std::vector<double> ordered_blend(const std::vector<double>& x, const std::vecto
 double max_ordered_blend(const std::vector<double>& x, const std::vector<double>& base, double per,
                          double min_spacing_fraction, int steps);
 
+// Distance (m) from each of `points` (rows) to the triangles of `s` (CGAL AABB
+// tree; remesh_cgal.cpp).
+std::vector<double> distances_to_surface(const Surface& s, const MatX3d& points);
+
 }  // namespace orthosim::remesh_detail

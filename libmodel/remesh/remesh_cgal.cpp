@@ -1,5 +1,6 @@
 // Point-to-mesh distances of remesh's evaluation (CGAL AABB tree).
 #include "libmodel/remesh/remesh.h"
+#include "libmodel/remesh/detail.h"
 
 #include <Eigen/Geometry>
 
@@ -43,6 +44,17 @@ std::vector<double> distances(const std::vector<Triangle>& tris, const std::vect
 }
 
 }  // namespace
+
+std::vector<double> remesh_detail::distances_to_surface(const Surface& s, const MatX3d& points) {
+  std::vector<Triangle> tris;
+  tris.reserve(static_cast<std::size_t>(s.faces.rows()));
+  for (Eigen::Index f = 0; f < s.faces.rows(); ++f)
+    tris.emplace_back(P(s.vertices.row(s.faces(f, 0)).transpose()), P(s.vertices.row(s.faces(f, 1)).transpose()),
+                      P(s.vertices.row(s.faces(f, 2)).transpose()));
+  std::vector<Vec3> pts(static_cast<std::size_t>(points.rows()));
+  for (Eigen::Index i = 0; i < points.rows(); ++i) pts[static_cast<std::size_t>(i)] = points.row(i).transpose();
+  return distances(tris, pts);
+}
 
 SurfaceDistance quad_surface_distance(const QuadSurface& q, const Surface& input, const SweepPlane& first,
                                       const SweepPlane& last, int k) {

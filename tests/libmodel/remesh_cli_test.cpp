@@ -4,6 +4,7 @@
 #include "tests/libmodel/remesh_shapes.h"
 #include "tests/test_util.h"
 
+#include <Eigen/Geometry>
 #include <gtest/gtest.h>
 #include <nlohmann/json.hpp>
 #include <opencv2/core.hpp>
@@ -11,6 +12,7 @@
 
 #include <algorithm>
 #include <array>
+#include <cmath>
 #include <filesystem>
 
 using namespace orthosim;
@@ -180,6 +182,62 @@ TEST(RemeshCli, TextureFollowsTheSlicesOrderAndRegistration) {
   EXPECT_FALSE(fs::exists(f / "t_bad"));
 }
 
+// Layers whose cap planes coincide, tilted: every cap vertex of the inner one
+// lies on the outer's cap but for the float32 rounding of the STL (2e-12 m at
+// 0.5 degrees), and the exact containment test called it outside ("not
+// inside"); 5 um is still outside.
+TEST(RemeshCli, TiltedLayersSharingTheirCapPlanesNest) {
+  Files f;
+  const double L = 0.1;
+  const Eigen::Matrix3d R = Eigen::AngleAxisd(5.0 * M_PI / 180, Eigen::Vector3d(1, 0.3, 0).normalized()).toRotationMatrix();
+  auto tilted = [&](Surface s, double push) {
+    for (Eigen::Index i = 0; i < s.vertices.rows(); ++i) {
+      Eigen::Vector3d p = s.vertices.row(i).transpose();
+      if (push != 0 && p.z() > L - 1e-9) p.z() += push;  // the far cap moved out
+      s.vertices.row(i) = (R * p).transpose();
+    }
+    return s;
+  };
+  write_stl(f / "t_skin.stl", tilted(test::cylinder(0.030, L, 96, 32), 0));
+  write_stl(f / "t_fat.stl", tilted(test::cylinder(0.026, L, 96, 32), 0));
+  write_stl(f / "t_out.stl", tilted(test::cylinder(0.026, L, 96, 32), 5e-6));
+  const auto r = test::run_cli("remesh -q --surface " + f / "t_skin.stl" + " --inner " + f / "t_fat.stl" + " --grid 24x6 --out " +
+                               f / "tilted");
+  EXPECT_EQ(r.code, 0) << r.err;
+  expect_usage_error(test::run_cli("remesh -q --surface " + f / "t_skin.stl" + " --inner " + f / "t_out.stl" +
+                                   " --grid 24x6 --out " + f / "t_never"),
+                     "t_out.stl: not inside t_skin", f / "t_never");
+}
+
+// A model that was built and tuned from earlier quads: remesh --model replaces
+// its /quads and removes what was made from them (a 15x5 /quads stood beside
+// 39x9 /layers and their /tuning, exit 0), saying so.
+TEST(RemeshCli, NewQuadsRemoveTheLayersBuiltFromTheOld) {
+  Files f;
+  const std::string model = f / "built.h5";
+  {
+    ModelWriter w(model, ModelWriter::Start::fresh);
+    const double x = 1;
+    w.h5().write<double>("/layers/skin/nodes", &x, {1}, "m");
+    w.h5().write<double>("/tuning/skin/psi", &x, {1}, "1");
+    w.h5().write<double>("/provenance/build/x", &x, {1}, "1");
+    w.commit();
+  }
+  const auto r = test::run_cli("remesh --surface " + f / "skin.stl" + " --inner " + f / "fat.stl" + " --grid 15x5 --out " +
+                               f / "q" + " --model " + model + " --report " + f / "r.json");
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_NE(r.err.find("remesh: removed /layers, /tuning, /provenance/build from " + model +
+                       ": they were built from the quads it replaced (run build, and tune, again)"),
+            std::string::npos)
+      << r.err;
+  ModelReader m(model);
+  EXPECT_TRUE(m.has("/quads/skin"));
+  EXPECT_FALSE(m.h5().exists("/layers"));
+  EXPECT_FALSE(m.h5().exists("/tuning"));
+  EXPECT_FALSE(m.h5().exists("/provenance/build"));
+  EXPECT_EQ(nlohmann::json::parse(test::read_file(f / "r.json"))["metrics"]["removed_groups"].size(), 3u);
+}
+
 TEST(RemeshCli, BadInputExitsTwoWithoutOutput) {
   Files f;
   const std::string out = f / "never";
@@ -198,6 +256,21 @@ TEST(RemeshCli, BadInputExitsTwoWithoutOutput) {
   expect_usage_error(test::run_cli("remesh" + skin + " --inner " + f / "big.stl" + " --out " + out),
                      "big.stl: not inside skin", out);
   expect_usage_error(test::run_cli("remesh --surface " + f / "missing.stl" + " --out " + out), "missing.stl", out);
+  // found by a sweep (2026-11-27): a folder was an "internal error"; names that are
+  // no file or group names failed after all the work naming a temporary path (or
+  // wrote a hidden file and /quads/..); a texture all off the stack was written
+  fs::create_directories(f / "adir");
+  expect_usage_error(test::run_cli("remesh --surface " + f / "adir" + " --out " + out), "adir: is a folder, not an STL file", out);
+  expect_usage_error(test::run_cli("remesh" + skin + " --inner " + f / "adir" + " --out " + out), "is a folder", out);
+  for (const char* bad : {"sk/in,fat", "..,fat", ".,fat", "'skin,f at'"})
+    expect_usage_error(test::run_cli("remesh" + skin + " --inner " + f / "fat.stl" + " --names " + bad + " --out " + out),
+                       "tissue names have 1 to 64 letters, digits, '_' or '-'", out);
+  fs::create_directories(f / "stack1");
+  cv::imwrite(f / "stack1/s0.png", cv::Mat(40, 40, CV_8UC3, cv::Scalar(10, 20, 30)));
+  cv::imwrite(f / "stack1/s1.png", cv::Mat(40, 40, CV_8UC3, cv::Scalar(10, 20, 30)));
+  expect_usage_error(test::run_cli("remesh" + skin + " --out " + out + " --texture --stack " + f / "stack1" +
+                                   " --spacing 1,1,1 --origin 1000,1000,1000"),
+                     "every texel of the texture samples outside the stack", out);
   // the model is not touched either
   const std::string model = f / "m.h5";
   expect_usage_error(test::run_cli("remesh" + skin + " --inner " + f / "big.stl" + " --out " + out + " --model " + model),
