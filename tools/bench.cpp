@@ -165,6 +165,9 @@ int run_program(const std::vector<std::string>& argv, const std::string& log, do
   const pid_t pid = ::fork();
   if (pid < 0) return -2;
   if (pid == 0) {
+    sigset_t none;  // (this process blocks the interrupts but in its signal thread, tools/main.cpp)
+    sigemptyset(&none);
+    ::sigprocmask(SIG_SETMASK, &none, nullptr);
     ::setpgid(0, 0);
     const int fd = ::open(log.c_str(), O_WRONLY | O_CREAT | O_TRUNC, 0644);
     if (fd >= 0) ::dup2(fd, 1), ::dup2(fd, 2), ::close(fd);

@@ -1,7 +1,13 @@
 // orthosim: one executable, one subcommand per pipeline stage.
+#include "libmodel/format/atomic.h"
 #include "tools/common.h"
 
+#include <csignal>
+#include <pthread.h>
+#include <unistd.h>
+
 #include <iostream>
+#include <thread>
 
 namespace orthosim::cli {
 #define ORTHOSIM_DECLARE(name) void add_##name##_command(CLI::App& app);
@@ -70,6 +76,28 @@ int parse_error(CLI::App& app, const CLI::ParseError& e) {
   return 2;
 }
 
+// Interrupts (Ctrl-C, SIGTERM, SIGHUP) go to one thread that removes the
+// temporary outputs not yet committed and then ends the process by the same
+// signal; every other thread blocks them (an interrupted build left a 300 MB
+// ".model.h5.tmp-*" beside the model). In a thread of its own, not a handler,
+// so that the clean-up may lock and use the file system freely. Children
+// (pipeline's parallel stages) get the default mask back at spawn.
+void handle_interrupts() {
+  static sigset_t set;
+  sigemptyset(&set);
+  for (int s : {SIGINT, SIGTERM, SIGHUP}) sigaddset(&set, s);
+  if (pthread_sigmask(SIG_BLOCK, &set, nullptr) != 0) return;
+  std::thread([] {
+    int sig = 0;
+    if (sigwait(&set, &sig) != 0) return;
+    orthosim::remove_uncommitted_outputs();
+    std::signal(sig, SIG_DFL);
+    pthread_sigmask(SIG_UNBLOCK, &set, nullptr);
+    ::kill(::getpid(), sig);  // this thread alone takes it now: the default action ends the process
+    ::_exit(128 + sig);
+  }).detach();
+}
+
 }  // namespace
 
 int run_command(const std::vector<std::string>& args) {
@@ -91,6 +119,7 @@ int run_command(const std::vector<std::string>& args) {
 
 int main(int argc, char** argv) {
   using namespace orthosim::cli;
+  handle_interrupts();  // before any other thread exists, so that all inherit the mask
   for (int i = 0; i < argc; ++i) command_line() += (i ? " " : "") + std::string(argv[i]);
   CLI::App app{"orthosim: colour cryosection stacks to simulation-ready surgical models, and their runtime"};
   app.set_version_flag("--version", std::string("orthosim ") + ORTHOSIM_VERSION);

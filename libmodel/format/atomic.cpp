@@ -7,6 +7,8 @@
 #include <atomic>
 #include <filesystem>
 #include <fstream>
+#include <mutex>
+#include <set>
 #include <system_error>
 
 namespace fs = std::filesystem;
@@ -25,7 +27,34 @@ std::string temp_name(const std::string& target) {
   return (t.parent_path() / name).string();
 }
 
+// the temporaries alive now (never destroyed: the signal thread may use it at exit)
+std::mutex& temps_mutex() {
+  static auto* m = new std::mutex;
+  return *m;
+}
+std::set<std::string>& temps() {
+  static auto* s = new std::set<std::string>;
+  return *s;
+}
+void track(const std::string& temp) {
+  std::lock_guard<std::mutex> lock(temps_mutex());
+  temps().insert(temp);
+}
+void untrack(const std::string& temp) {
+  std::lock_guard<std::mutex> lock(temps_mutex());
+  temps().erase(temp);
+}
+
 }  // namespace
+
+void remove_uncommitted_outputs() {
+  std::lock_guard<std::mutex> lock(temps_mutex());
+  for (const std::string& t : temps()) {
+    std::error_code ec;
+    fs::remove_all(t, ec);
+  }
+  temps().clear();
+}
 
 void check_output_file(const std::string& path) {
   if (path.empty()) throw Error(path, "empty output path");
@@ -61,6 +90,7 @@ void check_output_dir(const std::string& path) {
 AtomicFile::AtomicFile(std::string target) : target_(std::move(target)) {
   check_output_file(target_);
   temp_ = temp_name(target_);
+  track(temp_);
 }
 
 AtomicFile::~AtomicFile() {
@@ -68,6 +98,7 @@ AtomicFile::~AtomicFile() {
     std::error_code ec;
     fs::remove(temp_, ec);
   }
+  untrack(temp_);
 }
 
 void AtomicFile::commit() {
@@ -75,6 +106,7 @@ void AtomicFile::commit() {
   fs::rename(temp_, target_, ec);
   if (ec) throw Error(target_, "cannot move output into place: " + ec.message());
   committed_ = true;
+  untrack(temp_);
 }
 
 AtomicDir::AtomicDir(std::string target) : target_(std::move(target)) {
@@ -83,6 +115,7 @@ AtomicDir::AtomicDir(std::string target) : target_(std::move(target)) {
   while (t.size() > 1 && t.back() == '/') t.pop_back();
   target_ = t;
   temp_ = temp_name(target_);
+  track(temp_);
   std::error_code ec;
   fs::create_directories(temp_, ec);
   if (ec) throw Error(target_, "cannot create temporary directory: " + ec.message());
@@ -93,6 +126,7 @@ AtomicDir::~AtomicDir() {
     std::error_code ec;
     fs::remove_all(temp_, ec);
   }
+  untrack(temp_);
 }
 
 void AtomicDir::commit() {

@@ -7,6 +7,10 @@
 
 #include <gtest/gtest.h>
 #include <nlohmann/json.hpp>
+#include <signal.h>
+#include <spawn.h>
+#include <sys/wait.h>
+#include <unistd.h>
 
 #include <filesystem>
 
@@ -341,5 +345,45 @@ TEST(Cli, SegmentNeedsTheBackgroundColour) {
     expect_refused(r, t, "no background colour");
     EXPECT_FALSE(fs::exists(d / "model.h5"));
     EXPECT_FALSE(fs::exists(d / "model.h5.work"));
+  }
+}
+
+// An interrupted run (SIGTERM, Ctrl-C's SIGINT) leaves no temporary output
+// behind and ends by that signal: a build stopped by `timeout` left a 300 MB
+// ".model.h5.tmp-*" beside the model until 2026-11-27. The phantom's slices
+// go to a temporary folder from the start, so it is interrupted mid-work.
+TEST(Cli, AnInterruptedRunLeavesNoTemporaryFiles) {
+  for (const int sig : {SIGTERM, SIGINT}) {
+    SCOPED_TRACE(sig == SIGTERM ? "SIGTERM" : "SIGINT");
+    test::TempDir d("cli-interrupt");
+    const std::string out = d / "ph";
+    std::vector<std::string> args{ORTHOSIM_BINARY, "phantom", "--out", out, "--size", "384x384x256", "--quiet"};
+    std::vector<char*> argv;
+    for (auto& a : args) argv.push_back(a.data());
+    argv.push_back(nullptr);
+    pid_t pid = 0;
+    ASSERT_EQ(posix_spawn(&pid, argv[0], nullptr, nullptr, argv.data(), environ), 0);
+    // until its temporary folder holds a slice (or 60 s)
+    auto temporaries = [&] {
+      std::vector<std::string> t;
+      for (const auto& e : fs::directory_iterator(d.path))
+        if (e.path().filename().string().rfind(".ph.tmp-", 0) == 0) t.push_back(e.path().string());
+      return t;
+    };
+    bool started = false;
+    for (int k = 0; k < 600 && !started; ++k) {
+      for (const auto& t : temporaries()) {
+        std::error_code ec;
+        if (fs::exists(t + "/slices/slice_0000.png", ec)) started = true;
+      }
+      if (!started) ::usleep(100000);
+    }
+    ASSERT_TRUE(started) << "the phantom never wrote a slice";
+    ASSERT_EQ(::kill(pid, sig), 0);
+    int status = 0;
+    ASSERT_EQ(::waitpid(pid, &status, 0), pid);
+    EXPECT_TRUE(WIFSIGNALED(status) && WTERMSIG(status) == sig) << "status " << status;
+    EXPECT_TRUE(temporaries().empty()) << temporaries().front();
+    EXPECT_FALSE(fs::exists(out));
   }
 }
