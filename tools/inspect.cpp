@@ -3,6 +3,7 @@
 #include "libmodel/format/model.h"
 #include "tools/common.h"
 
+#include <cmath>
 #include <iostream>
 #include <sstream>
 
@@ -39,7 +40,11 @@ json group_attrs(const ModelReader& m, const std::string& group, const std::vect
     } catch (const Error&) {
       try {
         auto v = f.attr_doubles(group, n);
-        a[n] = v.size() == 1 ? json(v[0]) : json(v);
+        // whole numbers (grid sizes, node offsets: int64 in the file) as integers, not "39.0"
+        json arr = json::array();
+        for (double x : v)
+          arr.push_back(std::isfinite(x) && x == std::floor(x) && std::abs(x) < 9e15 ? json(static_cast<std::int64_t>(x)) : json(x));
+        a[n] = v.size() == 1 ? arr[0] : arr;
       } catch (const Error&) {
         a[n] = f.attr_strings(group, n);
       }

@@ -117,6 +117,24 @@ TEST(Cli, InspectSummarisesAModel) {
   r = test::run_cli("inspect " + p);
   EXPECT_EQ(r.code, 0);
   EXPECT_NE(r.out.find("/surfaces/skin"), std::string::npos) << r.out;
+  // whole-number attributes are integers (a grid printed as nu=39.0, node_offset=975.0)
+  {
+    ModelWriter w(p, ModelWriter::Start::update);
+    w.h5().make_groups("/quads/skin");
+    w.h5().set_attr("/quads/skin", "nu", std::int64_t{39});
+    w.h5().set_attr("/quads/skin", "nv", std::int64_t{9});
+    w.h5().set_attr("/quads/skin", "psi", 0.25);
+    w.commit();
+  }
+  r = test::run_cli("inspect " + p + " --json");
+  ASSERT_EQ(r.code, 0) << r.err;
+  j = nlohmann::json::parse(r.out);
+  EXPECT_TRUE(j["summary"]["quads"]["skin"]["nu"].is_number_integer()) << j["summary"]["quads"].dump();
+  EXPECT_EQ(j["summary"]["quads"]["skin"]["nu"], 39);
+  EXPECT_EQ(j["summary"]["quads"]["skin"]["psi"], 0.25);
+  r = test::run_cli("inspect " + p);
+  EXPECT_NE(r.out.find("nu=39"), std::string::npos) << r.out;
+  EXPECT_EQ(r.out.find("nu=39.0"), std::string::npos) << r.out;
 }
 
 TEST(Cli, InspectBadInputsAreOneLineExit2) {
