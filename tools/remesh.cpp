@@ -66,7 +66,8 @@ void add_remesh_command(CLI::App& app) {
   static Args a;
   sub->add_option("--surface", a.surface, "outer closed surface (STL, metres), one tube-like component")->required();
   sub->add_option("--inner", a.inner, "inner surfaces, outer to inner, comma-separated (STL); may have several components");
-  sub->add_option("--names", a.names, "tissue names of the surfaces, comma-separated (default: the file stems)");
+  static CLI::Option* names_flag =
+      sub->add_option("--names", a.names, "tissue names of the surfaces, comma-separated (default: the file stems)");
   sub->add_option("--grid", a.grid, "NUxNV: points around each ring x rings along the axis, each 3..10000 x 2..10000")
       ->capture_default_str();
   sub->add_option("--out", a.out, "output directory: <tissue>_quads.obj, and with --texture the textured skin")
@@ -125,6 +126,7 @@ void add_remesh_command(CLI::App& app) {
     std::vector<std::string> files{a.surface};
     for (const auto& f : split_commas(a.inner)) files.push_back(f);
     std::vector<std::string> names;
+    if (names_flag->count() > 0 && a.names.empty()) throw UsageError("--names: empty (give one name per surface)");
     if (!a.names.empty()) {
       names = split_commas(a.names);
       if (names.size() != files.size())

@@ -226,13 +226,21 @@ void add_vessels_command(CLI::App& app) {
         // the nearest vessel end, to say how far off the point is
         double best = 1e300;
         Eigen::Vector3d at(0, 0, 0);
+        const VesselEnd* nearest = nullptr;
         for (const VesselResult& r : results)
           for (const VesselEnd& e : r.metrics.ends)
-            if ((e.position_m - o.roots_m[i]).norm() < best) best = (e.position_m - o.roots_m[i]).norm(), at = e.position_m;
+            if ((e.position_m - o.roots_m[i]).norm() < best)
+              best = (e.position_m - o.roots_m[i]).norm(), at = e.position_m, nearest = &e;
+        const double voxel = std::max({v.spacing_m[0], v.spacing_m[1], v.spacing_m[2]});
         std::ostringstream m;
-        m << std::fixed << std::setprecision(2) << "--root " << a.roots[i] << ": no vessel end of "
-          << json(tissues).dump() << " within reach (3 radii + 2 voxels); the nearest end is at " << mm(at)
-          << " mm, " << 1e3 * best << " mm away";
+        m << std::fixed << std::setprecision(2) << "--root " << a.roots[i];
+        if (nearest && best <= 3 * nearest->radius_m + 2 * voxel)
+          // in reach, so its tree took another root (it said "no end within reach, 0.03 mm away")
+          m << ": the vessel end at " << mm(at) << " mm (" << 1e3 * best
+            << " mm away) is on a tree another --root has rooted already: one root per tree";
+        else
+          m << ": no vessel end of " << json(tissues).dump() << " within reach (3 radii + 2 voxels); the nearest end is at "
+            << mm(at) << " mm, " << 1e3 * best << " mm away";
         throw UsageError(m.str());
       }
 

@@ -1491,6 +1491,14 @@ RemeshResult remesh_layers(const std::vector<NamedSurface>& layers, const Remesh
             for (std::size_t i = 0; i < in.size(); ++i)
               if (!in[i]) out.push_back(static_cast<Eigen::Index>(i));
             if (out.empty()) return;
+            // a non-finite vertex is outside, and no distance is taken of it
+            // (CGAL's exact fallback traps on a NaN); its layer's own check names it
+            for (const Eigen::Index i : out)
+              if (!pts.row(i).allFinite()) {
+                std::ostringstream m;
+                m << "not inside " << layers[k - 1].name << ": vertex " << i << " has a non-finite coordinate";
+                throw Error(layers[k].name, m.str());
+              }
             // The test is exact; a vertex on the outer surface but for the
             // rounding of its coordinates (the layers share their cap planes,
             // and an STL's float32 moved a tilted cap's vertex 2e-12 m off

@@ -73,7 +73,7 @@ Surface read_stl(const std::string& path) {
   std::error_code ec;
   // (a folder opened as a stream and failed reading: "internal error")
   if (std::filesystem::is_directory(path, ec)) throw Error(path, "is a folder, not an STL file");
-  if (!std::filesystem::exists(path, ec)) throw Error(path, "no such STL file");
+  if (!std::filesystem::exists(path, ec)) throw Error(path, "cannot open STL file: no such file");
   std::ifstream in(path, std::ios::binary);
   if (!in) throw Error(path, "cannot open STL file");
   std::string data((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());

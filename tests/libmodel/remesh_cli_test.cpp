@@ -265,6 +265,7 @@ TEST(RemeshCli, BadInputExitsTwoWithoutOutput) {
   for (const char* bad : {"sk/in,fat", "..,fat", ".,fat", "'skin,f at'"})
     expect_usage_error(test::run_cli("remesh" + skin + " --inner " + f / "fat.stl" + " --names " + bad + " --out " + out),
                        "tissue names have 1 to 64 letters, digits, '_' or '-'", out);
+  expect_usage_error(test::run_cli("remesh" + skin + " --names '' --out " + out), "--names: empty", out);
   fs::create_directories(f / "stack1");
   cv::imwrite(f / "stack1/s0.png", cv::Mat(40, 40, CV_8UC3, cv::Scalar(10, 20, 30)));
   cv::imwrite(f / "stack1/s1.png", cv::Mat(40, 40, CV_8UC3, cv::Scalar(10, 20, 30)));

@@ -258,6 +258,11 @@ TEST(VesselsCli, BadInputIsOneLineExit2AndWritesNothing) {
   const VesselTree& t = f.truth.at("artery");
   const Eigen::Vector3d mid = t.nodes.row(t.branch_nodes((t.branch_offsets(0) + t.branch_offsets(1)) / 2)).transpose();
   expect_error(test::run_cli("vessels" + labels + " --tissue artery --root " + mm(mid) + tail), "no vessel end");
+  // two roots on one tree: the second is in reach of an end, but its tree is taken
+  // (it said "no vessel end ... within reach; the nearest end is ... 0.03 mm away")
+  const Eigen::Vector3d tip = t.nodes.row(t.branch_nodes(t.branch_offsets(2) - 1)).transpose();
+  expect_error(test::run_cli("vessels" + labels + " --tissue artery --root " + mm(tip) + " --root " + mm(tip) + tail),
+               "is on a tree another --root has rooted already: one root per tree");
   expect_error(test::run_cli("vessels" + labels + " --tissue artery --tolerance -1" + tail), "--tolerance");
   expect_error(test::run_cli("vessels" + labels + " --tissue artery --ring-vertices 10" + tail), "--ring-vertices");
   expect_error(test::run_cli("vessels" + labels + " --tissue artery --max-children 5" + tail), "--max-children");
