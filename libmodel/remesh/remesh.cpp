@@ -1490,7 +1490,24 @@ RemeshResult remesh_layers(const std::vector<NamedSurface>& layers, const Remesh
             std::vector<Eigen::Index> out;
             for (std::size_t i = 0; i < in.size(); ++i)
               if (!in[i]) out.push_back(static_cast<Eigen::Index>(i));
-            if (out.empty()) return;
+            const double size = outer.vertices.rows() > 0
+                                    ? (outer.vertices.colwise().maxCoeff() - outer.vertices.colwise().minCoeff()).norm()
+                                    : 0.0;
+            const double tol = 1e-6 * size;  // (below)
+            if (out.empty()) {
+              // inside, but the same surface? Up to 1024 of its vertices all on the
+              // outer one: no thickness between the layers (the same STL given twice
+              // passed, and build refused its "depth -4e-18 m")
+              const Eigen::Index n = pts.rows(), stride = std::max<Eigen::Index>(1, n / 1024);
+              MatX3d q((n + stride - 1) / stride, 3);
+              for (Eigen::Index i = 0, r = 0; i < n; i += stride, ++r) q.row(r) = pts.row(i);
+              const std::vector<double> d = remesh_detail::distances_to_surface(outer, q);
+              if (!d.empty() && *std::max_element(d.begin(), d.end()) <= tol)
+                throw Error(layers[k].name, "lies on " + layers[k - 1].name +
+                                                ": every vertex sampled is on its surface, no thickness between the "
+                                                "layers (the same surface twice?)");
+              return;
+            }
             // a non-finite vertex is outside, and no distance is taken of it
             // (CGAL's exact fallback traps on a NaN); its layer's own check names it
             for (const Eigen::Index i : out)
@@ -1504,10 +1521,6 @@ RemeshResult remesh_layers(const std::vector<NamedSurface>& layers, const Remesh
             // and an STL's float32 moved a tilted cap's vertex 2e-12 m off
             // it: refused as "not inside") is on it. The tolerance is a
             // millionth of the outer surface's size, far below any voxel.
-            const double size = outer.vertices.rows() > 0
-                                    ? (outer.vertices.colwise().maxCoeff() - outer.vertices.colwise().minCoeff()).norm()
-                                    : 0.0;
-            const double tol = 1e-6 * size;
             MatX3d q(static_cast<Eigen::Index>(out.size()), 3);
             for (std::size_t i = 0; i < out.size(); ++i) q.row(static_cast<Eigen::Index>(i)) = pts.row(out[i]);
             const std::vector<double> d = remesh_detail::distances_to_surface(outer, q);

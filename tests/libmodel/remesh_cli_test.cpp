@@ -204,6 +204,10 @@ TEST(RemeshCli, TiltedLayersSharingTheirCapPlanesNest) {
   const auto r = test::run_cli("remesh -q --surface " + f / "t_skin.stl" + " --inner " + f / "t_fat.stl" + " --grid 24x6 --out " +
                                f / "tilted");
   EXPECT_EQ(r.code, 0) << r.err;
+  // the same surface twice has no thickness between its layers (it passed; build refused it)
+  expect_usage_error(test::run_cli("remesh -q --surface " + f / "t_skin.stl" + " --inner " + f / "t_skin.stl" +
+                                   " --names skin,fat --grid 24x6 --out " + f / "t_twice"),
+                     "t_skin.stl: lies on skin: every vertex sampled is on its surface", f / "t_twice");
   expect_usage_error(test::run_cli("remesh -q --surface " + f / "t_skin.stl" + " --inner " + f / "t_out.stl" +
                                    " --grid 24x6 --out " + f / "t_never"),
                      "t_out.stl: not inside t_skin", f / "t_never");
