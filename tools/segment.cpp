@@ -239,7 +239,7 @@ void add_segment_command(CLI::App& app) {
         if (g.weak.size() > 8) list += ", ...";
         std::cerr << "orthosim segment: warning: " << a.stack << ": --register: " << g.weak.size()
                   << " slice(s) match the one before too weakly to be placed by it (phase-correlation peak below "
-                  << a.register_min_response << "; slices " << list
+                  << a.register_min_response << ", or a shift beyond --register-max-shift; slices " << list
                   << "): the slices may lie too far apart for their detail, and those are registered only through "
                      "their other neighbours\n";
       }

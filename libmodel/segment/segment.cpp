@@ -80,12 +80,7 @@ void validate(const SegmentOptions& o) {
   if (!(o.min_body_fraction > 0 && o.min_body_fraction <= 1)) bad("min body fraction must be in (0, 1]");
   if (o.slab < 1 || o.slab > 256) bad("slab must be in 1..256");
   if (o.scratch_memory_bytes < 0) bad("scratch memory must be >= 0");
-  if (o.registration.half_window < 1 || o.registration.half_window > 100000)
-    bad("register half window must be in 1..100000 slices");
-  if (!(o.registration.max_shift_px > 0 && o.registration.max_shift_px <= 1e6))
-    bad("register max shift must be in (0, 1e6] pixels");
-  if (!(o.registration.min_response >= 0 && o.registration.min_response < 1))
-    bad("register min response must be in [0, 1)");
+  validate(o.registration);
 }
 
 std::string segment_parameters_json(const SegmentOptions& o) {

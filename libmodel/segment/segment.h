@@ -148,13 +148,16 @@ struct SliceRegistration {
   std::vector<std::array<int, 2>> shift;       // px (x, y) slice z is moved by
   int moved = 0;                               // slices with a non-zero shift
   int rejected = 0;                            // pairs beyond max_shift_px or below min_response
-  std::vector<int> weak;                       // slices with no accepted match to the one before
+  std::vector<int> weak;                       // slices whose match to the one before was rejected
   int max_shift_px = 0;                        // largest |shift| component
   double min_response = 1;
   double seconds = 0;
 };
 
-// Reads every slice once (and one slice per 8 twice). Deterministic for any
+// Throws Error("", ...) naming the bad option.
+void validate(const RegisterOptions& o);
+
+// Reads every slice once (and two slices per 8 twice). Deterministic for any
 // thread count. Stacks of one slice, or slices under 8 px, are left as they are.
 SliceRegistration register_slices(const SliceSource& src, const RegisterOptions& o = {});
 
