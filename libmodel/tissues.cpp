@@ -9,6 +9,7 @@
 #include <cctype>
 #include <cmath>
 #include <filesystem>
+#include <iomanip>
 #include <fstream>
 #include <map>
 #include <set>
@@ -85,6 +86,15 @@ std::vector<std::array<std::uint8_t, 3>> colours(const json& j, const std::strin
   return out;
 }
 
+// The range tune accepts (tune::validate(Target)): softer than any tissue by
+// decades to stiffer than cortical bone; beyond, a unit slip. build used a k of
+// 1e30 kPa (springs of 1.7e31 N/m, exit 0) that tune then refused.
+void modulus_range(double pa, const char* key, const std::string& path, const std::string& where) {
+  if (!std::isfinite(pa) || pa < 1 || pa > 1e12)
+    throw Error(path, where + ": " + key + " = " + (std::ostringstream() << std::setprecision(10) << pa / 1e3).str() +
+                          " is outside a tissue's range, 1e-3 .. 1e9 kPa (a unit slip?)");
+}
+
 Mechanics parse_mechanics(const json& m, const std::string& path, const std::string& where) {
   Mechanics out;
   if (!m.is_object()) throw Error(path, where + ": 'mechanics' must be an object");
@@ -100,6 +110,8 @@ Mechanics parse_mechanics(const json& m, const std::string& path, const std::str
     out.k2_pa = number(m, "k2_kpa", path, w) * 1e3;
     if (!(out.k1_pa > 0)) throw Error(path, w + ": k1_kpa must be > 0");
     if (!(out.k2_pa > 0)) throw Error(path, w + ": k2_kpa must be > 0");
+    modulus_range(out.k1_pa, "k1_kpa", path, w);
+    modulus_range(out.k2_pa, "k2_kpa", path, w);
     if (out.k2_pa < out.k1_pa) throw Error(path, w + ": k2_kpa must not be smaller than k1_kpa");
     if (!(out.turning_strain > 0 && out.turning_strain < 1))
       throw Error(path, w + ": turning_strain must lie in (0, 1)");
@@ -109,6 +121,7 @@ Mechanics parse_mechanics(const json& m, const std::string& path, const std::str
     out.model = Mechanics::Model::linear;
     out.k_pa = number(m, "k_kpa", path, w) * 1e3;
     if (!(out.k_pa > 0)) throw Error(path, w + ": k_kpa must be > 0");
+    modulus_range(out.k_pa, "k_kpa", path, w);
     out.weights = {1};
   } else {
     throw Error(path, w + ": model must be 'biphasic' or 'linear', not '" + model + "'");
@@ -202,6 +215,8 @@ TissueTable parse_tissue_table(const std::string& text, const std::string& path)
     if (ts.name.size() > 64)
       throw Error(path, "tissue '" + ts.name.substr(0, 32) + "...': names may be at most 64 characters long (this one has " +
                             std::to_string(ts.name.size()) + ")");
+    // /layers/sets holds the model's node sets: a tissue named so had its layer merged into them
+    if (ts.name == "sets") throw Error(path, "tissue 'sets': the name is reserved (the model's node sets); rename the tissue");
     if (ts.name == t.background_name)
       throw Error(path, "tissue '" + ts.name + "' has the background's name (label 0 is the background; rename the tissue)");
     const std::string where = "tissue '" + ts.name + "'";

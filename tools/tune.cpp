@@ -1,6 +1,6 @@
 // orthosim tune --tissues tissues.json [--tissue NAME ...] [--model model.h5] [--seed N] [--budget-s T]
 //   [--max-evaluations N] [--method sa|crs2|isres|direct-l|esch|bobyqa|sbplx|...] [--polish bobyqa|sbplx|none]
-//   [--tolerance X] [--out tuned.json] [--plot DIR]
+//   [--tolerance X] [--per-class] [--out tuned.json] [--plot DIR]
 // Tunes the spring parameters of each tissue with mechanics (paper §4.1,
 // Eq. 1) against its tissue-table values (libmodel/tune/tune.h,
 // docs/tune.md). Without --model the specimen is a 2 x 2 cell block of 1 mm
@@ -169,6 +169,8 @@ void add_tune_command(CLI::App& app) {
   sub->add_option("--budget-s", opt.budget_s, "wall-clock budget per tissue (s)")->capture_default_str();
   sub->add_option("--max-evaluations", opt.max_evaluations,
                   "virtual experiments per tissue (0: no limit); a run bounded by this, not by time, is reproducible")
+      // (1e20 was read as 2^63 - 1, silently)
+      ->check(CLI::Range(std::int64_t{0}, std::int64_t{1'000'000'000'000}))
       ->capture_default_str();
   sub->add_option("--method", opt.method, "sa, an NLopt global algorithm (crs2, isres, direct-l, esch) or an NLopt "
                                           "local one (bobyqa, sbplx, neldermead, cobyla)")
@@ -178,6 +180,9 @@ void add_tune_command(CLI::App& app) {
           ->capture_default_str();
   sub->add_option("--tolerance", opt.tolerance, "stop when every weighted parameter is within this relative error")
       ->capture_default_str();
+  sub->add_flag("--per-class", opt.per_class,
+               "each spring class its own law (default: one law for every class, which keeps the cell's isotropy; "
+               "per class, the stiffness across the load axis is left to the seed)");
   sub->add_option("--out", out, "tuned tissue table (JSON)");
   sub->add_option("--plot", plot_dir, "directory for one stress-strain PNG per tissue");
   add_common_options(sub, common);
@@ -239,11 +244,17 @@ void add_tune_command(CLI::App& app) {
             const Layer l = m.layer_fields(name, {});
             kind[l.tissue] = l.kind;
           }
+        // nor one the model has no layer for (built with --layers without it, or
+        // listed in the table but absent from the data): "run orthosim build first"
+        // was wrong advice for a model built with that table
         std::erase_if(jobs, [&](const Job& j) {
           const auto k = kind.find(j.tissue);
-          if (k == kind.end() || k->second != "rigid") return false;
-          std::cerr << "tune: note: " << model << ": '" << j.tissue << "' is built as a rigid layer (the model's fixed "
-                    << "bottom): not tuned\n";
+          if (k == kind.end()) {
+            std::cerr << "tune: note: " << model << ": '" << j.tissue << "' has no layer in the model: not tuned\n";
+            return true;
+          }
+          if (k->second != "rigid") return false;
+          std::cerr << "tune: note: " << model << ": '" << j.tissue << "' is built as a rigid layer: not tuned\n";
           return true;
         });
         if (jobs.empty()) throw Error(model, "no tissue with mechanics has a tetra or lattice layer in the model");
@@ -263,10 +274,18 @@ void add_tune_command(CLI::App& app) {
     if (!plot_dir.empty() && std::filesystem::exists(plot_dir) && !std::filesystem::is_directory(plot_dir))
       throw Error(plot_dir, "--plot must name a directory");
     if (!plot_dir.empty()) check_output_dir(plot_dir);
+    // a plot's own name taken by a folder failed at the end, after the model had been
+    // updated; checked again, with every other entry, when the plots are committed
+    if (!plot_dir.empty())
+      for (const Job& j : jobs) {
+        const std::filesystem::path png = std::filesystem::path(plot_dir) / (j.tissue + ".png");
+        if (std::filesystem::is_directory(png)) throw Error(png.string(), "a folder is in the way of the plot");
+      }
 
     json params = {{"method", opt.method},         {"polish", opt.polish},       {"polish_share", opt.polish_share},
                    {"seed", opt.seed},             {"budget_s", opt.budget_s},   {"max_evaluations", opt.max_evaluations},
                    {"tolerance", opt.tolerance},   {"walk_sweeps", opt.anneal.walk_sweeps},
+                   {"per_class", opt.per_class},
                    {"tissues", json::array()}};
     for (const Job& j : jobs) params["tissues"].push_back({{"name", j.tissue}, {"experiment", experiment_json(j.experiment)}});
     report.parameters() = params;
@@ -298,7 +317,10 @@ void add_tune_command(CLI::App& app) {
     // a tissue none of whose experiments could be measured has no tuned laws:
     // an error, not a model left silently untuned
     for (const Job& j : jobs)
-      if (j.result.measured.p.empty())
+      if (j.result.evaluations == 0)  // (it said "none converged" of the experiments that never ran)
+        throw UsageError("tissue '" + j.tissue + "': --budget-s " + (std::ostringstream() << opt.budget_s).str() +
+                         " ended before the first virtual experiment ran");
+      else if (j.result.measured.p.empty())
         throw Error(model.empty() ? tissues_path : model,
                     "tissue '" + j.tissue + "': no virtual experiment could be measured (" +
                         (j.result.untuned.failure.empty() ? "none converged" : j.result.untuned.failure) + ")");
@@ -400,9 +422,12 @@ void add_tune_command(CLI::App& app) {
                                          static_cast<std::int64_t>(opt.seed),
                                          std::accumulate(seconds.begin(), seconds.end(), 0.0)));
       }
+      // the plots first: their folder is merged into one that may hold anything
+      // (AtomicDir::commit checks every entry before it moves one); the model and
+      // the table are single renames onto paths checked before the work
+      if (plots) plots->commit(), report.output(plot_dir);
       if (w) w->commit(), report.output(model);
       if (table) table->commit(), report.output(out);
-      if (plots) plots->commit(), report.output(plot_dir);
     }
     report.metrics()["tissues"] = json::array();
     for (const Job& j : jobs) report.metrics()["tissues"].push_back(result_json(j.tissue, j.result));

@@ -137,7 +137,19 @@ void AtomicDir::commit() {
     committed_ = true;
     return;
   }
-  // merge: move each entry, replacing what is there
+  // merge: move each entry, replacing what is there. First check that no entry
+  // is blocked (a folder where a file goes, a file where a folder goes), so that
+  // a merge that cannot finish moves nothing (tune's plot blocked by a folder of
+  // its name failed half-way, after the model had been committed)
+  for (auto it = fs::recursive_directory_iterator(temp_); it != fs::recursive_directory_iterator(); ++it) {
+    const fs::path dst = fs::path(target_) / fs::relative(it->path(), temp_);
+    const fs::file_status st = fs::symlink_status(dst, ec);
+    if (!fs::exists(st)) continue;
+    if (it->is_directory() && !fs::is_directory(st))
+      throw Error(dst.string(), "cannot move output into place: a file is in the way of a folder");
+    if (!it->is_directory() && fs::is_directory(st))
+      throw Error(dst.string(), "cannot move output into place: a folder is in the way of a file");
+  }
   for (auto it = fs::recursive_directory_iterator(temp_); it != fs::recursive_directory_iterator(); ++it) {
     fs::path rel = fs::relative(it->path(), temp_);
     fs::path dst = fs::path(target_) / rel;

@@ -148,10 +148,11 @@ std::string run_nlopt(nlopt::algorithm alg, Evaluator& ev, std::vector<double>& 
 
 // ---- space ----------------------------------------------------------------------------
 
-Space make_space(const Target& q, const std::vector<SpringClass>& classes) {
+Space make_space(const Target& q, const std::vector<SpringClass>& classes, bool tied) {
   if (classes.empty()) throw Error("", "the specimen has no springs to tune");
   Space s;
   s.biphasic = q.biphasic;
+  s.tied = tied;
   s.classes = classes;
   s.base = rule_params(q);
   return s;
@@ -160,8 +161,9 @@ Space make_space(const Target& q, const std::vector<SpringClass>& classes) {
 SpringParams Space::params(const std::vector<double>& x, const Target& q) const {
   if (static_cast<int>(x.size()) != dims()) throw Error("", "tune: wrong number of variables");
   SpringParams p = base;
-  for (std::size_t i = 0; i < classes.size(); ++i) {
-    ClassLaw& l = p[static_cast<std::size_t>(classes[i])];
+  for (std::size_t c = 0; c < classes.size(); ++c) {
+    ClassLaw& l = p[static_cast<std::size_t>(classes[c])];
+    const std::size_t i = tied ? 0 : c;  // the law's variables
     if (biphasic) {
       l.k1_pa = q.k1_pa * std::exp(from_unit(x[3 * i], -kModulusRange, kModulusRange));
       l.turning_strain = q.turning_strain * std::exp(from_unit(x[3 * i + 1], kTurnLo, kTurnHi));
@@ -176,7 +178,7 @@ SpringParams Space::params(const std::vector<double>& x, const Target& q) const 
 
 std::vector<double> Space::start(const Target&) const {
   std::vector<double> x;
-  for (std::size_t i = 0; i < classes.size(); ++i) {
+  for (int i = 0; i < laws(); ++i) {
     if (biphasic) {
       x.push_back(to_unit(0.0, -kModulusRange, kModulusRange));
       x.push_back(to_unit(0.0, kTurnLo, kTurnHi));
@@ -232,7 +234,7 @@ TuneResult tune_specimen(msm::Specimen& specimen, const Target& target, const Ex
   validate(experiment);
   validate(o);
   const Grips grips = sliding_grips(specimen, experiment.axis);
-  const Space space = make_space(target, classes_of(specimen));
+  const Space space = make_space(target, classes_of(specimen), !o.per_class);
 
   TuneResult r;
   r.method = o.method;
@@ -269,10 +271,10 @@ TuneResult tune_specimen(msm::Specimen& specimen, const Target& target, const Ex
         o.max_evaluations > 0 ? std::max<std::int64_t>(1, static_cast<std::int64_t>((1 - share) * o.max_evaluations)) : 0;
     r.stop = run_nlopt(nlopt_global().at(o.method), ev, x, global_evals, (1 - share) * o.budget_s, o.seed, 0);
     if (!ev.reached && o.polish != "none" && !ev.best_x.empty()) {
-      r.method += "+" + o.polish;
       const std::int64_t left = o.max_evaluations > 0 ? o.max_evaluations - ev.evaluations : 0;
       const double time_left = o.budget_s - ev.seconds();
       if ((o.max_evaluations == 0 || left > 0) && time_left > 0) {
+        r.method += "+" + o.polish;  // only when it runs (crs2 --max-evaluations 1 said "crs2+bobyqa")
         x = ev.best_x;
         r.stop = run_nlopt(nlopt_local().at(o.polish), ev, x, left, time_left, o.seed, 0.02);
       }
@@ -361,6 +363,19 @@ void check_layer_law(const Layer& l, const SpringParams& current) {
     if (c < 0 || c >= kSpringClasses) throw Error("", "layer '" + l.tissue + "' has a spring of unknown class");
     const ClassLaw& cur = current[static_cast<std::size_t>(c)];
     if (!(cur.k1_pa > 0)) throw Error("", "layer '" + l.tissue + "': no current law for its spring class " + std::to_string(c));
+    // a NaN passed the law's comparisons below (false either way) and came out of
+    // the tuning as more NaN (its k2, lin_k, lin_damping), exit 0
+    const auto bad = [&](const char* what, double v, bool ok) {
+      if (!std::isfinite(v) || !ok)
+        throw Error("", "layer '" + l.tissue + "': spring " + std::to_string(s) + " has " +
+                            (std::isfinite(v) ? "a non-physical " : "a non-finite ") + what + " (" + std::to_string(v) +
+                            ")");
+    };
+    bad("k1", l.k1(s), l.k1(s) > 0);
+    bad("k2", l.k2(s), l.k2(s) > 0);
+    bad("rest_length", l.rest_length(s), l.rest_length(s) > 0);
+    bad("turning_length", l.turning_length(s), l.turning_length(s) > 0);
+    bad("damping", l.damping(s), l.damping(s) >= 0);
     const double k_per_pa = l.k1(s) / cur.k1_pa;
     // the layer must follow the law it is said to carry
     const double k2_expected = cur.k2_pa * k_per_pa, lt_expected = l.rest_length(s) * (1 + cur.turning_strain);

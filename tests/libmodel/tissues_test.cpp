@@ -70,6 +70,15 @@ TEST(Tissues, RejectsBadTables) {
   expect_error(replace(kGood, "[230, 200, 120]", "[4294967526, 200, 120]"), "rgb values must be integers in 0..255, not 4294967526");
   expect_error(replace(kGood, "[230, 200, 120]", "[-1, 200, 120]"), "rgb values must be integers in 0..255");
   expect_error(replace(kGood, "\"name\": \"fat\"", "\"name\": \"background\""), "tissue 'background' has the background's name");
+  // /layers/sets holds the node sets: build merged a tissue named so into them (sweep of 2026-11-27)
+  expect_error(replace(replace(kGood, "\"name\": \"fat\"", "\"name\": \"sets\""), "\"inside\": \"fat\"", "\"inside\": \"sets\""),
+               "tissue 'sets': the name is reserved");
+  // tune's range: build made springs of 1.7e31 N/m from 1e30 kPa that tune then refused as a unit slip
+  expect_error(replace(kGood, "\"k_kpa\": 2.3", "\"k_kpa\": 1e30"),
+               "tissue 'fat' mechanics: k_kpa = 1e+30 is outside a tissue's range, 1e-3 .. 1e9 kPa (a unit slip?)");
+  expect_error(replace(kGood, "\"k1_kpa\": 0.1", "\"k1_kpa\": 1e-30"), "k1_kpa = 1e-30 is outside a tissue's range");
+  EXPECT_NO_THROW(parse_tissue_table(replace(kGood, "\"k_kpa\": 2.3", "\"k_kpa\": 1e9"), "t.json"));
+  EXPECT_NO_THROW(parse_tissue_table(replace(kGood, "\"k1_kpa\": 0.1", "\"k1_kpa\": 1e-3"), "t.json"));
   expect_error(replace(kGood, "\"model\": \"linear\"", "\"model\": 3"), "mechanics 'model' must be \"linear\" or \"biphasic\", not 3");
   // a unit slip (g/cm^3) and impossible densities were taken, making every node's mass 1000x off
   expect_error(replace(kGood, "\"density_kg_m3\": 950", "\"density_kg_m3\": 0.95"),

@@ -404,3 +404,66 @@ TEST(TuneCli, BadInputIsOneLineExit2AndWritesNothing) {
     expect_refused(d, "--tissues " + (d / "long.json"), "at most 64 characters");
   }
 }
+
+// Found by a sweep on 2026-11-27 (docs/tune.md):
+// - a plot whose name a folder took failed after the model had been re-tuned and
+//   the table written (exit 2, the model changed);
+// - a NaN spring followed "the law" (a comparison with NaN is false) and came out
+//   as more NaN, exit 0;
+// - without --tissue, a tissue the model has no layer for (built with --layers
+//   without it) stopped the run with "run orthosim build first".
+TEST(TuneCli, AFailedTuneChangesNoModel) {
+  test::TempDir d("tune-cli-nopartial");
+  const std::string model = cylinders(d, "m.h5", 15, 5);
+  ASSERT_EQ(test::run_cli("build --model " + model + " --tissues " + kTable + " --quiet").code, 0);
+  const std::string before = test::read_file(model);
+  fs::create_directories((d / "plots") + "/fat.png");
+  const auto r = test::run_cli("tune --tissues " + kTable + " --model " + model + " --tissue fat --max-evaluations 50" +
+                               " --plot " + (d / "plots") + " --out " + (d / "out.json"));
+  EXPECT_EQ(r.code, 2) << r.err;
+  EXPECT_EQ(test::count_lines(r.err), 1) << r.err;
+  EXPECT_NE(r.err.find((d / "plots") + "/fat.png: a folder is in the way of the plot"), std::string::npos) << r.err;
+  EXPECT_EQ(test::read_file(model), before);
+  EXPECT_FALSE(fs::exists(d / "out.json"));
+}
+
+TEST(TuneCli, ANonFiniteSpringIsRefused) {
+  test::TempDir d("tune-cli-nan");
+  const std::string model = cylinders(d, "m.h5", 15, 5);
+  ASSERT_EQ(test::run_cli("build --model " + model + " --tissues " + kTable + " --quiet").code, 0);
+  for (const char* field : {"k1", "rest_length", "damping"}) {
+    const std::string bad = d / (std::string("bad_") + field + ".h5");
+    {
+      fs::copy_file(model, bad, fs::copy_options::overwrite_existing);
+      ModelWriter w(bad, ModelWriter::Start::update);
+      Layer l = ModelReader(model).layer("skin");
+      VecXd* v = std::string(field) == "k1" ? &l.k1 : std::string(field) == "rest_length" ? &l.rest_length : &l.damping;
+      (*v)(5) = std::nan("");
+      w.remove("/layers/skin");
+      w.write_layer("skin", l);
+      w.commit();
+    }
+    const std::string before = test::read_file(bad);
+    const auto r = test::run_cli("tune --tissues " + kTable + " --model " + bad + " --tissue skin --max-evaluations 50");
+    EXPECT_EQ(r.code, 2) << field << "\n" << r.err;
+    EXPECT_EQ(test::count_lines(r.err), 1) << r.err;
+    EXPECT_NE(r.err.find(bad + ": layer 'skin': spring 5 has a non-finite " + field), std::string::npos) << r.err;
+    EXPECT_EQ(test::read_file(bad), before) << field;
+  }
+}
+
+TEST(TuneCli, ATissueWithoutALayerIsNotTunedByDefault) {
+  test::TempDir d("tune-cli-subset");
+  const std::string model = cylinders(d, "m.h5", 15, 5);
+  ASSERT_EQ(test::run_cli("build --model " + model + " --tissues " + kTable + " --layers skin:tetra --quiet").code, 0);
+  const auto r = test::run_cli("tune --tissues " + kTable + " --model " + model + " --max-evaluations 100 --quiet");
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_NE(r.err.find("tune: note: " + model + ": 'muscle' has no layer in the model: not tuned"), std::string::npos)
+      << r.err;
+  ModelReader m(model);
+  EXPECT_TRUE(m.has("/tuning/skin"));
+  EXPECT_FALSE(m.has("/tuning/muscle"));
+  // named, it is still an error
+  const auto named = test::run_cli("tune --tissues " + kTable + " --model " + model + " --tissue muscle --max-evaluations 50");
+  EXPECT_EQ(named.code, 2) << named.err;
+}
