@@ -89,9 +89,10 @@ std::vector<std::array<std::uint8_t, 3>> colours(const json& j, const std::strin
 // The range tune accepts (tune::validate(Target)): softer than any tissue by
 // decades to stiffer than cortical bone; beyond, a unit slip. build used a k of
 // 1e30 kPa (springs of 1.7e31 N/m, exit 0) that tune then refused.
-void modulus_range(double pa, const char* key, const std::string& path, const std::string& where) {
-  if (!std::isfinite(pa) || pa < 1 || pa > 1e12)
-    throw Error(path, where + ": " + key + " = " + (std::ostringstream() << std::setprecision(10) << pa / 1e3).str() +
+// (kPa as the table gives it: 1e308 kPa is infinite in Pa)
+void modulus_range(double kpa, const char* key, const std::string& path, const std::string& where) {
+  if (kpa < 1e-3 || kpa > 1e9)
+    throw Error(path, where + ": " + key + " = " + (std::ostringstream() << std::setprecision(10) << kpa).str() +
                           " is outside a tissue's range, 1e-3 .. 1e9 kPa (a unit slip?)");
 }
 
@@ -105,13 +106,14 @@ Mechanics parse_mechanics(const json& m, const std::string& path, const std::str
   if (model == "biphasic") {
     check_keys(m, {"model", "k1_kpa", "turning_strain", "k2_kpa", "weights", "note", "tuned"}, path, w);
     out.model = Mechanics::Model::biphasic;
-    out.k1_pa = number(m, "k1_kpa", path, w) * 1e3;
+    const double k1_kpa = number(m, "k1_kpa", path, w), k2_kpa = number(m, "k2_kpa", path, w);
+    out.k1_pa = k1_kpa * 1e3;
     out.turning_strain = number(m, "turning_strain", path, w);
-    out.k2_pa = number(m, "k2_kpa", path, w) * 1e3;
+    out.k2_pa = k2_kpa * 1e3;
     if (!(out.k1_pa > 0)) throw Error(path, w + ": k1_kpa must be > 0");
     if (!(out.k2_pa > 0)) throw Error(path, w + ": k2_kpa must be > 0");
-    modulus_range(out.k1_pa, "k1_kpa", path, w);
-    modulus_range(out.k2_pa, "k2_kpa", path, w);
+    modulus_range(k1_kpa, "k1_kpa", path, w);
+    modulus_range(k2_kpa, "k2_kpa", path, w);
     if (out.k2_pa < out.k1_pa) throw Error(path, w + ": k2_kpa must not be smaller than k1_kpa");
     if (!(out.turning_strain > 0 && out.turning_strain < 1))
       throw Error(path, w + ": turning_strain must lie in (0, 1)");
@@ -119,9 +121,10 @@ Mechanics parse_mechanics(const json& m, const std::string& path, const std::str
   } else if (model == "linear") {
     check_keys(m, {"model", "k_kpa", "weights", "note", "tuned"}, path, w);
     out.model = Mechanics::Model::linear;
-    out.k_pa = number(m, "k_kpa", path, w) * 1e3;
+    const double k_kpa = number(m, "k_kpa", path, w);
+    out.k_pa = k_kpa * 1e3;
     if (!(out.k_pa > 0)) throw Error(path, w + ": k_kpa must be > 0");
-    modulus_range(out.k_pa, "k_kpa", path, w);
+    modulus_range(k_kpa, "k_kpa", path, w);
     out.weights = {1};
   } else {
     throw Error(path, w + ": model must be 'biphasic' or 'linear', not '" + model + "'");

@@ -4,10 +4,12 @@
 #include "libmodel/format/model.h"
 #include "libmodel/provenance.h"
 
+#include <charconv>
 #include <unistd.h>
 
 #include <algorithm>
 #include <array>
+#include <charconv>
 #include <cmath>
 #include <filesystem>
 #include <iostream>
@@ -309,11 +311,20 @@ std::vector<double> parse_list(const std::string& text, int n, const std::string
   std::vector<double> out;
   std::stringstream s(text);
   std::string part;
+  // decimal numbers only: std::stod took hexadecimal, and the typo 0x8 for 0.8
+  // became 8 mm silently; a trailing comma was dropped (sweep of 2026-11-27)
+  if (!text.empty() && text.back() == ',')
+    throw UsageError(flag + ": expected " + std::to_string(n) + " numbers like 0.3,0.3,1.0, got '" + text + "'");
   while (std::getline(s, part, ',')) {
     try {
-      std::size_t used = 0;
-      double v = std::stod(part, &used);
-      if (used != part.size()) throw std::invalid_argument("junk");
+      const auto b = part.find_first_not_of(" \t"), e = part.find_last_not_of(" \t");
+      if (b == std::string::npos) throw std::invalid_argument("empty");
+      const char* first = part.data() + b;
+      const char* last = part.data() + e + 1;
+      if (*first == '+') ++first;
+      double v = 0;
+      const auto [ptr, ec] = std::from_chars(first, last, v, std::chars_format::general);
+      if (ec != std::errc() || ptr != last) throw std::invalid_argument("junk");
       if (!std::isfinite(v)) throw std::invalid_argument("inf");
       if (positive && !(v > 0)) throw UsageError(flag + ": values must be positive, got '" + text + "'");
       out.push_back(v);

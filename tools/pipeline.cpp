@@ -20,6 +20,7 @@
 #include "libmodel/pipeline/cache.h"
 #include "libmodel/provenance.h"
 #include "libmodel/remesh/remesh.h"
+#include "libmodel/segment/segment.h"
 #include "libmodel/tissues.h"
 #include "libmodel/tune/experiment.h"
 #include "tools/common.h"
@@ -475,7 +476,8 @@ int run_stages(Args a, Report& report) {
       }
     }
 
-  const std::string stack_hash = hash_path(a.stack), table_hash = hash_path(a.tissues);
+  // the slices segment reads, not every file in the folder (a .DS_Store re-ran every stage)
+  const std::string stack_hash = hash_stack(a.stack), table_hash = hash_path(a.tissues);
   Runner run(a, report);
   try {
     // 1. segment

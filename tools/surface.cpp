@@ -388,7 +388,7 @@ void add_surface_command(CLI::App& app) {
         const SurfaceMetrics& m = results[i].metrics;
         std::cout << "  " << std::left << std::setw(8) << names[i] << std::right << " " << m.faces << " faces (of "
                   << m.extracted_faces << "), volume " << std::setprecision(2) << m.volume_m3 * 1e6 << " cm^3, euler "
-                  << m.euler << ", self-intersections " << m.self_intersections << ", " << std::setprecision(0)
+                  << m.euler << ", self-intersections " << (m.self_intersections < 0 ? std::string("not checked") : std::to_string(m.self_intersections)) << ", " << std::setprecision(0)
                   << m.total_s() * 1e3 << " ms\n";
       }
     }

@@ -2,6 +2,7 @@
 
 #include "libmodel/format/atomic.h"
 
+#include <array>
 #include <algorithm>
 #include <cmath>
 #include <cstring>
@@ -193,6 +194,19 @@ Volume ModelReader::volume() const {
   if (const std::string why = voxel_geometry_problem(v.spacing_m, v.origin_m); !why.empty())
     throw Error(path(), "/volume: " + why);
   v.label_names = file_.attr_strings(g, "label_names");
+  // every label with voxels needs a name: surface crashed (a label past the
+  // names, SIGSEGV after its output was committed) or left the label out
+  // silently (an empty name) (sweep of 2026-11-27)
+  std::array<bool, 256> present{};
+  for (std::uint8_t l : v.labels) present[l] = true;
+  for (std::size_t l = 1; l < present.size(); ++l) {
+    if (!present[l]) continue;
+    if (l >= v.label_names.size())
+      throw Error(path(), "/volume/labels holds label " + std::to_string(l) + " but label_names has " +
+                              std::to_string(v.label_names.size()) + " entries");
+    if (v.label_names[l].empty())
+      throw Error(path(), "/volume/labels holds label " + std::to_string(l) + ", which label_names leaves unnamed");
+  }
   return v;
 }
 

@@ -85,6 +85,11 @@ bool natural_less(const std::string& a, const std::string& b);
 // tiff, bmp, any case; hidden files ignored), as full paths in natural order.
 // Throws Error(dir, ...) if the folder is missing or holds no image.
 std::vector<std::string> list_stack(const std::string& dir);
+// The content hash of a stack as segment reads it: the files list_stack gives,
+// their names in that order and their bytes ("xxh3:..."). A hidden file or a
+// note beside the slices does not change it (hash_path of the folder did: the
+// pipeline re-ran every stage and the model's provenance changed).
+std::string hash_stack(const std::string& dir);
 
 // One decoded 8-bit RGB image, row-major, x fastest: rgb[(y*nx + x)*3 + c].
 struct RgbImage {

@@ -1,6 +1,7 @@
 // Slice stacks: listing in natural order, decoding with checks, sources.
 #include "libmodel/format/atomic.h"
 #include "libmodel/segment/segment.h"
+#include "libmodel/provenance.h"
 
 #include <opencv2/core.hpp>
 #include <opencv2/imgcodecs.hpp>
@@ -148,6 +149,17 @@ std::vector<std::string> list_stack(const std::string& dir) {
   std::vector<std::string> out;
   for (const auto& n : names) out.push_back((fs::path(dir) / n).string());
   return out;
+}
+
+std::string hash_stack(const std::string& dir) {
+  std::string parts;
+  for (const std::string& f : list_stack(dir)) {
+    parts += fs::path(f).filename().string();
+    parts += '\0';
+    parts += hash_path(f);
+    parts += '\0';
+  }
+  return "xxh3:" + hash_bytes(parts.data(), parts.size());
 }
 
 RgbImage read_slice(const std::string& path, SliceFormat* format) {

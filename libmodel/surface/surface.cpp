@@ -949,6 +949,10 @@ double signed_volume(const Surface& s) { return volume_area(s)[0]; }
 
 // ---- options -------------------------------------------------------------------------------------
 
+// The most Taubin smoothing may grow the band it passes, over all iterations
+// (validate below).
+constexpr double kMaxTaubinGain = 1.1;
+
 void validate(const SurfaceOptions& o) {
   auto bad = [](const std::string& m) { throw Error("", m); };
   if (!(o.sigma_vox >= 0 && o.sigma_vox <= 4)) bad("sigma: must be in [0, 4] voxels, got " + std::to_string(o.sigma_vox));
@@ -961,6 +965,29 @@ void validate(const SurfaceOptions& o) {
     bad("taubin-lambda: must be in (0, 1), got " + std::to_string(o.taubin_lambda));
   if (!(o.taubin_mu > -1 && o.taubin_mu < -o.taubin_lambda))
     bad("taubin-mu: must be in (-1, -lambda), got " + std::to_string(o.taubin_mu));
+  // Taubin's filter multiplies the mesh's frequency k (an eigenvalue of the
+  // umbrella Laplacian, in [0, 2]) by f(k) = (1 - lambda k)(1 - mu k) per
+  // iteration. Past 1/lambda it must not grow: |f(2)| <= 1 (lambda 0.99, mu
+  // -0.995: f(2) = -2.9, surface hung or blew up). Its passband grows by
+  // f(k*) = 1 + (lambda + mu)^2 / (4 |lambda mu|) > 1 per iteration, at
+  // k* = (lambda + mu) / (2 lambda mu): over all iterations at most
+  // kMaxTaubinGain (the defaults' 1000 iterations grew it 2.3x and the bone
+  // 30 % in volume) (sweep of 2026-11-27)
+  if (o.smooth_iterations > 0) {
+    const auto num = [](double v) { return (std::ostringstream() << std::setprecision(4) << v).str(); };
+    const double l = o.taubin_lambda, m = o.taubin_mu, f2 = (1 - 2 * l) * (1 - 2 * m);
+    if (std::abs(f2) > 1)
+      bad("taubin-lambda and --taubin-mu: lambda " + num(l) + " and mu " + num(m) +
+          " grow the finest detail " + num(std::abs(f2)) +
+          "x per iteration, |(1 - 2 lambda)(1 - 2 mu)| (at most 1: lambda nearer 0.5, or mu nearer -lambda)");
+    const double peak = 1 + (l + m) * (l + m) / (4 * std::abs(l * m));
+    const double gain = std::exp(o.smooth_iterations * std::log(peak));
+    if (gain > kMaxTaubinGain)
+      bad("smooth-iterations: " + std::to_string(o.smooth_iterations) + " iterations of lambda " + num(l) + ", mu " +
+          num(m) + " grow the band Taubin passes " + num(gain) + "x (at most " + num(kMaxTaubinGain) + "x: at most " +
+          std::to_string(static_cast<long long>(std::log(kMaxTaubinGain) / std::log(peak))) +
+          " iterations, or mu nearer -lambda)");
+  }
   if (o.target_faces < 0) bad("target-faces: must be >= 0, got " + std::to_string(o.target_faces));
   if (o.target_faces > 0 && o.target_faces < 4) bad("target-faces: must be 0 (keep all) or >= 4, got " + std::to_string(o.target_faces));
   if (!(o.nest_clearance_vox >= 0 && o.nest_clearance_vox <= 1))

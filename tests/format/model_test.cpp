@@ -269,3 +269,35 @@ TEST(ModelFile, BadFilesFailWithClearMessages) {
   ModelReader ok(good);
   expect_error([&] { ok.vessels("artery"); }, "missing group");
 }
+
+// Every label with voxels needs a name: surface crashed (SIGSEGV, after its
+// output folder was committed) on labels past label_names, and left out an
+// unnamed label silently (sweep of 2026-11-27). Labels without voxels may
+// stay unnamed (a table with labels 200 and 255 names 256 entries, most "").
+TEST(ModelFile, EveryLabelWithVoxelsHasAName) {
+  test::TempDir dir("model-labels");
+  auto volume_of = [&](const std::string& name, const std::vector<std::string>& names) {
+    Volume v = small_volume();
+    v.label_names = names;
+    const std::string p = dir / name;
+    ModelWriter w(p, ModelWriter::Start::fresh);
+    w.write(v);
+    w.commit();
+    return p;
+  };
+  auto error_of = [](const std::string& p) {
+    try {
+      ModelReader(p).volume();
+    } catch (const Error& e) {
+      return std::string(e.what());
+    }
+    return std::string();
+  };
+  const std::string shortp = volume_of("short.h5", {"background", "skin"});
+  EXPECT_EQ(error_of(shortp), shortp + ": /volume/labels holds label 2 but label_names has 2 entries");
+  const std::string empty = volume_of("empty.h5", {"background", "skin", "", "muscle"});
+  EXPECT_EQ(error_of(empty), empty + ": /volume/labels holds label 2, which label_names leaves unnamed");
+  std::vector<std::string> sparse(256);
+  sparse[0] = "background", sparse[1] = "skin", sparse[2] = "fat", sparse[3] = "muscle";
+  EXPECT_EQ(error_of(volume_of("sparse.h5", sparse)), "");
+}

@@ -134,7 +134,8 @@ TEST(SegmentCli, NotAnImage) {
 
 TEST(SegmentCli, BadSpacingAndTable) {
   test::TempDir d("segcli-flags");
-  for (const char* spacing : {"0,1,1", "1,-1,1", "1,1", "a,b,c", "nan,1,1"}) {
+  // hexadecimal (0x8 for 0.8 was 8 mm) and a trailing comma were taken (sweep of 2026-11-27)
+  for (const char* spacing : {"0,1,1", "1,-1,1", "1,1", "a,b,c", "nan,1,1", "0x8,1,1", "0x1p-1,1,1", "1,1,2,", "1,1,2 x"}) {
     const auto r = test::run_cli("segment --stack " + stack().slices + " --tissues " + stack().tissues + " --spacing " +
                                  spacing + " --out " + (d / "o.h5") + " --quiet");
     EXPECT_EQ(r.code, 2) << spacing << ": " << r.err;

@@ -690,6 +690,20 @@ TEST(SurfaceOptionsTest, Validate) {
   bad([](SurfaceOptions& o) { o.taubin_mu = -0.4; });
   bad([](SurfaceOptions& o) { o.smooth_iterations = -1; });
   bad([](SurfaceOptions& o) { o.border_offset = 0; });
+  // Taubin's filter must not grow the finest detail, |(1 - 2 lambda)(1 - 2 mu)| <= 1
+  // (0.99 / -0.995 hung surface or blew the bone up; 0.1 / -0.2 grows it 1.12x),
+  // nor its passband more than 1.1x over all iterations (the defaults' 1000
+  // iterations: 2.3x, the bone 30 % larger; 112 is their most) (sweep of 2026-11-27)
+  bad([](SurfaceOptions& o) { o.taubin_lambda = 0.99, o.taubin_mu = -0.995; });
+  bad([](SurfaceOptions& o) { o.taubin_lambda = 0.1, o.taubin_mu = -0.2; });
+  bad([](SurfaceOptions& o) { o.smooth_iterations = 113; });
+  {
+    SurfaceOptions ok;
+    ok.smooth_iterations = 112;
+    EXPECT_NO_THROW(validate(ok));
+    ok.taubin_lambda = 0.99, ok.taubin_mu = -0.995, ok.smooth_iterations = 0;  // no smoothing: not checked
+    EXPECT_NO_THROW(validate(ok));
+  }
   Volume empty = voxelise(8, 8, 8, {1e-3, 1e-3, 1e-3}, {0, 0, 0}, [](const Eigen::Vector3d&) { return 0; });
   EXPECT_THROW(extract_surface(empty, {1}, SurfaceOptions{}), Error);
 }
