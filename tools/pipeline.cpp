@@ -717,6 +717,22 @@ int run_stages(Args a, Report& report) {
         for (const auto& tissue : layered) copy_path(fs::path(dirs["surface"]) / (tissue + ".stl"), t / "surfaces" / (tissue + ".stl"));
       for (const auto& [stage, dir] : dirs) copy_path(fs::path(dir) / "report.json", t / "reports" / (stage + ".json"));
       out.commit();
+      // the folder holds this run's outputs: the export's own entries that this run
+      // did not write are an earlier run's and go (a run with --no-tune after a tuned
+      // one left tune/, tuned_tissues.json and reports/tune.json beside the untuned
+      // model; sweep of 2026-11-27). Other files stay.
+      std::vector<fs::path> stale;
+      for (const auto& [stage, from, to] : kExportItems)
+        if (!dirs.count(stage)) stale.push_back(fs::path(a.export_dir) / to);
+      for (const char* stage : {"segment", "surface", "remesh", "build", "tune", "vessels", "assemble"})
+        if (!dirs.count(stage)) stale.push_back(fs::path(a.export_dir) / "reports" / (std::string(stage) + ".json"));
+      for (const Tissue& t : table.tissues)
+        if (!dirs.count("surface") || std::find(layered.begin(), layered.end(), t.name) == layered.end())
+          stale.push_back(fs::path(a.export_dir) / "surfaces" / (t.name + ".stl"));
+      for (const fs::path& p : stale) {
+        std::error_code ec;
+        if (fs::exists(fs::symlink_status(p, ec)) && fs::remove_all(p, ec) > 0) report.metrics()["export_removed"].push_back(p.string());
+      }
       report.output(a.export_dir);
     }
   } catch (const Runner::StageFailed& f) {

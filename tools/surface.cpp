@@ -317,6 +317,22 @@ void add_surface_command(CLI::App& app) {
       dir.commit();
       if (w) w->commit();
     }
+    // DIR holds this run's surfaces: the STL of another tissue of the volume's
+    // table is an earlier run's, of another volume or selection, and goes (a
+    // marrow.stl of a volume without marrow stood beside the new surfaces;
+    // sweep of 2026-11-27)
+    std::vector<std::string> removed;
+    for (const std::string& t : v.label_names) {
+      if (t.empty() || std::find(names.begin(), names.end(), t) != names.end()) continue;
+      const std::filesystem::path stale = std::filesystem::path(a.out) / (t + ".stl");
+      std::error_code ec;
+      if (std::filesystem::is_regular_file(stale, ec) && std::filesystem::remove(stale, ec)) removed.push_back(stale.string());
+    }
+    if (!removed.empty()) {
+      report.metrics()["removed_stale"] = removed;
+      if (!a.common.quiet)
+        for (const auto& r : removed) std::cerr << "surface: removed " << r << ": an earlier run's, not written by this one\n";
+    }
     for (const auto& n : names) report.output(a.out + "/" + n + ".stl");
     if (!a.model.empty()) report.output(a.model);
 

@@ -3,10 +3,14 @@
 #include "libmodel/segment/segment.h"
 #include "libmodel/provenance.h"
 
+#include <jpeglib.h>
 #include <opencv2/core.hpp>
+#include <opencv2/core/utils/logger.hpp>
 #include <opencv2/imgcodecs.hpp>
 
 #include <algorithm>
+#include <csetjmp>
+#include <cstdio>
 #include <array>
 #include <cctype>
 #include <filesystem>
@@ -98,6 +102,53 @@ std::uint32_t be32(const std::uint8_t* p) {
          static_cast<std::uint32_t>(p[2]) << 8 | p[3];
 }
 
+// libjpeg's errors and warnings, each a failure: under OpenCV a warning
+// ("Corrupt JPEG data: premature end of data segment") went to stderr and the
+// slice came back with decoder fill, segmented as tissue (sweep of 2026-11-27).
+struct JpegErrors {
+  jpeg_error_mgr mgr;  // first: libjpeg sees a jpeg_error_mgr*
+  std::jmp_buf jump;
+  char message[JMSG_LENGTH_MAX];
+};
+[[noreturn]] void jpeg_fail(j_common_ptr c) {
+  auto* e = reinterpret_cast<JpegErrors*>(c->err);
+  (*c->err->format_message)(c, e->message);
+  std::longjmp(e->jump, 1);
+}
+void jpeg_message(j_common_ptr c, int level) {
+  if (level < 0) jpeg_fail(c);  // -1: a warning (corrupt data); >= 0: trace messages, ignored
+}
+
+// Decodes the whole entropy-coded stream (at 1/8 scale: every Huffman code is
+// read, the inverse transforms are the DC terms only) and throws on the first
+// error or warning. Only C objects live between setjmp and longjmp.
+void check_jpeg_data(const std::string& path, const std::vector<std::uint8_t>& b) {
+  jpeg_decompress_struct cinfo{};
+  JpegErrors err{};
+  cinfo.err = jpeg_std_error(&err.mgr);
+  err.mgr.error_exit = jpeg_fail;
+  err.mgr.emit_message = jpeg_message;
+  if (setjmp(err.jump)) {
+    jpeg_destroy_decompress(&cinfo);
+    std::string what = err.message;  // libjpeg's own warnings start "Corrupt JPEG data: "
+    if (what.rfind("Corrupt JPEG data: ", 0) == 0) what.erase(0, 19);
+    throw Error(path, "corrupt JPEG: " + what);
+  }
+  jpeg_create_decompress(&cinfo);
+  jpeg_mem_src(&cinfo, b.data(), static_cast<unsigned long>(b.size()));
+  jpeg_read_header(&cinfo, TRUE);
+  cinfo.scale_num = 1;
+  cinfo.scale_denom = 8;
+  cinfo.dct_method = JDCT_IFAST;
+  cinfo.do_fancy_upsampling = FALSE;
+  jpeg_start_decompress(&cinfo);
+  JSAMPARRAY row = (*cinfo.mem->alloc_sarray)(reinterpret_cast<j_common_ptr>(&cinfo), JPOOL_IMAGE,
+                                              cinfo.output_width * static_cast<JDIMENSION>(cinfo.output_components), 1);
+  while (cinfo.output_scanline < cinfo.output_height) jpeg_read_scanlines(&cinfo, row, 1);
+  jpeg_finish_decompress(&cinfo);
+  jpeg_destroy_decompress(&cinfo);
+}
+
 // Structural checks before decoding, so that a corrupt file gives one clear
 // error instead of a decoder's messages on stderr or a half-grey image.
 void check_container(const std::string& path, const std::vector<std::uint8_t>& b) {
@@ -124,9 +175,10 @@ void check_container(const std::string& path, const std::vector<std::uint8_t>& b
   if (b.size() >= 2 && b[0] == 0xFF && b[1] == 0xD8) {
     // the end-of-image marker must be there (allow trailing padding)
     const std::size_t from = b.size() > 4096 ? b.size() - 4096 : 2;
-    for (std::size_t i = b.size() - 1; i > from; --i)
-      if (b[i - 1] == 0xFF && b[i] == 0xD9) return;
-    throw Error(path, "corrupt JPEG: truncated (no end-of-image marker)");
+    bool eoi = false;
+    for (std::size_t i = b.size() - 1; i > from && !eoi; --i) eoi = b[i - 1] == 0xFF && b[i] == 0xD9;
+    if (!eoi) throw Error(path, "corrupt JPEG: truncated (no end-of-image marker)");
+    check_jpeg_data(path, b);
   }
 }
 
@@ -163,6 +215,13 @@ std::string hash_stack(const std::string& dir) {
 }
 
 RgbImage read_slice(const std::string& path, SliceFormat* format) {
+  // OpenCV's own log lines ("[ WARN:0@0.037] global .../grfmt_tiff.cpp ...") stood
+  // beside orthosim's one-line error on a corrupt TIFF or BMP
+  static const bool silenced = [] {
+    cv::utils::logging::setLogLevel(cv::utils::logging::LOG_LEVEL_SILENT);
+    return true;
+  }();
+  (void)silenced;
   const std::vector<std::uint8_t> bytes = read_bytes(path);
   check_container(path, bytes);
   cv::Mat m;

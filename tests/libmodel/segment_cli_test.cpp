@@ -124,6 +124,29 @@ TEST(SegmentCli, TruncatedSlice) {
                  "corrupt");
 }
 
+// A JPEG cut in half with its end-of-image marker put back: libjpeg warned on
+// stderr ("premature end of data segment", twice) and the slice's lower half
+// was decoder fill, segmented as tissue, exit 0 (sweep of 2026-11-27).
+TEST(SegmentCli, CorruptJpegDataIsRefused) {
+  test::TempDir d("segcli-jpeg");
+  const std::string folder = d / "slices";
+  fs::create_directories(folder);
+  for (const auto& e : fs::directory_iterator(stack().slices)) {
+    const cv::Mat m = cv::imread(e.path().string(), cv::IMREAD_COLOR);
+    ASSERT_FALSE(m.empty());
+    ASSERT_TRUE(cv::imwrite(folder + "/" + e.path().stem().string() + ".jpg", m, {cv::IMWRITE_JPEG_QUALITY, 95}));
+  }
+  // the intact JPEG stack segments
+  const auto ok = test::run_cli(segment_args(folder, d / "ok.h5"));
+  ASSERT_EQ(ok.code, 0) << ok.err;
+  EXPECT_EQ(ok.err, "");
+  const std::string victim = first_slice(folder);
+  const std::string bytes = test::read_file(victim);
+  test::write_file(victim, bytes.substr(0, bytes.size() / 2) + "\xff\xd9");
+  expect_refused(test::run_cli(segment_args(folder, d / "o.h5")), d / "o.h5", fs::path(victim).filename().string(),
+                 "corrupt JPEG: premature end of data segment");
+}
+
 TEST(SegmentCli, NotAnImage) {
   test::TempDir d("segcli-text");
   const std::string folder = copy_slices(d);

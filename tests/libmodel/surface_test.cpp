@@ -779,6 +779,29 @@ void expect_bad(const std::string& args, const std::string& needle) {
 
 }  // namespace
 
+// DIR holds one run's surfaces: a vein.stl from the volume with a vein stood
+// beside the surfaces of the volume without one (sweep of 2026-11-27). Other
+// files stay.
+TEST(SurfaceCli, AnEarlierRunsSurfacesGo) {
+  const CliFiles& f = cli_files();
+  test::TempDir out("surface-stale");
+  const std::string dir = out / "stl";
+  ASSERT_EQ(test::run_cli("surface --labels " + (f / "labels.h5") + " --out " + dir + " --tissues skin,vein --quiet").code, 0);
+  ASSERT_TRUE(fs::exists(dir + "/vein.stl"));
+  test::write_file(dir + "/notes.txt", "mine");
+  test::write_file(dir + "/tendon.stl", "not a tissue of this volume");
+  const test::RunResult r = test::run_cli("surface --labels " + (f / "novein.h5") + " --out " + dir + " --tissues skin" +
+                                          " --report " + (out / "r.json"));
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_FALSE(fs::exists(dir + "/vein.stl"));
+  EXPECT_TRUE(fs::exists(dir + "/skin.stl"));
+  EXPECT_TRUE(fs::exists(dir + "/notes.txt"));
+  EXPECT_TRUE(fs::exists(dir + "/tendon.stl"));
+  EXPECT_NE(r.err.find("surface: removed " + dir + "/vein.stl"), std::string::npos) << r.err;
+  const nlohmann::json rep = nlohmann::json::parse(test::read_file(out / "r.json"));
+  EXPECT_EQ(rep["metrics"]["removed_stale"], nlohmann::json::array({dir + "/vein.stl"}));
+}
+
 TEST(SurfaceCli, WritesStlModelAndReport) {
   const CliFiles& f = cli_files();
   test::TempDir out("surface-out");

@@ -332,6 +332,15 @@ TEST(Pipeline, ExportGathersEveryStagesOutputs) {
   for (const auto& st : rep["stages"])
     if (st["stage"] == "segment") seg_dir = st["dir"];
   EXPECT_EQ(test::read_file(out + "/labels.h5"), test::read_file(seg_dir + "/labels.h5"));
+  // the folder holds one run's outputs: an untuned run after a tuned one left
+  // tune/, tuned_tissues.json and reports/tune.json beside the untuned model
+  // (sweep of 2026-11-27); other files stay
+  test::write_file(out + "/mine.txt", "notes");
+  const auto untuned = test::run_cli(s.args("--no-tune --export " + out));
+  ASSERT_EQ(untuned.code, 0) << untuned.err;
+  for (const char* f : {"tuned_tissues.json", "tune", "reports/tune.json"}) EXPECT_FALSE(fs::exists(fs::path(out) / f)) << f;
+  for (const char* f : {"mine.txt", "labels.h5", "surfaces/skin.stl", "reports/build.json"})
+    EXPECT_TRUE(fs::exists(fs::path(out) / f)) << f;
   // an --export that names a file is refused before any work
   test::write_file(s.dir / "afile", "x");
   const auto bad = test::run_cli(s.args("--export " + (s.dir / "afile")));
