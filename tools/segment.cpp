@@ -11,6 +11,7 @@
 #include <iomanip>
 #include <iostream>
 #include <memory>
+#include <set>
 #include <sstream>
 
 namespace orthosim::cli {
@@ -210,6 +211,27 @@ void add_segment_command(CLI::App& app) {
                   << "colour is far off (" << a.tissues << "; --refine-iterations 0 keeps the table's colours)\n";
     }
     j["prototypes"] = protos;
+    // two tissues whose table colours a person could not tell apart: the stack cannot
+    // either, and their voxels are split between them (a 'tendon' 1 unit of red from
+    // the muscle took a quarter of it, exit 0; sweep of 2026-11-27). The bound is a
+    // just-noticeable difference in CIE76 (Sharma, Digital Color Imaging Handbook).
+    {
+      constexpr double kJnd = 2.3;
+      std::set<std::pair<int, int>> told;
+      for (std::size_t k = 0; k < m.prototypes.size(); ++k)
+        for (std::size_t l = k + 1; l < m.prototypes.size(); ++l) {
+          const Prototype &p = m.prototypes[k], &q = m.prototypes[l];
+          if (p.label == q.label) continue;
+          const double d = std::sqrt((p.table_lab[0] - q.table_lab[0]) * (p.table_lab[0] - q.table_lab[0]) +
+                                     (p.table_lab[1] - q.table_lab[1]) * (p.table_lab[1] - q.table_lab[1]) +
+                                     (p.table_lab[2] - q.table_lab[2]) * (p.table_lab[2] - q.table_lab[2]));
+          if (d >= kJnd || !told.insert({std::min(p.label, q.label), std::max(p.label, q.label)}).second) continue;
+          std::cerr << "orthosim segment: warning: " << a.tissues << ": the table colours of '" << name_of(p.label)
+                    << "' and '" << name_of(q.label) << "' are " << std::setprecision(2) << d
+                    << " CIE76 units apart, below a just-noticeable difference (" << kJnd
+                    << "): the stack cannot tell them apart and their voxels are split between them\n";
+        }
+    }
     // a tissue whose colour the calibration found (samples) with no voxel left: the
     // clean-up gave them away, or the classifier did (a palette stack: the muscle's
     // 12 000 samples, none of its voxels). pipeline refuses it; alone, segment warns.

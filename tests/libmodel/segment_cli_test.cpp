@@ -147,6 +147,37 @@ TEST(SegmentCli, CorruptJpegDataIsRefused) {
                  "corrupt JPEG: premature end of data segment");
 }
 
+// Two tissues whose table colours are within a just-noticeable difference:
+// their voxels are split between them. A 'tendon' one unit of red from the
+// muscle took a quarter of it with nothing said (sweep of 2026-11-27).
+TEST(SegmentCli, TissuesOfOneColourAreAWarning) {
+  test::TempDir d("segcli-near");
+  nlohmann::json t = nlohmann::json::parse(test::read_file(stack().tissues));
+  nlohmann::json tendon;
+  for (const auto& e : t["tissues"])
+    if (e["name"] == "muscle") tendon = e;
+  ASSERT_FALSE(tendon.is_null());
+  tendon["name"] = "tendon";
+  tendon["label"] = 42;
+  auto rgb = tendon["rgb"].is_array() && tendon["rgb"][0].is_array() ? tendon["rgb"][0] : tendon["rgb"];
+  rgb[0] = rgb[0].get<int>() < 255 ? rgb[0].get<int>() + 1 : 254;
+  tendon["rgb"] = nlohmann::json::array({rgb});
+  t["tissues"].push_back(tendon);
+  const std::string table = d / "near.json";
+  test::write_file(table, t.dump(2));
+  const auto r = test::run_cli("segment --stack " + stack().slices + " --tissues " + table + " --spacing 1,1,2 --out " +
+                               (d / "o.h5") + " --quiet");
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_NE(r.err.find("orthosim segment: warning: " + table + ": the table colours of 'muscle' and 'tendon' are "),
+            std::string::npos)
+      << r.err;
+  EXPECT_NE(r.err.find("below a just-noticeable difference (2.3)"), std::string::npos) << r.err;
+  // the sample's own table says nothing of the kind
+  const auto ok = test::run_cli(segment_args(stack().slices, d / "ok.h5"));
+  ASSERT_EQ(ok.code, 0) << ok.err;
+  EXPECT_EQ(ok.err.find("just-noticeable"), std::string::npos) << ok.err;
+}
+
 TEST(SegmentCli, NotAnImage) {
   test::TempDir d("segcli-text");
   const std::string folder = copy_slices(d);
