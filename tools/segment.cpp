@@ -122,7 +122,7 @@ void add_segment_command(CLI::App& app) {
     try {
       validate(o);
     } catch (const Error& e) {
-      throw UsageError(e.message());
+      throw UsageError("--" + e.message());  // (the spacing and origin were checked above, as flags)
     }
     if (a.threads < 0) throw UsageError("--threads: must be >= 0");
     std::unique_ptr<tbb::global_control> threads;

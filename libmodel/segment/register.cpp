@@ -46,9 +46,9 @@ double local_line(const std::vector<double>& c, int z, int w) {
 }  // namespace
 
 void validate(const RegisterOptions& o) {
-  if (o.half_window < 1 || o.half_window > 100000) throw Error("", "register half window must be in 1..100000 slices");
-  if (!(o.max_shift_px > 0 && o.max_shift_px <= 1e6)) throw Error("", "register max shift must be in (0, 1e6] pixels");
-  if (!(o.min_response >= 0 && o.min_response < 1)) throw Error("", "register min response must be in [0, 1)");
+  if (o.half_window < 1 || o.half_window > 100000) throw Error("", "register-window: must be in 1..100000 slices");
+  if (!(o.max_shift_px > 0 && o.max_shift_px <= 1e6)) throw Error("", "register-max-shift: must be in (0, 1e6] pixels");
+  if (!(o.min_response >= 0 && o.min_response < 1)) throw Error("", "register-min-response: must be in [0, 1)");
 }
 
 SliceRegistration register_slices(const SliceSource& src, const RegisterOptions& o) {

@@ -67,19 +67,19 @@ std::vector<int> nearest_table_labels(const std::vector<Prototype>& prototypes) 
 void validate(const SegmentOptions& o) {
   auto bad = [](const std::string& m) { throw Error("", m); };
   if (const std::string why = voxel_geometry_problem(o.spacing_m, o.origin_m); !why.empty()) bad(why);
-  if (o.calibration_slices < 1 || o.calibration_slices > 64) bad("calibration slices must be in 1..64");
-  if (o.sample_stride < 1 || o.sample_stride > 64) bad("sample stride must be in 1..64");
-  if (o.refine_iterations < 0 || o.refine_iterations > 100) bad("refine iterations must be in 0..100");
-  if (!(o.refine_prior >= 0) || !std::isfinite(o.refine_prior)) bad("refine prior must be >= 0");
-  if (!(o.refine_max_shift >= 0) || !std::isfinite(o.refine_max_shift)) bad("refine max shift must be >= 0");
-  if (!(o.lightness_weight > 0) || !std::isfinite(o.lightness_weight)) bad("lightness weight must be > 0");
-  if (o.speck_support < 0 || o.speck_support > 26) bad("speck support must be in 0..26");
-  if (o.min_island_voxels < 0) bad("min island voxels must be >= 0");
-  if (!(o.min_island_mm3 >= 0) || !std::isfinite(o.min_island_mm3)) bad("min island volume must be >= 0 mm^3");
-  if (o.min_vessel_voxels < 0) bad("min vessel voxels must be >= 0");
-  if (!(o.min_body_fraction > 0 && o.min_body_fraction <= 1)) bad("min body fraction must be in (0, 1]");
-  if (o.slab < 1 || o.slab > 256) bad("slab must be in 1..256");
-  if (o.scratch_memory_bytes < 0) bad("scratch memory must be >= 0");
+  if (o.calibration_slices < 1 || o.calibration_slices > 64) bad("calibration-slices: must be in 1..64");
+  if (o.sample_stride < 1 || o.sample_stride > 64) bad("sample stride must be in 1..64 (the library's SegmentOptions::sample_stride)");
+  if (o.refine_iterations < 0 || o.refine_iterations > 100) bad("refine-iterations: must be in 0..100");
+  if (!(o.refine_prior >= 0) || !std::isfinite(o.refine_prior)) bad("refine prior must be >= 0 (the library's SegmentOptions::refine_prior)");
+  if (!(o.refine_max_shift >= 0) || !std::isfinite(o.refine_max_shift)) bad("refine-max-shift: must be >= 0");
+  if (!(o.lightness_weight > 0) || !std::isfinite(o.lightness_weight)) bad("lightness-weight: must be > 0");
+  if (o.speck_support < 0 || o.speck_support > 26) bad("speck-support: must be in 0..26");
+  if (o.min_island_voxels < 0) bad("min-island: must be >= 0");
+  if (!(o.min_island_mm3 >= 0) || !std::isfinite(o.min_island_mm3)) bad("min-island-mm3: must be >= 0 mm^3");
+  if (o.min_vessel_voxels < 0) bad("min-vessel: must be >= 0");
+  if (!(o.min_body_fraction > 0 && o.min_body_fraction <= 1)) bad("min-body-fraction: must be in (0, 1]");
+  if (o.slab < 1 || o.slab > 256) bad("slab: must be in 1..256");
+  if (o.scratch_memory_bytes < 0) bad("scratch memory must be >= 0 (the library's SegmentOptions::scratch_memory_bytes)");
   validate(o.registration);
 }
 

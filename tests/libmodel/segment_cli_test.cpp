@@ -232,6 +232,16 @@ TEST(SegmentCli, BadSpacingAndTable) {
     EXPECT_EQ(r.code, 2) << r.err;
     EXPECT_NE(r.err.find((d / "huge.h5") + ": /volume: spacing along x is 1e+300 m"), std::string::npos) << r.err;
   }
+  // an option out of range names its flag ("speck support must be in 0..26" did not;
+  // sweep of 2026-11-27)
+  for (const auto& [flag, value] : std::vector<std::pair<std::string, std::string>>{
+           {"--speck-support", "30"}, {"--slab", "0"}, {"--min-body-fraction", "2"}, {"--calibration-slices", "0"},
+           {"--refine-iterations", "101"}, {"--lightness-weight", "0"}, {"--register-window", "0"}}) {
+    const auto r = test::run_cli("segment --stack " + stack().slices + " --tissues " + stack().tissues +
+                                 " --spacing 1,1,2 --out " + (d / "o.h5") + " --quiet --register " + flag + " " + value);
+    EXPECT_EQ(r.code, 2) << flag << ": " << r.err;
+    EXPECT_EQ(r.err.rfind("orthosim segment: error: " + flag + ": must be ", 0), 0u) << r.err;
+  }
   test::write_file(d / "bad.json", "{\"format\": \"orthosim-tissues/1\", \"tissues\": [");
   expect_refused(test::run_cli("segment --stack " + stack().slices + " --tissues " + (d / "bad.json") +
                                " --spacing 1,1,2 --out " + (d / "o.h5") + " --quiet"),
