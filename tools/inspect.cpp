@@ -3,6 +3,7 @@
 #include "libmodel/format/model.h"
 #include "tools/common.h"
 
+#include <array>
 #include <cmath>
 #include <iostream>
 #include <sstream>
@@ -64,6 +65,29 @@ json summarise(const ModelReader& m) {
     auto d = m.h5().dims("/volume/labels");
     counts["volume"] = {{"nz", d[0]}, {"ny", d[1]}, {"nx", d[2]},
                         {"attributes", group_attrs(m, "/volume", {"spacing_m", "origin_m", "label_names"})}};
+    // what every stage that reads the volume refuses, without reading the voxels
+    // (a NaN spacing printed as null, as if the file were fine; sweep of 2026-11-27)
+    const json& at = counts["volume"]["attributes"];
+    std::string problem;
+    if (!at.contains("spacing_m") || !at.contains("origin_m") || !at["spacing_m"].is_array() ||
+        !at["origin_m"].is_array() || at["spacing_m"].size() != 3 || at["origin_m"].size() != 3) {
+      problem = "spacing_m and origin_m need 3 values";
+    } else {
+      std::array<double, 3> sp{}, org{};
+      for (std::size_t k = 0; k < 3; ++k) {
+        sp[k] = at["spacing_m"][k].is_number() ? at["spacing_m"][k].get<double>() : std::nan("");
+        org[k] = at["origin_m"][k].is_number() ? at["origin_m"][k].get<double>() : std::nan("");
+      }
+      problem = voxel_geometry_problem(sp, org);
+    }
+    try {
+      if (m.h5().dtype("/volume/labels") != h5::dtype_of<std::uint8_t>())
+        problem += std::string(problem.empty() ? "" : "; ") + "labels are " +
+                   h5::dtype_name(m.h5().dtype("/volume/labels")) + ", not uint8";
+    } catch (const Error& e) {  // an element type the format has no name for
+      problem += std::string(problem.empty() ? "" : "; ") + e.message();
+    }
+    if (!problem.empty()) counts["volume"]["problem"] = problem;
   }
   for (const char* kind : {"surfaces", "quads", "layers", "vessels", "tuning"}) {
     const std::string g = std::string("/") + kind;
@@ -101,8 +125,21 @@ void print_text(const json& s, std::ostream& out) {
     const json& v = c["volume"];
     out << "  /volume: " << v["nx"] << " x " << v["ny"] << " x " << v["nz"] << " voxels";
     if (v["attributes"].contains("spacing_m")) out << ", spacing_m " << v["attributes"]["spacing_m"].dump();
-    if (v["attributes"].contains("label_names")) out << ", labels " << v["attributes"]["label_names"].dump();
+    if (v["attributes"].contains("label_names")) {
+      // the named labels only (a table with labels 200 and 255 printed 256 names, most "")
+      const json& names = v["attributes"]["label_names"];
+      out << ", labels";
+      if (names.is_array()) {
+        const char* sep = " ";
+        for (std::size_t l = 0; l < names.size(); ++l)
+          if (names[l].is_string() && !names[l].get<std::string>().empty())
+            out << sep << l << " " << names[l].get<std::string>(), sep = ", ";
+      } else {
+        out << " " << names.dump();
+      }
+    }
     out << "\n";
+    if (v.contains("problem")) out << "  /volume: invalid: " << v["problem"].get<std::string>() << "\n";
   }
   for (const char* kind : {"surfaces", "quads", "layers", "vessels", "tuning"}) {
     if (!c.contains(kind)) continue;

@@ -135,6 +135,21 @@ TEST(Cli, InspectSummarisesAModel) {
   r = test::run_cli("inspect " + p);
   EXPECT_NE(r.out.find("nu=39"), std::string::npos) << r.out;
   EXPECT_EQ(r.out.find("nu=39.0"), std::string::npos) << r.out;
+  // the named labels only, and a volume every stage refuses is said to be invalid
+  // (a NaN spacing printed as null as if the file were fine; sweep of 2026-11-27)
+  EXPECT_NE(r.out.find("labels 0 background, 1 skin\n"), std::string::npos) << r.out;
+  EXPECT_EQ(r.out.find("invalid"), std::string::npos) << r.out;
+  {
+    ModelWriter w(p, ModelWriter::Start::update);
+    w.h5().set_attr("/volume", "spacing_m", std::vector<double>{std::nan(""), 1e-3, 1e-3});
+    w.commit();
+  }
+  r = test::run_cli("inspect " + p);
+  EXPECT_EQ(r.code, 0) << r.err;
+  EXPECT_NE(r.out.find("  /volume: invalid: spacing along x is nan m"), std::string::npos) << r.out;
+  r = test::run_cli("inspect " + p + " --json");
+  EXPECT_NE(nlohmann::json::parse(r.out)["summary"]["volume"]["problem"].get<std::string>().find("spacing along x is nan"),
+            std::string::npos);
 }
 
 TEST(Cli, InspectBadInputsAreOneLineExit2) {
