@@ -396,6 +396,9 @@ void apply_to_layer(Layer& l, const SpringParams& current, const SpringParams& t
     const int c = l.spring_class(s);
     const ClassLaw& cur = current[static_cast<std::size_t>(c)];
     const ClassLaw& t = tuned[static_cast<std::size_t>(c)];
+    // the same law: the spring stays bit for bit (the round trip k1 / law x law moved
+    // 613 of the sample skin's k2 by an ulp when a tune was run again)
+    if (t.k1_pa == cur.k1_pa && t.k2_pa == cur.k2_pa && t.turning_strain == cur.turning_strain) continue;
     const double k_per_pa = l.k1(s) / cur.k1_pa;
     const double k1_new = t.k1_pa * k_per_pa;
     if (l.k1(s) > 0) l.damping(s) *= std::sqrt(k1_new / l.k1(s));

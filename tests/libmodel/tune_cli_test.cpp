@@ -13,6 +13,7 @@
 #include <cmath>
 #include <cstdlib>
 #include <filesystem>
+#include <map>
 
 using namespace orthosim;
 namespace fs = std::filesystem;
@@ -264,6 +265,28 @@ TEST(TuneCli, TheSameRunGivesTheSameBytesWithSourceDateEpoch) {
   EXPECT_FALSE(clock == second) << "without it the wall times are recorded";
   ModelReader m(d / "m.h5");
   EXPECT_GT(m.tuning("fat").seconds, 0.0);
+}
+
+// Tuning a tuned model again with the same table and seed finds the same laws
+// and leaves its springs bit for bit (the round trip k1 / law x law moved 613
+// of the sample skin's k2 by an ulp; sweep of 2026-11-27).
+TEST(TuneCli, TuningAgainLeavesTheSpringsBitForBit) {
+  test::TempDir d("tune-cli-again");
+  const std::string model = cylinders(d, "m.h5", 15, 5);
+  ASSERT_EQ(test::run_cli("build --model " + model + " --tissues " + kTable + " --quiet").code, 0);
+  const std::string tune = "tune --tissues " + kTable + " --model " + model + " --max-evaluations 300 --quiet";
+  ASSERT_EQ(test::run_cli(tune).code, 0);
+  std::map<std::string, Layer> first;
+  for (const char* t : {"skin", "fat"}) first[t] = ModelReader(model).layer(t);
+  ASSERT_EQ(test::run_cli(tune).code, 0);
+  for (const char* t : {"skin", "fat"}) {
+    const Layer again = ModelReader(model).layer(t);
+    EXPECT_TRUE(again.k1 == first[t].k1) << t;
+    EXPECT_TRUE(again.k2 == first[t].k2) << t;
+    EXPECT_TRUE(again.turning_length == first[t].turning_length) << t;
+    EXPECT_TRUE(again.damping == first[t].damping) << t;
+    EXPECT_TRUE(again.lin_k == first[t].lin_k) << t;
+  }
 }
 
 // The layers record the law their springs follow (Layer::spring_law), so a
