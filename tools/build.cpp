@@ -10,6 +10,7 @@
 #include "tools/common.h"
 
 #include <algorithm>
+#include <cmath>
 #include <iomanip>
 #include <iostream>
 
@@ -112,7 +113,8 @@ void add_build_command(CLI::App& app) {
   add_common_options(sub, common);
   on_run(sub, "build", common, [] {
     Report report("build");
-    if (!(min_thickness_mm >= 0)) throw UsageError("--min-thickness-mm must be >= 0");
+    if (!(min_thickness_mm >= 0 && std::isfinite(min_thickness_mm)))  // (inf: "thinner than inf m")
+      throw UsageError("--min-thickness-mm must be >= 0 and finite");
     opt.min_thickness_m = min_thickness_mm * 1e-3;
     opt.check_intersections = !no_intersection_check;
     // a flag out of range is the command line's error (it named the model file, and the

@@ -91,7 +91,7 @@ void validate_options(const BuildOptions& o) {
   if (o.through_cells < 1 || o.through_cells > 64) throw Error("", "through_cells must be in 1..64");
   if (!(o.lattice_min_weight >= 0 && o.lattice_min_weight < 1)) throw Error("", "lattice_min_weight must be in [0, 1)");
   if (!(o.damping_ratio >= 0 && o.damping_ratio <= 10)) throw Error("", "damping_ratio must be in [0, 10]");
-  if (!(o.min_thickness_m >= 0)) throw Error("", "min_thickness_m must be >= 0");
+  if (!(o.min_thickness_m >= 0 && std::isfinite(o.min_thickness_m))) throw Error("", "min_thickness_m must be >= 0 and finite");
   if (!(o.max_spring_ratio > 1)) throw Error("", "max_spring_ratio must be > 1");
   if (!(o.mass_tolerance > 0 && o.mass_tolerance < 1)) throw Error("", "mass_tolerance must be in (0, 1)");
   if (!(o.projection.min_barycentric >= 0 && o.projection.min_barycentric < 1.0 / 3))

@@ -111,7 +111,9 @@ TEST(BuildCli, BadInputOneLineExit2NoOutput) {
   for (const auto& [flag, text] : std::vector<std::pair<std::string, std::string>>{
            {"--damping-ratio -1", "orthosim build: error: --damping-ratio must be in [0, 10]\n"},
            {"--through-cells 0", "orthosim build: error: --through-cells must be in 1..64\n"},
-           {"--lattice-min-weight 1", "orthosim build: error: --lattice-min-weight must be in [0, 1)\n"}}) {
+           {"--lattice-min-weight 1", "orthosim build: error: --lattice-min-weight must be in [0, 1)\n"},
+           // (inf ran and said "thinner than inf m"; sweep of 2026-11-27)
+           {"--min-thickness-mm inf", "orthosim build: error: --min-thickness-mm must be >= 0 and finite\n"}}) {
     expect_refused("build --model " + model + " --tissues " + tissues + " " + flag, model, "");
     EXPECT_EQ(test::run_cli("build --model " + model + " --tissues " + tissues + " " + flag).err, text);
   }
