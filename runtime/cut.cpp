@@ -3,6 +3,7 @@
 #include <Eigen/Eigenvalues>
 
 #include <algorithm>
+#include <optional>
 #include <array>
 #include <cmath>
 #include <limits>
@@ -233,22 +234,61 @@ void validate(const CutDef& def) {
   if (!finite(def.direction)) throw Error("", "cut: direction is not finite");
 }
 
+namespace {
+
+// The limb's axis from its quad grids, where they show one: the quads' edges
+// along the limb (a -> d and b -> c of quad a, b, c, d, or a -> b and d -> c)
+// all point one way, the edges around it turn with the ring. Of the two edge
+// families, the one whose scatter matrix is nearly one-dimensional (largest
+// eigenvalue >= 0.8 of the trace) while the other's is not (<= 0.7) runs
+// along the limb: its principal direction. Else (no quads, a flat block
+// whose both families are straight, mixed corner orders) none.
+std::optional<Eigen::Vector3d> axis_from_quads(const Model& m) {
+  if (m.n_quads < 8) return std::nullopt;
+  Eigen::Matrix3d s1 = Eigen::Matrix3d::Zero(), s2 = Eigen::Matrix3d::Zero();
+  auto at = [&](std::int32_t i) {
+    return Eigen::Vector3d(m.rest_x[3 * static_cast<std::size_t>(i)], m.rest_x[3 * static_cast<std::size_t>(i) + 1],
+                           m.rest_x[3 * static_cast<std::size_t>(i) + 2]);
+  };
+  for (std::int32_t q = 0; q < m.n_quads; ++q) {
+    const std::int32_t* v = m.quads.data() + 4 * static_cast<std::size_t>(q);
+    const Eigen::Vector3d a = at(v[0]), b = at(v[1]), c = at(v[2]), d = at(v[3]);
+    for (const Eigen::Vector3d& e : {Eigen::Vector3d(b - a), Eigen::Vector3d(c - d)}) s1 += e * e.transpose();
+    for (const Eigen::Vector3d& e : {Eigen::Vector3d(d - a), Eigen::Vector3d(c - b)}) s2 += e * e.transpose();
+  }
+  const Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> e1(s1), e2(s2);
+  const double f1 = e1.eigenvalues()(2) / std::max(s1.trace(), 1e-300);
+  const double f2 = e2.eigenvalues()(2) / std::max(s2.trace(), 1e-300);
+  if (f1 >= 0.8 && f2 <= 0.7) return Eigen::Vector3d(e1.eigenvectors().col(2));
+  if (f2 >= 0.8 && f1 <= 0.7) return Eigen::Vector3d(e2.eigenvectors().col(2));
+  return std::nullopt;
+}
+
+}  // namespace
+
 Vec3 cut_direction(const Model& m, const CutDef& def) {
   validate(def);
   if (norm(def.direction) > 0) return (1 / norm(def.direction)) * def.direction;
-  // principal axis of the rest positions
   const std::int64_t n = m.n_nodes;
   if (n == 0) throw Error("", "cut: the model has no nodes");
   Eigen::Vector3d c = Eigen::Vector3d::Zero();
   for (std::int64_t i = 0; i < n; ++i) c += Eigen::Vector3d(m.rest_x[3 * i], m.rest_x[3 * i + 1], m.rest_x[3 * i + 2]);
   c /= static_cast<double>(n);
-  Eigen::Matrix3d cov = Eigen::Matrix3d::Zero();
-  for (std::int64_t i = 0; i < n; ++i) {
-    const Eigen::Vector3d r = Eigen::Vector3d(m.rest_x[3 * i], m.rest_x[3 * i + 1], m.rest_x[3 * i + 2]) - c;
-    cov += r * r.transpose();
+  // the limb's axis: its quad grids' (a short, wide limb's principal axis of
+  // the rest positions lies across it: the blade ran along the skin, beside
+  // the vessels; sweep of 2026-11-27), else the principal axis of the rest positions
+  Eigen::Vector3d axis;
+  if (const auto q = axis_from_quads(m)) {
+    axis = *q;
+  } else {
+    Eigen::Matrix3d cov = Eigen::Matrix3d::Zero();
+    for (std::int64_t i = 0; i < n; ++i) {
+      const Eigen::Vector3d r = Eigen::Vector3d(m.rest_x[3 * i], m.rest_x[3 * i + 1], m.rest_x[3 * i + 2]) - c;
+      cov += r * r.transpose();
+    }
+    const Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> es(cov);
+    axis = es.eigenvectors().col(2);
   }
-  const Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> es(cov);
-  const Eigen::Vector3d axis = es.eigenvectors().col(2);
   // the path's midpoint (its segments' midpoints weighted by their lengths):
   // the mean of the points moved with a repeated point, and the same path cut
   // one vessel or two

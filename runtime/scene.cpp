@@ -545,7 +545,11 @@ void Scene::init(const std::string& model_file) {
     LoadRequest req;
     req.layers = def_.layers;
     req.vessels = def_.vessels;
-    req.surface = (def_.output.enabled && def_.output.vtk.surface) || def_.fluid.enabled;  // the blood collides with the quads
+    // the blood collides with the quads; a cut without a direction aims at the axis its quad grids show
+    bool aimed_by_quads = false;
+    for (const auto& t : def_.tools)
+      aimed_by_quads = aimed_by_quads || (t.type == ToolType::cut && t.direction == std::array<Real, 3>{0, 0, 0});
+    req.surface = (def_.output.enabled && def_.output.vtk.surface) || def_.fluid.enabled || aimed_by_quads;
     req.vessel_tubes = def_.output.enabled;  // drawn in the output, not simulated
     req.couple_unloaded = def_.couple_unloaded;
     std::set<std::string> sets(def_.fixed.begin(), def_.fixed.end());

@@ -11,6 +11,7 @@
 #include <iostream>
 #include <iterator>
 #include <set>
+#include <iomanip>
 #include <sstream>
 #include <vector>
 
@@ -355,11 +356,20 @@ void add_run_command(CLI::App& app) {
     if (scene->fluid_state() && !scene->model().vessels.empty() && !scene->cuts().empty()) {
       std::size_t hits = 0;
       for (const auto& cr : scene->cuts()) hits += cr.vessel_hits.size();
-      if (hits == 0)  // even with --quiet: the bleeding the scene is built for cannot start
+      if (hits == 0) {  // even with --quiet: the bleeding the scene is built for cannot start
+        // the blade's direction too: aimed off the limb's axis, a cut runs along the skin
+        // beside the vessels, and the advice blamed the vessels (sweep of 2026-11-27)
+        std::ostringstream blades;
+        for (const auto& cr : scene->cuts())
+          blades << (blades.tellp() > 0 ? "; " : "") << (cr.tool.empty() ? std::string("cut") : "'" + cr.tool + "'")
+                 << " along (" << std::setprecision(3)
+                 << cr.direction.x << ", " << cr.direction.y << ", " << cr.direction.z << ")";
         std::cerr << "orthosim run: warning: " << scene_file << ": " << scene->cuts().size()
                   << " cut(s) crossed none of the " << scene->model().vessels.size()
-                  << " loaded vessel tree(s), so nothing bled (is the vessel where the cut is? the model's vessels "
-                     "may be shorter than the tissue's: see its vessels report)\n";
+                  << " loaded vessel tree(s), so nothing bled (blade " << blades.str()
+                  << ": is the vessel where the cut is, within its depth and ahead of its blade (a cut's \"direction\")? "
+                     "the model's vessels may be shorter than the tissue's: see its vessels report)\n";
+      }
     }
     for (const auto& cr : scene->cuts())
       if (cr.springs_cut == 0 && cr.quads_removed == 0)  // even with --quiet: the incision the scene asks for is not there

@@ -10,6 +10,7 @@
 
 #include <gtest/gtest.h>
 
+#include <cmath>
 #include <random>
 #include <set>
 
@@ -256,6 +257,47 @@ TEST(Cut, AutomaticDirectionPointsAtTheAxis) {
   EXPECT_NEAR(da.x, db.x, 1e-15);
   EXPECT_NEAR(da.y, db.y, 1e-15);
   EXPECT_NEAR(da.z, db.z, 1e-15);
+}
+
+// A limb shorter than it is wide (a 15 mm slab of a 60 mm limb): the principal
+// axis of its rest positions lies across it, and the blade aimed along the skin
+// beside the vessels (a 23 x 20 x 19 mm phantom cut no vessel; sweep of
+// 2026-11-27). The quad grids show the axis: their edges along the limb all
+// point one way.
+TEST(Cut, AutomaticDirectionFollowsTheQuadGridsAxis) {
+  const int nu = 24, nv = 4;
+  const double r = 0.03, len = 0.015;
+  Model m;
+  m.n_nodes = nu * nv;
+  for (int j = 0; j < nv; ++j)
+    for (int i = 0; i < nu; ++i) {
+      const double a = 2 * M_PI * i / nu;
+      m.rest_x.insert(m.rest_x.end(), {r * std::cos(a), r * std::sin(a), len * j / (nv - 1)});
+      m.mass.push_back(1e-3);
+    }
+  for (int j = 0; j + 1 < nv; ++j)
+    for (int i = 0; i < nu; ++i) {
+      const int i1 = (i + 1) % nu;
+      m.quads.insert(m.quads.end(), {j * nu + i, j * nu + i1, (j + 1) * nu + i1, (j + 1) * nu + i});
+      ++m.n_quads;
+    }
+  for (int k = 0; k + 1 < m.n_nodes; ++k) {  // (springs are not read here)
+    m.spring_a.push_back(k), m.spring_b.push_back(k + 1), m.spring_rest.push_back(1e-3);
+    m.spring_k.push_back(1), m.spring_c.push_back(0), m.spring_tension.push_back(0);
+    ++m.n_springs;
+  }
+  m.finalize();
+  CutDef d;  // on the side at +x, along the limb
+  d.polyline = {{r, 0, 0.004}, {r, 0, 0.011}};
+  d.depth = 0.01;
+  const Vec3 dir = cut_direction(m, d);
+  EXPECT_LT(dir.x, -0.999) << dir.x << " " << dir.y << " " << dir.z;  // into the limb, towards its axis
+  // without the grids the principal axis of the rest positions lies across the
+  // slab, through the polyline's midpoint here: no direction at all
+  m.quads.clear();
+  m.n_quads = 0;
+  m.finalize();
+  EXPECT_THROW(cut_direction(m, d), Error);
 }
 
 TEST(Cut, ReportsTheVesselsItCrosses) {
