@@ -79,6 +79,11 @@ json result_json(const std::string& name, const tune::TuneResult& r) {
           {"method", r.method},
           {"seed", r.seed},
           {"spring_params", params_json(r)}};
+  // the tuned specimen along each axis (TuneResult::axis_ratio; null: the experiment failed)
+  json ax = json::object();
+  const char* names[3] = {"u", "v", "w"};
+  for (std::size_t k = 0; k < 3; ++k) ax[names[k]] = std::isfinite(r.axis_ratio[k]) ? json(r.axis_ratio[k]) : json(nullptr);
+  j["axis_ratio"] = ax;
   return j;
 }
 
@@ -350,6 +355,12 @@ void add_tune_command(CLI::App& app) {
         std::cout << ", max error " << std::setprecision(3) << 100 * r.max_error << " %, psi " << r.psi << ", "
                   << r.evaluations << " experiments, " << std::setprecision(3) << r.seconds << " s"
                   << (r.reached ? "" : " (tolerance not reached: " + r.stop + ")") << "\n";
+        // the target is isotropic, the search loads one axis (the specimen's u)
+        std::cout << "tune: " << j.tissue << ": " << keys[0] << " along u, v, through the layer: " << std::setprecision(3);
+        for (std::size_t k = 0; k < 3; ++k)
+          std::cout << (k ? ", " : "") << (std::isfinite(r.axis_ratio[k]) ? (std::ostringstream() << r.axis_ratio[k]).str()
+                                                                          : std::string("(failed)"));
+        std::cout << " x the target (the search loads u)\n";
       }
     }
 

@@ -292,6 +292,21 @@ TuneResult tune_specimen(msm::Specimen& specimen, const Target& target, const Ex
   r.reached = ev.reached;
   r.trace = std::move(ev.trace);
   apply_params(specimen, r.params);
+  // the other axes, which the search does not see
+  for (int ax = 0; ax < 3; ++ax) {
+    Measurement m;
+    if (ax == experiment.axis) {
+      m = r.measured;
+    } else {
+      try {
+        m = measure(specimen, sliding_grips(specimen, ax), target, experiment);
+      } catch (const Error&) {
+        m.p.clear();
+      }
+    }
+    r.axis_ratio[static_cast<std::size_t>(ax)] =
+        m.p.empty() ? std::numeric_limits<double>::quiet_NaN() : m.p[0] / target.values()[0];
+  }
   return r;
 }
 

@@ -27,6 +27,7 @@
 #include "libmodel/tune/anneal.h"
 #include "libmodel/tune/experiment.h"
 
+#include <array>
 #include <cstdint>
 #include <string>
 #include <vector>
@@ -96,6 +97,12 @@ struct TuneResult {
   bool reached = false;              // the stopping target was met
   std::string stop;                  // "target" | "evaluations" | "budget" | NLopt's reason
   std::vector<TracePoint> trace;     // best psi against evaluations and time
+  // The tuned specimen loaded along its other two axes: the first measured
+  // value (K1 or K) over the target's, per axis 0 (u), 1 (v), 2 (through the
+  // layer); the load axis's own entry is the achieved ratio; NaN where that
+  // experiment failed. The target is isotropic and the experiment loads one
+  // axis: this says how far the others are from it (docs/tune.md).
+  std::array<double, 3> axis_ratio{};
 };
 
 // Tunes the spring classes of `specimen` (its springs are overwritten) for

@@ -370,6 +370,20 @@ TEST(Tune, TheStiffnessAcrossTheLoadDoesNotDependOnTheSeed) {
   }
 }
 
+// The search loads one axis; the result says what the tuned specimen does
+// along the other two. A lattice of cubic cells, 2 x 2 cells in plane: u and v
+// are the same by symmetry; through the single cell layer it differs.
+TEST(Tune, TheOtherAxesAreMeasured) {
+  ExperimentOptions o;
+  o.kind = "lattice";
+  const TuneResult r = tune_target(linear(3000), o, sa(400));
+  ASSERT_EQ(r.measured.p.size(), 1u);
+  EXPECT_DOUBLE_EQ(r.axis_ratio[0], r.measured.p[0] / 3000);
+  EXPECT_NEAR(r.axis_ratio[1], r.axis_ratio[0], 1e-9 * r.axis_ratio[0]);
+  EXPECT_TRUE(std::isfinite(r.axis_ratio[2]));
+  EXPECT_GT(r.axis_ratio[2], 0);
+}
+
 TEST(Tune, SameSeedSameResult) {
   TuneOptions o = sa(400, 5);
   o.tolerance = 1e-6;  // stops on evaluations
