@@ -283,6 +283,19 @@ void add_segment_command(CLI::App& app) {
       std::map<std::string, std::int64_t> tv;
       j["dice"] = dice_per_tissue(a.out, a.truth, &tv);
       j["truth_voxels"] = tv;
+      // a tissue the truth does not name has no Dice: said, not left out silently
+      // (a table naming the skin 'dermis' reported a perfect Dice of the rest; sweep
+      // of 2026-11-27)
+      std::vector<std::string> unmatched;
+      for (const Tissue& t : table.tissues)
+        if (!j["dice"].contains(t.name) && m.voxels.count(t.name) && m.voxels.at(t.name) > 0) unmatched.push_back(t.name);
+      if (!unmatched.empty()) {
+        std::string list;
+        for (const auto& n : unmatched) list += (list.empty() ? "'" : ", '") + n + "'";
+        std::cerr << "orthosim segment: warning: " << a.truth << ": no tissue of that name in the truth for " << list
+                  << ": no Dice for them (the truth names its labels itself)\n";
+        j["dice_missing"] = unmatched;
+      }
     }
     report.write(a.common.report);
     if (!a.common.quiet) {

@@ -178,6 +178,25 @@ TEST(SegmentCli, TissuesOfOneColourAreAWarning) {
   EXPECT_EQ(ok.err.find("just-noticeable"), std::string::npos) << ok.err;
 }
 
+// A tissue the truth does not name has no Dice, and the run says so: a table
+// naming the skin 'dermis' reported a perfect Dice of the rest (sweep of 2026-11-27).
+TEST(SegmentCli, ATissueTheTruthDoesNotNameIsSaid) {
+  test::TempDir d("segcli-dice");
+  std::string t = test::read_file(stack().tissues);
+  for (std::size_t at = t.find("\"skin\""); at != std::string::npos; at = t.find("\"skin\"", at)) t.replace(at, 6, "\"dermis\"");
+  test::write_file(d / "renamed.json", t);
+  const auto r = test::run_cli("segment --stack " + stack().slices + " --tissues " + (d / "renamed.json") +
+                               " --spacing 1,1,2 --out " + (d / "o.h5") + " --truth " + stack().truth + " --quiet --report " +
+                               (d / "r.json"));
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_NE(r.err.find("orthosim segment: warning: " + stack().truth + ": no tissue of that name in the truth for 'dermis'"),
+            std::string::npos)
+      << r.err;
+  const auto rep = nlohmann::json::parse(test::read_file(d / "r.json"));
+  EXPECT_EQ(rep["metrics"]["dice_missing"], nlohmann::json::array({"dermis"}));
+  EXPECT_FALSE(rep["metrics"]["dice"].contains("dermis"));
+}
+
 TEST(SegmentCli, NotAnImage) {
   test::TempDir d("segcli-text");
   const std::string folder = copy_slices(d);
