@@ -70,6 +70,7 @@ struct Args {
   std::int64_t tune_evaluations = 4000;
   double tune_budget_s = 300;
   std::uint64_t seed = 1;
+  int through_cells = 1;  // build's --through-cells (a fine grid's lattice cells need it: 400x100 builds with 4)
   CommonOptions common;
 };
 
@@ -366,7 +367,7 @@ int run_stages(Args a, Report& report) {
   report.input(a.stack);
   report.input(a.tissues);
   if (!a.scene.empty()) report.input(a.scene);
-  report.parameters() = {{"grid", a.grid}, {"spacing_mm", a.spacing}, {"origin_mm", a.origin},
+  report.parameters() = {{"grid", a.grid}, {"through_cells", a.through_cells}, {"spacing_mm", a.spacing}, {"origin_mm", a.origin},
                          {"work", a.work}, {"texture", a.texture}, {"tune", a.tune},
                          {"tune_budget_s", a.tune_budget_s}, {"tune_evaluations", a.tune_evaluations}, {"seed", a.seed}, {"export", a.export_dir}};
 
@@ -627,8 +628,9 @@ int run_stages(Args a, Report& report) {
 
     // 5. build: the multilayer mass-spring model
     const auto bld = run.stage(
-        "build", {rem.key, table_hash}, run.command([&](const std::string& d) {
-          return std::vector<std::string>{"build", "--model", d + "/model.h5", "--tissues", a.tissues};
+        "build", {rem.key, table_hash, "through-cells " + std::to_string(a.through_cells)}, run.command([&](const std::string& d) {
+          return std::vector<std::string>{"build", "--model", d + "/model.h5", "--tissues", a.tissues, "--through-cells",
+                                          std::to_string(a.through_cells)};
         }),
         {"model.h5"}, [&](const std::string& d) { copy_path(rem.dir + "/model.h5", d + "/model.h5"); });
     std::string last = bld.dir + "/model.h5";
@@ -794,6 +796,11 @@ void add_pipeline_command(CLI::App& app) {
   sub->add_option("--origin", a.origin, "position of voxel (0,0,0) in mm, X,Y,Z")->capture_default_str();
   sub->add_option("--scene", a.scene, "scene file: build only what it uses");
   sub->add_option("--grid", a.grid, "quad grid NUxNV")->capture_default_str();
+  sub->add_option("--through-cells", a.through_cells,
+                  "lattice cells through each lattice layer, build's (1..64; a fine --grid needs more: 400x100 builds "
+                  "with 4)")
+      ->check(CLI::Range(1, 64))
+      ->capture_default_str();
   sub->add_option("--work", a.work, "cache folder (default: <out>.work)");
   sub->add_option("--out", a.out, "model file to write")->required();
   sub->add_option("--export", a.export_dir,

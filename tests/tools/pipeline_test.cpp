@@ -166,6 +166,18 @@ TEST(Pipeline, ColdWarmAndIncremental) {
   ran = s.ran();
   EXPECT_TRUE(ran.count("build"));
   EXPECT_FALSE(ran.count("remesh"));
+  {
+    // build's --through-cells: the pipeline passes it (a fine grid needs it; it had no such flag)
+    ModelReader one(s.dir / "model.h5");
+    const std::int64_t nodes1 = one.layer_fields("fat", {"nodes"}).nodes.rows();
+    const auto tc = test::run_cli(s.args("--grid 20x6 --through-cells 2"));
+    ASSERT_EQ(tc.code, 0) << tc.err;
+    const auto ran2 = s.ran();
+    EXPECT_FALSE(ran2.count("remesh"));
+    EXPECT_TRUE(ran2.count("build"));
+    ModelReader two(s.dir / "model.h5");
+    EXPECT_EQ(two.layer_fields("fat", {"nodes"}).nodes.rows(), 2 * nodes1) << "a second cell layer of nodes";
+  }
 }
 
 // The tuning is bounded by --tune-evaluations, not by the clock: a re-run
