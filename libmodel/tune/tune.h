@@ -1,14 +1,15 @@
 // Spring-parameter optimisation against a tissue table (paper §4.1, Eq. 1,
 // Table 1; issue 7; docs/tune.md).
 //
-// For each tissue the microscopic parameters of each spring class present in
+// For each tissue the microscopic parameters of the spring classes present in
 // the tissue's specimen (experiment.h) are optimised until the virtual
-// experiment's fitted law matches the tissue's data-book values:
-//   biphasic: per class (k1, turning strain, k2), searched as
+// experiment's fitted law matches the tissue's data-book values; one law for
+// every class by default, a law per class with TuneOptions::per_class (Space):
+//   biphasic: (k1, turning strain, k2), searched as
 //             ln(k1 / K1) in [-ln 4, ln 4], ln(t / T) in [ln 0.5, ln 3],
 //             ln(k2 / K2) in [-ln 4, ln 4]  (K1, T, K2: the targets; k2 >= k1 enforced;
 //             wider boxes hold more local minima pinned on their faces, docs/tune.md)
-//   linear:   per class k, as ln(k / K) in [-ln 5, ln 5]
+//   linear:   k, as ln(k / K) in [-ln 5, ln 5]
 // k1 and k2 are class moduli that the stiffness rule turns into springs
 // (k = modulus x k_per_pa, msm/lattice.h, msm/tetra.h), so they carry over to
 // every cell size; the search starts from the untuned rule (every class the
