@@ -9,8 +9,8 @@
 #include <cctype>
 #include <cmath>
 #include <filesystem>
-#include <iomanip>
 #include <fstream>
+#include <iomanip>
 #include <map>
 #include <set>
 #include <sstream>
@@ -86,12 +86,11 @@ std::vector<std::array<std::uint8_t, 3>> colours(const json& j, const std::strin
   return out;
 }
 
-// The range tune accepts (tune::validate(Target)): softer than any tissue by
-// decades to stiffer than cortical bone; beyond, a unit slip. build used a k of
-// 1e30 kPa (springs of 1.7e31 N/m, exit 0) that tune then refused.
-// (kPa as the table gives it: 1e308 kPa is infinite in Pa)
+// kMinModulusKpa .. kMaxModulusKpa, tune's range too: build used a k of 1e30 kPa
+// (springs of 1.7e31 N/m, exit 0) that tune then refused. (kPa as the table
+// gives it: 1e308 kPa is infinite in Pa)
 void modulus_range(double kpa, const char* key, const std::string& path, const std::string& where) {
-  if (kpa < 1e-3 || kpa > 1e9)
+  if (kpa < kMinModulusKpa || kpa > kMaxModulusKpa)
     throw Error(path, where + ": " + key + " = " + (std::ostringstream() << std::setprecision(10) << kpa).str() +
                           " is outside a tissue's range, 1e-3 .. 1e9 kPa (a unit slip?)");
 }

@@ -21,6 +21,11 @@
 
 namespace orthosim {
 
+// A tissue's range of moduli, kPa: softer than any tissue (brain, fat: ~0.1 kPa)
+// to stiffer than cortical bone (~2e7 kPa) by decades; beyond, a unit slip. The
+// table parser and tune's targets (tune::validate) both keep to it.
+inline constexpr double kMinModulusKpa = 1e-3, kMaxModulusKpa = 1e9;
+
 struct Mechanics {
   enum class Model { none, linear, biphasic };
   Model model = Model::none;

@@ -3,12 +3,12 @@
 #include <Eigen/Eigenvalues>
 
 #include <algorithm>
-#include <optional>
 #include <array>
 #include <cmath>
 #include <limits>
 #include <map>
 #include <numeric>
+#include <optional>
 #include <utility>
 
 namespace orthosim::runtime {

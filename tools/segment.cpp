@@ -8,6 +8,7 @@
 #include <sys/resource.h>
 #include <tbb/global_control.h>
 
+#include <array>
 #include <iomanip>
 #include <iostream>
 #include <memory>
@@ -193,11 +194,12 @@ void add_segment_command(CLI::App& app) {
     const auto names = table.label_names();
     auto name_of = [&](int l) { return l >= 0 && l < static_cast<int>(names.size()) ? names[l] : std::string(); };
     const std::vector<int> nearer = nearest_table_labels(m.prototypes);
+    auto cie76 = [](const std::array<double, 3>& x, const std::array<double, 3>& y) {
+      return std::sqrt((x[0] - y[0]) * (x[0] - y[0]) + (x[1] - y[1]) * (x[1] - y[1]) + (x[2] - y[2]) * (x[2] - y[2]));
+    };
     for (std::size_t k = 0; k < m.prototypes.size(); ++k) {
       const Prototype& p = m.prototypes[k];
-      const double d = std::sqrt((p.lab[0] - p.table_lab[0]) * (p.lab[0] - p.table_lab[0]) +
-                                 (p.lab[1] - p.table_lab[1]) * (p.lab[1] - p.table_lab[1]) +
-                                 (p.lab[2] - p.table_lab[2]) * (p.lab[2] - p.table_lab[2]));
+      const double d = cie76(p.lab, p.table_lab);
       protos.push_back({{"tissue", name_of(p.label)},
                         {"table_lab", p.table_lab},
                         {"lab", p.lab},
@@ -222,9 +224,7 @@ void add_segment_command(CLI::App& app) {
         for (std::size_t l = k + 1; l < m.prototypes.size(); ++l) {
           const Prototype &p = m.prototypes[k], &q = m.prototypes[l];
           if (p.label == q.label) continue;
-          const double d = std::sqrt((p.table_lab[0] - q.table_lab[0]) * (p.table_lab[0] - q.table_lab[0]) +
-                                     (p.table_lab[1] - q.table_lab[1]) * (p.table_lab[1] - q.table_lab[1]) +
-                                     (p.table_lab[2] - q.table_lab[2]) * (p.table_lab[2] - q.table_lab[2]));
+          const double d = cie76(p.table_lab, q.table_lab);
           if (d >= kJnd || !told.insert({std::min(p.label, q.label), std::max(p.label, q.label)}).second) continue;
           std::cerr << "orthosim segment: warning: " << a.tissues << ": the table colours of '" << name_of(p.label)
                     << "' and '" << name_of(q.label) << "' are " << std::setprecision(2) << d

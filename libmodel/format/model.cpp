@@ -2,8 +2,8 @@
 
 #include "libmodel/format/atomic.h"
 
-#include <array>
 #include <algorithm>
+#include <array>
 #include <cmath>
 #include <cstring>
 #include <filesystem>

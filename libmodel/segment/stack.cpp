@@ -9,10 +9,10 @@
 #include <opencv2/imgcodecs.hpp>
 
 #include <algorithm>
-#include <csetjmp>
-#include <cstdio>
 #include <array>
 #include <cctype>
+#include <csetjmp>
+#include <cstdio>
 #include <filesystem>
 #include <fstream>
 #include <memory>

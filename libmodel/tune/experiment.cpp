@@ -43,16 +43,15 @@ Target target_of(const Tissue& t) {
 }
 
 void validate(const Target& q) {
-  // 1 Pa .. 1 TPa: softer than any tissue (brain, fat: ~100 Pa) to stiffer than
-  // cortical bone (~20 GPa) by decades; beyond, a unit slip (k 1e30 kPa was
-  // tuned and reported 100 % off with exit 0)
+  // kMinModulusKpa .. kMaxModulusKpa (tissues.h), 1 Pa .. 1 TPa; beyond, a unit
+  // slip (k 1e30 kPa was tuned and reported 100 % off with exit 0)
   auto modulus = [&](double v, const char* name) {
     // (a table's 1e308 kPa overflows to inf in Pa: out of range, not "not positive")
     if (!(v > 0)) throw Error("", std::string("target ") + name + " must be a positive modulus");
     if (!std::isfinite(v))
       throw Error("", std::string("target ") + name +
                           " overflows a double in Pa: it is outside a tissue's range, 1e-3 .. 1e9 kPa (a unit slip?)");
-    if (v < 1 || v > 1e12)
+    if (v < 1e3 * kMinModulusKpa || v > 1e3 * kMaxModulusKpa)
       throw Error("", std::string("target ") + name + " = " + (std::ostringstream() << std::setprecision(10) << v / 1e3).str() +
                           " kPa is outside a tissue's range, 1e-3 .. 1e9 kPa (a unit slip?)");
   };

@@ -38,11 +38,11 @@ namespace orthosim::tune {
 // The search space of one target over the spring classes of a specimen.
 // Tied (the default): every class carries one law, the search's 3 (biphasic)
 // or 1 (linear) variables; the rule's ratios between the classes, which make
-// the cell nearly isotropic, are kept. Per class: each class its own law
+// a lattice cell nearly isotropic, are kept. Per class: each class its own law
 // (3 or 1 variables a class); the experiment loads one axis only, so the
-// other axes' stiffness is then not determined by the target (a lattice
-// tuned with seeds 1 and 3 came out 0.2x and 4.8x the rule across the load,
-// the same 0.1 % along it; docs/tune.md).
+// other axes' stiffness is then not determined by the target (the sample
+// model's muscle lattice tuned with seeds 1 and 3 came out 0.27x and 4.3x the
+// rule's across/along ratio, each 0.1 % off along; docs/tune.md).
 struct Space {
   bool biphasic = true;
   bool tied = true;
