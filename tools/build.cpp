@@ -71,7 +71,16 @@ json report_json(const msm::BuildReport& r) {
       e["spring_max_m"] = l.spring_max_m;
       e["min_tet_volume_m3"] = l.min_tet_volume_m3;
       e["inverted_tets"] = l.inverted;
-      if (l.kind == "tetra") e["projection"] = projection_json(l.projection);
+      if (l.kind == "tetra") {
+        e["projection"] = projection_json(l.projection);
+        e["mean_cell_m_uvw"] = l.mean_cell_m;
+        e["axis_factors_uvw"] = l.axes.factors;
+        // the trace rule's moduli / E before the factors, and with them (on
+        // the calibration specimen); null without the axis correction
+        const bool calibrated = l.axes.moduli_before[0] > 0;
+        e["trace_rule_modulus_ratio_uvw"] = calibrated ? json(l.axes.moduli_before) : json(nullptr);
+        e["modulus_ratio_uvw"] = calibrated ? json(l.axes.moduli_after) : json(nullptr);
+      }
       if (l.kind == "lattice")
         e["stiffness_rule"] = {{"cells", l.rule.cells},
                                {"exact_cells", l.rule.exact},
@@ -105,6 +114,8 @@ void add_build_command(CLI::App& app) {
                   "lattice rule floor: edge and face-diagonal weights at least this times their cube values, in [0, 1) "
                   "(0 lets the fit drop a family, which can leave a mechanism)")
       ->capture_default_str();
+  sub->add_flag("!--no-axis-correction", opt.axis_correction,
+                "leave each layer's rule as it is: no equal Young's moduli along u, v and through (docs/msm.md)");
   sub->add_option("--damping-ratio", opt.damping_ratio, "damping ratio of each spring with its end masses")
       ->capture_default_str();
   sub->add_option("--min-thickness-mm", min_thickness_mm, "thinner layers are an error (mm)")->capture_default_str();

@@ -98,6 +98,7 @@ json experiment_json(const tune::ExperimentOptions& e) {
           {"linear_strain", e.linear_strain},
           {"body_diagonals", e.body_diagonals},
           {"lattice_min_weight", e.lattice_min_weight},
+          {"axis_correction", e.axis_correction},
           {"force_tolerance", e.solver.force_tolerance},
           {"newton_iterations", e.solver.max_iterations}};
 }
@@ -142,6 +143,9 @@ void find_layer(const ModelReader& m, Job& job) {
         if (p.contains("body_diagonals") && p["body_diagonals"].is_boolean()) defaults.body_diagonals = p["body_diagonals"].get<bool>();
         if (p.contains("lattice_min_weight") && p["lattice_min_weight"].is_number())
           defaults.lattice_min_weight = p["lattice_min_weight"].get<double>();
+        // built before the axis correction (2026-11-28), or without it
+        defaults.axis_correction = p.contains("axis_correction") && p["axis_correction"].is_boolean() &&
+                                   p["axis_correction"].get<bool>();
       }
     }
     job.experiment = tune::experiment_for_layer(job.layer, below->second.second, defaults);

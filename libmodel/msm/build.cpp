@@ -267,14 +267,20 @@ BuiltModel build_layers(const std::vector<std::pair<std::string, QuadSurface>>& 
   phase("validate");
   // one AABB tree per surface below a layer, shared by the intersection test
   // and the centroid rays
+  // (tetra layers split the quads as their cells do: alternating diagonals
+  // with the axis correction)
+  const std::vector<std::uint8_t> split = o.axis_correction ? alternating_split(quads) : std::vector<std::uint8_t>{};
+  auto split_of = [&](std::size_t l) {
+    return specs[l].kind == "tetra" ? split : std::vector<std::uint8_t>{};
+  };
   std::vector<std::unique_ptr<RayCaster>> casters(nl);
   auto caster = [&](std::size_t l) -> const RayCaster& {
-    if (!casters[l]) casters[l] = std::make_unique<RayCaster>(triangulate(surfaces[l + 1].second.vertices, quads));
+    if (!casters[l]) casters[l] = std::make_unique<RayCaster>(triangulate(surfaces[l + 1].second.vertices, quads, split_of(l)));
     return *casters[l];
   };
   if (o.check_intersections) {
     for (std::size_t l = 0; l < nl; ++l) {
-      const Surface upper = triangulate(surfaces[l].second.vertices, quads);
+      const Surface upper = triangulate(surfaces[l].second.vertices, quads, split_of(l));
       const std::int64_t k = caster(l).count_intersecting(upper, 1);
       out.report.surface_intersections += k;
       if (k > 0)
@@ -302,6 +308,8 @@ BuiltModel build_layers(const std::vector<std::pair<std::string, QuadSurface>>& 
   blocks[nl].created = offset + ng;
   blocks[nl].bottom = offset + ng;
   const std::int32_t n_nodes = offset + ng;
+  std::vector<std::array<double, 3>> tetra_shape(nl, {0, 0, 0});
+  std::vector<AxisCalibration> tetra_axes(nl);
   for (std::size_t l = 0; l < nl; ++l) {
     const MatX3d& top = surfaces[l].second.vertices;
     const MatX3d& bot = surfaces[l + 1].second.vertices;
@@ -309,6 +317,14 @@ BuiltModel build_layers(const std::vector<std::pair<std::string, QuadSurface>>& 
       TetraOptions to;
       to.projection = o.projection;
       to.inverted_ratio = o.inverted_ratio;
+      tetra_shape[l] = mean_cell_shape(top, bot, quads);
+      if (o.axis_correction) {
+        if (!(tetra_shape[l][0] > 0 && tetra_shape[l][1] > 0 && tetra_shape[l][2] > 0))
+          throw Error("", "layer '" + surfaces[l].first + "' has degenerate cells");
+        tetra_axes[l] = tetra_layer_axes(tetra_shape[l]);
+        to.axis_factors = tetra_axes[l].factors;
+        to.alternate_diagonals = true;
+      }
       cells[l] = tetra_cells(top, bot, quads, blocks[l], to, &caster(l));
     } else {
       LatticeOptions lo;
@@ -316,6 +332,7 @@ BuiltModel build_layers(const std::vector<std::pair<std::string, QuadSurface>>& 
       lo.body_diagonals = o.body_diagonals;
       lo.min_weight = o.lattice_min_weight;
       lo.inverted_ratio = o.inverted_ratio;
+      lo.axis_correction = o.axis_correction;
       cells[l] = lattice_cells(top, bot, quads, blocks[l], lo);
     }
     casters[l].reset();
@@ -531,7 +548,8 @@ BuiltModel build_layers(const std::vector<std::pair<std::string, QuadSurface>>& 
         }
         lr.reference_volume_m3 = v;
       } else {
-        lr.reference_volume_m3 = layer_volume(surfaces[l].second.vertices, surfaces[l + 1].second.vertices, quads);
+        lr.reference_volume_m3 =
+            layer_volume(surfaces[l].second.vertices, surfaces[l + 1].second.vertices, quads, split_of(l));
       }
       lr.mass_kg = layer_mass[l];
       const double ref = lr.density_kg_m3 * lr.reference_volume_m3;
@@ -544,6 +562,8 @@ BuiltModel build_layers(const std::vector<std::pair<std::string, QuadSurface>>& 
       lr.inverted = cells[l].inverted;
       lr.projection = cells[l].projection;
       lr.rule = cells[l].rule;
+      lr.mean_cell_m = tetra_shape[l];
+      lr.axes = tetra_axes[l];
       R.springs += lr.springs;
       R.lin_springs += lr.lin_springs;
       R.tets += lr.tets;
@@ -601,6 +621,7 @@ std::string build_parameters_json(const BuildOptions& o, const Stack& st) {
   j["max_spring_ratio"] = o.max_spring_ratio;
   j["mass_tolerance"] = o.mass_tolerance;
   j["check_intersections"] = o.check_intersections;
+  j["axis_correction"] = o.axis_correction;
   j["surfaces"] = st.surfaces;
   nlohmann::json layers = nlohmann::json::array();
   for (const auto& l : st.layers) layers.push_back(l.tissue + ":" + l.kind);

@@ -26,8 +26,10 @@
 #include "libmodel/format/model.h"
 #include "libmodel/msm/cells.h"
 #include "libmodel/msm/project.h"
+#include "libmodel/msm/specimen.h"
 #include "libmodel/tissues.h"
 
+#include <array>
 #include <cstdint>
 #include <map>
 #include <string>
@@ -77,6 +79,11 @@ struct BuildOptions {
   double mass_tolerance = 0.01;   // |cell mass - density x layer volume| / that, per layer, (0, 1)
   double inverted_ratio = 1e-9;   // a cell tetrahedron below this fraction of the mean volume is inverted
   bool check_intersections = true;  // exact triangle-triangle test between consecutive surfaces (CGAL)
+  // Equal Young's moduli along u, v and through each layer (docs/msm.md, "The
+  // axis correction"): lattice cells by their rule (LatticeOptions), tetra
+  // layers by the axis factors calibrated on their mean cell
+  // (msm::tetra_layer_axes). Off: the rules alone.
+  bool axis_correction = true;
 };
 
 // Per-layer figures, in the report and in BENCHMARKS.md.
@@ -98,6 +105,10 @@ struct LayerReport {
   std::int64_t inverted = 0;
   ProjectionCounts projection;     // tetra layers
   RuleStats rule;                  // lattice layers
+  // tetra layers: the mean cell (u, v, thickness; m) and, with the axis
+  // correction, its calibration (factors 1 and moduli 0 without)
+  std::array<double, 3> mean_cell_m{0, 0, 0};
+  AxisCalibration axes;
 };
 
 struct BuildReport {

@@ -93,7 +93,7 @@ std::int64_t drop_zero_stiffness(MergedSprings& m) {
   return dropped;
 }
 
-double layer_volume(const MatX3d& top, const MatX3d& bottom, const MatX4i& quads) {
+double layer_volume(const MatX3d& top, const MatX3d& bottom, const MatX4i& quads, const std::vector<std::uint8_t>& split) {
   auto tri = [](const Eigen::Vector3d& a, const Eigen::Vector3d& b, const Eigen::Vector3d& c) {
     return a.dot(b.cross(c)) / 6.0;
   };
@@ -103,7 +103,8 @@ double layer_volume(const MatX3d& top, const MatX3d& bottom, const MatX4i& quads
   auto B = [&](int i) -> Eigen::Vector3d { return bottom.row(i).transpose() - o; };
   double v = 0;
   for (Eigen::Index q = 0; q < quads.rows(); ++q) {
-    const int a = quads(q, 0), b = quads(q, 1), c = quads(q, 2), d = quads(q, 3);
+    const int r = !split.empty() && split[static_cast<std::size_t>(q)] ? 1 : 0;  // the diagonal's first corner
+    const int a = quads(q, r), b = quads(q, (r + 1) % 4), c = quads(q, (r + 2) % 4), d = quads(q, (r + 3) % 4);
     v += tri(T(a), T(b), T(c)) + tri(T(a), T(c), T(d));  // top, outward
     v -= tri(B(a), B(b), B(c)) + tri(B(a), B(c), B(d));  // bottom, reversed
   }

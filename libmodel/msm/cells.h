@@ -99,11 +99,13 @@ inline double tet_volume(const Eigen::Vector3d& a, const Eigen::Vector3d& b, con
 }
 
 // Volume enclosed between a top and a bottom grid with the same quads (both
-// split into triangles along the diagonal q0-q2), closed at the open ends by
-// the side quads of boundary edges split like the cells' side faces (diagonal
-// from the top vertex with the smaller id). Divergence theorem over the closed
-// faceted surface; independent of how the cells are cut. m^3.
-double layer_volume(const MatX3d& top, const MatX3d& bottom, const MatX4i& quads);
+// split into triangles along the diagonal q0-q2, or q1-q3 where split[q] is
+// 1: tetra.h triangulate), closed at the open ends by the side quads of
+// boundary edges split like the cells' side faces (diagonal from the top
+// vertex with the smaller id). Divergence theorem over the closed faceted
+// surface; independent of how the cells are cut. m^3.
+double layer_volume(const MatX3d& top, const MatX3d& bottom, const MatX4i& quads,
+                    const std::vector<std::uint8_t>& split = {});
 
 // The unique undirected edges of a quad grid, with the number of quads using
 // each (1 on an open boundary, 2 inside). Sorted by (a, b), a < b, local ids.

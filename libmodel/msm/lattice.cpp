@@ -1,5 +1,7 @@
 #include "libmodel/msm/lattice.h"
 
+#include "libmodel/msm/nnls.h"
+
 #include "libmodel/format/types.h"
 
 #include <Eigen/Dense>
@@ -44,63 +46,46 @@ Vec6 target() {
   return t;
 }
 
-// Lawson-Hanson non-negative least squares, min |A x - b|, x >= 0, for the
-// 6 x n (n <= 7) systems of the rule: fixed-size, no heap, normal equations
-// on the passive set (well conditioned at these sizes).
 using Mat67 = Eigen::Matrix<double, 6, 7>;
 using Vec7 = Eigen::Matrix<double, 7, 1>;
-Vec7 nnls(const Mat67& A, const Vec6& b, int n) {
-  Vec7 x = Vec7::Zero();
-  bool passive[7] = {false, false, false, false, false, false, false};
-  const Eigen::Matrix<double, 7, 7> AtA = A.transpose() * A;
-  const Vec7 Atb = A.transpose() * b;
-  const double tol = 1e-12 * std::max(1.0, A.norm() * b.norm());
-  auto solve_passive = [&](Vec7& s) {
-    int P[7], m = 0;
-    for (int i = 0; i < n; ++i)
-      if (passive[i]) P[m++] = i;
-    Eigen::Matrix<double, Eigen::Dynamic, Eigen::Dynamic, 0, 7, 7> M(m, m);
-    Eigen::Matrix<double, Eigen::Dynamic, 1, 0, 7, 1> r(m);
-    for (int i = 0; i < m; ++i) {
-      r(i) = Atb(P[i]);
-      for (int j = 0; j < m; ++j) M(i, j) = AtA(P[i], P[j]);
-    }
-    const Eigen::Matrix<double, Eigen::Dynamic, 1, 0, 7, 1> y = M.ldlt().solve(r);
-    s.setZero();
-    for (int i = 0; i < m; ++i) s(P[i]) = y(i);
-  };
-  for (int outer = 0; outer < 3 * n + 10; ++outer) {
-    const Vec7 w = Atb - AtA * x;
-    int j = -1;
-    double best = tol;
-    for (int i = 0; i < n; ++i)
-      if (!passive[i] && w(i) > best) best = w(i), j = i;
-    if (j < 0) break;
-    passive[j] = true;
-    for (int inner = 0; inner < 3 * n + 10; ++inner) {
-      Vec7 s;
-      solve_passive(s);
-      bool positive = true;
-      for (int i = 0; i < n; ++i)
-        if (passive[i] && !(s(i) > 0)) positive = false;
-      if (positive) {
-        x = s;
-        break;
-      }
-      double alpha = 1;
-      for (int i = 0; i < n; ++i)
-        if (passive[i] && !(s(i) > 0)) alpha = std::min(alpha, x(i) / (x(i) - s(i)));
-      x += alpha * (s - x);
-      for (int i = 0; i < n; ++i)
-        if (passive[i] && x(i) <= 1e-15) passive[i] = false, x(i) = 0;
-    }
-  }
-  return x;
+
+
+// r with every spring scaled by sum_a s_a n_a^2 (n: its direction in the box)
+CellRule scaled_rule(const CellRule& r, double a, double b, double c, const std::array<double, 3>& s) {
+  const double a2 = a * a, b2 = b * b, c2 = c * c;
+  CellRule out = r;
+  for (int i = 0; i < 3; ++i) out.edge[static_cast<std::size_t>(i)] *= s[static_cast<std::size_t>(i)];
+  out.face[0] *= (s[0] * a2 + s[1] * b2) / (a2 + b2);
+  out.face[1] *= (s[1] * b2 + s[2] * c2) / (b2 + c2);
+  out.face[2] *= (s[0] * a2 + s[2] * c2) / (a2 + c2);
+  out.body *= (s[0] * a2 + s[1] * b2 + s[2] * c2) / (a2 + b2 + c2);
+  out.axis_factors = s;
+  return out;
 }
 
-}  // namespace
+// The axis factors that make the box's three Young's moduli 1 (per unit E):
+// the fixed point s_a <- s_a / E_a(s), to 1e-12 (it contracts: each modulus
+// is dominated by its own axis's springs).
+CellRule equalise_moduli(const CellRule& r, double a, double b, double c) {
+  std::array<double, 3> s{1, 1, 1};
+  CellRule best = r;
+  double best_error = std::numeric_limits<double>::infinity();
+  for (int it = 0; it < 200; ++it) {
+    const CellRule t = scaled_rule(r, a, b, c, s);
+    const std::array<double, 3> E = axis_moduli(box_stiffness(a, b, c, t));
+    double error = 0;
+    for (double e : E) error = std::max(error, std::abs(e - 1));
+    if (!(error < best_error)) break;  // not contracting (never seen): keep the best
+    best = t, best_error = error;
+    if (error < 1e-12) break;
+    for (int i = 0; i < 3; ++i) s[static_cast<std::size_t>(i)] /= E[static_cast<std::size_t>(i)];
+  }
+  return best;
+}
 
-CellRule cell_rule(double a, double b, double c, bool body_diagonals, double min_weight) {
+
+// the least-squares weights of the six orthotropic constants
+CellRule fit_cell_rule(double a, double b, double c, bool body_diagonals, double min_weight) {
   if (!(a > 0 && b > 0 && c > 0)) throw Error("", "lattice cell with a non-positive edge length");
   if (!(min_weight >= 0 && min_weight < 1)) throw Error("", "lattice min_weight must be in [0, 1)");
   const double edge_min = 0.1 * min_weight, face_min = 0.4 * min_weight;  // the cube's weights times the floor
@@ -133,6 +118,13 @@ CellRule cell_rule(double a, double b, double c, bool body_diagonals, double min
   r.residual = std::sqrt((A * x - Vec6::Ones()).squaredNorm() / 6);
   r.exact = r.residual < 1e-9;
   return r;
+}
+
+}  // namespace
+
+CellRule cell_rule(double a, double b, double c, bool body_diagonals, double min_weight, bool equal_moduli) {
+  const CellRule r = fit_cell_rule(a, b, c, body_diagonals, min_weight);
+  return equal_moduli && !r.exact ? equalise_moduli(r, a, b, c) : r;
 }
 
 Eigen::Matrix<double, 6, 6> box_stiffness(double a, double b, double c, const CellRule& r) {
@@ -253,7 +245,7 @@ LayerCells lattice_cells(const MatX3d& top, const MatX3d& bottom, const MatX4i& 
       const bool valid = a > 0 && bl > 0 && c > 0 && V > 0 && cell_j[static_cast<std::size_t>(cell)] > 0;  // else: inverted, k = 0
       CellRule r;
       if (valid) {
-        r = cell_rule(a, bl, c, o.body_diagonals, o.min_weight);
+        r = cell_rule(a, bl, c, o.body_diagonals, o.min_weight, o.axis_correction);
         rules[static_cast<std::size_t>(cell)] = r;
         moduli[static_cast<std::size_t>(cell)] = axis_moduli(box_stiffness(a, bl, c, r));
         ruled[static_cast<std::size_t>(cell)] = 1;

@@ -43,13 +43,22 @@ struct CellRule {
   std::array<double, 3> edge{0, 0, 0};  // edges along u, v, w
   std::array<double, 3> face{0, 0, 0};  // face diagonals in the uv, vw, uw faces
   double body = 0;                      // body diagonals (only with body_diagonals)
-  double residual = 0;                  // relative RMS misfit of the six constants (0 = exact)
+  double residual = 0;                  // relative RMS misfit of the six constants (0 = exact), before the axis correction
   bool exact = true;
+  // the axis correction (equal_moduli): every spring scaled by
+  // sum_a s_a n_a^2 (n its unit direction in the cell's u, v, w frame)
+  std::array<double, 3> axis_factors{1, 1, 1};
 };
 
 // Weights for a box cell a x b x c (m, each > 0). Edge and face-diagonal
 // weights are at least min_weight (in [0, 1)) times their cube values.
-CellRule cell_rule(double a, double b, double c, bool body_diagonals, double min_weight = 0.01);
+// equal_moduli: where the fit is not exact, each spring's weight is then
+// scaled by sum_a s_a n_a^2 with the axis factors s_u, s_v, s_w that make the
+// cell's three Young's moduli exactly E (the least-squares fit leaves an
+// elongated cell up to 1.45x stiffer along one axis; docs/msm.md). The
+// shears and Poisson's ratios stay the fit's.
+CellRule cell_rule(double a, double b, double c, bool body_diagonals, double min_weight = 0.01,
+                   bool equal_moduli = false);
 
 // The Cauchy-Born stiffness per unit E (Voigt 6x6, order 11 22 33 23 13 12)
 // of an infinite lattice of a x b x c boxes with these weights.
@@ -63,6 +72,7 @@ struct LatticeOptions {
   bool body_diagonals = false;  // add the 4 body diagonals of each cell (docs/msm.md: they do not help)
   double min_weight = 0.01;     // floor of edge/face weights, times their cube values: no cell is a mechanism
   double inverted_ratio = 1e-9; // a cell whose Jacobian falls below this fraction of the mean cell volume is inverted
+  bool axis_correction = true;  // cell_rule's equal_moduli: each cell's Young's moduli along u, v, w exactly E
 };
 
 // Smallest Jacobian of the trilinear map of the hexahedron from the unit cube

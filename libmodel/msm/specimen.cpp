@@ -214,11 +214,16 @@ Specimen make_specimen(const SpecimenOptions& o) {
     lo.through_cells = cz;
     lo.body_diagonals = o.body_diagonals;
     lo.min_weight = o.lattice_min_weight;
+    lo.axis_correction = o.lattice_axis_correction;
     blocks.bottom = ng + ng * (cz - 1);
     cells = lattice_cells(top, bottom, quads, blocks, lo);
   } else {
+    for (double f : o.tetra_axis_factors)
+      if (!(f > 0 && std::isfinite(f))) throw Error("", "specimen tetra axis factors must be finite and > 0");
     TetraOptions to;
     to.projection = o.projection;
+    to.axis_factors = o.tetra_axis_factors;
+    to.alternate_diagonals = o.tetra_alternate_diagonals;
     blocks.bottom = ng + 2 * static_cast<std::int32_t>(quads.rows());
     cells = tetra_cells(top, bottom, quads, blocks, to);
   }
@@ -337,6 +342,63 @@ UniaxialCurve uniaxial_test(const Specimen& s, const std::vector<double>& strain
   }
   out.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
   return out;
+}
+
+AxisCalibration calibrate_tetra_axes(SpecimenOptions o, double tolerance, int max_iterations) {
+  if (o.kind != "tetra") throw Error("", "calibrate_tetra_axes: the specimen must be a tetra layer");
+  if (!(tolerance > 0 && tolerance < 0.5)) throw Error("", "calibrate_tetra_axes: tolerance in (0, 0.5)");
+  AxisCalibration out;
+  const double strain = 1e-4;
+  auto moduli = [&](const std::array<double, 3>& f) {
+    o.tetra_axis_factors = f;
+    Specimen s = make_specimen(o);
+    apply_law(s, SpringLaw{1.0, 1.0, 0.0});
+    std::array<double, 3> E{};
+    for (int axis = 0; axis < 3; ++axis) {
+      UniaxialOptions u;
+      u.axis = axis;
+      E[static_cast<std::size_t>(axis)] = uniaxial_test(s, {strain}, u).stress_pa[0] / strain;
+    }
+    return E;
+  };
+  std::array<double, 3> f{1, 1, 1};
+  for (out.iterations = 0; out.iterations <= max_iterations; ++out.iterations) {
+    const std::array<double, 3> E = moduli(f);
+    if (out.iterations == 0) out.moduli_before = E;
+    double error = 0;
+    for (double e : E) error = std::max(error, std::abs(e - 1));
+    if (!(error < 1e3) || !std::isfinite(error)) break;
+    if (error <= tolerance) {
+      out.factors = f;
+      out.moduli_after = E;
+      return out;
+    }
+    for (int a = 0; a < 3; ++a) f[static_cast<std::size_t>(a)] /= E[static_cast<std::size_t>(a)];
+  }
+  throw Error("", "the tetra layer's axis factors did not converge (cell " + std::to_string(o.cell_m[0] * 1e3) + " x " +
+                      std::to_string(o.cell_m[1] * 1e3) + " x " + std::to_string(o.cell_m[2] * 1e3) + " mm)");
+}
+
+AxisCalibration tetra_layer_axes(const std::array<double, 3>& cell_m) {
+  SpecimenOptions o;
+  o.kind = "tetra";
+  o.cells = kTetraCalibrationCells;
+  o.cell_m = cell_m;
+  o.tetra_alternate_diagonals = true;
+  return calibrate_tetra_axes(o);
+}
+
+std::array<double, 3> mean_cell_shape(const MatX3d& top, const MatX3d& bottom, const MatX4i& quads) {
+  double a = 0, b = 0, h = 0;
+  auto P = [&](Eigen::Index q, int k) { return top.row(quads(q, k)); };
+  for (Eigen::Index q = 0; q < quads.rows(); ++q) {
+    a += 0.5 * ((P(q, 1) - P(q, 0)).norm() + (P(q, 2) - P(q, 3)).norm());
+    b += 0.5 * ((P(q, 2) - P(q, 1)).norm() + (P(q, 3) - P(q, 0)).norm());
+  }
+  const Eigen::Index ng = std::min(top.rows(), bottom.rows());
+  for (Eigen::Index v = 0; v < ng; ++v) h += (top.row(v) - bottom.row(v)).norm();
+  const double nq = static_cast<double>(std::max<Eigen::Index>(1, quads.rows()));
+  return {a / nq, b / nq, h / static_cast<double>(std::max<Eigen::Index>(1, ng))};
 }
 
 }  // namespace orthosim::msm

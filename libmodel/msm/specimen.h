@@ -70,6 +70,9 @@ struct SpecimenOptions {
   bool body_diagonals = false;           // lattice only
   double lattice_min_weight = 0.01;      // lattice only: the rule's floor (LatticeOptions::min_weight)
   ProjectionOptions projection;          // tetra only
+  bool lattice_axis_correction = true;   // lattice only: LatticeOptions::axis_correction
+  std::array<double, 3> tetra_axis_factors{1, 1, 1};  // tetra only: TetraOptions::axis_factors
+  bool tetra_alternate_diagonals = false;  // tetra only: TetraOptions::alternate_diagonals
 };
 
 // A block [0, X] x [0, Y] x [0, Z]: the top grid at z = Z, the bottom at z = 0,
@@ -91,6 +94,34 @@ Specimen make_specimen(const SpecimenOptions& options);
 // k1 = K1 k_per_pa, k2 = K2 k_per_pa, Lt = L0 (1 + turning strain). A linear
 // law: k2_pa == k1_pa, turning_strain = 0.
 void apply_law(Specimen& s, const SpringLaw& law);
+
+// The tetra axis factors (TetraOptions::axis_factors) that give a tetra
+// specimen of these options (kind "tetra"; its tetra_axis_factors ignored)
+// equal small-strain Young's moduli along x (u), y (v) and z (through the
+// layer), each E: the fixed point s_a <- s_a E / E_a(s) of three linear
+// uniaxial tests (strain 1e-4, sliding clamps) per iteration, until every
+// modulus is within `tolerance` of E. The trace rule alone leaves the moduli
+// of realistic prisms 0.57-1.6 E and unequal (docs/msm.md). Throws Error if
+// it does not converge in max_iterations. Deterministic.
+struct AxisCalibration {
+  std::array<double, 3> factors{1, 1, 1};
+  std::array<double, 3> moduli_before{0, 0, 0};  // E_u, E_v, E_w / E of the trace rule
+  std::array<double, 3> moduli_after{0, 0, 0};   // with the factors
+  int iterations = 0;
+};
+AxisCalibration calibrate_tetra_axes(SpecimenOptions options, double tolerance = 1e-3, int max_iterations = 60);
+
+// The calibration build and tune both use for a tetra layer of mean cell
+// a x b x h (m; mean_cell_shape): a flat specimen of kTetraCalibrationCells
+// prisms of that shape with alternating diagonals. The same cell shape gives
+// the same factors in both.
+inline constexpr std::array<int, 3> kTetraCalibrationCells{6, 6, 1};
+AxisCalibration tetra_layer_axes(const std::array<double, 3>& cell_m);
+
+// A layer's mean cell: the mean top-quad edge along u (q0q1, q3q2) and v
+// (q1q2, q0q3), and the mean distance between corresponding top and bottom
+// grid vertices (m). `quads` index both grids' rows.
+std::array<double, 3> mean_cell_shape(const MatX3d& top, const MatX3d& bottom, const MatX4i& quads);
 
 enum class Clamp {
   sliding,  // the two loaded faces keep their normal displacement only; lateral motion free (uniaxial stress)

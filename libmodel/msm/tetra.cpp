@@ -7,24 +7,58 @@
 #include <array>
 #include <cmath>
 #include <limits>
+#include <map>
+#include <utility>
+#include <vector>
 
 namespace orthosim::msm {
 
-Surface triangulate(const MatX3d& vertices, const MatX4i& quads) {
+Surface triangulate(const MatX3d& vertices, const MatX4i& quads, const std::vector<std::uint8_t>& split) {
   Surface s;
   s.vertices = vertices;
   s.faces.resize(2 * quads.rows(), 3);
   for (Eigen::Index q = 0; q < quads.rows(); ++q) {
-    s.faces.row(2 * q) << quads(q, 0), quads(q, 1), quads(q, 2);
-    s.faces.row(2 * q + 1) << quads(q, 0), quads(q, 2), quads(q, 3);
+    const int r = !split.empty() && split[static_cast<std::size_t>(q)] ? 1 : 0;  // the diagonal's first corner
+    const auto c = [&](int k) { return quads(q, (r + k) % 4); };
+    s.faces.row(2 * q) << c(0), c(1), c(2);
+    s.faces.row(2 * q + 1) << c(0), c(2), c(3);
   }
   return s;
 }
 
+std::vector<std::uint8_t> alternating_split(const MatX4i& quads) {
+  const std::size_t nq = static_cast<std::size_t>(quads.rows());
+  std::map<std::pair<std::int32_t, std::int32_t>, std::vector<std::int32_t>> by_edge;
+  for (Eigen::Index q = 0; q < quads.rows(); ++q)
+    for (int k = 0; k < 4; ++k) {
+      const std::int32_t a = quads(q, k), b = quads(q, (k + 1) % 4);
+      by_edge[{std::min(a, b), std::max(a, b)}].push_back(static_cast<std::int32_t>(q));
+    }
+  std::vector<std::uint8_t> colour(nq, 2);
+  std::vector<std::int32_t> queue;
+  for (std::size_t start = 0; start < nq; ++start) {
+    if (colour[start] != 2) continue;
+    colour[start] = 0;
+    queue.assign(1, static_cast<std::int32_t>(start));
+    for (std::size_t head = 0; head < queue.size(); ++head) {
+      const std::int32_t q = queue[head];
+      for (int k = 0; k < 4; ++k) {
+        const std::int32_t a = quads(q, k), b = quads(q, (k + 1) % 4);
+        for (std::int32_t n : by_edge[{std::min(a, b), std::max(a, b)}])
+          if (colour[static_cast<std::size_t>(n)] == 2) {
+            colour[static_cast<std::size_t>(n)] = static_cast<std::uint8_t>(1 - colour[static_cast<std::size_t>(q)]);
+            queue.push_back(n);
+          }
+      }
+    }
+  }
+  return colour;
+}
 
 LayerCells tetra_cells(const MatX3d& top, const MatX3d& bottom, const MatX4i& quads, const NodeBlocks& blocks,
                        const TetraOptions& o, const RayCaster* bottom_caster) {
-  const Surface upper = triangulate(top, quads), lower = triangulate(bottom, quads);
+  const std::vector<std::uint8_t> split = o.alternate_diagonals ? alternating_split(quads) : std::vector<std::uint8_t>{};
+  const Surface upper = triangulate(top, quads, split), lower = triangulate(bottom, quads, split);
   const Eigen::Index nf = upper.faces.rows();
   VecXi expected(nf);
   VecXd reach(nf);
@@ -133,7 +167,22 @@ LayerCells tetra_cells(const MatX3d& top, const MatX3d& bottom, const MatX4i& qu
             if (V > 0 && l2 > 0) k[a][b] += V / l2;  // an inverted tetrahedron adds no stiffness (and fails the build)
           }
       }
-      const int d0 = quads(q, 0), d2 = quads(q, 2);  // the quad's diagonal q0-q2
+      if (o.axis_factors != std::array<double, 3>{1, 1, 1}) {
+        // the prism's frame from its quad: u along q0 -> q1, w the normal
+        const Eigen::Vector3d U = T(quads(q, 1)) - T(quads(q, 0)) + T(quads(q, 2)) - T(quads(q, 3));
+        const Eigen::Vector3d V = T(quads(q, 3)) - T(quads(q, 0)) + T(quads(q, 2)) - T(quads(q, 1));
+        const Eigen::Vector3d w = U.cross(V).normalized(), u = U.normalized(), v = w.cross(u);
+        for (int a = 0; a < 7 && w.allFinite() && u.allFinite(); ++a)  // a degenerate quad keeps the trace rule
+          for (int b = a + 1; b < 7; ++b) {
+            const Eigen::Vector3d d = X[b] - X[a];
+            const double l2 = d.squaredNorm();
+            if (!(l2 > 0)) continue;
+            const double du = d.dot(u), dv = d.dot(v), dw = d.dot(w);
+            k[a][b] *= (o.axis_factors[0] * du * du + o.axis_factors[1] * dv * dv + o.axis_factors[2] * dw * dw) / l2;
+          }
+      }
+      const int r = split.empty() ? 0 : split[static_cast<std::size_t>(q)];
+      const int d0 = quads(q, r), d2 = quads(q, r + 2);  // the quad's diagonal
       auto classify = [&](int a, int b) {            // a < b, local nodes
         if (b == 6) return a < 3 ? SpringClass::inter_layer : SpringClass::shear;  // v-c between layers, w-c in the surface
         const bool top_a = a < 3, top_b = b < 3;

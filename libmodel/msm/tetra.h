@@ -1,7 +1,10 @@
 // Tetrahedral layers by centroid projection (paper §3).
 //
 // Each quad (q0 q1 q2 q3) of the top grid is split along q0-q2 into the
-// triangles (q0 q1 q2) and (q0 q2 q3). The centroid of each triangle is shot
+// triangles (q0 q1 q2) and (q0 q2 q3), or with alternate_diagonals along
+// alternating diagonals (alternating_split; q1-q3: (q1 q2 q3), (q1 q3 q0)),
+// which keeps the layer from coupling stretch to shear (docs/msm.md). The
+// centroid of each triangle is shot
 // along the triangle's inward normal onto the bottom grid, split the same way
 // (project.h). Springs join the triangle's vertices to its projected centroid
 // c: the tetrahedron (v0 v1 v2 c) of the paper.
@@ -37,10 +40,26 @@ namespace orthosim::msm {
 struct TetraOptions {
   ProjectionOptions projection;
   double inverted_ratio = 1e-9;  // a tetrahedron below this fraction of the mean volume counts as inverted
+  // Axis factors s_u, s_v, s_w (> 0): every spring's trace-rule stiffness is
+  // scaled by sum_a s_a n_a^2, n its unit direction in its prism's frame (u
+  // along the quad's q0 -> q1, w along the top quad's normal, v = w x u).
+  // {1, 1, 1}: the trace rule alone. msm::calibrate_tetra_axes finds the
+  // factors that give a layer's cell shape equal moduli along u, v and w.
+  std::array<double, 3> axis_factors{1, 1, 1};
+  bool alternate_diagonals = false;  // split the quads by alternating_split (else all along q0-q2)
 };
 
-// The triangles of a quad grid, split along q0-q2: face 2q = (q0 q1 q2), 2q+1 = (q0 q2 q3).
-Surface triangulate(const MatX3d& vertices, const MatX4i& quads);
+// The triangles of a quad grid: quad q split along q0-q2, face 2q = (q0 q1
+// q2), 2q+1 = (q0 q2 q3); where split[q] is 1, along q1-q3, face 2q = (q1 q2
+// q3), 2q+1 = (q1 q3 q0). An empty split: every quad along q0-q2.
+Surface triangulate(const MatX3d& vertices, const MatX4i& quads, const std::vector<std::uint8_t>& split = {});
+
+// Alternating diagonals: a two-colouring of the quads by breadth-first search
+// over shared edges, in quad order (a grid's checkerboard; where a closed
+// grid has an odd number of quads around, one seam keeps the same diagonal
+// twice). With one diagonal in every quad the prisms of a tetra layer couple
+// stretch to in-plane shear (docs/msm.md); alternating cancels it.
+std::vector<std::uint8_t> alternating_split(const MatX4i& quads);
 
 // The cells of a tetra layer between `top` and `bottom` grids (same rows and
 // quads). The projected centroids are created at blocks.created + face index.

@@ -140,6 +140,11 @@ msm::Specimen make_tissue_specimen(const ExperimentOptions& o) {
   so.cell_m = o.cell_m;
   so.body_diagonals = o.body_diagonals;
   so.lattice_min_weight = o.lattice_min_weight;
+  so.lattice_axis_correction = o.axis_correction;
+  if (o.kind == "tetra" && o.axis_correction) {
+    so.tetra_axis_factors = msm::tetra_layer_axes(o.cell_m).factors;
+    so.tetra_alternate_diagonals = true;
+  }
   return msm::make_specimen(so);
 }
 

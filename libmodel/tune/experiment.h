@@ -76,6 +76,11 @@ struct ExperimentOptions {
   // --lattice-min-weight; tune --model reads them from /provenance/build)
   bool body_diagonals = false;
   double lattice_min_weight = 0.01;
+  // the rule's axis correction (build --no-axis-correction turns it off;
+  // models built before 2026-11-28 have none): lattice cells with equal
+  // moduli along u, v, w, tetra prisms with the factors of
+  // msm::tetra_layer_axes for this cell shape
+  bool axis_correction = true;
 };
 // Throws Error("", ...) for out-of-range options.
 void validate(const ExperimentOptions& options);

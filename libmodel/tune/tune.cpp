@@ -326,18 +326,8 @@ ExperimentOptions experiment_for_layer(const Layer& layer, const Layer& below, c
   const Eigen::Index ng = static_cast<Eigen::Index>(local.maxCoeff()) + 1;
   if (local.minCoeff() < 0 || ng > layer.nodes.rows() || ng > below.nodes.rows())
     throw Error("", "layer '" + layer.tissue + "': top quads do not index its own grid");
-  // mean edge along u (q0q1, q3q2) and v (q1q2, q0q3), as the lattice rule's equivalent box
-  double a = 0, b = 0;
-  auto P = [&](Eigen::Index q, int k) { return layer.nodes.row(local(q, k)); };
-  for (Eigen::Index q = 0; q < local.rows(); ++q) {
-    a += 0.5 * ((P(q, 1) - P(q, 0)).norm() + (P(q, 2) - P(q, 3)).norm());
-    b += 0.5 * ((P(q, 2) - P(q, 1)).norm() + (P(q, 3) - P(q, 0)).norm());
-  }
-  a /= static_cast<double>(local.rows());
-  b /= static_cast<double>(local.rows());
-  double h = 0;
-  for (Eigen::Index v = 0; v < ng; ++v) h += (layer.nodes.row(v) - below.nodes.row(v)).norm();
-  h /= static_cast<double>(ng);
+  // mean edge along u and v, as the lattice rule's equivalent box, and the thickness
+  const auto [a, b, h] = msm::mean_cell_shape(layer.nodes.topRows(ng), below.nodes.topRows(ng), local);
   if (!(a > 0 && b > 0 && h > 0)) throw Error("", "layer '" + layer.tissue + "' has degenerate cells");
   ExperimentOptions o = defaults;
   o.kind = layer.kind;

@@ -354,6 +354,55 @@ TEST(TuneCli, TheSpecimenHasTheBuildsCells) {
   EXPECT_NEAR(ModelReader(model).tuning("fat").achieved(0), 2300, 0.01 * 2300);
 }
 
+// build's axis correction (docs/msm.md) is reported per layer and recorded
+// in /provenance/build, and tune's specimen follows it: a model built with it
+// is tuned with it, one built with --no-axis-correction (or before) without.
+// The tuned fat (a lattice, linear) then has the table's modulus across the
+// load too; without the correction it did not.
+TEST(TuneCli, TheSpecimenHasTheBuildsAxisCorrection) {
+  test::TempDir d("tune-cli-axes");
+  double off[2] = {0, 0};
+  for (const bool corrected : {true, false}) {
+    const std::string model = cylinders(d, corrected ? "a.h5" : "b.h5", 15, 5);
+    const auto b = test::run_cli("build --model " + model + " --tissues " + kTable + " --quiet --report " +
+                                 (d / "b.json") + (corrected ? "" : " --no-axis-correction"));
+    ASSERT_EQ(b.code, 0) << b.err;
+    const json br = json::parse(test::read_file(d / "b.json"));
+    for (const json& l : br["metrics"]["layers"]) {
+      if (l["kind"] == "tetra") {
+        const auto f = l["axis_factors_uvw"].get<std::vector<double>>();
+        EXPECT_EQ(f != std::vector<double>({1.0, 1.0, 1.0}), corrected) << l.dump();
+        if (corrected) {
+          for (double e : l["modulus_ratio_uvw"].get<std::vector<double>>()) EXPECT_NEAR(e, 1.0, 1e-3) << l.dump();
+        } else {
+          EXPECT_TRUE(l["modulus_ratio_uvw"].is_null()) << l.dump();
+        }
+      }
+      if (l["kind"] == "lattice") {
+        double spread = 0;
+        for (double e : l["stiffness_rule"]["mean_modulus_ratio_uvw"].get<std::vector<double>>())
+          spread = std::max(spread, std::abs(e - 1));
+        if (corrected) {
+          EXPECT_LT(spread, 1e-9) << l.dump();
+        } else {
+          EXPECT_GT(spread, 0.01) << l.dump();
+        }
+      }
+    }
+    const auto r = test::run_cli("tune --tissues " + kTable + " --tissue fat --model " + model +
+                                 " --max-evaluations 3000 --quiet --report " + (d / "r.json"));
+    ASSERT_EQ(r.code, 0) << r.err;
+    const json rep = json::parse(test::read_file(d / "r.json"));
+    EXPECT_EQ(rep["parameters"]["tissues"][0]["experiment"]["axis_correction"].get<bool>(), corrected);
+    const json& ax = rep["metrics"]["tissues"][0]["axis_ratio"];
+    ASSERT_TRUE(ax["v"].is_number() && ax["w"].is_number()) << ax.dump();
+    off[corrected ? 0 : 1] = std::max(std::abs(ax["v"].get<double>() - 1), std::abs(ax["w"].get<double>() - 1));
+    RecordProperty(corrected ? "fat_axis_ratio" : "fat_axis_ratio_uncorrected", ax.dump());
+  }
+  EXPECT_LT(off[0], 0.01);
+  EXPECT_GT(off[1], 0.05);
+}
+
 // A model without a rigid tissue: its innermost layered tissue is the fixed
 // bottom (rigid). Without --tissue it is not tuned (a note says so); it was an
 // error ("built as a rigid layer"). Named, it still is one.
