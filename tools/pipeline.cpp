@@ -71,6 +71,7 @@ struct Args {
   double tune_budget_s = 300;
   std::uint64_t seed = 1;
   int through_cells = 1;  // build's --through-cells (a fine grid's lattice cells need it: 400x100 builds with 4)
+  int bit_depth = 16;     // segment's --bit-depth (significant bits of 16-bit slices)
   CommonOptions common;
 };
 
@@ -367,7 +368,7 @@ int run_stages(Args a, Report& report) {
   report.input(a.stack);
   report.input(a.tissues);
   if (!a.scene.empty()) report.input(a.scene);
-  report.parameters() = {{"grid", a.grid}, {"through_cells", a.through_cells}, {"spacing_mm", a.spacing}, {"origin_mm", a.origin},
+  report.parameters() = {{"grid", a.grid}, {"through_cells", a.through_cells}, {"bit_depth", a.bit_depth}, {"spacing_mm", a.spacing}, {"origin_mm", a.origin},
                          {"work", a.work}, {"texture", a.texture}, {"tune", a.tune},
                          {"tune_budget_s", a.tune_budget_s}, {"tune_evaluations", a.tune_evaluations}, {"seed", a.seed}, {"export", a.export_dir}};
 
@@ -483,11 +484,13 @@ int run_stages(Args a, Report& report) {
   try {
     // 1. segment
     const auto seg = run.stage(
-        "segment", {stack_hash, table_hash, a.spacing, a.origin, a.register_slices ? "registered" : "as-is"},
+        "segment",
+        {stack_hash, table_hash, a.spacing, a.origin, a.register_slices ? "registered" : "as-is",
+         "bit-depth " + std::to_string(a.bit_depth)},
         run.command([&](const std::string& d) {
           std::vector<std::string> args{"segment", "--stack", a.stack, "--tissues", a.tissues, "--spacing",
                                         a.spacing, "--origin", a.origin, "--out", d + "/labels.h5",
-                                        "--nrrd", d + "/labels.nrrd"};
+                                        "--nrrd", d + "/labels.nrrd", "--bit-depth", std::to_string(a.bit_depth)};
           if (a.register_slices) args.push_back("--register");
           return args;
         }),
@@ -796,6 +799,10 @@ void add_pipeline_command(CLI::App& app) {
   sub->add_option("--origin", a.origin, "position of voxel (0,0,0) in mm, X,Y,Z")->capture_default_str();
   sub->add_option("--scene", a.scene, "scene file: build only what it uses");
   sub->add_option("--grid", a.grid, "quad grid NUxNV")->capture_default_str();
+  sub->add_option("--bit-depth", a.bit_depth,
+                  "significant bits of 16-bit slices, segment's (8..16; 12: a 12-bit camera's data in 16-bit files)")
+      ->check(CLI::Range(8, 16))
+      ->capture_default_str();
   sub->add_option("--through-cells", a.through_cells,
                   "lattice cells through each lattice layer, build's (1..64; a fine --grid needs more: 400x100 builds "
                   "with 4)")

@@ -24,7 +24,7 @@ void add_segment_command(CLI::App& app) {
     bool no_cleanup = false, no_order = false, no_fill_holes = false, exposure = false, register_slices = false;
     int register_window = 8;
     double register_max_shift = 32, register_min_response = 0.1;
-    int speck_support = 2, calibration_slices = 9, refine_iterations = 8, slab = 8, threads = 0;
+    int speck_support = 2, calibration_slices = 9, refine_iterations = 8, slab = 8, threads = 0, bit_depth = 16;
     std::int64_t min_island = 64, min_vessel = 4;
     double min_island_mm3 = 20;
     double refine_max_shift = 30, lightness_weight = 1, min_body_fraction = 0.1;
@@ -60,6 +60,10 @@ void add_segment_command(CLI::App& app) {
                   "keep body components of at least this fraction of the largest")
       ->capture_default_str();
   sub->add_option("--calibration-slices", a.calibration_slices, "slices used to calibrate the colours")
+      ->capture_default_str();
+  sub->add_option("--bit-depth", a.bit_depth,
+                  "significant bits of 16-bit slices, 8..16 (12: a 12-bit camera's data in 16-bit files); "
+                  "no effect on 8-bit slices")
       ->capture_default_str();
   sub->add_option("--refine-iterations", a.refine_iterations, "EM iterations of the colour calibration (0: table colours as they are)")
       ->capture_default_str();
@@ -110,6 +114,7 @@ void add_segment_command(CLI::App& app) {
     o.min_vessel_voxels = a.min_vessel;
     o.min_body_fraction = a.min_body_fraction;
     o.calibration_slices = a.calibration_slices;
+    o.bit_depth = a.bit_depth;
     o.refine_iterations = a.refine_iterations;
     o.refine_max_shift = a.refine_max_shift;
     o.exposure_from_border = a.exposure;
@@ -138,7 +143,7 @@ void add_segment_command(CLI::App& app) {
     if (!a.truth.empty()) {
       // the truth must match the stack voxel for voxel: checked here, since
       // the Dice comes after --out is written
-      const SliceSource src = stack_source(a.stack);
+      const SliceSource src = stack_source(a.stack, a.bit_depth);
       ModelReader truth(a.truth);
       const std::string ds = "/volume/labels";
       if (!truth.has(ds)) throw Error(a.truth, "missing dataset /volume/labels (no truth volume)");
@@ -186,6 +191,11 @@ void add_segment_command(CLI::App& app) {
     auto& j = report.metrics();
     const double voxels = static_cast<double>(m.nx) * m.ny * m.nz;
     j["size"] = {m.nx, m.ny, m.nz};
+    j["bit_depth"] = a.bit_depth;
+    if (!m.stack_note.empty()) {
+      j["stack_note"] = m.stack_note;
+      std::cerr << "orthosim segment: warning: " << a.stack << ": " << m.stack_note << "\n";
+    }
     j["voxels"] = m.voxels;
     j["read_cpu_s"] = m.read_s;
     j["voxels_per_s"] = voxels / std::max(1e-9, m.calibrate_s + m.classify_s + m.cleanup_s + m.components_s +

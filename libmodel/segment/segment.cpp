@@ -68,6 +68,7 @@ void validate(const SegmentOptions& o) {
   auto bad = [](const std::string& m) { throw Error("", m); };
   if (const std::string why = voxel_geometry_problem(o.spacing_m, o.origin_m); !why.empty()) bad(why);
   if (o.calibration_slices < 1 || o.calibration_slices > 64) bad("calibration-slices: must be in 1..64");
+  if (o.bit_depth < 8 || o.bit_depth > 16) bad("bit-depth: must be in 8..16");
   if (o.sample_stride < 1 || o.sample_stride > 64) bad("sample stride must be in 1..64 (the library's SegmentOptions::sample_stride)");
   if (o.refine_iterations < 0 || o.refine_iterations > 100) bad("refine-iterations: must be in 0..100");
   if (!(o.refine_prior >= 0) || !std::isfinite(o.refine_prior)) bad("refine prior must be >= 0 (the library's SegmentOptions::refine_prior)");
@@ -231,6 +232,7 @@ SegmentMetrics segment(const SliceSource& stack, const TissueTable& table, const
   const int nx = src.nx, ny = src.ny, nz = src.nz;
   const std::size_t plane = static_cast<std::size_t>(nx) * ny;
   met.nx = nx, met.ny = ny, met.nz = nz;
+  met.stack_note = src.note;
   auto report = [&](long done) {
     if (progress) progress(done, 2L * nz);
   };
@@ -342,7 +344,7 @@ SegmentMetrics segment(const SliceSource& stack, const TissueTable& table, const
   met.components_s = seconds_since(t0);
   if (dec.body_components == 0)
     throw Error(src.name, "nothing segmented: every voxel was classified as background (are the tissue table's "
-                          "colours those of this stack?)");
+                          "colours those of this stack?" + (src.note.empty() ? std::string() : " " + src.note) + ")");
 
   // ---- pass 2: final labels, in z order, to the sink
   t0 = std::chrono::steady_clock::now();
@@ -425,7 +427,7 @@ SegmentMetrics segment_stack(const SegmentFiles& files, const TissueTable& table
   check_table(table);
   check_output_file(files.out_h5);
   if (!files.nrrd_path.empty()) check_output_file(files.nrrd_path);
-  SliceSource src = stack_source(files.stack_dir);
+  SliceSource src = stack_source(files.stack_dir, opt.bit_depth);
 
   ModelWriter w(files.out_h5, ModelWriter::Start::fresh);
   const std::string g = "/volume";

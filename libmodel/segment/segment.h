@@ -102,13 +102,16 @@ struct SliceFormat {
   int nx = 0, ny = 0;
   int channels = 0;  // 1 grey, 2 grey+alpha, 3 colour, 4 colour+alpha
   int bits = 8;      // 8 or 16
+  int max_value = 0; // the largest colour value in the file (alpha excluded)
 };
 
-// Reads one colour slice. 16-bit images are scaled to 8 bits, an alpha channel
-// is dropped. Throws Error(path, ...) for a missing, empty, corrupt or
-// undecodable file and for grey-scale images (one or two channels, or three
-// equal channels). `format` receives what the file held.
-RgbImage read_slice(const std::string& path, SliceFormat* format = nullptr);
+// Reads one colour slice. 16-bit images are scaled to 8 bits from
+// `bit_depth` significant bits (8..16: v x 255 / (2^bit_depth - 1), clamped;
+// a 12-bit camera's data in a 16-bit file: 12), an alpha channel is dropped.
+// Throws Error(path, ...) for a missing, empty, corrupt or undecodable file
+// and for grey-scale images (one or two channels, or three equal channels).
+// `format` receives what the file held.
+RgbImage read_slice(const std::string& path, SliceFormat* format = nullptr, int bit_depth = 16);
 
 // Writes an RGB image as PNG atomically (overlays, tests). Throws Error(path).
 void write_png(const std::string& path, const RgbImage& image);
@@ -119,6 +122,9 @@ void write_png(const std::string& path, const RgbImage& image);
 struct SliceSource {
   int nx = 0, ny = 0, nz = 0;
   std::string name;  // what the stack is (folder), for messages
+  // a remark on the stack worth a warning (e.g. a 16-bit stack whose first
+  // slice uses 12 bits or fewer while read as 16-bit), or empty
+  std::string note;
   std::function<void(int z, std::vector<std::uint8_t>& rgb)> read;
 };
 
@@ -126,7 +132,8 @@ struct SliceSource {
 // size, and checks every later slice against it when read (same size, same
 // channel count and bit depth, colour). Throws Error(file, ...) on the first
 // slice that is wrong.
-SliceSource stack_source(const std::string& dir);
+// bit_depth: the significant bits of 16-bit slices (read_slice), 8..16.
+SliceSource stack_source(const std::string& dir, int bit_depth = 16);
 
 // A source over images held in memory (tests, benchmarks). All the same size.
 SliceSource memory_source(std::vector<RgbImage> slices, std::string name = "memory");
@@ -187,6 +194,9 @@ struct SegmentOptions {
   // Slices read before the main pass to calibrate colours (spread evenly,
   // first and last included); at most nz. 1..64.
   int calibration_slices = 9;
+  // Significant bits of a 16-bit stack (8..16; read_slice): 12 for a 12-bit
+  // camera's data stored in 16-bit files. No effect on 8-bit slices.
+  int bit_depth = 16;
   // Pixels sampled for calibration and per-slice normalisation: every n-th
   // row and column (1..64).
   int sample_stride = 4;
@@ -279,6 +289,7 @@ std::vector<int> nearest_table_labels(const std::vector<Prototype>& prototypes);
 
 struct SegmentMetrics {
   int nx = 0, ny = 0, nz = 0;
+  std::string stack_note;  // SliceSource::note: worth a warning (empty: none)
   std::map<std::string, std::int64_t> voxels;  // per tissue name, "background" included
   std::vector<Prototype> prototypes;
   // Per-slice normalisation: smallest and largest mean gain over the slices

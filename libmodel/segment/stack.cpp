@@ -15,7 +15,10 @@
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
+#include <iostream>
 #include <memory>
+#include <mutex>
+#include <sstream>
 
 namespace orthosim {
 
@@ -214,7 +217,53 @@ std::string hash_stack(const std::string& dir) {
   return "xxh3:" + hash_bytes(parts.data(), parts.size());
 }
 
-RgbImage read_slice(const std::string& path, SliceFormat* format) {
+namespace {
+
+// OpenCV's decoders write some failures straight to std::cerr (imdecode's
+// "imdecode_(''): can't read data: ... TIFFReadRGBAStrip ..." on a truncated
+// TIFF) before orthosim's one-line error. While any slice decodes, std::cerr
+// goes to a sink; slices decode in parallel, so the first decoder in
+// redirects and the last one out restores (orthosim itself writes nothing to
+// std::cerr meanwhile: errors are reported after the read).
+class QuietCerr {
+ public:
+  QuietCerr() {
+    std::lock_guard<std::mutex> lock(mutex());
+    if (depth()++ == 0) saved() = std::cerr.rdbuf(sink().rdbuf());
+  }
+  ~QuietCerr() {
+    std::lock_guard<std::mutex> lock(mutex());
+    if (--depth() == 0) {
+      std::cerr.rdbuf(saved());
+      sink().str("");
+    }
+  }
+  QuietCerr(const QuietCerr&) = delete;
+  QuietCerr& operator=(const QuietCerr&) = delete;
+
+ private:
+  static std::mutex& mutex() {
+    static std::mutex m;
+    return m;
+  }
+  static int& depth() {
+    static int d = 0;
+    return d;
+  }
+  static std::streambuf*& saved() {
+    static std::streambuf* b = nullptr;
+    return b;
+  }
+  static std::ostringstream& sink() {
+    static std::ostringstream s;
+    return s;
+  }
+};
+
+}  // namespace
+
+RgbImage read_slice(const std::string& path, SliceFormat* format, int bit_depth) {
+  if (bit_depth < 8 || bit_depth > 16) throw Error(path, "bit depth must be in 8..16, not " + std::to_string(bit_depth));
   // OpenCV's own log lines ("[ WARN:0@0.037] global .../grfmt_tiff.cpp ...") stood
   // beside orthosim's one-line error on a corrupt TIFF or BMP
   static const bool silenced = [] {
@@ -226,6 +275,7 @@ RgbImage read_slice(const std::string& path, SliceFormat* format) {
   check_container(path, bytes);
   cv::Mat m;
   try {
+    const QuietCerr quiet;
     m = cv::imdecode(cv::Mat(1, static_cast<int>(bytes.size()), CV_8U, const_cast<std::uint8_t*>(bytes.data())),
                      cv::IMREAD_UNCHANGED);
   } catch (const cv::Exception& e) {
@@ -255,7 +305,9 @@ RgbImage read_slice(const std::string& path, SliceFormat* format) {
   img.ny = f.ny;
   img.rgb.resize(static_cast<std::size_t>(f.nx) * f.ny * 3);
   const int ch = f.channels;
+  const std::uint32_t full = (1u << bit_depth) - 1;  // the largest value of the significant bits
   std::int64_t grey = 0, total = 0;
+  int max_value = 0;
   for (int y = 0; y < f.ny; ++y) {
     std::uint8_t* dst = img.rgb.data() + static_cast<std::size_t>(y) * f.nx * 3;
     if (f.bits == 8) {
@@ -264,12 +316,16 @@ RgbImage read_slice(const std::string& path, SliceFormat* format) {
         dst[3 * x + 0] = src[ch * x + 2];
         dst[3 * x + 1] = src[ch * x + 1];
         dst[3 * x + 2] = src[ch * x + 0];
+        max_value = std::max({max_value, int(dst[3 * x]), int(dst[3 * x + 1]), int(dst[3 * x + 2])});
       }
     } else {
       const std::uint16_t* src = m.ptr<std::uint16_t>(y);
       for (int x = 0; x < f.nx; ++x)
-        for (int c = 0; c < 3; ++c)
-          dst[3 * x + c] = static_cast<std::uint8_t>((src[ch * x + 2 - c] + 128) / 257);
+        for (int c = 0; c < 3; ++c) {
+          const std::uint32_t v = src[ch * x + 2 - c];
+          max_value = std::max(max_value, static_cast<int>(v));
+          dst[3 * x + c] = static_cast<std::uint8_t>(std::min<std::uint32_t>(255, (v * 255 + full / 2) / full));
+        }
     }
     if (y % 4 == 0)
       for (int x = 0; x < f.nx; x += 4) {
@@ -277,6 +333,7 @@ RgbImage read_slice(const std::string& path, SliceFormat* format) {
         grey += dst[3 * x] == dst[3 * x + 1] && dst[3 * x + 1] == dst[3 * x + 2];
       }
   }
+  if (format) format->max_value = max_value;
   if (total > 0 && grey * 1000 >= total * 999)
     throw Error(path, "grey-scale image stored as colour (R = G = B everywhere): segmentation needs colour slices");
   return img;
@@ -306,21 +363,31 @@ void write_png(const std::string& path, const RgbImage& image) {
   out.commit();
 }
 
-SliceSource stack_source(const std::string& dir) {
+SliceSource stack_source(const std::string& dir, int bit_depth) {
   auto files = std::make_shared<std::vector<std::string>>(list_stack(dir));
   SliceFormat first;
-  read_slice(files->front(), &first);  // size, channels and colour of the stack
+  read_slice(files->front(), &first, bit_depth);  // size, channels and colour of the stack
   SliceSource s;
   s.nx = first.nx;
   s.ny = first.ny;
   s.nz = static_cast<int>(files->size());
   s.name = dir;
-  s.read = [files, first](int z, std::vector<std::uint8_t>& rgb) {
+  if (first.bits == 16) {
+    // a 12-bit camera's data read as 16-bit is 16x too dark: 'nothing
+    // segmented', with no hint why
+    int used = 1;
+    while (used < 16 && first.max_value >= (1 << used)) ++used;
+    if (used < bit_depth && used <= 12)
+      s.note = "its 16-bit slices use at most " + std::to_string(used) + " bits (largest value " +
+               std::to_string(first.max_value) + " in " + fs::path(files->front()).filename().string() + ", read as " +
+               std::to_string(bit_depth) + "-bit): if that is the camera's depth, pass --bit-depth " + std::to_string(used);
+  }
+  s.read = [files, first, bit_depth](int z, std::vector<std::uint8_t>& rgb) {
     const std::string& path = (*files)[static_cast<std::size_t>(z)];
     SliceFormat f;
     RgbImage img;
     try {
-      img = read_slice(path, &f);
+      img = read_slice(path, &f, bit_depth);
     } catch (const Error& e) {
       // a grey slice after a colour first slice is a mixed stack
       if (f.channels > 0 && f.channels != first.channels)

@@ -94,6 +94,37 @@ TEST(SegmentCli, GoodStackMatchesTruthAndIsDeterministic) {
   EXPECT_EQ(ma.volume().labels, mb.volume().labels);
 }
 
+// A 12-bit camera's data in 16-bit files (values 0..4095): read as 16-bit
+// it is 16x too dark and nothing was segmented, with no hint why (sweep of
+// 2026-11-27). segment now says how many bits the stack uses and names
+// --bit-depth; with --bit-depth 12 the labels are those of the 8-bit stack
+// (v -> round(v 4095 / 255) -> round(. 255 / 4095) is v again).
+TEST(SegmentCli, TwelveBitDataInSixteenBitFiles) {
+  test::TempDir d("segcli-12bit");
+  const std::string folder = d / "slices";
+  fs::create_directories(folder);
+  for (const auto& e : fs::directory_iterator(stack().slices)) {
+    const cv::Mat m = cv::imread(e.path().string(), cv::IMREAD_COLOR);
+    ASSERT_FALSE(m.empty());
+    cv::Mat m16;
+    m.convertTo(m16, CV_16UC3, 4095.0 / 255.0);
+    ASSERT_TRUE(cv::imwrite(folder + "/" + e.path().filename().string(), m16));
+  }
+  const auto plain = test::run_cli(segment_args(folder, d / "o.h5"));
+  EXPECT_NE(plain.err.find("use at most 12 bits"), std::string::npos) << plain.err;
+  EXPECT_NE(plain.err.find("--bit-depth 12"), std::string::npos) << plain.err;
+  EXPECT_EQ(test::count_lines(plain.err), 1) << plain.err;
+  const auto twelve = test::run_cli(segment_args(folder, d / "a.h5", "--bit-depth 12"));
+  ASSERT_EQ(twelve.code, 0) << twelve.err;
+  EXPECT_EQ(twelve.err, "");
+  const auto eight = test::run_cli(segment_args(stack().slices, d / "b.h5"));
+  ASSERT_EQ(eight.code, 0) << eight.err;
+  EXPECT_EQ(ModelReader(d / "a.h5").volume().labels, ModelReader(d / "b.h5").volume().labels);
+  const auto bad = test::run_cli(segment_args(folder, d / "c.h5", "--bit-depth 17"));
+  EXPECT_EQ(bad.code, 2);
+  EXPECT_NE(bad.err.find("bit-depth"), std::string::npos) << bad.err;
+}
+
 TEST(SegmentCli, MissingStack) {
   test::TempDir d("segcli-missing");
   expect_refused(test::run_cli(segment_args(d / "nowhere", d / "o.h5")), d / "o.h5", d / "nowhere", "");
@@ -122,6 +153,28 @@ TEST(SegmentCli, TruncatedSlice) {
   test::write_file(victim, bytes.substr(0, bytes.size() / 2));
   expect_refused(test::run_cli(segment_args(folder, d / "o.h5")), d / "o.h5", fs::path(victim).filename().string(),
                  "corrupt");
+}
+
+// A TIFF or BMP cut in half: OpenCV's decoder wrote its own line to stderr
+// ("imdecode_(''): can't read data: ... TIFFReadRGBAStrip ...") before
+// orthosim's one-line error (sweeps of 2026-11-27).
+TEST(SegmentCli, TruncatedTiffAndBmpSlicesGiveOneLine) {
+  for (const char* ext : {".tif", ".bmp"}) {
+    test::TempDir d(std::string("segcli-trunc") + (ext + 1));
+    const std::string folder = d / "slices";
+    fs::create_directories(folder);
+    for (const auto& e : fs::directory_iterator(stack().slices)) {
+      const cv::Mat m = cv::imread(e.path().string(), cv::IMREAD_COLOR);
+      ASSERT_FALSE(m.empty());
+      ASSERT_TRUE(cv::imwrite(folder + "/" + e.path().stem().string() + ext, m));
+    }
+    const std::string victim = first_slice(folder);
+    const std::string bytes = test::read_file(victim);
+    test::write_file(victim, bytes.substr(0, bytes.size() / 2));
+    const auto r = test::run_cli(segment_args(folder, d / "o.h5"));
+    expect_refused(r, d / "o.h5", fs::path(victim).filename().string(), "");
+    EXPECT_EQ(r.err.find("imdecode"), std::string::npos) << ext << ": " << r.err;
+  }
 }
 
 // A JPEG cut in half with its end-of-image marker put back: libjpeg warned on
