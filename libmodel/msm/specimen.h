@@ -98,9 +98,10 @@ void apply_law(Specimen& s, const SpringLaw& law);
 // The tetra axis factors (TetraOptions::axis_factors) that give a tetra
 // specimen of these options (kind "tetra"; its tetra_axis_factors ignored)
 // equal small-strain Young's moduli along x (u), y (v) and z (through the
-// layer), each E: the fixed point s_a <- s_a E / E_a(s) of three linear
-// uniaxial tests (strain 1e-4, sliding clamps) per iteration, until every
-// modulus is within `tolerance` of E. The trace rule alone leaves the moduli
+// layer), each E: Broyden's method on log E_a(log s) from the fixed point's
+// Jacobian (s_a <- s_a E / E_a), three linear uniaxial tests (strain 1e-4,
+// sliding clamps) per iteration, until every modulus is within `tolerance`
+// of E. The trace rule alone leaves the moduli
 // of realistic prisms 0.57-1.6 E and unequal (docs/msm.md). Throws Error if
 // it does not converge in max_iterations. Deterministic.
 struct AxisCalibration {

@@ -18,13 +18,14 @@ using namespace orthosim;
 
 namespace {
 
-void build(benchmark::State& state, bool intersections) {
+void build(benchmark::State& state, bool intersections, bool axis_correction = true) {
   const int nu = static_cast<int>(state.range(0)), nv = static_cast<int>(state.range(1));
   const auto surfaces = test::limb_stack(nu, nv);
   const auto table = parse_tissue_table(test::msm_tissue_table(), "tissues.json");
   const std::vector<msm::LayerSpec> specs = {{"skin", "tetra"}, {"fat", "lattice"}, {"muscle", "lattice"}};
   msm::BuildOptions o;
   o.check_intersections = intersections;
+  o.axis_correction = axis_correction;
   msm::BuildReport r;
   for (auto _ : state) {
     auto m = msm::build_layers(surfaces, specs, table, o);
@@ -41,6 +42,8 @@ void build(benchmark::State& state, bool intersections) {
 
 void BM_Build(benchmark::State& state) { build(state, true); }
 void BM_BuildNoIntersectionCheck(benchmark::State& state) { build(state, false); }
+// the rules alone (build --no-axis-correction): the axis correction's cost
+void BM_BuildNoAxisCorrection(benchmark::State& state) { build(state, true, false); }
 
 // one virtual experiment of the tuner: a 6x6x6 lattice block, 10 strain steps to 0.6
 void BM_UniaxialLattice(benchmark::State& state) {
@@ -65,6 +68,7 @@ void BM_UniaxialLattice(benchmark::State& state) {
 
 BENCHMARK(BM_Build)->Args({39, 9})->Args({400, 100})->Unit(benchmark::kMillisecond)->MeasureProcessCPUTime()->UseRealTime();
 BENCHMARK(BM_BuildNoIntersectionCheck)->Args({39, 9})->Args({400, 100})->Unit(benchmark::kMillisecond)->MeasureProcessCPUTime()->UseRealTime();
+BENCHMARK(BM_BuildNoAxisCorrection)->Args({39, 9})->Args({400, 100})->Unit(benchmark::kMillisecond)->MeasureProcessCPUTime()->UseRealTime();
 BENCHMARK(BM_UniaxialLattice)->Unit(benchmark::kMillisecond)->MeasureProcessCPUTime()->UseRealTime();
 
 namespace {
