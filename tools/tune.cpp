@@ -143,7 +143,7 @@ void find_layer(const ModelReader& m, Job& job) {
         if (p.contains("body_diagonals") && p["body_diagonals"].is_boolean()) defaults.body_diagonals = p["body_diagonals"].get<bool>();
         if (p.contains("lattice_min_weight") && p["lattice_min_weight"].is_number())
           defaults.lattice_min_weight = p["lattice_min_weight"].get<double>();
-        // built before the axis correction (2026-11-28), or without it
+        // built before the axis correction (2026-11-27, night), or without it
         defaults.axis_correction = p.contains("axis_correction") && p["axis_correction"].is_boolean() &&
                                    p["axis_correction"].get<bool>();
       }

@@ -77,7 +77,7 @@ struct ExperimentOptions {
   bool body_diagonals = false;
   double lattice_min_weight = 0.01;
   // the rule's axis correction (build --no-axis-correction turns it off;
-  // models built before 2026-11-28 have none): lattice cells with equal
+  // models built before 2026-11-27, night have none): lattice cells with equal
   // moduli along u, v, w, tetra prisms with the factors of
   // msm::tetra_layer_axes for this cell shape
   bool axis_correction = true;
