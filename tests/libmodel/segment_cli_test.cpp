@@ -11,7 +11,9 @@
 #include <opencv2/imgproc.hpp>
 
 #include <filesystem>
+#include <functional>
 #include <string>
+#include <vector>
 
 using namespace orthosim;
 namespace fs = std::filesystem;
@@ -40,6 +42,21 @@ std::string copy_slices(const test::TempDir& d) {
   const std::string to = d / "slices";
   fs::copy(stack().slices, to);
   return to;
+}
+
+// The phantom's slices written again as `ext` (with imwrite's `params`)
+// after `transform`, in a fresh folder.
+std::string converted_slices(const test::TempDir& d, const std::string& ext, const std::vector<int>& params = {},
+                             const std::function<cv::Mat(const cv::Mat&)>& transform = nullptr) {
+  const std::string folder = d / "slices";
+  fs::create_directories(folder);
+  for (const auto& e : fs::directory_iterator(stack().slices)) {
+    const cv::Mat m = cv::imread(e.path().string(), cv::IMREAD_COLOR);
+    EXPECT_FALSE(m.empty()) << e.path();
+    const cv::Mat out = transform ? transform(m) : m;
+    EXPECT_TRUE(cv::imwrite(folder + "/" + e.path().stem().string() + ext, out, params)) << e.path();
+  }
+  return folder;
 }
 
 std::string first_slice(const std::string& folder) {
@@ -101,15 +118,11 @@ TEST(SegmentCli, GoodStackMatchesTruthAndIsDeterministic) {
 // (v -> round(v 4095 / 255) -> round(. 255 / 4095) is v again).
 TEST(SegmentCli, TwelveBitDataInSixteenBitFiles) {
   test::TempDir d("segcli-12bit");
-  const std::string folder = d / "slices";
-  fs::create_directories(folder);
-  for (const auto& e : fs::directory_iterator(stack().slices)) {
-    const cv::Mat m = cv::imread(e.path().string(), cv::IMREAD_COLOR);
-    ASSERT_FALSE(m.empty());
+  const std::string folder = converted_slices(d, ".png", {}, [](const cv::Mat& m) {
     cv::Mat m16;
     m.convertTo(m16, CV_16UC3, 4095.0 / 255.0);
-    ASSERT_TRUE(cv::imwrite(folder + "/" + e.path().filename().string(), m16));
-  }
+    return m16;
+  });
   const auto plain = test::run_cli(segment_args(folder, d / "o.h5"));
   EXPECT_NE(plain.err.find("use at most 12 bits"), std::string::npos) << plain.err;
   EXPECT_NE(plain.err.find("--bit-depth 12"), std::string::npos) << plain.err;
@@ -161,13 +174,7 @@ TEST(SegmentCli, TruncatedSlice) {
 TEST(SegmentCli, TruncatedTiffAndBmpSlicesGiveOneLine) {
   for (const char* ext : {".tif", ".bmp"}) {
     test::TempDir d(std::string("segcli-trunc") + (ext + 1));
-    const std::string folder = d / "slices";
-    fs::create_directories(folder);
-    for (const auto& e : fs::directory_iterator(stack().slices)) {
-      const cv::Mat m = cv::imread(e.path().string(), cv::IMREAD_COLOR);
-      ASSERT_FALSE(m.empty());
-      ASSERT_TRUE(cv::imwrite(folder + "/" + e.path().stem().string() + ext, m));
-    }
+    const std::string folder = converted_slices(d, ext);
     const std::string victim = first_slice(folder);
     const std::string bytes = test::read_file(victim);
     test::write_file(victim, bytes.substr(0, bytes.size() / 2));
@@ -182,13 +189,7 @@ TEST(SegmentCli, TruncatedTiffAndBmpSlicesGiveOneLine) {
 // was decoder fill, segmented as tissue, exit 0 (sweep of 2026-11-27).
 TEST(SegmentCli, CorruptJpegDataIsRefused) {
   test::TempDir d("segcli-jpeg");
-  const std::string folder = d / "slices";
-  fs::create_directories(folder);
-  for (const auto& e : fs::directory_iterator(stack().slices)) {
-    const cv::Mat m = cv::imread(e.path().string(), cv::IMREAD_COLOR);
-    ASSERT_FALSE(m.empty());
-    ASSERT_TRUE(cv::imwrite(folder + "/" + e.path().stem().string() + ".jpg", m, {cv::IMWRITE_JPEG_QUALITY, 95}));
-  }
+  const std::string folder = converted_slices(d, ".jpg", {cv::IMWRITE_JPEG_QUALITY, 95});
   // the intact JPEG stack segments
   const auto ok = test::run_cli(segment_args(folder, d / "ok.h5"));
   ASSERT_EQ(ok.code, 0) << ok.err;
