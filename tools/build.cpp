@@ -86,6 +86,7 @@ json report_json(const msm::BuildReport& r) {
                                {"exact_cells", l.rule.exact},
                                {"max_relative_residual", l.rule.max_residual},
                                {"mean_modulus_ratio_uvw", l.rule.mean_modulus_ratio},
+                               {"mean_shear_ratio_vw_uw_uv", l.rule.mean_shear_ratio},
                                {"mean_cell_m_uvw", l.rule.mean_cell_m}};
     }
     j["layers"].push_back(e);

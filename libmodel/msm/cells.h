@@ -54,6 +54,9 @@ struct RuleStats {
   double max_residual = 0;         // largest relative residual of the rule's fit (0 when exact)
   std::array<double, 3> mean_modulus_ratio{0, 0, 0};  // predicted E_u, E_v, E_w over target E, mean over cells
   std::array<double, 3> mean_cell_m{0, 0, 0};         // mean equivalent box a, b, c (m): a tuner's specimen shape
+  // predicted shear moduli G_vw, G_uw, G_uv over target E, mean over cells
+  // (isotropic, nu = 1/4: 0.4; long cells are soft in shear, docs/msm.md)
+  std::array<double, 3> mean_shear_ratio{0, 0, 0};
 };
 
 struct LayerCells {

@@ -198,6 +198,7 @@ LayerCells lattice_cells(const MatX3d& top, const MatX3d& bottom, const MatX4i& 
       cell_j(static_cast<std::size_t>(ncell));
   std::vector<CellRule> rules(static_cast<std::size_t>(ncell));
   std::vector<std::array<double, 3>> moduli(static_cast<std::size_t>(ncell), {0, 0, 0});
+  std::vector<std::array<double, 3>> shears(static_cast<std::size_t>(ncell), {0, 0, 0});
   std::vector<char> ruled(static_cast<std::size_t>(ncell), 0);
   std::vector<std::array<double, 3>> dims(static_cast<std::size_t>(ncell), {0, 0, 0});
   tbb::parallel_for(tbb::blocked_range<Eigen::Index>(0, ncell, 256), [&](const tbb::blocked_range<Eigen::Index>& range) {
@@ -247,7 +248,9 @@ LayerCells lattice_cells(const MatX3d& top, const MatX3d& bottom, const MatX4i& 
       if (valid) {
         r = cell_rule(a, bl, c, o.body_diagonals, o.min_weight, o.axis_correction);
         rules[static_cast<std::size_t>(cell)] = r;
-        moduli[static_cast<std::size_t>(cell)] = axis_moduli(box_stiffness(a, bl, c, r));
+        const Eigen::Matrix<double, 6, 6> C = box_stiffness(a, bl, c, r);
+        moduli[static_cast<std::size_t>(cell)] = axis_moduli(C);
+        shears[static_cast<std::size_t>(cell)] = {C(3, 3), C(4, 4), C(5, 5)};
         ruled[static_cast<std::size_t>(cell)] = 1;
         dims[static_cast<std::size_t>(cell)] = {a, bl, c};
       }
@@ -281,7 +284,7 @@ LayerCells lattice_cells(const MatX3d& top, const MatX3d& bottom, const MatX4i& 
   });
   // pass 2, serial: lumped volumes and statistics, in cell order
   double min_v = std::numeric_limits<double>::infinity(), sum_v = 0;
-  double ratio_sum[3] = {0, 0, 0}, dim_sum[3] = {0, 0, 0};
+  double ratio_sum[3] = {0, 0, 0}, dim_sum[3] = {0, 0, 0}, shear_sum[3] = {0, 0, 0};
   for (Eigen::Index cell = 0; cell < ncell; ++cell) {
     const int k = static_cast<int>(cell / nq);
     const Eigen::Index q = cell % nq;
@@ -300,6 +303,7 @@ LayerCells lattice_cells(const MatX3d& top, const MatX3d& bottom, const MatX4i& 
     out.rule.max_residual = std::max(out.rule.max_residual, r.residual);
     for (int i = 0; i < 3; ++i) {
       ratio_sum[i] += moduli[static_cast<std::size_t>(cell)][static_cast<std::size_t>(i)];
+      shear_sum[i] += shears[static_cast<std::size_t>(cell)][static_cast<std::size_t>(i)];
       dim_sum[i] += dims[static_cast<std::size_t>(cell)][static_cast<std::size_t>(i)];
     }
   }
@@ -318,7 +322,8 @@ LayerCells lattice_cells(const MatX3d& top, const MatX3d& bottom, const MatX4i& 
   if (out.rule.cells > 0)
     for (int i = 0; i < 3; ++i)
       out.rule.mean_modulus_ratio[static_cast<std::size_t>(i)] = ratio_sum[i] / static_cast<double>(out.rule.cells),
-      out.rule.mean_cell_m[static_cast<std::size_t>(i)] = dim_sum[i] / static_cast<double>(out.rule.cells);
+      out.rule.mean_cell_m[static_cast<std::size_t>(i)] = dim_sum[i] / static_cast<double>(out.rule.cells),
+      out.rule.mean_shear_ratio[static_cast<std::size_t>(i)] = shear_sum[i] / static_cast<double>(out.rule.cells);
   return out;
 }
 

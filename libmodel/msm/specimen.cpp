@@ -378,7 +378,7 @@ AxisCalibration calibrate_tetra_axes(SpecimenOptions o, double tolerance, int ma
   // point took 5-9 (each one three linear uniaxial tests)
   Eigen::Vector3d x = Eigen::Vector3d::Zero();  // log s
   Eigen::Matrix3d J = Eigen::Matrix3d::Identity();
-  Eigen::Vector3d y_prev, x_prev;
+  Eigen::Vector3d y_prev = Eigen::Vector3d::Zero(), x_prev = Eigen::Vector3d::Zero();
   for (out.iterations = 0; out.iterations <= max_iterations; ++out.iterations) {
     const Eigen::Vector3d E = moduli(x.array().exp().matrix());
     if (out.iterations == 0) out.moduli_before = {E(0), E(1), E(2)};

@@ -118,6 +118,40 @@ TEST(MsmRule, AxisCorrectionGivesEveryCellEqualModuli) {
   for (double s : cube.axis_factors) EXPECT_EQ(s, 1.0);
 }
 
+// The report's mean shear moduli of a lattice layer are its cells' (a block
+// of one cell shape: exactly the box's G_vw, G_uw, G_uv), and long cells are
+// soft in shear: the paper's 39 x 9 limb cells 0.017 E in the uv plane
+// against 0.4 E for a cube (docs/msm.md).
+TEST(MsmRule, LatticeLayersReportTheirShearModuli) {
+  for (auto cell : {std::array<double, 3>{1e-3, 1e-3, 1e-3}, std::array<double, 3>{4.4e-3, 16e-3, 5e-3}}) {
+    const int nu = 4, nv = 3;
+    MatX3d top(nu * nv, 3), bottom(nu * nv, 3);
+    for (int j = 0; j < nv; ++j)
+      for (int i = 0; i < nu; ++i) {
+        top.row(j * nu + i) << i * cell[0], j * cell[1], cell[2];
+        bottom.row(j * nu + i) << i * cell[0], j * cell[1], 0.0;
+      }
+    MatX4i quads((nu - 1) * (nv - 1), 4);
+    for (int j = 0; j + 1 < nv; ++j)
+      for (int i = 0; i + 1 < nu; ++i)
+        quads.row(j * (nu - 1) + i) << j * nu + i, j * nu + i + 1, (j + 1) * nu + i + 1, (j + 1) * nu + i;
+    NodeBlocks blocks;
+    blocks.top = 0;
+    blocks.created = nu * nv;
+    blocks.bottom = nu * nv;
+    const LayerCells c = lattice_cells(top, bottom, quads, blocks, LatticeOptions{});
+    const CellRule r = cell_rule(cell[0], cell[1], cell[2], false, 0.01, true);
+    const auto C = box_stiffness(cell[0], cell[1], cell[2], r);
+    for (int k = 0; k < 3; ++k)
+      EXPECT_NEAR(c.rule.mean_shear_ratio[static_cast<std::size_t>(k)], C(3 + k, 3 + k), 1e-12) << cell[1] / cell[0] << " " << k;
+    if (cell[1] == cell[0]) {
+      for (double g : c.rule.mean_shear_ratio) EXPECT_NEAR(g, 0.4, 1e-12);
+    } else {
+      EXPECT_LT(c.rule.mean_shear_ratio[2], 0.02);  // uv: the long cell's diagonals lie almost along v
+    }
+  }
+}
+
 // ---- static solve of lattice blocks: measured modulus vs the rule and the oracle
 
 TEST(MsmSpecimen, CubicLatticeModulusMatchesRuleAndOracle) {
