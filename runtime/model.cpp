@@ -308,4 +308,43 @@ Model model_from_layers(const std::vector<std::pair<std::string, Layer>>& layers
   return assemble_model(src);
 }
 
+std::vector<InvertedColumns> inverted_columns(const Model& m, std::span<const Real> x) {
+  std::vector<InvertedColumns> out;
+  if (m.layers.size() < 2) return out;
+  std::vector<const Model::LayerInfo*> by_order;
+  for (const auto& l : m.layers) by_order.push_back(&l);
+  std::sort(by_order.begin(), by_order.end(), [](const auto* a, const auto* b) { return a->order < b->order; });
+  if (by_order.back()->kind != "rigid") return out;
+  const std::int32_t ng = by_order.back()->count;
+  // local id of each file id (the first, where a cut split a node)
+  std::int32_t max_file = 0;
+  for (std::int32_t f : m.file_id) max_file = std::max(max_file, f);
+  std::vector<std::int32_t> local(static_cast<std::size_t>(max_file) + 1, -1);
+  std::vector<std::uint8_t> split(static_cast<std::size_t>(max_file) + 1, 0);
+  for (std::int32_t i = 0; i < m.n_nodes - m.n_anchors; ++i) {
+    const auto f = static_cast<std::size_t>(m.file_id[static_cast<std::size_t>(i)]);
+    if (local[f] < 0) local[f] = i;
+    else split[f] = 1;
+  }
+  for (std::size_t k = 0; k + 1 < by_order.size(); ++k) {
+    const Model::LayerInfo &top = *by_order[k], &bottom = *by_order[k + 1];
+    if (bottom.order != top.order + 1 || top.count < ng || bottom.count < ng) continue;
+    const std::int32_t top0 = m.file_id[static_cast<std::size_t>(top.first)];
+    const std::int32_t bottom0 = m.file_id[static_cast<std::size_t>(bottom.first)];
+    InvertedColumns c;
+    c.layer = top.name;
+    for (std::int32_t i = 0; i < ng; ++i) {
+      const std::size_t ft = static_cast<std::size_t>(top0 + i), fb = static_cast<std::size_t>(bottom0 + i);
+      if (ft >= local.size() || fb >= local.size() || local[ft] < 0 || local[fb] < 0 || split[ft] || split[fb]) continue;
+      const std::size_t a = 3 * static_cast<std::size_t>(local[ft]), b = 3 * static_cast<std::size_t>(local[fb]);
+      Real dot = 0;
+      for (int d = 0; d < 3; ++d) dot += (x[a + d] - x[b + d]) * (m.rest_x[a + d] - m.rest_x[b + d]);
+      ++c.columns;
+      if (!(dot > 0)) ++c.inverted;
+    }
+    out.push_back(c);
+  }
+  return out;
+}
+
 }  // namespace orthosim::runtime

@@ -31,6 +31,7 @@
 #include <array>
 #include <cstdint>
 #include <map>
+#include <span>
 #include <string>
 #include <utility>
 #include <vector>
@@ -147,5 +148,21 @@ Model assemble_model(const ModelSource& source);
 // Convenience: all of `layers` loaded, no anchors.
 Model model_from_layers(const std::vector<std::pair<std::string, Layer>>& layers,
                         const std::map<std::string, VecXi>& node_sets);
+
+// A layer turned inside out (docs/runtime.md, "Inverted layers"): each
+// layer's top grid and the next layer's (its bottom) correspond node for
+// node, column i of the grid; a column is inverted where the top node has
+// passed its bottom node, (x_top - x_bottom) . (X_top - X_bottom) <= 0 with
+// X the rest positions. Central springs alone do not resist it: a soft layer
+// pressed or hung under gravity can fold through itself. Checked for every
+// loaded layer whose next layer (by order) is loaded, when the deepest
+// loaded layer is the rigid fixed bottom (its nodes are one grid: the grid's
+// size); empty otherwise. Columns whose nodes a cut has split are skipped.
+struct InvertedColumns {
+  std::string layer;
+  std::int32_t columns = 0;   // grid columns checked
+  std::int32_t inverted = 0;  // of them inside out at x
+};
+std::vector<InvertedColumns> inverted_columns(const Model& m, std::span<const Real> x);
 
 }  // namespace orthosim::runtime

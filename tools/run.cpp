@@ -10,6 +10,7 @@
 #include <filesystem>
 #include <iostream>
 #include <iterator>
+#include <map>
 #include <set>
 #include <iomanip>
 #include <sstream>
@@ -204,9 +205,28 @@ void add_run_command(CLI::App& app) {
 
     Progress progress("run", n_steps, common.quiet);
     runtime::RunSummary r;
+    // layers turned inside out, per step (runtime::inverted_columns; cheap:
+    // one dot product per grid column and layer)
+    struct Inversion {
+      std::int32_t columns = 0, max = 0, end = 0;
+      long first_step = -1;
+    };
+    std::map<std::string, Inversion> inversion;
+    auto check_inversion = [&](long step) {
+      for (const auto& c : runtime::inverted_columns(scene->model(), scene->positions())) {
+        Inversion& v = inversion[c.layer];
+        v.columns = c.columns;
+        v.max = std::max(v.max, c.inverted);
+        v.end = c.inverted;
+        if (c.inverted > 0 && v.first_step < 0) v.first_step = step;
+      }
+    };
     {
       Phase p(report, "simulate");
-      r = runtime::run(*scene, n_steps, [&](long done) { progress.update(done); });
+      r = runtime::run(*scene, n_steps, [&](long done) {
+        check_inversion(done);
+        progress.update(done);
+      });
     }
     const auto& c = scene->counters();
     const runtime::Model& m = scene->model();  // after the cuts
@@ -230,6 +250,17 @@ void add_run_command(CLI::App& app) {
     met["substeps_per_step"] = r.steps > 0 ? static_cast<double>(c.substeps) / static_cast<double>(r.steps) : 0.0;
     met["substeps_per_second"] = r.step_wall_s > 0 ? static_cast<double>(c.substeps) / r.step_wall_s : 0.0;
     met["symplectic_step_limit_s"] = scene->step_limit();
+    met["inverted_columns"] = nlohmann::json::object();
+    for (const auto& [layer, v] : inversion) {
+      met["inverted_columns"][layer] = {{"columns", v.columns}, {"max", v.max}, {"end", v.end},
+                                        {"first_t_s", v.first_step < 0 ? nlohmann::json(nullptr)
+                                                                       : nlohmann::json(v.first_step * def.dt)}};
+      if (v.max > 0)  // even with --quiet: the result is not a tissue
+        std::cerr << "orthosim run: warning: " << scene_file << ": layer '" << layer << "' turned inside out in "
+                  << v.max << " of its " << v.columns << " grid columns (" << v.end << " at the end, the first at "
+                  << v.first_step * def.dt << " s): its top passed its bottom; the mass-spring layers have no volume "
+                     "term to resist it (docs/runtime.md, Inverted layers)\n";
+    }
     met["stability"] = {{"events", c.events},       {"nonfinite", c.nonfinite},
                         {"blowups", c.blowups},     {"recovered_steps", c.recovered},
                         {"failed_steps", c.failed}, {"substeps_redone", c.substeps_redone}};

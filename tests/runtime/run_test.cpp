@@ -84,6 +84,40 @@ TEST_F(RunCli, PullsTheSkinAndReports) {
   EXPECT_GT(j2["metrics"]["cg"]["iterations"].get<long>(), 0);
 }
 
+// A layer pressed through itself: central springs let a column's top pass
+// its bottom, and the run said nothing (the demo's pull scene turns 149 of
+// its skin's 351 columns inside out under gravity within 0.05 s; found
+// 2026-11-27, night). A grasper pushes the skin 12 mm into the block, through
+// the 2 mm dermis and the 5 mm hypodermis under it: the report counts the
+// inverted columns per layer and one warning says so; the same scene pushing
+// 1 mm inverts none and is silent.
+TEST_F(RunCli, ALayerTurnedInsideOutIsCountedAndAWarning) {
+  auto push = [&](const std::string& depth) {
+    return scene(R"({
+      "model": "model.h5", "fixed": ["fixed"], "damping": {"mass": 5}, "integrator": "implicit",
+      "dt": 0.01, "duration": 0.3,
+      "tools": [{"name": "grasper", "type": "pull", "nodes": "skin", "center": [0.076, 0, 0.016], "radius": 0.006,
+                 "path": [[0, 0, 0, 0], [0.2, 0, )" + depth + R"(, 0]]}]
+    })");
+  };
+  const auto deep = run_cli("run " + push("0.012") + " --no-output --report " + (dir / "r.json") + " --quiet");
+  expect_one_warning(deep, "turned inside out");
+  const auto j = nlohmann::json::parse(test::read_file(dir / "r.json"));
+  const auto& inv = j["metrics"]["inverted_columns"];
+  ASSERT_TRUE(inv.contains("dermis") && inv.contains("hypodermis") && inv.contains("muscle")) << inv.dump();
+  EXPECT_EQ(inv["dermis"]["columns"], 39 * 9);
+  std::int64_t total = 0;
+  for (const auto& [layer, v] : inv.items()) total += v["max"].get<std::int64_t>();
+  EXPECT_GT(total, 0) << inv.dump();
+  const auto shallow = run_cli("run " + push("0.001") + " --no-output --report " + (dir / "r2.json") + " --quiet");
+  expect_silent(shallow);
+  const auto j2 = nlohmann::json::parse(test::read_file(dir / "r2.json"));
+  for (const auto& [layer, v] : j2["metrics"]["inverted_columns"].items()) {
+    EXPECT_EQ(v["max"], 0) << layer;
+    EXPECT_TRUE(v["first_t_s"].is_null()) << layer;
+  }
+}
+
 // A cut across the model's artery bleeds; the report counts the blood and
 // says which limit set the fluid's substeps, with either pressure solver.
 TEST_F(RunCli, BleedsAndReportsTheFluid) {
