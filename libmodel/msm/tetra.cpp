@@ -171,8 +171,10 @@ LayerCells tetra_cells(const MatX3d& top, const MatX3d& bottom, const MatX4i& qu
         // the prism's frame from its quad: u along q0 -> q1, w the normal
         const Eigen::Vector3d U = T(quads(q, 1)) - T(quads(q, 0)) + T(quads(q, 2)) - T(quads(q, 3));
         const Eigen::Vector3d V = T(quads(q, 3)) - T(quads(q, 0)) + T(quads(q, 2)) - T(quads(q, 1));
-        const Eigen::Vector3d w = U.cross(V).normalized(), u = U.normalized(), v = w.cross(u);
-        for (int a = 0; a < 7 && w.allFinite() && u.allFinite(); ++a)  // a degenerate quad keeps the trace rule
+        const Eigen::Vector3d n = U.cross(V);
+        const bool framed = n.squaredNorm() > 0 && U.squaredNorm() > 0;  // a degenerate quad keeps the trace rule
+        const Eigen::Vector3d w = framed ? n.normalized() : n, u = framed ? U.normalized() : U, v = w.cross(u);
+        for (int a = 0; a < 7 && framed; ++a)
           for (int b = a + 1; b < 7; ++b) {
             const Eigen::Vector3d d = X[b] - X[a];
             const double l2 = d.squaredNorm();
