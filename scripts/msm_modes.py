@@ -3,26 +3,33 @@
 # springs' first phase, lumped masses, the fixed set removed), and each
 # mode's share of kinetic energy per layer: scripts/msm_modes.py model.h5
 # (numpy, scipy, h5py; docs/msm.md, Limitations).
-import h5py, numpy as np, scipy.sparse as sp, scipy.sparse.linalg as sla, sys, time
+import sys
+import time
+
+import h5py
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as sla
+
+from model_arrays import layers_by_order, rest_and_masses, springs
+
 f = h5py.File(sys.argv[1], 'r')
 L = f['layers']
-names = [n for n in L.keys() if n != 'sets']
-layers = sorted(names, key=lambda n: L[n].attrs['order'])
-N = max(L[n].attrs['node_offset'] + L[n]['nodes'].shape[0] for n in layers)
-X = np.zeros((N, 3)); m = np.zeros(N); owner = np.empty(N, dtype=object)
+layers = layers_by_order(f)
+X, m = rest_and_masses(f)
+N = len(m)
+owner = np.empty(N, dtype=object)
 for n in layers:
     o = L[n].attrs['node_offset']; k = L[n]['nodes'].shape[0]
-    X[o:o+k] = L[n]['nodes'][:]; m[o:o+k] += L[n]['masses'][:]; owner[o:o+k] = n
+    owner[o:o+k] = n
 rows=[]; cols=[]; vals=[]
-for n in layers:
-    if 'springs' not in L[n]: continue
-    s = L[n]['springs'][:]; k1 = L[n]['k1'][:]
-    d = X[s[:,1]] - X[s[:,0]]; d /= np.linalg.norm(d, axis=1)[:,None]
-    for a in range(3):
-        for b in range(3):
-            kab = k1 * d[:,a] * d[:,b]
-            for (i, j, sg) in ((0,0,1),(1,1,1),(0,1,-1),(1,0,-1)):
-                rows.append(3*s[:,i]+a); cols.append(3*s[:,j]+b); vals.append(sg*kab)
+s, k1 = springs(f)[:2]
+d = X[s[:,1]] - X[s[:,0]]; d /= np.linalg.norm(d, axis=1)[:,None]
+for a in range(3):
+    for b in range(3):
+        kab = k1 * d[:,a] * d[:,b]
+        for (i, j, sg) in ((0,0,1),(1,1,1),(0,1,-1),(1,0,-1)):
+            rows.append(3*s[:,i]+a); cols.append(3*s[:,j]+b); vals.append(sg*kab)
 K = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(3*N, 3*N))
 fixed = set(f['layers/sets/fixed'][:].tolist())
 free = np.array([i for i in range(N) if i not in fixed and m[i] > 0])

@@ -14,20 +14,15 @@ import h5py
 import numpy as np
 from scipy.optimize import minimize
 
+from model_arrays import rest_and_masses, springs
+
 if len(sys.argv) != 3:
     raise SystemExit("usage: static_sag.py model.h5 FACTOR")
 model = sys.argv[1]; kv_factor = float(sys.argv[2])
 f = h5py.File(model, 'r'); L = f['layers']
-layers = sorted([n for n in L if n != 'sets'], key=lambda n: L[n].attrs['order'])
-N = max(int(L[n].attrs['node_offset']) + L[n]['nodes'].shape[0] for n in layers)
-X0 = np.zeros((N, 3)); m = np.zeros(N)
-for n in layers:
-    o = int(L[n].attrs['node_offset']); k = L[n]['nodes'].shape[0]; X0[o:o+k] = L[n]['nodes'][:]; m[o:o+k] += L[n]['masses'][:]
-S=[]; K1=[]; K2=[]; R=[]; T=[]
-for n in layers:
-    if 'springs' in L[n] and L[n]['springs'].shape[0]:
-        S.append(L[n]['springs'][:]); K1.append(L[n]['k1'][:]); K2.append(L[n]['k2'][:]); R.append(L[n]['rest_length'][:]); T.append(L[n]['turning_length'][:])
-S=np.concatenate(S); K1=np.concatenate(K1); K2=np.concatenate(K2); R=np.concatenate(R); T=np.concatenate(T)
+X0, m = rest_and_masses(f)
+N = len(m)
+S, K1, K2, R, T = springs(f)
 tets = L['skin']['tets'][:]
 # the skin's small-strain modulus from its law (spring_law: per class k1 Pa ...)
 E_skin = float(L['skin'].attrs['spring_law'][0])

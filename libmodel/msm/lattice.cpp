@@ -1,7 +1,5 @@
 #include "libmodel/msm/lattice.h"
 
-#include "libmodel/msm/nnls.h"
-
 #include "libmodel/format/types.h"
 
 #include <Eigen/Dense>
@@ -46,9 +44,59 @@ Vec6 target() {
   return t;
 }
 
+// Lawson-Hanson non-negative least squares, min |A x - b|, x >= 0, for the
+// 6 x n (n <= 7) systems of the rule: fixed-size, no heap, normal equations
+// on the passive set (well conditioned at these sizes).
 using Mat67 = Eigen::Matrix<double, 6, 7>;
 using Vec7 = Eigen::Matrix<double, 7, 1>;
-
+Vec7 nnls(const Mat67& A, const Vec6& b, int n) {
+  Vec7 x = Vec7::Zero();
+  bool passive[7] = {false, false, false, false, false, false, false};
+  const Eigen::Matrix<double, 7, 7> AtA = A.transpose() * A;
+  const Vec7 Atb = A.transpose() * b;
+  const double tol = 1e-12 * std::max(1.0, A.norm() * b.norm());
+  auto solve_passive = [&](Vec7& s) {
+    int P[7], m = 0;
+    for (int i = 0; i < n; ++i)
+      if (passive[i]) P[m++] = i;
+    Eigen::Matrix<double, Eigen::Dynamic, Eigen::Dynamic, 0, 7, 7> M(m, m);
+    Eigen::Matrix<double, Eigen::Dynamic, 1, 0, 7, 1> r(m);
+    for (int i = 0; i < m; ++i) {
+      r(i) = Atb(P[i]);
+      for (int j = 0; j < m; ++j) M(i, j) = AtA(P[i], P[j]);
+    }
+    const Eigen::Matrix<double, Eigen::Dynamic, 1, 0, 7, 1> y = M.ldlt().solve(r);
+    s.setZero();
+    for (int i = 0; i < m; ++i) s(P[i]) = y(i);
+  };
+  for (int outer = 0; outer < 3 * n + 10; ++outer) {
+    const Vec7 w = Atb - AtA * x;
+    int j = -1;
+    double best = tol;
+    for (int i = 0; i < n; ++i)
+      if (!passive[i] && w(i) > best) best = w(i), j = i;
+    if (j < 0) break;
+    passive[j] = true;
+    for (int inner = 0; inner < 3 * n + 10; ++inner) {
+      Vec7 s;
+      solve_passive(s);
+      bool positive = true;
+      for (int i = 0; i < n; ++i)
+        if (passive[i] && !(s(i) > 0)) positive = false;
+      if (positive) {
+        x = s;
+        break;
+      }
+      double alpha = 1;
+      for (int i = 0; i < n; ++i)
+        if (passive[i] && !(s(i) > 0)) alpha = std::min(alpha, x(i) / (x(i) - s(i)));
+      x += alpha * (s - x);
+      for (int i = 0; i < n; ++i)
+        if (passive[i] && x(i) <= 1e-15) passive[i] = false, x(i) = 0;
+    }
+  }
+  return x;
+}
 
 // r with every spring scaled by sum_a s_a n_a^2 (n: its direction in the box)
 CellRule scaled_rule(const CellRule& r, double a, double b, double c, const std::array<double, 3>& s) {
@@ -82,7 +130,6 @@ CellRule equalise_moduli(const CellRule& r, double a, double b, double c) {
   }
   return best;
 }
-
 
 // the least-squares weights of the six orthotropic constants
 CellRule fit_cell_rule(double a, double b, double c, bool body_diagonals, double min_weight) {

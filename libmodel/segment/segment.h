@@ -102,7 +102,7 @@ struct SliceFormat {
   int nx = 0, ny = 0;
   int channels = 0;  // 1 grey, 2 grey+alpha, 3 colour, 4 colour+alpha
   int bits = 8;      // 8 or 16
-  int max_value = 0; // the largest colour value in the file (alpha excluded)
+  int max_value = 0; // 16-bit files: the largest colour value (alpha excluded); 0 for 8-bit ones
 };
 
 // Reads one colour slice. 16-bit images are scaled to 8 bits from

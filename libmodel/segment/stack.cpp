@@ -307,7 +307,7 @@ RgbImage read_slice(const std::string& path, SliceFormat* format, int bit_depth)
   const int ch = f.channels;
   const std::uint32_t full = (1u << bit_depth) - 1;  // the largest value of the significant bits
   std::int64_t grey = 0, total = 0;
-  int max_value = 0;
+  int max_value = 0;  // 16-bit slices only (the bit-depth note)
   for (int y = 0; y < f.ny; ++y) {
     std::uint8_t* dst = img.rgb.data() + static_cast<std::size_t>(y) * f.nx * 3;
     if (f.bits == 8) {
@@ -316,7 +316,6 @@ RgbImage read_slice(const std::string& path, SliceFormat* format, int bit_depth)
         dst[3 * x + 0] = src[ch * x + 2];
         dst[3 * x + 1] = src[ch * x + 1];
         dst[3 * x + 2] = src[ch * x + 0];
-        max_value = std::max({max_value, int(dst[3 * x]), int(dst[3 * x + 1]), int(dst[3 * x + 2])});
       }
     } else {
       const std::uint16_t* src = m.ptr<std::uint16_t>(y);

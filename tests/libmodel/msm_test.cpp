@@ -15,7 +15,9 @@
 #include <gtest/gtest.h>
 
 #include <cmath>
+#include <iomanip>
 #include <random>
+#include <sstream>
 
 using namespace orthosim;
 using namespace orthosim::msm;
@@ -150,6 +152,18 @@ TEST(MsmRule, LatticeLayersReportTheirShearModuli) {
       EXPECT_LT(c.rule.mean_shear_ratio[2], 0.02);  // uv: the long cell's diagonals lie almost along v
     }
   }
+  // the figures of docs/msm.md's shear table: G_vw / G_uw / G_uv of the fit and of the corrected rule
+  for (auto c : {std::array<double, 3>{4.07, 7.2, 5}, std::array<double, 3>{4.4, 16, 5}, std::array<double, 3>{1.6, 3.2, 8},
+                 std::array<double, 3>{9.6, 23.4, 4.1}, std::array<double, 3>{0.43, 1.27, 5}}) {
+    for (const bool corrected : {false, true}) {
+      const auto C = box_stiffness(c[0], c[1], c[2], cell_rule(c[0], c[1], c[2], false, 0.01, corrected));
+      std::ostringstream o;
+      o << std::fixed << std::setprecision(3) << C(3, 3) << " / " << C(4, 4) << " / " << C(5, 5);
+      RecordProperty("shear_" + std::to_string(c[0]) + "x" + std::to_string(c[1]) + "x" + std::to_string(c[2]) +
+                         (corrected ? "_corrected" : "_fit"),
+                     o.str());
+    }
+  }
 }
 
 // ---- static solve of lattice blocks: measured modulus vs the rule and the oracle
@@ -212,9 +226,24 @@ TEST(MsmSpecimen, AxisCorrectedLayersHaveEqualModuli) {
   apply_law(s, {E, E, 0});
   for (int axis = 0; axis < 3; ++axis) EXPECT_NEAR(measure(s, axis).E / E, 1.0, 2e-3) << "lattice axis " << axis;
 
-  for (auto cell : {std::array<double, 3>{4.4e-3, 16e-3, 5e-3}, std::array<double, 3>{1e-3, 1e-3, 1e-3},
-                    std::array<double, 3>{0.43e-3, 1.27e-3, 1e-3}}) {
+  // the cells of docs/msm.md's table (its figures: this test's properties)
+  auto three = [](const std::array<double, 3>& v) {
+    std::ostringstream o;
+    o << std::fixed << std::setprecision(3) << v[0] << " / " << v[1] << " / " << v[2];
+    return o.str();
+  };
+  for (auto cell : {std::array<double, 3>{4.4e-3, 16e-3, 5e-3}, std::array<double, 3>{4.07e-3, 7.2e-3, 1.96e-3},
+                    std::array<double, 3>{1e-3, 1e-3, 1e-3}, std::array<double, 3>{0.43e-3, 1.27e-3, 1e-3}}) {
     const AxisCalibration c = tetra_layer_axes(cell);
+    SpecimenOptions one;  // the trace rule with one diagonal per quad
+    one.kind = "tetra";
+    one.cells = kTetraCalibrationCells;
+    one.cell_m = cell;
+    const std::string key = "cell_" + three({cell[0] * 1e3, cell[1] * 1e3, cell[2] * 1e3});
+    RecordProperty(key + "_trace_one_diagonal", three(calibrate_tetra_axes(one).moduli_before));
+    RecordProperty(key + "_trace_alternating", three(c.moduli_before));
+    RecordProperty(key + "_factors", three(c.factors));
+    RecordProperty(key + "_iterations", c.iterations);
     double off = 0;
     for (double e : c.moduli_before) off = std::max(off, std::abs(e - 1));
     EXPECT_GT(off, 0.1);
@@ -228,10 +257,12 @@ TEST(MsmSpecimen, AxisCorrectedLayersHaveEqualModuli) {
     to.tetra_alternate_diagonals = true;  // as calibrated
     Specimen t = make_specimen(to);
     apply_law(t, {E, E, 0});
-    for (int axis = 0; axis < 3; ++axis)
-      EXPECT_NEAR(measure(t, axis).E / E, 1.0, 0.03) << "tetra " << cell[1] / cell[0] << " axis " << axis;
-    RecordProperty("tetra_factors_" + std::to_string(cell[1] / cell[0]),
-                   std::to_string(c.factors[0]) + " " + std::to_string(c.factors[1]) + " " + std::to_string(c.factors[2]));
+    std::array<double, 3> block{};
+    for (int axis = 0; axis < 3; ++axis) {
+      block[static_cast<std::size_t>(axis)] = measure(t, axis).E / E;
+      EXPECT_NEAR(block[static_cast<std::size_t>(axis)], 1.0, 0.03) << "tetra " << cell[1] / cell[0] << " axis " << axis;
+    }
+    RecordProperty(key + "_corrected_block_12x12", three(block));
   }
   SpecimenOptions bad;
   bad.kind = "tetra";
