@@ -62,6 +62,27 @@ inline SpringForce spring_force_elastic(const Vec3& d, Real rest, Real k, bool t
   return spring_force(d, Vec3{}, rest, k, 0, tension_only);
 }
 
+inline Vec3 cross(const Vec3& a, const Vec3& b) {
+  return {a.y * b.z - a.z * b.y, a.z * b.x - a.x * b.z, a.x * b.y - a.y * b.x};
+}
+
+// A tetrahedron's signed volume V = det[b-a, c-a, d-a] / 6 and its gradient
+// dV/dx of corners a, b, c, d (m^2; they sum to zero).
+struct TetGradient {
+  Real volume = 0;
+  Vec3 g[4];
+};
+inline TetGradient tet_gradient(const Vec3& a, const Vec3& b, const Vec3& c, const Vec3& d) {
+  const Vec3 e1 = b - a, e2 = c - a, e3 = d - a;
+  TetGradient t;
+  t.g[1] = Real(1) / 6 * cross(e2, e3);
+  t.g[2] = Real(1) / 6 * cross(e3, e1);
+  t.g[3] = Real(1) / 6 * cross(e1, e2);
+  t.g[0] = -(t.g[1] + t.g[2] + t.g[3]);
+  t.volume = dot(e1, t.g[1]);
+  return t;
+}
+
 // A symmetric 3x3 block.
 struct Sym3 {
   Real xx = 0, yy = 0, zz = 0, xy = 0, xz = 0, yz = 0;
@@ -69,6 +90,10 @@ struct Sym3 {
 inline Vec3 operator*(const Sym3& s, const Vec3& v) {
   return {s.xx * v.x + s.xy * v.y + s.xz * v.z, s.xy * v.x + s.yy * v.y + s.yz * v.z,
           s.xz * v.x + s.yz * v.y + s.zz * v.z};
+}
+// s g g^T
+inline Sym3 outer(Real s, const Vec3& g) {
+  return {s * g.x * g.x, s * g.y * g.y, s * g.z * g.z, s * g.x * g.y, s * g.x * g.z, s * g.y * g.z};
 }
 inline Sym3& operator+=(Sym3& a, const Sym3& b) {
   a.xx += b.xx, a.yy += b.yy, a.zz += b.zz, a.xy += b.xy, a.xz += b.xz, a.yz += b.yz;

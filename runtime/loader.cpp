@@ -87,6 +87,12 @@ Model load_model(const ModelReader& r, const LoadRequest& req) {
   for (const auto& name : wanted) {
     const std::string g = "/layers/" + name;
     Layer l = r.layer_fields(name, fields);
+    // the volume term's tetrahedra (a layer with a volume_modulus)
+    if (l.volume_modulus > 0) {
+      if (f.exists(g + "/tets")) l.tets = r.layer_fields(name, {"tets"}).tets;
+      if (l.tets.rows() == 0) throw Error(path, g + " has a volume_modulus but no tets");
+      check_index_range(l.tets, n_global, path, g + "/tets");
+    }
     check_index_range(l.lin_springs, n_global, path, g + "/lin_springs");
     if (req.surface) check_index_range(l.quads, n_global, path, g + "/quads");
     for (Eigen::Index s = 0; s < l.lin_springs.rows(); ++s)

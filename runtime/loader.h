@@ -3,7 +3,8 @@
 // Only what a scene names is read:
 // - for each requested layer: nodes, masses and the linear decomposition
 //   lin_springs, lin_rest_length, lin_k, lin_damping, lin_slack; quads only
-//   when `surface` is set (the scene writes surfaces);
+//   when `surface` is set (the scene writes surfaces); tets when the layer
+//   has a volume_modulus (its volume term, Model::tet);
 // - the requested node sets /layers/sets/<name>;
 // - the requested vessels (nodes, radii, edges of /vessels/<name>);
 // - with `couple_unloaded`, the lin_springs index array of every other layer
@@ -11,7 +12,8 @@
 //   only if some do), and the nodes of the layers owning the far ends of
 //   those springs: such ends become anchors, fixed at their rest positions.
 // Nothing else is opened: no /volume, /surfaces, /quads, /vessels not named,
-// /tuning, the original biphasic spring fields, tets. Layer extents come
+// /tuning, the original biphasic spring fields, tets of layers without a
+// volume term. Layer extents come
 // from attributes and dataset shapes, which read no data.
 // h5::File::stats() on the reader counts what was read.
 #pragma once

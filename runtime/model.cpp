@@ -1,5 +1,7 @@
 #include "runtime/model.h"
 
+#include "runtime/kernels.h"
+
 #include <algorithm>
 #include <cmath>
 #include <functional>
@@ -122,6 +124,38 @@ void Model::finalize() {
     }
   }
 
+  // volume term: corners in range and distinct, a finite modulus >= 0, a
+  // non-degenerate rest volume; each node's corners
+  if (n_tets < 0 || tet.size() != 4 * static_cast<std::size_t>(n_tets) || tet_k.size() != static_cast<std::size_t>(n_tets))
+    throw Error("", "model: tetrahedron arrays do not match n_tets");
+  const auto nt = static_cast<std::size_t>(n_tets);
+  tet_rest_volume.assign(nt, 0);
+  for (std::size_t t = 0; t < nt; ++t) {
+    const std::int32_t* c = &tet[4 * t];
+    for (int k = 0; k < 4; ++k) {
+      if (c[k] < 0 || c[k] >= n_nodes) throw Error("", "model: tetrahedron " + std::to_string(t) + " has a corner outside the model");
+      for (int j = 0; j < k; ++j)
+        if (c[j] == c[k]) throw Error("", "model: tetrahedron " + std::to_string(t) + " repeats a corner");
+    }
+    if (!(finite_nonneg(tet_k[t]) && tet_k[t] < 1e15))
+      throw Error("", "model: tetrahedron " + std::to_string(t) + " has a negative or non-finite volume modulus");
+    const TetGradient g = tet_gradient(load3(rest_x.data(), c[0]), load3(rest_x.data(), c[1]), load3(rest_x.data(), c[2]),
+                                       load3(rest_x.data(), c[3]));
+    if (!(std::abs(g.volume) > 0) || !std::isfinite(g.volume))
+      throw Error("", "model: tetrahedron " + std::to_string(t) + " has no volume at rest");
+    tet_rest_volume[t] = g.volume;
+  }
+  tet_first.assign(n + 1, 0);
+  for (auto c : tet) ++tet_first[static_cast<std::size_t>(c) + 1];
+  for (std::size_t i = 0; i < n; ++i) tet_first[i + 1] += tet_first[i];
+  tet_corner.assign(4 * nt, 0);
+  {
+    std::vector<std::int32_t> fill(tet_first.begin(), tet_first.end() - 1);
+    for (std::size_t e = 0; e < 4 * nt; ++e) tet_corner[static_cast<std::size_t>(fill[tet[e]]++)] = static_cast<std::int32_t>(e);
+  }
+  tet_chunk = std::clamp<std::int32_t>((n_tets + 15) / 16, 64, 2048);
+  n_tet_chunks = n_tets == 0 ? 0 : (n_tets + tet_chunk - 1) / tet_chunk;
+
   // chunks: a function of n_nodes only
   chunk = std::clamp<std::int32_t>((n_nodes + 15) / 16, 64, 2048);
   n_chunks = n_nodes == 0 ? 0 : (n_nodes + chunk - 1) / chunk;
@@ -140,6 +174,18 @@ void Model::finalize() {
     if (inv_mass[b] > 0) {
       omega2[b] += spring_k[s] * (inv_mass[b] + cross);
       gamma[b] += spring_c[s] * (inv_mass[b] + cross);
+    }
+  }
+  for (std::size_t t = 0; t < nt; ++t) {
+    const std::int32_t* c = &tet[4 * t];
+    const TetGradient g = tet_gradient(load3(rest_x.data(), c[0]), load3(rest_x.data(), c[1]), load3(rest_x.data(), c[2]),
+                                       load3(rest_x.data(), c[3]));
+    const Real coef = tet_k[t] / std::abs(tet_rest_volume[t]);
+    Real row = 0;  // sum_j |g_j| / sqrt(m_j)
+    for (int j = 0; j < 4; ++j) row += norm(g.g[j]) * std::sqrt(inv_mass[static_cast<std::size_t>(c[j])]);
+    for (int i = 0; i < 4; ++i) {
+      const auto a = static_cast<std::size_t>(c[i]);
+      if (inv_mass[a] > 0) omega2[a] += coef * norm(g.g[i]) * std::sqrt(inv_mass[a]) * row;
     }
   }
   total_mass = 0;
@@ -264,6 +310,25 @@ Model assemble_model(const ModelSource& src) {
     append_springs(l, file, "/layers/" + name, is_loaded, to_local, m);
   }
   append_springs(src.extra_springs, file, "springs of unloaded layers", is_loaded, to_local, m);
+  // the volume term's tetrahedra, where every corner is in the model and one is loaded
+  for (std::size_t li : layer_order) {
+    const auto& [name, l] = src.layers[li];
+    if (!(l.volume_modulus > 0)) continue;
+    for (Eigen::Index t = 0; t < l.tets.rows(); ++t) {
+      std::int32_t c[4];
+      bool any = false, all = true;
+      for (int k = 0; k < 4; ++k) {
+        any = any || is_loaded(l.tets(t, k));
+        auto it = local.find(l.tets(t, k));
+        all = all && it != local.end();
+        c[k] = all ? it->second : -1;
+      }
+      if (!any || !all) continue;
+      m.tet.insert(m.tet.end(), c, c + 4);
+      m.tet_k.push_back(l.volume_modulus);
+    }
+  }
+  m.n_tets = static_cast<std::int32_t>(m.tet_k.size());
   m.n_anchors = m.n_nodes - n_loaded;
   m.n_springs = static_cast<std::int32_t>(m.spring_a.size());
   m.inv_mass.resize(static_cast<std::size_t>(m.n_nodes));

@@ -77,6 +77,20 @@ struct Model {
   std::vector<std::int32_t> slot_a;     // (n_springs) entry of spring s in row a: neighbour b
   std::vector<std::int32_t> slot_b;     // (n_springs) entry of spring s in row b: neighbour a
 
+  // ---- volume term (docs/runtime.md, "The volume term")
+  // Tetrahedra of tetra layers with a volume_modulus (Layer::volume_modulus):
+  // each adds the energy (k/2) (V - V0)^2 / |V0| with V its signed volume,
+  // so that a layer resists compression and folding through itself. Kept
+  // where all four corners are loaded nodes or anchors and one is loaded.
+  std::int32_t n_tets = 0;
+  std::vector<std::int32_t> tet;         // (n_tets x 4) local ids
+  std::vector<Real> tet_k;               // (n_tets) Pa, the volume modulus k
+  std::vector<Real> tet_rest_volume;     // (n_tets) m^3, signed V0 at rest_x (built by finalize)
+  std::vector<std::int32_t> tet_first;   // (n_nodes + 1) node i's corners: tet_corner[tet_first[i] .. tet_first[i+1])
+  std::vector<std::int32_t> tet_corner;  // (4 n_tets) 4 t + c for corner c of tetrahedron t, ascending per node
+  std::int32_t tet_chunk = 1;            // tetrahedra per work chunk (a function of n_tets only)
+  std::int32_t n_tet_chunks = 0;
+
   // ---- deterministic work partition (built by finalize)
   // Parallel loops run over chunks of `chunk` consecutive nodes; reductions
   // add per-chunk partial sums in chunk order. Both depend only on n_nodes,
@@ -88,7 +102,8 @@ struct Model {
   // Gershgorin bounds per node on the spectrum of M^-1/2 K M^-1/2 and of the
   // damping: omega2[i] = sum_s k_s (1/m_i + 1/sqrt(m_i m_j)) (1/s^2), with k_s
   // the largest stiffness a spring can have (a tension-only spring counted as
-  // active); gamma[i] likewise with c_s (1/s). Anchors get 0.
+  // active), plus each volume term's (k/|V0|) |g_i| sum_j |g_j| / sqrt(m_i m_j)
+  // with g = dV/dx at rest; gamma[i] likewise with c_s (1/s). Anchors get 0.
   std::vector<Real> omega2;  // (n_nodes) 1/s^2
   std::vector<Real> gamma;   // (n_nodes) 1/s
   Real total_mass = 0;       // kg, free nodes
@@ -134,7 +149,7 @@ struct Model {
 // that reach loaded nodes.
 struct ModelSource {
   std::string file;  // for error messages
-  std::vector<std::pair<std::string, Layer>> layers;  // needs nodes, masses, lin_*; quads optional
+  std::vector<std::pair<std::string, Layer>> layers;  // needs nodes, masses, lin_*; quads optional; tets where volume_modulus > 0
   std::map<std::int32_t, std::array<Real, 3>> anchor_positions;  // global id -> rest position
   Layer extra_springs;  // lin_* of unloaded layers' springs that reach loaded nodes
   std::map<std::string, VecXi> node_sets;  // global ids

@@ -2,6 +2,8 @@
 
 #include "runtime/kernels.h"
 
+#include <Eigen/Sparse>
+#include <Eigen/SparseCholesky>
 #include <tbb/blocked_range.h>
 #include <tbb/parallel_for.h>
 
@@ -12,7 +14,32 @@
 namespace orthosim::runtime {
 
 const char* to_string(Integrator i) { return i == Integrator::implicit_euler ? "implicit" : "symplectic"; }
-const char* to_string(Preconditioner p) { return p == Preconditioner::jacobi ? "jacobi" : "block_jacobi"; }
+const char* to_string(Preconditioner p) {
+  switch (p) {
+    case Preconditioner::jacobi: return "jacobi";
+    case Preconditioner::block_jacobi: return "block_jacobi";
+    case Preconditioner::cholesky: return "cholesky";
+    case Preconditioner::automatic: return "auto";
+  }
+  return "?";
+}
+
+// The cholesky preconditioner: an LDL^T factor (Eigen's SimplicialLDLT, AMD
+// ordering) of the implicit matrix M + h C + h^2 K on the free nodes, the
+// volume term by its Gauss-Newton blocks, as assembled at the substep that
+// built it. Immutable: a State's copies share it.
+struct SparseFactor {
+  std::int32_t n_nodes = 0, n_springs = 0, n_tets = 0;
+  std::size_t n_entries = 0;
+  std::vector<std::int32_t> free_of;  // node -> its free index (dofs 3f .. 3f+2), -1 where pinned
+  std::int32_t n_free = 0;
+  std::vector<int> outer, inner;  // the lower triangle's pattern (column-major)
+  // the fill-reducing ordering (AMD) of that pattern, kept while it holds:
+  // the factor is of P A P^T
+  Eigen::PermutationMatrix<Eigen::Dynamic, Eigen::Dynamic, int> perm, perm_inv;
+  Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>, Eigen::Lower, Eigen::NaturalOrdering<int>> ldlt;
+  bool ok = false;  // factorised and positive definite
+};
 
 void validate(const SolverOptions& o) {
   for (Real g : o.gravity)
@@ -26,6 +53,7 @@ void validate(const SolverOptions& o) {
   if (!(std::isfinite(o.cg_tolerance) && o.cg_tolerance > 0 && o.cg_tolerance < 1))
     throw Error("", "cg_tolerance must be in (0, 1)");
   if (o.cg_max_iterations < 1) throw Error("", "cg_max_iterations must be >= 1");
+  if (o.refactor_after < 1) throw Error("", "refactor_after must be >= 1");
 }
 
 namespace {
@@ -35,6 +63,18 @@ constexpr int kPad = 8;  // partial sums per chunk, one cache line apart
 template <class F>
 void for_chunks(const Model& m, F&& body) {
   const int nc = m.n_chunks;
+  if (nc <= 1) {
+    if (nc == 1) body(0);
+    return;
+  }
+  tbb::parallel_for(tbb::blocked_range<int>(0, nc, 1), [&](const tbb::blocked_range<int>& r) {
+    for (int c = r.begin(); c != r.end(); ++c) body(c);
+  });
+}
+
+template <class F>
+void for_tet_chunks(const Model& m, F&& body) {
+  const int nc = m.n_tet_chunks;
   if (nc <= 1) {
     if (nc == 1) body(0);
     return;
@@ -69,6 +109,11 @@ void ensure_scratch(const Model& m, State& s, bool implicit) {
   if (sc.attach_k.size() != n3 / 3) sc.attach_k.assign(n3 / 3, 0);
   if (s.f.size() != n3) s.f.assign(n3, 0);
   if (s.warm.size() != n3) s.warm.assign(n3, 0);
+  const auto nt = static_cast<std::size_t>(m.n_tets);
+  if (sc.tet_g.size() != 12 * nt) sc.tet_g.assign(12 * nt, 0);
+  for (auto* v : {&sc.tet_p, &sc.tet_c, &sc.tet_s})
+    if (v->size() != nt) v->assign(nt, 0);
+  if (sc.tet_partial.size() != static_cast<std::size_t>(m.n_tet_chunks)) sc.tet_partial.assign(static_cast<std::size_t>(m.n_tet_chunks), 0);
   if (implicit) {
     const auto ne = m.nbr.size();
     if (sc.offdiag.size() != 6 * ne) sc.offdiag.assign(6 * ne, 0);
@@ -140,6 +185,59 @@ Real move_kinematic(State& s, Real t1, Real h) {
   return work;
 }
 
+// ---- the volume term ------------------------------------------------------
+
+// Per tetrahedron at the current positions: its corners' dV/dx (tet_g), the
+// pressure k (V - V0)/|V0| (tet_p) and h2 k/|V0| (tet_c, for the implicit
+// matrix); returns the energy sum (k/2)(V - V0)^2/|V0|, added per chunk in
+// chunk order (the same for any thread count).
+Real tet_pass(const Model& m, State& s, Real h2) {
+  if (m.n_tets == 0) return 0;
+  Scratch& sc = s.scratch;
+  const Real* x = s.x.data();
+  Real* tg = sc.tet_g.data();
+  for_tet_chunks(m, [&](int ch) {
+    Real u = 0;
+    for (std::int32_t t = ch * m.tet_chunk, e = std::min(m.n_tets, (ch + 1) * m.tet_chunk); t < e; ++t) {
+      const std::int32_t* c = &m.tet[4 * static_cast<std::size_t>(t)];
+      const TetGradient G = tet_gradient(load3(x, c[0]), load3(x, c[1]), load3(x, c[2]), load3(x, c[3]));
+      const Real v0 = m.tet_rest_volume[t], k = m.tet_k[t], av0 = std::abs(v0);
+      const Real strain = (G.volume - v0) / av0;
+      for (int j = 0; j < 4; ++j) store3(tg, 4 * static_cast<std::int64_t>(t) + j, G.g[j]);
+      sc.tet_p[t] = k * strain;
+      sc.tet_c[t] = h2 * k / av0;
+      u += Real(0.5) * k * av0 * strain * strain;
+    }
+    sc.tet_partial[static_cast<std::size_t>(ch)] = u;
+  });
+  Real u = 0;
+  for (Real p : sc.tet_partial) u += p;
+  return u;
+}
+
+// The volume term's force on node i, -sum over its corners of p_t g_tc, and
+// (implicit) the Gauss-Newton diagonal block sum of tet_c g g^T and sum |f|^2.
+struct TetNodeTerms {
+  Vec3 f;
+  Sym3 block;
+  Real f2 = 0;
+};
+template <bool kImplicit>
+TetNodeTerms tet_node_terms(const Model& m, const Scratch& sc, std::int32_t i) {
+  TetNodeTerms out;
+  for (std::int32_t q = m.tet_first[i], qe = m.tet_first[i + 1]; q < qe; ++q) {
+    const std::int32_t e = m.tet_corner[static_cast<std::size_t>(q)], t = e >> 2;
+    const Vec3 g = load3(sc.tet_g.data(), e);
+    const Vec3 f = -sc.tet_p[t] * g;
+    out.f += f;
+    if constexpr (kImplicit) {
+      out.f2 += dot(f, f);
+      out.block += outer(sc.tet_c[t], g);
+    }
+  }
+  return out;
+}
+
 // ---- symplectic Euler ------------------------------------------------------
 
 // pass 1 of symplectic Euler: forces of the springs each node is the first
@@ -193,6 +291,7 @@ Check symplectic_substep(const Model& m, State& s, Real t, Real h, const SolverO
   Real* partial = sc.partial.data();
   if (energy) symplectic_spring_pass<true>(m, s);
   else symplectic_spring_pass<false>(m, s);
+  const Real u_tets = tet_pass(m, s, 0);
   attachment_forces(s, t);
 
   // pass 2: gather second ends, external forces, integrate free nodes
@@ -205,11 +304,13 @@ Check symplectic_substep(const Model& m, State& s, Real t, Real h, const SolverO
   const std::int32_t* b_spring = m.b_spring.data();
   const Vec3 g{o.gravity[0], o.gravity[1], o.gravity[2]};
   const Real alpha = o.mass_damping;
+  const bool has_tets = m.n_tets > 0;
   for_chunks(m, [&](int ch) {
     Real ke = 0, vmax2 = 0;
     for (std::int32_t i = chunk_begin(m, ch), e = chunk_end(m, ch); i < e; ++i) {
       Vec3 fi = load3(f, i) + load3(fext, i);
       for (std::int32_t q = b_first[i], qe = b_first[i + 1]; q < qe; ++q) fi -= load3(fs, b_spring[q]);
+      if (has_tets) fi += tet_node_terms<false>(m, sc, i).f;
       store3(f, i, fi);
       const Real wi = w[i];
       if (wi > 0) {
@@ -226,7 +327,7 @@ Check symplectic_substep(const Model& m, State& s, Real t, Real h, const SolverO
     partial[ch * kPad + 2] = vmax2;
   });
   *tool_work += move_kinematic(s, t + h, h);
-  return {partial_sum(m, sc, 1), energy ? partial_sum(m, sc, 0) : Real(0), partial_max(m, sc, 2)};
+  return {partial_sum(m, sc, 1), energy ? partial_sum(m, sc, 0) + u_tets : Real(0), partial_max(m, sc, 2)};
 }
 
 // ---- implicit Euler --------------------------------------------------------
@@ -265,6 +366,21 @@ Real apply_matrix(const Model& m, State& s, const Real* p, const Real* z, Real b
     else if constexpr (kRead == Read::fused_first) return load3(z, j);
     else return load3(z, j) + beta * load3(p, j);
   };
+  // the volume term, matrix-free: s_t = h^2 (k/|V0|) sum_c g_c . p_c per
+  // tetrahedron, then y_i += s_t g_c at each corner (the same direction
+  // values as the node pass reads)
+  const bool has_tets = m.n_tets > 0;
+  if (has_tets) {
+    const Real* tg = sc.tet_g.data();
+    for_tet_chunks(m, [&](int ch) {
+      for (std::int32_t t = ch * m.tet_chunk, e = std::min(m.n_tets, (ch + 1) * m.tet_chunk); t < e; ++t) {
+        const std::int32_t* c = &m.tet[4 * static_cast<std::size_t>(t)];
+        Real gp = 0;
+        for (int j = 0; j < 4; ++j) gp += dot(load3(tg, 4 * static_cast<std::int64_t>(t) + j), dir(c[j]));
+        sc.tet_s[t] = sc.tet_c[t] * gp;
+      }
+    });
+  }
   for_chunks(m, [&](int ch) {
     Real pq = 0;
     for (std::int32_t i = chunk_begin(m, ch), e = chunk_end(m, ch); i < e; ++i) {
@@ -276,6 +392,11 @@ Real apply_matrix(const Model& m, State& s, const Real* p, const Real* z, Real b
       }
       Vec3 yi = sym_at(D, i) * pi;
       for (std::int32_t k = nbr_first[i], ke = nbr_first[i + 1]; k < ke; ++k) yi -= sym_at(O, k) * dir(nbr[k]);
+      if (has_tets)
+        for (std::int32_t q = m.tet_first[i], qe = m.tet_first[i + 1]; q < qe; ++q) {
+          const std::int32_t e = m.tet_corner[static_cast<std::size_t>(q)];
+          yi += sc.tet_s[e >> 2] * load3(sc.tet_g.data(), e);
+        }
       store3(y, i, yi);
       pq += dot(pi, yi);
     }
@@ -285,6 +406,123 @@ Real apply_matrix(const Model& m, State& s, const Real* p, const Real* z, Real b
 }
 
 inline Vec3 apply_precond(const Real* P, std::int32_t i, const Vec3& r) { return sym_at(P, i) * r; }
+
+// ---- the cholesky preconditioner -------------------------------------------
+
+bool factor_matches(const SparseFactor& f, const Model& m, const State& s) {
+  if (f.n_nodes != m.n_nodes || f.n_springs != m.n_springs || f.n_tets != m.n_tets || f.n_entries != m.nbr.size())
+    return false;
+  for (std::int32_t i = 0; i < m.n_nodes; ++i)
+    if ((s.inv_mass[i] > 0) != (f.free_of[static_cast<std::size_t>(i)] >= 0)) return false;
+  return true;
+}
+
+// The factor of the matrix the substep has assembled (Scratch::diag without
+// the volume term, offdiag, tet_g, tet_c), its lower triangle built column
+// by column on the free nodes (node pairs from the spring rows and the
+// tetrahedra).
+std::shared_ptr<const SparseFactor> build_factor(const Model& m, const State& s, const SparseFactor* previous) {
+  const Scratch& sc = s.scratch;
+  auto f = std::make_shared<SparseFactor>();
+  f->n_nodes = m.n_nodes, f->n_springs = m.n_springs, f->n_tets = m.n_tets, f->n_entries = m.nbr.size();
+  f->free_of.assign(static_cast<std::size_t>(m.n_nodes), -1);
+  for (std::int32_t i = 0; i < m.n_nodes; ++i)
+    if (s.inv_mass[i] > 0) f->free_of[static_cast<std::size_t>(i)] = f->n_free++;
+  const auto N = static_cast<Eigen::Index>(3 * f->n_free);
+  std::vector<int>& outer = f->outer;
+  std::vector<int>& inner = f->inner;
+  outer.assign(1, 0);
+  std::vector<double> values;
+  std::vector<std::int32_t> mark(static_cast<std::size_t>(m.n_nodes), -1), row;
+  std::vector<std::array<double, 9>> blk;  // (j, i) blocks of the column node i, row-major in (q, p)
+  for (std::int32_t i = 0; i < m.n_nodes; ++i) {
+    const std::int32_t fi = f->free_of[static_cast<std::size_t>(i)];
+    if (fi < 0) continue;
+    row.clear();
+    row.push_back(i);
+    for (std::int32_t k = m.nbr_first[i]; k < m.nbr_first[i + 1]; ++k) {
+      const std::int32_t j = m.nbr[static_cast<std::size_t>(k)];
+      if (j > i && s.inv_mass[j] > 0) row.push_back(j);
+    }
+    for (std::int32_t q = m.tet_first[i]; q < m.tet_first[i + 1]; ++q) {
+      const std::int32_t t = m.tet_corner[static_cast<std::size_t>(q)] >> 2;
+      for (int d = 0; d < 4; ++d) {
+        const std::int32_t j = m.tet[4 * static_cast<std::size_t>(t) + d];
+        if (j > i && s.inv_mass[j] > 0) row.push_back(j);
+      }
+    }
+    std::sort(row.begin() + 1, row.end());
+    row.erase(std::unique(row.begin() + 1, row.end()), row.end());
+    blk.assign(row.size(), std::array<double, 9>{});
+    for (std::size_t r = 0; r < row.size(); ++r) mark[static_cast<std::size_t>(row[r])] = static_cast<std::int32_t>(r);
+    const Sym3 Di = sym_at(sc.diag.data(), i);
+    blk[0] = {Di.xx, Di.xy, Di.xz, Di.xy, Di.yy, Di.yz, Di.xz, Di.yz, Di.zz};
+    for (std::int32_t k = m.nbr_first[i]; k < m.nbr_first[i + 1]; ++k) {
+      const std::int32_t j = m.nbr[static_cast<std::size_t>(k)];
+      if (j <= i || s.inv_mass[j] == 0) continue;
+      const Sym3 O = sym_at(sc.offdiag.data(), k);
+      const double o9[9] = {O.xx, O.xy, O.xz, O.xy, O.yy, O.yz, O.xz, O.yz, O.zz};
+      auto& b = blk[static_cast<std::size_t>(mark[static_cast<std::size_t>(j)])];
+      for (int e = 0; e < 9; ++e) b[static_cast<std::size_t>(e)] -= o9[e];
+    }
+    for (std::int32_t q = m.tet_first[i]; q < m.tet_first[i + 1]; ++q) {
+      const std::int32_t e = m.tet_corner[static_cast<std::size_t>(q)], t = e >> 2;
+      const Vec3 gi = load3(sc.tet_g.data(), e);
+      const double gi3[3] = {gi.x, gi.y, gi.z};
+      for (int d = 0; d < 4; ++d) {
+        const std::int32_t j = m.tet[4 * static_cast<std::size_t>(t) + d];
+        if (j < i || s.inv_mass[j] == 0) continue;
+        const Vec3 gj = load3(sc.tet_g.data(), 4 * static_cast<std::int64_t>(t) + d);
+        const double gj3[3] = {gj.x, gj.y, gj.z};
+        auto& b = blk[static_cast<std::size_t>(mark[static_cast<std::size_t>(j)])];
+        for (int qq = 0; qq < 3; ++qq)
+          for (int pp = 0; pp < 3; ++pp) b[static_cast<std::size_t>(3 * qq + pp)] += sc.tet_c[t] * gj3[qq] * gi3[pp];
+      }
+    }
+    for (int p = 0; p < 3; ++p) {
+      for (std::size_t r = 0; r < row.size(); ++r) {
+        const std::int32_t fj = f->free_of[static_cast<std::size_t>(row[r])];
+        for (int q = r == 0 ? p : 0; q < 3; ++q) {
+          inner.push_back(3 * fj + q);
+          values.push_back(blk[r][static_cast<std::size_t>(3 * q + p)]);
+        }
+      }
+      outer.push_back(static_cast<int>(inner.size()));
+    }
+    for (std::int32_t j : row) mark[static_cast<std::size_t>(j)] = -1;
+  }
+  if (N == 0) return f;
+  const Eigen::Map<const Eigen::SparseMatrix<double>> A(N, N, static_cast<Eigen::Index>(values.size()), outer.data(),
+                                                        inner.data(), values.data());
+  if (previous && previous->outer == outer && previous->inner == inner) {
+    f->perm = previous->perm, f->perm_inv = previous->perm_inv;
+  } else {
+    const Eigen::SparseMatrix<double> full = A.selfadjointView<Eigen::Lower>();
+    Eigen::AMDOrdering<int> amd;
+    amd(full, f->perm_inv);
+    f->perm = f->perm_inv.inverse();
+  }
+  Eigen::SparseMatrix<double> PAP(N, N);
+  PAP.selfadjointView<Eigen::Lower>() = A.selfadjointView<Eigen::Lower>().twistedBy(f->perm);
+  f->ldlt.compute(PAP);
+  f->ok = f->ldlt.info() == Eigen::Success && f->ldlt.vectorD().allFinite() && f->ldlt.vectorD().minCoeff() > 0;
+  return f;
+}
+
+// z = A^-1 r on the free nodes (zero where pinned), through the factor
+void factor_solve(const SparseFactor& f, const Model& m, const Real* r, Real* z) {
+  const auto N = static_cast<Eigen::Index>(3 * f.n_free);
+  Eigen::VectorXd b(N);
+  for (std::int32_t i = 0; i < m.n_nodes; ++i) {
+    const std::int32_t fi = f.free_of[static_cast<std::size_t>(i)];
+    if (fi >= 0) b.segment<3>(3 * fi) << r[3 * i], r[3 * i + 1], r[3 * i + 2];
+  }
+  const Eigen::VectorXd x = f.perm_inv * f.ldlt.solve(f.perm * b).eval();
+  for (std::int32_t i = 0; i < m.n_nodes; ++i) {
+    const std::int32_t fi = f.free_of[static_cast<std::size_t>(i)];
+    store3(z, i, fi >= 0 ? Vec3{x(3 * fi), x(3 * fi + 1), x(3 * fi + 2)} : Vec3{});
+  }
+}
 
 Check implicit_substep(const Model& m, State& s, Real t, Real h, const SolverOptions& o, Real* tool_work,
                        int* iterations, bool* cg_converged) {
@@ -350,7 +588,7 @@ Check implicit_substep(const Model& m, State& s, Real t, Real h, const SolverOpt
   Real* fsq = sc.force_sq.data();   // (n_nodes) sum |f|^2 of the node's springs so far
   const Vec3 g{o.gravity[0], o.gravity[1], o.gravity[2]};
   const Real damp = 1 + h * o.mass_damping;
-  const bool block = o.preconditioner == Preconditioner::block_jacobi;
+  const bool block = o.preconditioner != Preconditioner::jacobi;  // (and the cholesky solves' fallback)
   const bool use_warm = o.warm_start;
   for_chunks(m, [&](int ch) {
     Real u = 0;
@@ -383,6 +621,8 @@ Check implicit_substep(const Model& m, State& s, Real t, Real h, const SolverOpt
     }
     partial[ch * kPad] = u;
   });
+  const Real u_tets = tet_pass(m, s, h * h);
+  const bool has_tets = m.n_tets > 0;
   for_chunks(m, [&](int ch) {
     Real b2 = 0, t2 = 0, tw = 0;
     for (std::int32_t i = chunk_begin(m, ch), e = chunk_end(m, ch); i < e; ++i) {
@@ -398,6 +638,15 @@ Check implicit_substep(const Model& m, State& s, Real t, Real h, const SolverOpt
         Di += bq;
         sym_add(O, slot_b[q], bq);
       }
+      // the volume term: its force, and its diagonal block for the
+      // preconditioner (apply_matrix applies the term itself)
+      Sym3 Dt;
+      if (has_tets) {
+        const TetNodeTerms tt = tet_node_terms<true>(m, sc, i);
+        fi += tt.f;
+        fs2 += tt.f2;
+        Dt = tt.block;
+      }
       fi += load3(fext, i);
       if (w[i] == 0) {
         store3(f, i, fi);
@@ -412,6 +661,7 @@ Check implicit_substep(const Model& m, State& s, Real t, Real h, const SolverOpt
       const Real md = damp * mass[i] + h * h * attach_k[i];
       Di.xx += md, Di.yy += md, Di.zz += md;
       sym_store(D, i, Di);
+      Di += Dt;  // the whole diagonal block from here on
       Sym3 inv;
       if (block) {
         inv = inverse(Di);
@@ -445,20 +695,50 @@ Check implicit_substep(const Model& m, State& s, Real t, Real h, const SolverOpt
     if (a.stiffness > 0)
       for (auto i : a.nodes) store3(sc.attach_f.data(), i, Vec3{});
 
-  // PCG on the free nodes, from the initial guess in vnew
+  // the preconditioner: block Jacobi (P), or the sparse factor, built here
+  // from this substep's matrix when due (SolverOptions::preconditioner)
+  const SparseFactor* F = nullptr;
+  if (o.preconditioner == Preconditioner::cholesky || (o.preconditioner == Preconditioner::automatic && s.cholesky_on)) {
+    if (s.refactor || !s.factor || !factor_matches(*s.factor, m, s)) {
+      s.factor = build_factor(m, s, s.factor.get());
+      s.refactor = false;
+      ++s.counters.factorizations;
+    }
+    if (s.factor->ok) F = s.factor.get();  // (not positive definite: block Jacobi this time)
+  }
   Real* r = sc.r.data();
   Real* z = sc.z.data();
   Real* q = sc.q.data();
+  // with the factor: z = F^-1 r over all nodes at once, then r.z and the mass norm of z
+  auto factor_pass = [&](Real* rz_out, Real* ez_out) {
+    factor_solve(*F, m, r, z);
+    for_chunks(m, [&](int ch) {
+      Real rz_c = 0, ez_c = 0;
+      for (std::int32_t i = chunk_begin(m, ch), e = chunk_end(m, ch); i < e; ++i) {
+        if (w[i] == 0) continue;
+        const Vec3 zi = load3(z, i);
+        rz_c += dot(load3(r, i), zi);
+        ez_c += mass[i] * dot(zi, zi);
+      }
+      partial[ch * kPad + 1] = rz_c;
+      partial[ch * kPad + 3] = ez_c;
+    });
+    *rz_out = partial_sum(m, sc, 1);
+    *ez_out = partial_sum(m, sc, 3);
+  };
+
+  // PCG on the free nodes, from the initial guess in vnew
   apply_matrix<Read::plain>(m, s, vnew, nullptr, 0, nullptr, q);
   for_chunks(m, [&](int ch) {
     Real rz = 0, rr = 0, ez = 0;
     for (std::int32_t i = chunk_begin(m, ch), e = chunk_end(m, ch); i < e; ++i) {
       const Vec3 ri = w[i] == 0 ? Vec3{} : load3(rhs, i) - load3(q, i);
-      const Vec3 zi = apply_precond(P, i, ri);
       store3(r, i, ri);
+      rr += dot(ri, ri);
+      if (F) continue;
+      const Vec3 zi = apply_precond(P, i, ri);
       store3(z, i, zi);
       rz += dot(ri, zi);
-      rr += dot(ri, ri);
       ez += mass[i] * dot(zi, zi);
     }
     partial[ch * kPad + 1] = rz;
@@ -468,6 +748,7 @@ Check implicit_substep(const Model& m, State& s, Real t, Real h, const SolverOpt
   Real rz = partial_sum(m, sc, 1);
   Real rr = partial_sum(m, sc, 2);
   Real ez = partial_sum(m, sc, 3);
+  if (F) factor_pass(&rz, &ez);
   // Stop at |r| <= tol x the size of b's terms (root sum of squares), not of b
   // itself: near equilibrium the terms cancel, |b| -> 0, and a test relative to
   // |b| iterates on round-off (139 iterations a step for a block at rest in its
@@ -501,23 +782,32 @@ Check implicit_substep(const Model& m, State& s, Real t, Real h, const SolverOpt
         if (w[i] == 0) continue;
         store3(vnew, i, load3(vnew, i) + alpha * load3(p, i));
         const Vec3 ri = load3(r, i) - alpha * load3(q, i);
-        const Vec3 zi = apply_precond(P, i, ri);
         store3(r, i, ri);
+        rr_c += dot(ri, ri);
+        if (F) continue;
+        const Vec3 zi = apply_precond(P, i, ri);
         store3(z, i, zi);
         rz_c += dot(ri, zi);
-        rr_c += dot(ri, ri);
         ez_c += mass[i] * dot(zi, zi);
       }
       partial[ch * kPad + 1] = rz_c;
       partial[ch * kPad + 2] = rr_c;
       partial[ch * kPad + 3] = ez_c;
     });
-    const Real rz_new = partial_sum(m, sc, 1);
+    Real rz_new = partial_sum(m, sc, 1);
     rr = partial_sum(m, sc, 2);
     ez = partial_sum(m, sc, 3);
+    if (F) factor_pass(&rz_new, &ez);
     converged = rr <= thresh && ez <= thresh_e;
     beta = rz > 0 ? rz_new / rz : 0;
     rz = rz_new;
+  }
+  // a slow solve: the factor has drifted from the matrix (rebuild it next
+  // substep), or (automatic) block Jacobi is not enough for this model
+  if (F && it > o.refactor_after) s.refactor = true;
+  if (o.preconditioner == Preconditioner::automatic && !s.cholesky_on && !converged) {
+    s.cholesky_on = true;
+    s.refactor = true;
   }
   *iterations = it;
   *cg_converged = converged;
@@ -544,7 +834,7 @@ Check implicit_substep(const Model& m, State& s, Real t, Real h, const SolverOpt
     partial[ch * kPad + 1] = Real(0.5) * ke;
     partial[ch * kPad + 2] = vmax2;
   });
-  Check out{partial_sum(m, sc, 1), partial_sum(m, sc, 0), partial_max(m, sc, 2)};
+  Check out{partial_sum(m, sc, 1), partial_sum(m, sc, 0) + u_tets, partial_max(m, sc, 2)};
   *tool_work += move_kinematic(s, t + h, h);
   return out;
 }
@@ -742,6 +1032,12 @@ Energies energies(const Model& m, const State& s, const SolverOptions& o) {
   for (std::int32_t q = 0; q < m.n_springs; ++q) {
     const Vec3 d = load3(s.x.data(), m.spring_b[q]) - load3(s.x.data(), m.spring_a[q]);
     e.elastic += spring_force_elastic(d, m.spring_rest[q], m.spring_k[q], m.spring_tension[q] != 0).energy;
+  }
+  for (std::int32_t t = 0; t < m.n_tets; ++t) {
+    const std::int32_t* c = &m.tet[4 * static_cast<std::size_t>(t)];
+    const Real V = tet_gradient(load3(s.x.data(), c[0]), load3(s.x.data(), c[1]), load3(s.x.data(), c[2]), load3(s.x.data(), c[3])).volume;
+    const Real v0 = m.tet_rest_volume[t];
+    e.elastic += Real(0.5) * m.tet_k[t] * (V - v0) * (V - v0) / std::abs(v0);
   }
   return e;
 }

@@ -47,10 +47,20 @@
 namespace orthosim::runtime {
 
 enum class Integrator { symplectic_euler, implicit_euler };
-enum class Preconditioner { jacobi, block_jacobi };
+// The implicit solve's preconditioner. block_jacobi: the inverse 3x3
+// diagonal blocks. cholesky: a sparse LDL^T factor of the substep's matrix
+// (free nodes), kept across substeps and rebuilt from the current matrix when
+// a solve took more than refactor_after iterations (the matrix has drifted)
+// or the free nodes, springs or tetrahedra changed: stiff, nearly
+// incompressible layers (the volume term) that take block Jacobi hundreds of
+// iterations take this a few; a soft model whose matrix changes fast is
+// cheaper with block Jacobi. automatic: block Jacobi until a solve stops
+// unconverged at cg_max_iterations, then cholesky for the State's life (the
+// step is redone, redo_unconverged, with the factor).
+enum class Preconditioner { jacobi, block_jacobi, cholesky, automatic };
 
 const char* to_string(Integrator i);         // "symplectic" | "implicit"
-const char* to_string(Preconditioner p);     // "jacobi" | "block_jacobi"
+const char* to_string(Preconditioner p);     // "jacobi" | "block_jacobi" | "cholesky" | "auto"
 
 struct SolverOptions {
   Integrator integrator = Integrator::symplectic_euler;
@@ -63,7 +73,8 @@ struct SolverOptions {
   Real energy_growth = 10; // blow-up threshold on kinetic energy (see above), > 1
   Real cg_tolerance = 1e-6;    // implicit: |r| / the size of the right-hand side's terms (docs/runtime.md)
   int cg_max_iterations = 200; // implicit: per solve
-  Preconditioner preconditioner = Preconditioner::block_jacobi;
+  Preconditioner preconditioner = Preconditioner::automatic;
+  int refactor_after = 8;   // implicit, cholesky: a solve of more iterations rebuilds the factor next substep, >= 1
   bool warm_start = true;  // implicit: start PCG from v + the last velocity change
   bool redo_unconverged = true;  // implicit: a step with a solve stopped at cg_max_iterations is redone with twice the substeps (up to max_retries)
 };

@@ -12,6 +12,7 @@
 #include "runtime/types.h"
 
 #include <cstdint>
+#include <memory>
 #include <span>
 #include <vector>
 
@@ -55,6 +56,7 @@ struct Counters {
   std::int64_t cg_max_iterations = 0; // implicit: most iterations in one solve
   std::int64_t cg_unconverged = 0;    // implicit: solves stopped at the iteration cap, in accepted attempts
   std::int64_t cg_redos = 0;          // implicit: attempts redone because a solve stopped at the cap
+  std::int64_t factorizations = 0;    // implicit, cholesky preconditioner: sparse factors built
 };
 
 // Scratch the solver resizes on demand (never read across steps).
@@ -70,7 +72,17 @@ struct Scratch {
   std::vector<Real> attach_f;  // (n_nodes x 3) N: spring-attachment forces of the substep (implicit)
   std::vector<Real> spring_block;  // (n_springs x 6) implicit: each spring's matrix block, computed at its end a
   std::vector<Real> force_sq;      // (n_nodes) implicit: sum of |f|^2 over a node's springs (the residual's scale)
+  // volume term (Model::tet)
+  std::vector<Real> tet_g;         // (n_tets x 4 x 3) m^2: dV/dx of each corner at the substep's start
+  std::vector<Real> tet_p;         // (n_tets) Pa: k (V - V0) / |V0|, the force on corner c being -tet_p g_c
+  std::vector<Real> tet_c;         // (n_tets) implicit: h^2 k / |V0|, the Gauss-Newton block h^2 (k/|V0|) g g^T
+  std::vector<Real> tet_s;         // (n_tets) implicit: tet_c g.p of the PCG product
+  std::vector<Real> tet_partial;   // (n_tet_chunks) per-chunk energy sums
 };
+
+// The cholesky preconditioner's factor (runtime/solver.cpp): immutable once
+// built, so copies of a State share it and step exactly as the original.
+struct SparseFactor;
 
 struct State {
   Real time = 0;                   // s
@@ -88,6 +100,12 @@ struct State {
   Real step_limit = 0;      // s, cached symplectic stability limit; 0 = recompute (pins changed)
   Counters counters;
   Scratch scratch;
+  // implicit, cholesky preconditioner (SolverOptions::preconditioner): the
+  // factor in use, whether the next substep rebuilds it, and (automatic)
+  // whether the solves have switched to it
+  std::shared_ptr<const SparseFactor> factor;
+  bool refactor = true;
+  bool cholesky_on = false;
 };
 
 // A State at rest at the model's rest positions, anchors fixed.

@@ -75,6 +75,7 @@ json report_json(const msm::BuildReport& r) {
         e["projection"] = projection_json(l.projection);
         e["mean_cell_m_uvw"] = l.mean_cell_m;
         e["axis_factors_uvw"] = l.axes.factors;
+        e["volume_modulus_pa"] = l.volume_modulus_pa;
         // the trace rule's moduli / E before the factors, and with them (on
         // the calibration specimen); null without the axis correction
         const bool calibrated = l.axes.moduli_before[0] > 0;
@@ -117,6 +118,10 @@ void add_build_command(CLI::App& app) {
       ->capture_default_str();
   sub->add_flag("!--no-axis-correction", opt.axis_correction,
                 "leave each layer's rule as it is: no equal Young's moduli along u, v and through (docs/msm.md)");
+  sub->add_option("--poisson-ratio", opt.poisson_ratio,
+                  "Poisson's ratio of the tetra layers, in [0.25, 0.5): a volume term per tetrahedron (0.25: none; "
+                  "docs/msm.md, The volume term)")
+      ->capture_default_str();
   sub->add_option("--damping-ratio", opt.damping_ratio, "damping ratio of each spring with its end masses")
       ->capture_default_str();
   sub->add_option("--min-thickness-mm", min_thickness_mm, "thinner layers are an error (mm)")->capture_default_str();

@@ -72,8 +72,17 @@ struct Args {
   std::uint64_t seed = 1;
   int through_cells = 1;  // build's --through-cells (a fine grid's lattice cells need it: 400x100 builds with 4)
   int bit_depth = 16;     // segment's --bit-depth (significant bits of 16-bit slices)
+  double poisson_ratio = msm::BuildOptions{}.poisson_ratio;  // build's --poisson-ratio (the tetra layers' volume term)
   CommonOptions common;
 };
+
+// a number as its shortest exact decimal (cache keys and command lines)
+std::string exact(double v) {
+  std::ostringstream o;
+  o.precision(17);
+  o << v;
+  return o.str();
+}
 
 std::string join(const std::vector<std::string>& v, const std::string& sep = ",") {
   std::string s;
@@ -368,7 +377,7 @@ int run_stages(Args a, Report& report) {
   report.input(a.stack);
   report.input(a.tissues);
   if (!a.scene.empty()) report.input(a.scene);
-  report.parameters() = {{"grid", a.grid}, {"through_cells", a.through_cells}, {"bit_depth", a.bit_depth}, {"spacing_mm", a.spacing}, {"origin_mm", a.origin},
+  report.parameters() = {{"grid", a.grid}, {"through_cells", a.through_cells}, {"poisson_ratio", a.poisson_ratio}, {"bit_depth", a.bit_depth}, {"spacing_mm", a.spacing}, {"origin_mm", a.origin},
                          {"work", a.work}, {"texture", a.texture}, {"tune", a.tune},
                          {"tune_budget_s", a.tune_budget_s}, {"tune_evaluations", a.tune_evaluations}, {"seed", a.seed}, {"export", a.export_dir}};
 
@@ -631,9 +640,10 @@ int run_stages(Args a, Report& report) {
 
     // 5. build: the multilayer mass-spring model
     const auto bld = run.stage(
-        "build", {rem.key, table_hash, "through-cells " + std::to_string(a.through_cells)}, run.command([&](const std::string& d) {
+        "build", {rem.key, table_hash, "through-cells " + std::to_string(a.through_cells), "poisson-ratio " + exact(a.poisson_ratio)},
+        run.command([&](const std::string& d) {
           return std::vector<std::string>{"build", "--model", d + "/model.h5", "--tissues", a.tissues, "--through-cells",
-                                          std::to_string(a.through_cells)};
+                                          std::to_string(a.through_cells), "--poisson-ratio", exact(a.poisson_ratio)};
         }),
         {"model.h5"}, [&](const std::string& d) { copy_path(rem.dir + "/model.h5", d + "/model.h5"); });
     std::string last = bld.dir + "/model.h5";
@@ -807,6 +817,17 @@ void add_pipeline_command(CLI::App& app) {
                   "lattice cells through each lattice layer, build's (1..64; a fine --grid needs more: 400x100 builds "
                   "with 4)")
       ->check(CLI::Range(1, 64))
+      ->capture_default_str();
+  sub->add_option("--poisson-ratio", a.poisson_ratio,
+                  "Poisson's ratio of the tetra layers' volume term, build's ([0.25, 0.5); 0.25: none)")
+      ->check([](const std::string& v) -> std::string {
+        try {
+          const double x = std::stod(v);
+          return x >= 0.25 && x < 0.5 ? "" : "must be in [0.25, 0.5)";
+        } catch (...) {
+          return "must be a number in [0.25, 0.5)";
+        }
+      })
       ->capture_default_str();
   sub->add_option("--work", a.work, "cache folder (default: <out>.work)");
   sub->add_option("--out", a.out, "model file to write")->required();

@@ -200,7 +200,7 @@ void add_run_command(CLI::App& app) {
     par["output"] = def.output.enabled ? def.output.dir : "";
     if (!common.quiet)
       std::cerr << "run: " << m0.n_nodes << " nodes (" << m0.n_anchors << " anchors), " << m0.n_springs
-                << " linear springs, " << n_steps << " steps of " << def.dt << " s, "
+                << " linear springs, " << m0.n_tets << " volume tetrahedra, " << n_steps << " steps of " << def.dt << " s, "
                 << runtime::to_string(def.solver.integrator) << "\n";
 
     Progress progress("run", n_steps, common.quiet);
@@ -235,6 +235,7 @@ void add_run_command(CLI::App& app) {
     met["nodes"] = m.n_nodes;
     met["anchors"] = m.n_anchors;
     met["springs"] = m.n_springs;
+    met["volume_tets"] = m.n_tets;
     met["layers_loaded"] = m.layers.size();
     met["vessels_loaded"] = m.vessels.size();
     met["datasets_read"] = st.datasets_read;
@@ -258,8 +259,8 @@ void add_run_command(CLI::App& app) {
       if (v.max > 0)  // even with --quiet: the result is not a tissue
         std::cerr << "orthosim run: warning: " << scene_file << ": layer '" << layer << "' turned inside out in "
                   << v.max << " of its " << v.columns << " grid columns (" << v.end << " at the end, the first at "
-                  << v.first_step * def.dt << " s): its top passed its bottom; the mass-spring layers have no volume "
-                     "term to resist it (docs/runtime.md, Inverted layers)\n";
+                  << v.first_step * def.dt << " s): its top passed its bottom (docs/runtime.md, Inverted layers: "
+                     "lattice layers have no volume term, a tetra layer has build's --poisson-ratio)\n";
     }
     met["stability"] = {{"events", c.events},       {"nonfinite", c.nonfinite},
                         {"blowups", c.blowups},     {"recovered_steps", c.recovered},
@@ -270,7 +271,8 @@ void add_run_command(CLI::App& app) {
                    {"mean_iterations", c.cg_solves ? static_cast<double>(c.cg_iterations) / static_cast<double>(c.cg_solves) : 0.0},
                    {"max_iterations", c.cg_max_iterations},
                    {"unconverged", c.cg_unconverged},
-                   {"redos", c.cg_redos}};
+                   {"redos", c.cg_redos},
+                   {"factorizations", c.factorizations}};
     if (const runtime::FluidState* fs = scene->fluid_state()) {
       const auto f = scene->fluid_summary();
       const runtime::Fluid& fl = *scene->fluid();
@@ -328,7 +330,7 @@ void add_run_command(CLI::App& app) {
     met["cuts"] = nlohmann::json::array();
     // without surface quads loaded a cut removes none, and the count is null
     for (const auto& c : scene->cuts())
-      met["cuts"].push_back({{"springs_cut", c.springs_cut},
+      met["cuts"].push_back({{"springs_cut", c.springs_cut}, {"tets_cut", c.tets_cut},
                              {"quads_removed", c.quads_loaded ? nlohmann::json(c.quads_removed) : nlohmann::json()},
                              {"detached_nodes", c.detached.size()}, {"vessel_hits", c.vessel_hits.size()},
                              {"vessel_edges_open_already", c.vessel_edges_open_already},

@@ -99,6 +99,7 @@ json experiment_json(const tune::ExperimentOptions& e) {
           {"body_diagonals", e.body_diagonals},
           {"lattice_min_weight", e.lattice_min_weight},
           {"axis_correction", e.axis_correction},
+          {"volume_ratio", e.volume_ratio},
           {"force_tolerance", e.solver.force_tolerance},
           {"newton_iterations", e.solver.max_iterations}};
 }

@@ -242,6 +242,12 @@ void read_layer_attrs(const h5::File& f, const std::string& g, Layer& l) {
         throw Error(f.path(), g + ": attribute spring_law holds an invalid value (" + std::to_string(v) + ")");
     }
   }
+  if (f.has_attr(g, "volume_modulus")) {
+    const auto v = f.attr_doubles(g, "volume_modulus");
+    if (v.size() != 1 || !(std::isfinite(v[0]) && v[0] >= 0 && v[0] < 1e15))
+      throw Error(f.path(), g + ": attribute volume_modulus must be one finite value >= 0 (Pa)");
+    l.volume_modulus = v[0];
+  }
 }
 }  // namespace
 
@@ -366,6 +372,7 @@ void ModelWriter::write_layer(const std::string& name, const Layer& l) {
   file_->set_attr(g, "order", static_cast<std::int64_t>(l.order));
   file_->set_attr(g, "node_offset", l.node_offset);
   if (!l.spring_law.empty()) file_->set_attr(g, "spring_law", l.spring_law);
+  if (l.volume_modulus > 0) file_->set_attr(g, "volume_modulus", std::vector<double>{l.volume_modulus});
 }
 
 void ModelWriter::write_node_set(const std::string& name, const VecXi& ids) {

@@ -128,6 +128,15 @@ struct Layer {
   // class) and by tune (the tuned laws); attribute "spring_law" of the layer
   // group. Empty in rigid layers and in files written before 2026-11-27.
   std::vector<double> spring_law;
+  // The volume term of a tetra layer's tetrahedra (docs/msm.md, "The volume
+  // term"): each tetrahedron of rest volume V0 adds the energy
+  // (volume_modulus / 2) (V - V0)^2 / |V0|, so the layer resists compression
+  // and folding through itself like a tissue of Poisson's ratio near 0.5, not
+  // the 1/4 of central springs alone. Pa; 0 = none (lattice and rigid layers,
+  // and files written before 2026-11-28). Attribute "volume_modulus" of the
+  // layer group; written by build (from --poisson-ratio and the law's K1) and
+  // rescaled by tune with K1.
+  double volume_modulus = 0;
 
   template <class V> void fields(V&& v) {
     v(nodes, "nodes", "n_nodes", "m", "rest positions (n_nodes x 3)");

@@ -97,6 +97,7 @@ void validate_options(const BuildOptions& o) {
   if (!(o.projection.min_barycentric >= 0 && o.projection.min_barycentric < 1.0 / 3))
     throw Error("", "min_barycentric must be in [0, 1/3)");
   if (!(o.projection.max_distance_factor > 0)) throw Error("", "max_distance_factor must be > 0");
+  if (!(o.poisson_ratio >= 0.25 && o.poisson_ratio < 0.5)) throw Error("", "poisson_ratio must be in [0.25, 0.5)");
 }
 
 }  // namespace
@@ -321,7 +322,7 @@ BuiltModel build_layers(const std::vector<std::pair<std::string, QuadSurface>>& 
       if (o.axis_correction) {
         if (!(tetra_shape[l][0] > 0 && tetra_shape[l][1] > 0 && tetra_shape[l][2] > 0))
           throw Error("", "layer '" + surfaces[l].first + "' has degenerate cells");
-        tetra_axes[l] = tetra_layer_axes(tetra_shape[l]);
+        tetra_axes[l] = tetra_layer_axes(tetra_shape[l], volume_ratio(o.poisson_ratio));
         to.axis_factors = tetra_axes[l].factors;
         to.alternate_diagonals = true;
       }
@@ -422,6 +423,7 @@ BuiltModel build_layers(const std::vector<std::pair<std::string, QuadSurface>>& 
     L.k2 = law.k2_pa * m.k_per_pa;
     L.turning_length = m.rest_length * (1 + law.turning_strain);
     for (int c = 0; c < 4; ++c) L.spring_law.insert(L.spring_law.end(), {law.k1_pa, law.turning_strain, law.k2_pa});
+    if (specs[l].kind == "tetra") L.volume_modulus = volume_ratio(o.poisson_ratio) * law.k1_pa;
     L.damping.resize(m.pairs.rows());
     for (Eigen::Index s = 0; s < m.pairs.rows(); ++s) {
       const double ma = mass(m.pairs(s, 0)), mb = mass(m.pairs(s, 1));
@@ -524,6 +526,7 @@ BuiltModel build_layers(const std::vector<std::pair<std::string, QuadSurface>>& 
     lr.springs = L.springs.rows();
     lr.lin_springs = L.lin_springs.rows();
     lr.tets = L.tets.rows();
+    lr.volume_modulus_pa = L.volume_modulus;
     const Tissue* t = tissues.find(L.tissue);
     lr.density_kg_m3 = t->density_kg_m3;
     if (l < nl) {
@@ -622,6 +625,7 @@ std::string build_parameters_json(const BuildOptions& o, const Stack& st) {
   j["mass_tolerance"] = o.mass_tolerance;
   j["check_intersections"] = o.check_intersections;
   j["axis_correction"] = o.axis_correction;
+  j["poisson_ratio"] = o.poisson_ratio;
   j["surfaces"] = st.surfaces;
   nlohmann::json layers = nlohmann::json::array();
   for (const auto& l : st.layers) layers.push_back(l.tissue + ":" + l.kind);

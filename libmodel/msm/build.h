@@ -84,6 +84,14 @@ struct BuildOptions {
   // layers by the axis factors calibrated on their mean cell
   // (msm::tetra_layer_axes). Off: the rules alone.
   bool axis_correction = true;
+  // Poisson's ratio of the tetra layers' tissue, [1/4, 1/2): their
+  // tetrahedra get a volume term of modulus volume_ratio(nu) x K1
+  // (Layer::volume_modulus; docs/msm.md, "The volume term"), which the axis
+  // correction accounts for, so E along u, v and w stays the table's. 1/4:
+  // none (central springs alone, the rules before 2026-11-28). Soft tissue is
+  // nearly incompressible (0.45-0.499 in the literature); lattice layers have
+  // no volume term yet.
+  double poisson_ratio = 0.49;
 };
 
 // Per-layer figures, in the report and in BENCHMARKS.md.
@@ -109,6 +117,7 @@ struct LayerReport {
   // correction, its calibration (factors 1 and moduli 0 without)
   std::array<double, 3> mean_cell_m{0, 0, 0};
   AxisCalibration axes;
+  double volume_modulus_pa = 0;    // tetra layers: Layer::volume_modulus (0: none)
 };
 
 struct BuildReport {

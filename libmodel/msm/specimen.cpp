@@ -14,12 +14,29 @@ namespace {
 
 using Vec3 = Eigen::Vector3d;
 
+using Tet = Eigen::Matrix<double, 4, 3>;
+
+Tet tet_corners(const SpringNetwork& n, const MatX3d& x, Eigen::Index t) {
+  Tet c;
+  for (int k = 0; k < 4; ++k) c.row(k) = x.row(n.tets(t, k));
+  return c;
+}
+
+// [v]_x: the cross-product matrix, [v]_x w = v x w
+Eigen::Matrix3d cross_matrix(const Vec3& v) {
+  Eigen::Matrix3d m;
+  m << 0, -v.z(), v.y(), v.z(), 0, -v.x(), -v.y(), v.x(), 0;
+  return m;
+}
+
 double total_energy(const SpringNetwork& n, const MatX3d& x) {
   double e = 0;
   for (Eigen::Index s = 0; s < n.springs.rows(); ++s) {
     const double L = (x.row(n.springs(s, 1)) - x.row(n.springs(s, 0))).norm();
     e += biphasic_energy(L, n.rest_length(s), n.k1(s), n.k2(s), n.turning_length(s));
   }
+  for (Eigen::Index t = 0; t < n.tets.rows(); ++t)
+    e += tet_volume_term(tet_corners(n, x, t), n.tet_rest_volume(t), n.tet_k(t), true).energy;
   return e;
 }
 
@@ -38,11 +55,65 @@ VecXd gradient(const SpringNetwork& n, const MatX3d& x, double* fmax) {
     g.segment<3>(3 * b) += fv;
     g.segment<3>(3 * a) -= fv;
   }
+  for (Eigen::Index t = 0; t < n.tets.rows(); ++t) {
+    const TetVolumeTerm v = tet_volume_term(tet_corners(n, x, t), n.tet_rest_volume(t), n.tet_k(t), true);
+    for (int c = 0; c < 4; ++c) {
+      g.segment<3>(3 * n.tets(t, c)) += v.gradient.row(c).transpose();
+      m = std::max(m, v.gradient.row(c).norm());
+    }
+  }
   if (fmax) *fmax = m;
   return g;
 }
 
 }  // namespace
+
+TetVolumeTerm tet_volume_term(const Eigen::Matrix<double, 4, 3>& x, double rest_volume, double k, bool gauss_newton) {
+  TetVolumeTerm out;
+  const Vec3 e1 = (x.row(1) - x.row(0)).transpose(), e2 = (x.row(2) - x.row(0)).transpose(),
+             e3 = (x.row(3) - x.row(0)).transpose();
+  out.volume = e1.dot(e2.cross(e3)) / 6;
+  const double v0 = std::abs(rest_volume);
+  // dV/d(e1, e2, e3), then corner a = minus their sum
+  Eigen::Matrix<double, 4, 3> g;
+  g.row(1) = e2.cross(e3).transpose() / 6;
+  g.row(2) = e3.cross(e1).transpose() / 6;
+  g.row(3) = e1.cross(e2).transpose() / 6;
+  g.row(0) = -(g.row(1) + g.row(2) + g.row(3));
+  const double strain = v0 > 0 ? (out.volume - rest_volume) / v0 : 0.0;
+  out.energy = 0.5 * k * v0 * strain * strain;
+  out.gradient = k * strain * g;
+  out.hessian.setZero();
+  if (!(v0 > 0)) return out;
+  const Eigen::Matrix<double, 12, 1> gv = Eigen::Map<const Eigen::Matrix<double, 12, 1>>(Eigen::Matrix<double, 3, 4>(g.transpose()).data());
+  out.hessian = (k / v0) * gv * gv.transpose();
+  if (gauss_newton) return out;
+  // d2V/de_i de_j (i != j; zero on the diagonal): (1,2) = -[e3]x / 6,
+  // (1,3) = [e2]x / 6, (2,3) = -[e1]x / 6, and (j,i) the transpose
+  std::array<std::array<Eigen::Matrix3d, 3>, 3> B;
+  for (auto& row : B)
+    for (auto& b : row) b.setZero();
+  B[0][1] = -cross_matrix(e3) / 6, B[0][2] = cross_matrix(e2) / 6, B[1][2] = -cross_matrix(e1) / 6;
+  B[1][0] = B[0][1].transpose(), B[2][0] = B[0][2].transpose(), B[2][1] = B[1][2].transpose();
+  // corners: x_b = x_a + e1, ...; the rows and columns of a are minus the sums
+  std::array<std::array<Eigen::Matrix3d, 4>, 4> H;
+  for (int i = 0; i < 3; ++i)
+    for (int j = 0; j < 3; ++j) H[i + 1][j + 1] = B[i][j];
+  for (int j = 1; j < 4; ++j) {
+    H[0][j] = -(H[1][j] + H[2][j] + H[3][j]);
+    H[j][0] = H[0][j].transpose();
+  }
+  H[0][0] = -(H[0][1] + H[0][2] + H[0][3]);
+  const double p = k * strain;
+  for (int i = 0; i < 4; ++i)
+    for (int j = 0; j < 4; ++j) out.hessian.block<3, 3>(3 * i, 3 * j) += p * H[i][j];
+  return out;
+}
+
+double volume_ratio(double nu) {
+  if (!(nu >= 0.25 && nu < 0.5)) throw Error("", "Poisson's ratio must be in [0.25, 0.5)");
+  return std::max(0.0, 1 / (3 * (1 - 2 * nu)) - 2.0 / 3.0);
+}
 
 StaticResult solve_static(const SpringNetwork& net, const std::vector<std::int64_t>& prescribed,
                           const std::vector<double>& displacement, const MatX3d* start, const StaticOptions& o) {
@@ -101,6 +172,17 @@ StaticResult solve_static(const SpringNetwork& net, const std::vector<std::int64
           }
         }
     }
+    for (Eigen::Index t = 0; t < net.tets.rows(); ++t) {
+      const TetVolumeTerm v = tet_volume_term(tet_corners(net, x, t), net.tet_rest_volume(t), net.tet_k(t), clamp_geometric);
+      for (int i = 0; i < 12; ++i) {
+        const auto fi = free_of[static_cast<std::size_t>(3 * net.tets(t, i / 3) + i % 3)];
+        if (fi < 0) continue;
+        for (int j = 0; j < 12; ++j) {
+          const auto fj = free_of[static_cast<std::size_t>(3 * net.tets(t, j / 3) + j % 3)];
+          if (fj >= 0) trip.emplace_back(static_cast<int>(fi), static_cast<int>(fj), v.hessian(i, j));
+        }
+      }
+    }
     Eigen::SparseMatrix<double> K(nfree, nfree);
     K.setFromTriplets(trip.begin(), trip.end());
     return K;
@@ -124,6 +206,9 @@ StaticResult solve_static(const SpringNetwork& net, const std::vector<std::int64
   double kl = 0;
   for (Eigen::Index s = 0; s < net.springs.rows(); ++s)
     kl = std::max(kl, std::max(net.k1(s), net.k2(s)) * std::max(net.rest_length(s), net.turning_length(s)));
+  // and a volume term's, k |dV/dx| ~ k V0^(2/3) (an area)
+  for (Eigen::Index t = 0; t < net.tets.rows(); ++t)
+    kl = std::max(kl, net.tet_k(t) * std::pow(std::abs(net.tet_rest_volume(t)), 2.0 / 3.0));
   const double floor = 256 * std::numeric_limits<double>::epsilon() * kl;
   double fmax = 0;
   for (r.iterations = 0; r.iterations <= o.max_iterations; ++r.iterations) {
@@ -247,6 +332,17 @@ Specimen make_specimen(const SpecimenOptions& o) {
   s.size_m = {cx * o.cell_m[0], cy * o.cell_m[1], H};
   s.volume_m3 = cells.volume_m3;
   s.tets = static_cast<std::int64_t>(cells.tets.size());
+  if (!(o.volume_ratio >= 0 && std::isfinite(o.volume_ratio))) throw Error("", "specimen volume ratio must be finite and >= 0");
+  if (o.volume_ratio > 0 && o.kind == "tetra") {
+    // the global ids of tetra_cells are the rows of X (top, created, bottom)
+    const auto nt = static_cast<Eigen::Index>(cells.tets.size());
+    s.network.tets.resize(nt, 4);
+    s.network.tet_rest_volume.resize(nt);
+    for (Eigen::Index t = 0; t < nt; ++t) {
+      for (int k = 0; k < 4; ++k) s.network.tets(t, k) = cells.tets[static_cast<std::size_t>(t)][static_cast<std::size_t>(k)];
+      s.network.tet_rest_volume(t) = tet_volume_term(tet_corners(s.network, X, t), 0, 0, true).volume;
+    }
+  }
   apply_law(s, {1.0, 1.0, 0.0});
   return s;
 }
@@ -257,6 +353,7 @@ void apply_law(Specimen& s, const SpringLaw& law) {
   s.network.k1 = law.k1_pa * s.k_per_pa;
   s.network.k2 = law.k2_pa * s.k_per_pa;
   s.network.turning_length = s.network.rest_length * (1 + law.turning_strain);
+  s.network.tet_k = VecXd::Constant(s.network.tets.rows(), s.options.volume_ratio * law.k1_pa);
 }
 
 UniaxialCurve uniaxial_test(const Specimen& s, const std::vector<double>& strains, const UniaxialOptions& o) {
@@ -406,8 +503,9 @@ AxisCalibration calibrate_tetra_axes(SpecimenOptions o, double tolerance, int ma
                       std::to_string(o.cell_m[1] * 1e3) + " x " + std::to_string(o.cell_m[2] * 1e3) + " mm)");
 }
 
-AxisCalibration tetra_layer_axes(const std::array<double, 3>& cell_m) {
+AxisCalibration tetra_layer_axes(const std::array<double, 3>& cell_m, double volume_ratio) {
   SpecimenOptions o;
+  o.volume_ratio = volume_ratio;
   o.kind = "tetra";
   o.cells = kTetraCalibrationCells;
   o.cell_m = cell_m;

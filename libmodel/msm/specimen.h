@@ -38,7 +38,31 @@ struct SpringNetwork {
   VecXd k1;               // (n_springs) N/m
   VecXd k2;               // (n_springs) N/m, total slope past the turning length
   VecXd turning_length;   // (n_springs) m
+  // the volume term (Layer::volume_modulus): tetrahedron t adds
+  // (tet_k(t) / 2) (V - V0)^2 / |V0|; empty tets: none
+  MatX4i tets;            // (n_tets x 4) node ids
+  VecXd tet_rest_volume;  // (n_tets) m^3, signed V0
+  VecXd tet_k;            // (n_tets) Pa
 };
+
+// The volume term of one tetrahedron, V = det[b-a, c-a, d-a] / 6: its
+// energy (k/2)(V - V0)^2/|V0| (J), the gradient (4 x 3, N: row c is dE/dx_c)
+// and the Hessian (12 x 12, corners a, b, c, d), exact: (k/|V0|) g g^T +
+// k (V - V0)/|V0| d2V, with g = dV/dx (4 x 3). `gauss_newton` drops the second
+// term, which is indefinite (the positive semi-definite part alone).
+struct TetVolumeTerm {
+  double energy = 0, volume = 0;
+  Eigen::Matrix<double, 4, 3> gradient;
+  Eigen::Matrix<double, 12, 12> hessian;
+};
+TetVolumeTerm tet_volume_term(const Eigen::Matrix<double, 4, 3>& x, double rest_volume, double k, bool gauss_newton = false);
+
+// The volume term's modulus over K1 for a tissue of Poisson's ratio nu
+// (docs/msm.md, "The volume term"): the bulk modulus K = E / (3 (1 - 2 nu))
+// less the 2 E / 3 that central springs of Poisson's ratio 1/4 carry,
+// 1 / (3 (1 - 2 nu)) - 2 / 3; 0 at nu = 1/4, 16 at nu = 0.49. Throws Error
+// unless 1/4 <= nu < 1/2.
+double volume_ratio(double poisson_ratio);
 
 struct StaticOptions {
   double force_tolerance = 1e-10;  // relative to the largest spring force, (0, 1e-3]
@@ -73,6 +97,9 @@ struct SpecimenOptions {
   bool lattice_axis_correction = true;   // lattice only: LatticeOptions::axis_correction
   std::array<double, 3> tetra_axis_factors{1, 1, 1};  // tetra only: TetraOptions::axis_factors
   bool tetra_alternate_diagonals = false;  // tetra only: TetraOptions::alternate_diagonals
+  // tetra only: the volume term's modulus over the law's K1 (volume_ratio; 0:
+  // none); apply_law sets network.tet_k to volume_ratio x K1
+  double volume_ratio = 0;
 };
 
 // A block [0, X] x [0, Y] x [0, Z]: the top grid at z = Z, the bottom at z = 0,
@@ -91,8 +118,9 @@ struct Specimen {
 Specimen make_specimen(const SpecimenOptions& options);
 
 // Sets k1, k2 and turning lengths from a tissue law through the rule:
-// k1 = K1 k_per_pa, k2 = K2 k_per_pa, Lt = L0 (1 + turning strain). A linear
-// law: k2_pa == k1_pa, turning_strain = 0.
+// k1 = K1 k_per_pa, k2 = K2 k_per_pa, Lt = L0 (1 + turning strain), and the
+// volume term's modulus to options.volume_ratio x K1. A linear law: k2_pa ==
+// k1_pa, turning_strain = 0.
 void apply_law(Specimen& s, const SpringLaw& law);
 
 // The tetra axis factors (TetraOptions::axis_factors) that give a tetra
@@ -117,7 +145,9 @@ AxisCalibration calibrate_tetra_axes(SpecimenOptions options, double tolerance =
 // prisms of that shape with alternating diagonals. The same cell shape gives
 // the same factors in both.
 inline constexpr std::array<int, 3> kTetraCalibrationCells{6, 6, 1};
-AxisCalibration tetra_layer_axes(const std::array<double, 3>& cell_m);
+// volume_ratio: the layer's volume term (SpecimenOptions::volume_ratio), which
+// the factors then account for.
+AxisCalibration tetra_layer_axes(const std::array<double, 3>& cell_m, double volume_ratio = 0);
 
 // A layer's mean cell: the mean top-quad edge along u (q0q1, q3q2) and v
 // (q1q2, q0q3), and the mean distance between corresponding top and bottom

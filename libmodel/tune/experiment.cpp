@@ -118,6 +118,7 @@ void validate(const ExperimentOptions& o) {
   if (o.linear_steps < 1 || o.linear_steps > 1000) throw Error("", "linear_steps must be in 1..1000");
   if (!(o.linear_strain > 0 && o.linear_strain <= 0.2)) throw Error("", "linear_strain must be in (0, 0.2]");
   if (!(o.lattice_min_weight >= 0 && o.lattice_min_weight < 1)) throw Error("", "lattice_min_weight must be in [0, 1)");
+  if (!(o.volume_ratio >= 0 && o.volume_ratio < 1e6)) throw Error("", "volume_ratio must be in [0, 1e6)");
 }
 
 std::vector<double> strain_schedule(const Target& q, const ExperimentOptions& o) {
@@ -141,8 +142,9 @@ msm::Specimen make_tissue_specimen(const ExperimentOptions& o) {
   so.body_diagonals = o.body_diagonals;
   so.lattice_min_weight = o.lattice_min_weight;
   so.lattice_axis_correction = o.axis_correction;
+  if (o.kind == "tetra") so.volume_ratio = o.volume_ratio;
   if (o.kind == "tetra" && o.axis_correction) {
-    so.tetra_axis_factors = msm::tetra_layer_axes(o.cell_m).factors;
+    so.tetra_axis_factors = msm::tetra_layer_axes(o.cell_m, so.volume_ratio).factors;
     so.tetra_alternate_diagonals = true;
   }
   return msm::make_specimen(so);
@@ -282,6 +284,8 @@ void apply_params(msm::Specimen& s, const SpringParams& p) {
     n.k2(i) = std::max(l.k2_pa, l.k1_pa) * s.k_per_pa(i);
     n.turning_length(i) = n.rest_length(i) * (1 + l.turning_strain);
   }
+  // the volume term follows the structural class's K1, as build's and tune's layers do
+  n.tet_k = VecXd::Constant(n.tets.rows(), s.options.volume_ratio * p[0].k1_pa);
 }
 
 std::vector<SpringClass> classes_of(const msm::Specimen& s) {

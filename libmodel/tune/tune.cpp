@@ -318,6 +318,13 @@ TuneResult tune_target(const Target& target, const ExperimentOptions& experiment
 
 // ---- the model ----------------------------------------------------------------------------
 
+double layer_volume_ratio(const Layer& l) {
+  if (!(l.volume_modulus > 0)) return 0;
+  if (l.spring_law.size() != 3 * kSpringClasses)
+    throw Error("", "layer '" + l.tissue + "' has a volume_modulus but no spring_law to relate it to K1");
+  return l.volume_modulus / l.spring_law[0];
+}
+
 ExperimentOptions experiment_for_layer(const Layer& layer, const Layer& below, const ExperimentOptions& defaults) {
   if (layer.kind != "tetra" && layer.kind != "lattice")
     throw Error("", "layer '" + layer.tissue + "' is " + layer.kind + ", not a tetra or lattice layer");
@@ -334,6 +341,7 @@ ExperimentOptions experiment_for_layer(const Layer& layer, const Layer& below, c
   if (layer.kind == "tetra") {
     o.cells[2] = 1;
     o.cell_m = {a, b, h};
+    o.volume_ratio = layer_volume_ratio(layer);
   } else {
     const Eigen::Index through = (layer.nodes.rows() - ng) / ng + 1;
     o.cell_m = {a, b, h / static_cast<double>(through)};
@@ -411,6 +419,8 @@ void apply_to_layer(Layer& l, const SpringParams& current, const SpringParams& t
     l.k2(s) = std::max(t.k2_pa, t.k1_pa) * k_per_pa;
     l.turning_length(s) = l.rest_length(s) * (1 + t.turning_strain);
   }
+  // the volume term keeps its ratio to the structural class's K1 (build's --poisson-ratio)
+  if (l.volume_modulus > 0 && current[0].k1_pa > 0) l.volume_modulus *= tuned[0].k1_pa / current[0].k1_pa;
   l.spring_law = law_values(tuned);
   msm::decompose_biphasic(l);
 }

@@ -123,6 +123,10 @@ TuneResult tune_target(const Target& target, const ExperimentOptions& experiment
 // fields of `defaults` are kept.
 ExperimentOptions experiment_for_layer(const Layer& layer, const Layer& below, const ExperimentOptions& defaults);
 
+// A layer's volume_modulus over its structural class's K1 (spring_law[0]);
+// 0 without a volume term. Throws Error for a volume term without a law.
+double layer_volume_ratio(const Layer& layer);
+
 // The laws a layer's springs follow now: its spring_law (written by build and
 // tune since 2026-11-27); in older files the /tuning record of an earlier
 // tune (`record`, or null), else the tissue table's law (`table`).

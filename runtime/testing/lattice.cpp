@@ -173,6 +173,35 @@ LayeredBlock make_layered_block(const LayeredBlockOptions& o) {
       l.lin_damping[q] = lin_c[q];
       l.lin_slack[q] = lin_slack[q];
     }
+    // the volume term's tetrahedra: the Kuhn triangulation of each cell, a
+    // path from corner 000 to 111 along the axes in each of the 6 orders
+    if (static_cast<std::size_t>(s) < o.volume_modulus.size() && o.volume_modulus[static_cast<std::size_t>(s)] > 0 &&
+        s + 1 < ns) {
+      l.volume_modulus = o.volume_modulus[static_cast<std::size_t>(s)];
+      static constexpr int kOrders[6][3] = {{0, 1, 2}, {0, 2, 1}, {1, 0, 2}, {1, 2, 0}, {2, 0, 1}, {2, 1, 0}};
+      l.tets.resize(static_cast<Eigen::Index>(nu - 1) * (nv - 1) * 6, 4);
+      Eigen::Index t = 0;
+      for (int j = 0; j + 1 < nv; ++j)
+        for (int i = 0; i + 1 < nu; ++i)
+          for (const auto& ord : kOrders) {
+            int d[3] = {0, 0, 0};  // offsets along i, j, s
+            l.tets(t, 0) = id(i, j, s);
+            for (int k = 0; k < 3; ++k) {
+              d[ord[k]] = 1;
+              l.tets(t, k + 1) = id(i + d[0], j + d[1], s + d[2]);
+            }
+            // positive orientation, as build writes them
+            Real e[3][3];
+            for (int k = 0; k < 3; ++k)
+              for (int c = 0; c < 3; ++c)
+                e[k][c] = pos[3 * static_cast<std::size_t>(l.tets(t, k + 1)) + c] - pos[3 * static_cast<std::size_t>(l.tets(t, 0)) + c];
+            const Real det = e[0][0] * (e[1][1] * e[2][2] - e[1][2] * e[2][1]) -
+                             e[0][1] * (e[1][0] * e[2][2] - e[1][2] * e[2][0]) +
+                             e[0][2] * (e[1][0] * e[2][1] - e[1][1] * e[2][0]);
+            if (det < 0) std::swap(l.tets(t, 2), l.tets(t, 3));
+            ++t;
+          }
+    }
     // top surface of the sheet, counter-clockwise seen from -y (outside)
     l.quads.resize(static_cast<Eigen::Index>(nu - 1) * (nv - 1), 4);
     Eigen::Index qi = 0;

@@ -41,6 +41,11 @@ struct LayeredBlockOptions {
   std::vector<Real> density{1090, 950, 1050};        // kg/m^3
   std::vector<std::string> names{"dermis", "hypodermis", "muscle", "bone"};  // one per sheet
   Real damping_ratio = 0.02;  // zeta of each spring
+  // Pa per cell layer, or empty: a layer with a value > 0 gets a volume term
+  // (Layer::volume_modulus) on its cells, each split into the 6 tetrahedra
+  // of the Kuhn triangulation (around the cell's diagonal from corner (i, j,
+  // s) to (i+1, j+1, s+1)), positively oriented
+  std::vector<Real> volume_modulus;
 };
 
 struct LayeredBlock {

@@ -201,9 +201,14 @@ TEST(TuneCli, TunesABuiltModel) {
     EXPECT_NEAR(after.k1(s), before.k1(s) * l.k1_pa / 100.0, 1e-9 * after.k1(s));
     EXPECT_NEAR(after.turning_length(s), after.rest_length(s) * (1 + l.turning_strain), 1e-12);
   }
-  // the specimen had the layer's cell size
+  // the specimen had the layer's cell size and its volume term (16 K1 at the
+  // build's nu = 0.49), which keeps its ratio to the tuned structural K1
   const json rep = json::parse(test::read_file(d / "r.json"));
   EXPECT_GT(rep["parameters"]["tissues"][0]["experiment"]["cell_m"][1].get<double>(), 5e-3);
+  EXPECT_NEAR(rep["parameters"]["tissues"][0]["experiment"]["volume_ratio"].get<double>(), 16, 1e-9);
+  EXPECT_NEAR(before.volume_modulus, 16 * 100.0, 1e-9);
+  EXPECT_NEAR(after.volume_modulus, 16 * tuned[0].k1_pa, 1e-9 * after.volume_modulus);
+  EXPECT_NE(after.volume_modulus, before.volume_modulus);
   // a second tune starts from the recorded laws
   const auto r2 = test::run_cli("tune --tissues " + kTable + " --tissue skin --model " + model +
                                 " --max-evaluations 4000 --quiet");

@@ -48,6 +48,53 @@ TEST_F(LoaderTest, SceneWithoutVesselsNeverReadsThem) {
   EXPECT_TRUE(m.vessels.empty());
 }
 
+// A layer's tets are read only when it has a volume term (Layer::
+// volume_modulus), then all of them whose corners the model holds; a volume
+// term without tets is a one-line error.
+TEST_F(LoaderTest, TetsAreReadForAVolumeTermOnly) {
+  {
+    ModelReader r(file);
+    EXPECT_EQ(load_model(r, {}).n_tets, 0);
+    EXPECT_FALSE(read_any(r.h5().stats(), "/layers/dermis/tets"));
+  }
+  auto o = block.options;
+  o.volume_modulus = {2e6};
+  const auto with = testing::make_layered_block(o);
+  const std::string f2 = dir / "volume.h5";
+  write_model_file(f2, with);
+  {
+    ModelReader r(f2);
+    const Model m = load_model(r, {});
+    EXPECT_TRUE(read_any(r.h5().stats(), "/layers/dermis/tets"));
+    ASSERT_EQ(m.n_tets, 5 * 3 * 6);
+    for (Real k : m.tet_k) EXPECT_EQ(k, 2e6);
+    Real v = 0;
+    for (Real x : m.tet_rest_volume) v += x;
+    EXPECT_NEAR(std::abs(v), 5 * 3 * 16e-6 * 2e-3, 1e-15) << "the cells' volume, 4 x 4 x 2 mm each";
+  }
+  {
+    // the skin alone: its tets reach the next sheet through anchors
+    ModelReader r(f2);
+    LoadRequest req;
+    req.layers = {"dermis"};
+    const Model m = load_model(r, req);
+    EXPECT_EQ(m.n_tets, 5 * 3 * 6);
+    EXPECT_GT(m.n_anchors, 0);
+  }
+  auto broken = with;
+  broken.layers[0].second.tets.resize(0, 4);
+  const std::string f3 = dir / "broken.h5";
+  write_model_file(f3, broken);
+  ModelReader r(f3);
+  try {
+    load_model(r, {});
+    ADD_FAILURE() << "a volume term without tets was loaded";
+  } catch (const Error& e) {
+    EXPECT_NE(std::string(e.what()).find("volume_modulus but no tets"), std::string::npos) << e.what();
+    EXPECT_EQ(std::string(e.what()).find('\n'), std::string::npos);
+  }
+}
+
 TEST_F(LoaderTest, VesselsAndSurfacesAreReadWhenNamed) {
   ModelReader r(file);
   LoadRequest req;

@@ -591,9 +591,12 @@ TEST_F(RunCli, FailedStepsExitThree) {
 
 // Implicit solves stopped at their iteration cap are named in a warning line
 // (the summary said "0 stability events, 0 failed" with 60 of 60 unconverged).
+// Block Jacobi throughout: "auto" would switch to the sparse factor at the
+// first capped solve.
 TEST_F(RunCli, UnconvergedSolvesAreAWarning) {
   const auto s = scene(R"({"model": "model.h5", "fixed": ["fixed"], "integrator": "implicit", "dt": 0.01,
-                           "implicit": {"cg_tolerance": 1e-12, "cg_max_iterations": 1, "redo_unconverged": false}})");
+                           "implicit": {"cg_tolerance": 1e-12, "cg_max_iterations": 1, "redo_unconverged": false,
+                                        "preconditioner": "block_jacobi"}})");
   const auto r = run_cli("run " + s + " --steps 3 --no-output --quiet");
   EXPECT_EQ(r.code, 0) << r.err;
   EXPECT_EQ(test::count_lines(r.err), 1) << r.err;
@@ -602,7 +605,7 @@ TEST_F(RunCli, UnconvergedSolvesAreAWarning) {
   // redone (the default) 8 times a step, each with twice the substeps: the
   // last attempt's 256 solves a step are kept and counted
   const auto d = scene(R"({"model": "model.h5", "fixed": ["fixed"], "integrator": "implicit", "dt": 0.01,
-                           "implicit": {"cg_tolerance": 1e-12, "cg_max_iterations": 1}})");
+                           "implicit": {"cg_tolerance": 1e-12, "cg_max_iterations": 1, "preconditioner": "block_jacobi"}})");
   const auto rd = run_cli("run " + d + " --steps 3 --no-output --quiet");
   EXPECT_EQ(rd.code, 0) << rd.err;
   EXPECT_EQ(test::count_lines(rd.err), 1) << rd.err;

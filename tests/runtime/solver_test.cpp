@@ -362,13 +362,15 @@ TEST(Solver, SpringEnergyIsThatOfTheLastSubstep) {
 
 // ---- determinism ------------------------------------------------------------------
 
-std::uint64_t run_hash(Integrator integ, int threads) {
+std::uint64_t run_hash(Integrator integ, int threads, Preconditioner pc = Preconditioner::block_jacobi) {
   auto bo = make_layered_block(20, 9, 4).options;
   bo.youngs2 = bo.youngs;  // linear: fewer substeps, same code paths
   bo.youngs2[0] = 3 * bo.youngs[0];
   bo.turning_strain[0] = 0.01;
+  bo.volume_modulus = {16 * bo.youngs[0]};  // the skin's volume term: 912 tetrahedra in 15 chunks
   const auto block = testing::make_layered_block(bo);
   Model m = model_from_layers(block.layers, block.sets);
+  EXPECT_GT(m.n_tet_chunks, 1);
   State s = make_state(m);
   fix_nodes(m, s, m.set("fixed"));
   Attachment a;
@@ -385,6 +387,7 @@ std::uint64_t run_hash(Integrator integ, int threads) {
   SolverOptions o;
   o.integrator = integ;
   o.mass_damping = 1;
+  o.preconditioner = pc;
   tbb::task_arena arena(threads);
   arena.execute([&] {
     for (int k = 0; k < (integ == Integrator::implicit_euler ? 30 : 10); ++k) step(m, s, 1.0 / 120, o);
@@ -400,6 +403,10 @@ TEST(Solver, DeterministicAcrossRunsAndThreadCounts) {
     EXPECT_EQ(run_hash(integ, 1), h1) << "same thread count, same hash";
     EXPECT_EQ(run_hash(integ, 2), h1) << "two threads, same hash";
   }
+  // the sparse factor (the cholesky preconditioner) too
+  const auto c1 = run_hash(Integrator::implicit_euler, 1, Preconditioner::cholesky);
+  EXPECT_EQ(run_hash(Integrator::implicit_euler, 2, Preconditioner::cholesky), c1);
+  EXPECT_NE(c1, run_hash(Integrator::implicit_euler, 1)) << "another preconditioner, another rounding";
 }
 
 // The PCG stops relative to the size of the right-hand side's terms (momentum,
@@ -455,6 +462,7 @@ TEST(Solver, UnconvergedSolvesAreRedoneWithShorterSubsteps) {
     o.cg_max_iterations = cap;
     o.redo_unconverged = redo;
     o.substeps = substeps;
+    o.preconditioner = Preconditioner::block_jacobi;  // (auto would switch to the factor at the first capped solve)
     int most = 0;
     for (int k = 0; k < 30; ++k) most = std::max(most, step(m, s, 1.0 / 60, o).substeps);
     return std::make_pair(s, most);
@@ -591,6 +599,217 @@ TEST(Solver, AutomaticSubstepsFollowTheStabilityLimit) {
   const auto info = step(m, s, 1.0 / 60, o);
   EXPECT_EQ(info.substeps, static_cast<int>(std::ceil((1.0 / 60) / (o.safety * limit))));
   EXPECT_EQ(info.retries, 0);
+}
+
+// ---- the volume term (Model::tet) ---------------------------------------------------
+
+// A two-sheet block (one cell layer 4 mm thick, 4 mm cells) whose cells carry
+// a volume term of modulus kv (6 Kuhn tetrahedra each), undamped springs of
+// modulus E, the second sheet rigid ("fixed").
+testing::LayeredBlock volume_block(Real kv, Real E, int nu = 4, int nv = 3) {
+  testing::LayeredBlockOptions bo;
+  bo.nu = nu, bo.nv = nv, bo.layers = 2;
+  bo.thickness = {4e-3};
+  bo.youngs = {E};
+  bo.youngs2 = bo.youngs;
+  bo.turning_strain = {0};
+  bo.density = {1000};
+  bo.names = {"a", "b"};
+  bo.damping_ratio = 0;
+  bo.volume_modulus = {kv};
+  return make_layered_block(bo);
+}
+
+std::vector<Real> tet_volumes(const Model& m, const std::vector<Real>& x) {
+  std::vector<Real> v;
+  for (std::int32_t t = 0; t < m.n_tets; ++t) {
+    const std::int32_t* c = &m.tet[4 * static_cast<std::size_t>(t)];
+    v.push_back(tet_gradient(load3(x.data(), c[0]), load3(x.data(), c[1]), load3(x.data(), c[2]), load3(x.data(), c[3])).volume);
+  }
+  return v;
+}
+
+// The force the solver applies is minus the gradient of the energy it
+// reports (energies().elastic), by central differences at a deformed state:
+// the volume term's force, energy and their bookkeeping per corner agree.
+TEST(VolumeTerm, TheForceIsMinusTheGradientOfTheEnergy) {
+  const auto block = volume_block(1e5, 2e3);
+  const Model m = model_from_layers(block.layers, block.sets);
+  ASSERT_EQ(m.n_tets, 3 * 2 * 6);
+  State s = make_state(m);
+  std::mt19937 rng(5);
+  std::uniform_real_distribution<Real> u(-4e-4, 4e-4);  // 10 % of a cell
+  for (auto& x : s.x) x += u(rng);
+  const std::vector<Real> x0 = s.x;
+  SolverOptions o = no_gravity(Integrator::symplectic_euler);
+  o.substeps = 1;
+  step(m, s, 1e-14, o);  // s.f: the forces at x0
+  const std::vector<Real> f = s.f;
+  Real fmax = 0, err = 0;
+  for (std::size_t d = 0; d < x0.size(); ++d) {
+    const Real eps = 1e-7 * 4e-3;
+    State p = s, q = s;
+    p.x = x0, q.x = x0;
+    p.x[d] += eps, q.x[d] -= eps;
+    const Real grad = (energies(m, p, o).elastic - energies(m, q, o).elastic) / (2 * eps);
+    fmax = std::max(fmax, std::abs(f[d]));
+    err = std::max(err, std::abs(f[d] + grad));
+  }
+  ASSERT_GT(fmax, 0);
+  EXPECT_LT(err, 1e-6 * fmax);
+  // and most of it is the volume term's: without it the forces differ
+  auto springs_only = block;
+  springs_only.layers[0].second.volume_modulus = 0;
+  const Model m0 = model_from_layers(springs_only.layers, springs_only.sets);
+  EXPECT_EQ(m0.n_tets, 0);
+  State s0 = make_state(m0);
+  s0.x = x0;
+  step(m0, s0, 1e-14, o);
+  EXPECT_GT(max_node_distance(s0.f, f), 0.5 * fmax);
+}
+
+// Central springs do not resist a layer turned inside out: its mirror image
+// through the sheet below has every spring at its rest length. The volume
+// term does: with it the layer unfolds to its rest shape, without it the
+// mirrored layer is an equilibrium and stays.
+TEST(VolumeTerm, AMirroredLayerUnfoldsOnlyWithIt) {
+  for (const Real kv : {0.0, 2e4}) {
+    SCOPED_TRACE(kv);
+    const auto block = volume_block(kv, 2e3, 6, 4);
+    const Model m = model_from_layers(block.layers, block.sets);
+    State s = make_state(m);
+    fix_nodes(m, s, m.set("fixed"));
+    // the top sheet (y = 0) mirrored through the bottom one (y = 4 mm)
+    for (std::int32_t i : m.set("skin")) s.x[3 * static_cast<std::size_t>(i) + 1] = 8e-3;
+    ASSERT_EQ(inverted_columns(m, s.x).at(0).inverted, 6 * 4);
+    SolverOptions o = no_gravity(Integrator::implicit_euler);
+    o.mass_damping = 20;
+    for (int k = 0; k < 500; ++k) step(m, s, 1e-3, o);
+    EXPECT_EQ(s.counters.events, 0);
+    const auto inv = inverted_columns(m, s.x).at(0);
+    if (kv == 0) {
+      EXPECT_EQ(inv.inverted, 6 * 4) << "springs alone: the mirror image is at rest";
+    } else {
+      EXPECT_EQ(inv.inverted, 0);
+      EXPECT_LT(max_node_distance(s.x, m.rest_x), 1e-5) << "back at rest";
+      const auto v = tet_volumes(m, s.x);
+      for (std::int32_t t = 0; t < m.n_tets; ++t) EXPECT_GT(v[t] / m.tet_rest_volume[t], 0.99) << t;
+    }
+  }
+}
+
+// A squeezed block released: symplectic Euler with automatic substeps stays
+// stable with a volume term 50 times the springs' modulus (the Gershgorin
+// bound counts it), its energy bounded at that step and kept at a tenth of
+// it; implicit Euler settles at the rest volume.
+TEST(VolumeTerm, BothIntegratorsAreStableWithAStiffVolumeTerm) {
+  const auto block = volume_block(1e6, 2e4);
+  const Model m = model_from_layers(block.layers, block.sets);
+  const auto loose = volume_block(0, 2e4);
+  const Model m0 = model_from_layers(loose.layers, loose.sets);
+  {
+    State s = make_state(m), s0 = make_state(m0);
+    EXPECT_LT(symplectic_step_limit(m, s, SolverOptions{}), 0.5 * symplectic_step_limit(m0, s0, SolverOptions{}))
+        << "the stiffer term shortens the stability limit";
+  }
+  int auto_substeps = 0;
+  for (int run = 0; run < 3; ++run) {
+    const Integrator integ = run < 2 ? Integrator::symplectic_euler : Integrator::implicit_euler;
+    SCOPED_TRACE(std::string(to_string(integ)) + (run == 1 ? ", ten times the substeps" : ""));
+    State s = make_state(m);
+    fix_nodes(m, s, m.set("fixed"));
+    for (std::int32_t i : m.set("skin")) s.x[3 * static_cast<std::size_t>(i) + 1] += 8e-4;  // 20 % thinner
+    SolverOptions o = no_gravity(integ);
+    if (run == 1) o.substeps = 10 * auto_substeps;
+    if (run == 2) o.mass_damping = 50;
+    const Real e0 = energies(m, s, o).total();
+    ASSERT_GT(e0, 0);
+    Real dev = 0;
+    for (int k = 0; k < 300; ++k) {
+      const StepInfo info = step(m, s, 1e-3, o);
+      if (run == 0) auto_substeps = info.substeps;
+      ASSERT_TRUE(all_finite(s));
+      dev = std::max(dev, std::abs(energies(m, s, o).total() - e0) / e0);
+    }
+    EXPECT_EQ(s.counters.events, 0);
+    if (run == 0) {
+      EXPECT_GT(auto_substeps, 1);
+      EXPECT_LT(dev, 0.5) << "energy bounded";
+    } else if (run == 1) {
+      EXPECT_LT(dev, 0.03) << "energy kept";
+    } else {
+      Real v = 0, v0 = 0;
+      for (Real x : tet_volumes(m, s.x)) v += x;
+      for (Real x : m.tet_rest_volume) v0 += x;
+      EXPECT_GT(v0, 0);
+      EXPECT_NEAR(v / v0, 1, 1e-4);
+      EXPECT_EQ(s.counters.cg_unconverged, 0);
+    }
+  }
+}
+
+// The cholesky preconditioner (SolverOptions::preconditioner) on a stiff,
+// nearly incompressible skin (a volume term 16 times its springs' modulus, the
+// default nu = 0.49, over a 50 times softer fat): the same motion as block
+// Jacobi within the solves' tolerance in a few iterations where block Jacobi
+// takes hundreds, "auto" switching to it after block Jacobi's first
+// unconverged solve; and a State's copy, sharing its factor, steps exactly as
+// the original.
+TEST(Solver, TheCholeskyPreconditionerSolvesStiffVolumeTerms) {
+  auto bo = make_layered_block(15, 5, 4).options;
+  bo.volume_modulus = {16 * bo.youngs[0]};
+  const auto block = testing::make_layered_block(bo);
+  const Model m = model_from_layers(block.layers, block.sets);
+  struct Run {
+    State s;
+    std::vector<Real> x;
+  };
+  auto run = [&](Preconditioner pc) {
+    State s = make_state(m);
+    fix_nodes(m, s, m.set("fixed"));
+    SolverOptions o;
+    o.integrator = Integrator::implicit_euler;
+    o.preconditioner = pc;
+    o.cg_tolerance = 1e-8;
+    o.cg_max_iterations = 2000;  // block Jacobi converges too, given the iterations
+    o.redo_unconverged = false;
+    for (int k = 0; k < 20; ++k) step(m, s, 1.0 / 60, o);
+    return s;
+  };
+  const State bj = run(Preconditioner::block_jacobi), ch = run(Preconditioner::cholesky);
+  EXPECT_EQ(bj.counters.events + ch.counters.events, 0);
+  EXPECT_EQ(bj.counters.cg_unconverged + ch.counters.cg_unconverged, 0);
+  EXPECT_LT(max_node_distance(bj.x, ch.x), 1e-6 * m.extent) << "the same solution";
+  Real moved = max_node_distance(ch.x, m.rest_x);
+  EXPECT_GT(moved, 1e-4) << "the block sagged";
+  EXPECT_GT(ch.counters.factorizations, 0);
+  EXPECT_LT(ch.counters.cg_iterations * 10, bj.counters.cg_iterations)
+      << "cholesky " << ch.counters.cg_iterations << ", block Jacobi " << bj.counters.cg_iterations;
+  RecordProperty("cg_iterations_block_jacobi", std::to_string(bj.counters.cg_iterations));
+  RecordProperty("cg_iterations_cholesky", std::to_string(ch.counters.cg_iterations));
+  RecordProperty("factorizations", std::to_string(ch.counters.factorizations));
+
+  // auto: block Jacobi stops at the default 200 iterations, switches, and the step is redone
+  State a = make_state(m);
+  fix_nodes(m, a, m.set("fixed"));
+  SolverOptions o;
+  o.integrator = Integrator::implicit_euler;
+  EXPECT_EQ(o.preconditioner, Preconditioner::automatic);
+  for (int k = 0; k < 20; ++k) step(m, a, 1.0 / 60, o);
+  EXPECT_TRUE(a.cholesky_on);
+  EXPECT_GT(a.counters.factorizations, 0);
+  EXPECT_EQ(a.counters.cg_unconverged, 0);
+  EXPECT_LT(max_node_distance(a.x, ch.x), 1e-4 * m.extent);
+
+  // a copy shares the factor and steps bit for bit as the original
+  State b = a;
+  ASSERT_EQ(b.factor, a.factor);
+  for (int k = 0; k < 10; ++k) {
+    step(m, a, 1.0 / 60, o);
+    step(m, b, 1.0 / 60, o);
+  }
+  EXPECT_EQ(state_hash(a), state_hash(b));
+  EXPECT_EQ(a.counters.factorizations, b.counters.factorizations);
 }
 
 }  // namespace

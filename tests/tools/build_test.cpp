@@ -8,6 +8,8 @@
 #include <gtest/gtest.h>
 #include <nlohmann/json.hpp>
 
+#include <map>
+
 using namespace orthosim;
 
 namespace {
@@ -112,6 +114,8 @@ TEST(BuildCli, BadInputOneLineExit2NoOutput) {
            {"--damping-ratio -1", "orthosim build: error: --damping-ratio must be in [0, 10]\n"},
            {"--through-cells 0", "orthosim build: error: --through-cells must be in 1..64\n"},
            {"--lattice-min-weight 1", "orthosim build: error: --lattice-min-weight must be in [0, 1)\n"},
+           {"--poisson-ratio 0.5", "orthosim build: error: --poisson-ratio must be in [0.25, 0.5)\n"},
+           {"--poisson-ratio 0.2", "orthosim build: error: --poisson-ratio must be in [0.25, 0.5)\n"},
            // (inf ran and said "thinner than inf m"; sweep of 2026-11-27)
            {"--min-thickness-mm inf", "orthosim build: error: --min-thickness-mm must be >= 0 and finite\n"}}) {
     expect_refused("build --model " + model + " --tissues " + tissues + " " + flag, model, "");
@@ -133,4 +137,35 @@ TEST(BuildCli, BadInputOneLineExit2NoOutput) {
   ASSERT_EQ(test::run_cli("build --model " + model + " --tissues " + tissues + " --quiet").code, 0);
   expect_refused("build --model " + model + " --tissues " + nofat, model, "missing from the tissue table");
   EXPECT_TRUE(ModelReader(model).has("/layers/skin"));
+}
+
+// The soft skin of the paper's Table 1 (dermis K1 = 0.1 kPa) hangs under
+// gravity and folds through the fat below it with central springs alone (the
+// demo's pull scene: 149 of 351 skin columns inside out within 0.05 s). With
+// the tetra layer's volume term (the default nu = 0.49) no column inverts; at
+// --poisson-ratio 0.25 (none) the same cylinders fold as the demo did.
+TEST(BuildCli, TheVolumeTermKeepsASoftSkinRightWayOut) {
+  test::TempDir dir("build-volume");
+  const std::string tissues = write_table(dir);
+  std::map<std::string, std::int64_t> inverted;
+  for (const std::string nu : {"0.25", "0.49"}) {
+    const std::string model = write_model(dir, test::cylinder_stack(39, 9), "m" + nu + ".h5");
+    const auto b = test::run_cli("build --model " + model + " --tissues " + tissues +
+                                 " --layers skin:tetra,fat:lattice,muscle:lattice --poisson-ratio " + nu +
+                                 " --quiet --report " + (dir / ("b" + nu + ".json")));
+    ASSERT_EQ(b.code, 0) << b.err;
+    const auto br = nlohmann::json::parse(test::read_file(dir / ("b" + nu + ".json")));
+    EXPECT_NEAR(br["metrics"]["layers"][0]["volume_modulus_pa"].get<double>(), nu == "0.25" ? 0.0 : 1600.0, 1e-9);
+    const std::string scene = dir / ("s" + nu + ".json");
+    test::write_file(scene, R"({"model": "m)" + nu + R"(.h5", "fixed": ["fixed"], "integrator": "implicit",
+                               "dt": 0.01, "duration": 0.3, "damping": {"mass": 5}})");
+    const auto r = test::run_cli("run " + scene + " --no-output --quiet --report " + (dir / ("r" + nu + ".json")));
+    ASSERT_EQ(r.code, 0) << r.err;
+    const auto j = nlohmann::json::parse(test::read_file(dir / ("r" + nu + ".json")));
+    EXPECT_EQ(j["metrics"]["volume_tets"].get<std::int64_t>(), nu == "0.25" ? 0 : 39 * 8 * 2 * 7);
+    inverted[nu] = j["metrics"]["inverted_columns"]["skin"]["max"].get<std::int64_t>();
+    EXPECT_EQ(r.err.find("turned inside out") != std::string::npos, inverted[nu] > 0) << r.err;
+  }
+  EXPECT_GT(inverted["0.25"], 100) << "central springs alone fold the soft skin";
+  EXPECT_EQ(inverted["0.49"], 0);
 }

@@ -178,6 +178,19 @@ TEST(Pipeline, ColdWarmAndIncremental) {
     ModelReader two(s.dir / "model.h5");
     EXPECT_EQ(two.layer_fields("fat", {"nodes"}).nodes.rows(), 2 * nodes1) << "a second cell layer of nodes";
   }
+  {
+    // build's --poisson-ratio: the skin's volume term (16 K1 at the default 0.49, none at 0.25)
+    const double k1 = ModelReader(s.dir / "model.h5").layer_fields("skin", {"nodes"}).spring_law.at(0);
+    EXPECT_NEAR(ModelReader(s.dir / "model.h5").layer_fields("skin", {"nodes"}).volume_modulus, 16 * k1, 1e-9 * k1);
+    const auto off = test::run_cli(s.args("--grid 20x6 --poisson-ratio 0.25"));
+    ASSERT_EQ(off.code, 0) << off.err;
+    EXPECT_TRUE(s.ran().count("build"));
+    EXPECT_EQ(ModelReader(s.dir / "model.h5").layer_fields("skin", {"nodes"}).volume_modulus, 0);
+    const auto bad = test::run_cli(s.args("--grid 20x6 --poisson-ratio 0.5"));
+    EXPECT_EQ(bad.code, 2) << bad.err;
+    EXPECT_EQ(test::count_lines(bad.err), 1) << bad.err;
+    EXPECT_NE(bad.err.find("--poisson-ratio"), std::string::npos) << bad.err;
+  }
 }
 
 // The tuning is bounded by --tune-evaluations, not by the clock: a re-run
