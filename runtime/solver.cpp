@@ -60,9 +60,9 @@ namespace {
 
 constexpr int kPad = 8;  // partial sums per chunk, one cache line apart
 
+// body(c) for each of nc work chunks, in parallel (TBB, the caller's arena)
 template <class F>
-void for_chunks(const Model& m, F&& body) {
-  const int nc = m.n_chunks;
+void for_each_chunk(int nc, F&& body) {
   if (nc <= 1) {
     if (nc == 1) body(0);
     return;
@@ -71,17 +71,14 @@ void for_chunks(const Model& m, F&& body) {
     for (int c = r.begin(); c != r.end(); ++c) body(c);
   });
 }
-
+// the node chunks, and the volume term's chunks of tetrahedra
+template <class F>
+void for_chunks(const Model& m, F&& body) {
+  for_each_chunk(m.n_chunks, body);
+}
 template <class F>
 void for_tet_chunks(const Model& m, F&& body) {
-  const int nc = m.n_tet_chunks;
-  if (nc <= 1) {
-    if (nc == 1) body(0);
-    return;
-  }
-  tbb::parallel_for(tbb::blocked_range<int>(0, nc, 1), [&](const tbb::blocked_range<int>& r) {
-    for (int c = r.begin(); c != r.end(); ++c) body(c);
-  });
+  for_each_chunk(m.n_tet_chunks, body);
 }
 
 inline std::int32_t chunk_begin(const Model& m, int c) { return c * m.chunk; }

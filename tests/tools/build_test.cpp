@@ -156,6 +156,14 @@ TEST(BuildCli, TheVolumeTermKeepsASoftSkinRightWayOut) {
     ASSERT_EQ(b.code, 0) << b.err;
     const auto br = nlohmann::json::parse(test::read_file(dir / ("b" + nu + ".json")));
     EXPECT_NEAR(br["metrics"]["layers"][0]["volume_modulus_pa"].get<double>(), nu == "0.25" ? 0.0 : 1600.0, 1e-9);
+    // inspect shows the layer's attribute (absent without a term)
+    const auto in = test::run_cli("inspect " + model + " --json");
+    ASSERT_EQ(in.code, 0) << in.err;
+    const auto& skin = nlohmann::json::parse(in.out)["summary"]["layers"]["skin"];
+    EXPECT_EQ(skin.contains("volume_modulus"), nu != "0.25") << skin.dump();
+    if (nu != "0.25") {
+      EXPECT_NEAR(skin["volume_modulus"].get<double>(), 1600.0, 1e-9) << skin.dump();
+    }
     const std::string scene = dir / ("s" + nu + ".json");
     test::write_file(scene, R"({"model": "m)" + nu + R"(.h5", "fixed": ["fixed"], "integrator": "implicit",
                                "dt": 0.01, "duration": 0.3, "damping": {"mass": 5}})");
