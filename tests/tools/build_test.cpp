@@ -159,7 +159,8 @@ TEST(BuildCli, TheVolumeTermKeepsASoftSkinRightWayOut) {
     // inspect shows the layer's attribute (absent without a term)
     const auto in = test::run_cli("inspect " + model + " --json");
     ASSERT_EQ(in.code, 0) << in.err;
-    const auto& skin = nlohmann::json::parse(in.out)["summary"]["layers"]["skin"];
+    const auto summary = nlohmann::json::parse(in.out);
+    const auto& skin = summary["summary"]["layers"]["skin"];
     EXPECT_EQ(skin.contains("volume_modulus"), nu != "0.25") << skin.dump();
     if (nu != "0.25") {
       EXPECT_NEAR(skin["volume_modulus"].get<double>(), 1600.0, 1e-9) << skin.dump();
