@@ -339,8 +339,9 @@ Specimen make_specimen(const SpecimenOptions& o) {
     s.network.tets.resize(nt, 4);
     s.network.tet_rest_volume.resize(nt);
     for (Eigen::Index t = 0; t < nt; ++t) {
-      for (int k = 0; k < 4; ++k) s.network.tets(t, k) = cells.tets[static_cast<std::size_t>(t)][static_cast<std::size_t>(k)];
-      s.network.tet_rest_volume(t) = tet_volume_term(tet_corners(s.network, X, t), 0, 0, true).volume;
+      const auto& c = cells.tets[static_cast<std::size_t>(t)];
+      for (int k = 0; k < 4; ++k) s.network.tets(t, k) = c[static_cast<std::size_t>(k)];
+      s.network.tet_rest_volume(t) = tet_volume(X.row(c[0]), X.row(c[1]), X.row(c[2]), X.row(c[3]));
     }
   }
   apply_law(s, {1.0, 1.0, 0.0});
