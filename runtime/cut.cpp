@@ -477,22 +477,29 @@ CutReport cut_model(Model& m, std::span<const Real> x, const CutDef& def, WoundC
   m.spring_tension.resize(keep);
   m.n_springs = static_cast<std::int32_t>(keep);
 
-  // the volume term: a tetrahedron with an edge across the blade goes too
+  // the volume term: a group of tetrahedra with an edge across the blade goes too
   std::size_t tkeep = 0;
-  for (std::int32_t t = 0; t < m.n_tets; ++t) {
-    const std::int32_t* c = &m.tet[4 * static_cast<std::size_t>(t)];
-    const Vec3 p[4] = {pos(c[0]), pos(c[1]), pos(c[2]), pos(c[3])};
+  std::vector<std::int32_t> first{0};
+  for (std::int32_t g = 0; g < m.n_groups; ++g) {
+    const std::int32_t t0 = m.tet_group_first[g], t1 = m.tet_group_first[g + 1];
     bool cut = false;
-    for (int i = 0; i < 4 && !cut; ++i)
-      for (int j = i + 1; j < 4 && !cut; ++j) cut = blade.crosses(p[i], p[j]);
+    for (std::int32_t t = t0; t < t1 && !cut; ++t) {
+      const std::int32_t* c = &m.tet[4 * static_cast<std::size_t>(t)];
+      const Vec3 p[4] = {pos(c[0]), pos(c[1]), pos(c[2]), pos(c[3])};
+      for (int i = 0; i < 4 && !cut; ++i)
+        for (int j = i + 1; j < 4 && !cut; ++j) cut = blade.crosses(p[i], p[j]);
+    }
     if (cut) continue;
-    std::copy(c, c + 4, &m.tet[4 * tkeep]);
-    m.tet_k[tkeep] = m.tet_k[static_cast<std::size_t>(t)];
-    ++tkeep;
+    for (std::int32_t t = t0; t < t1; ++t, ++tkeep) {
+      std::copy_n(&m.tet[4 * static_cast<std::size_t>(t)], 4, &m.tet[4 * tkeep]);
+      m.tet_k[tkeep] = m.tet_k[static_cast<std::size_t>(t)];
+    }
+    first.push_back(static_cast<std::int32_t>(tkeep));
   }
   rep.tets_cut = m.n_tets - static_cast<std::int32_t>(tkeep);
   m.tet.resize(4 * tkeep);
   m.tet_k.resize(tkeep);
+  m.tet_group_first = std::move(first);
   m.n_tets = static_cast<std::int32_t>(tkeep);
 
   // surface quads: any edge or diagonal across the blade opens the quad

@@ -8,8 +8,8 @@
 // skin surface the polyline lies on are caught too). A linear spring whose
 // segment between its two ends' *current* positions crosses that surface is
 // severed (removed from the model; a biphasic pair goes together, since both
-// join the same two nodes), and so is a volume-term tetrahedron with an edge
-// across it. Surface quads with an edge or a diagonal across
+// join the same two nodes), and so is a volume term's group of tetrahedra
+// with an edge across it. Surface quads with an edge or a diagonal across
 // the blade are removed from the rendered and collision surface, leaving the
 // wound open. Vessel centreline edges the blade crosses are reported with
 // the crossing point and the vessel radius there: a scene turns them into
@@ -61,7 +61,7 @@ struct VesselHit {
 struct CutReport {
   Vec3 direction;                      // the blade direction used (unit)
   std::int32_t springs_cut = 0;        // linear springs removed
-  std::int32_t tets_cut = 0;           // volume-term tetrahedra removed (an edge across the blade)
+  std::int32_t tets_cut = 0;           // volume-term tetrahedra removed (their group had an edge across the blade)
   std::int32_t quads_removed = 0;      // surface quads removed
   std::int32_t columns_opened = 0;     // tissue columns it opened for the blood (WoundColumns)
   std::int32_t vessel_edges_open_already = 0;  // crossed vessel edges an earlier cut had opened (no new wound)

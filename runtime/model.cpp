@@ -124,27 +124,44 @@ void Model::finalize() {
     }
   }
 
-  // volume term: corners in range and distinct, a finite modulus >= 0, a
-  // non-degenerate rest volume; each node's corners
+  // volume term: corners in range and distinct, a finite modulus >= 0, the
+  // same in a group, groups of consecutive tetrahedra with a non-zero rest
+  // volume; each node's corners
   if (n_tets < 0 || tet.size() != 4 * static_cast<std::size_t>(n_tets) || tet_k.size() != static_cast<std::size_t>(n_tets))
     throw Error("", "model: tetrahedron arrays do not match n_tets");
   const auto nt = static_cast<std::size_t>(n_tets);
-  tet_rest_volume.assign(nt, 0);
-  for (std::size_t t = 0; t < nt; ++t) {
-    const std::int32_t* c = &tet[4 * t];
-    for (int k = 0; k < 4; ++k) {
-      if (c[k] < 0 || c[k] >= n_nodes) throw Error("", "model: tetrahedron " + std::to_string(t) + " has a corner outside the model");
-      for (int j = 0; j < k; ++j)
-        if (c[j] == c[k]) throw Error("", "model: tetrahedron " + std::to_string(t) + " repeats a corner");
-    }
-    if (!(finite_nonneg(tet_k[t]) && tet_k[t] < 1e15))
-      throw Error("", "model: tetrahedron " + std::to_string(t) + " has a negative or non-finite volume modulus");
-    const TetGradient g = tet_gradient(load3(rest_x.data(), c[0]), load3(rest_x.data(), c[1]), load3(rest_x.data(), c[2]),
-                                       load3(rest_x.data(), c[3]));
-    if (!(std::abs(g.volume) > 0) || !std::isfinite(g.volume))
-      throw Error("", "model: tetrahedron " + std::to_string(t) + " has no volume at rest");
-    tet_rest_volume[t] = g.volume;
+  if (tet_group_first.empty()) {
+    tet_group_first.resize(nt + 1);
+    std::iota(tet_group_first.begin(), tet_group_first.end(), 0);
   }
+  if (tet_group_first.front() != 0 || tet_group_first.back() != n_tets ||
+      !std::is_sorted(tet_group_first.begin(), tet_group_first.end()) ||
+      std::adjacent_find(tet_group_first.begin(), tet_group_first.end()) != tet_group_first.end())
+    throw Error("", "model: tetrahedron groups are not consecutive non-empty ranges");
+  n_groups = static_cast<std::int32_t>(tet_group_first.size()) - 1;
+  tet_rest_volume.assign(nt, 0);
+  tet_group.assign(nt, 0);
+  group_rest_volume.assign(static_cast<std::size_t>(n_groups), 0);
+  for (std::int32_t g = 0; g < n_groups; ++g)
+    for (std::int32_t t = tet_group_first[g]; t < tet_group_first[g + 1]; ++t) {
+      const std::int32_t* c = &tet[4 * static_cast<std::size_t>(t)];
+      for (int k = 0; k < 4; ++k) {
+        if (c[k] < 0 || c[k] >= n_nodes) throw Error("", "model: tetrahedron " + std::to_string(t) + " has a corner outside the model");
+        for (int j = 0; j < k; ++j)
+          if (c[j] == c[k]) throw Error("", "model: tetrahedron " + std::to_string(t) + " repeats a corner");
+      }
+      if (!(finite_nonneg(tet_k[t]) && tet_k[t] < 1e15) || tet_k[t] != tet_k[tet_group_first[g]])
+        throw Error("", "model: tetrahedron " + std::to_string(t) + " has a negative or non-finite volume modulus, or not its group's");
+      const Real v = tet_gradient(load3(rest_x.data(), c[0]), load3(rest_x.data(), c[1]), load3(rest_x.data(), c[2]),
+                                  load3(rest_x.data(), c[3])).volume;
+      if (!std::isfinite(v)) throw Error("", "model: tetrahedron " + std::to_string(t) + " has a non-finite volume");
+      tet_rest_volume[t] = v;
+      tet_group[t] = g;
+      group_rest_volume[static_cast<std::size_t>(g)] += v;
+    }
+  for (std::int32_t g = 0; g < n_groups; ++g)
+    if (!(std::abs(group_rest_volume[static_cast<std::size_t>(g)]) > 0))
+      throw Error("", "model: tetrahedron group " + std::to_string(g) + " has no volume at rest");
   tet_first.assign(n + 1, 0);
   for (auto c : tet) ++tet_first[static_cast<std::size_t>(c) + 1];
   for (std::size_t i = 0; i < n; ++i) tet_first[i + 1] += tet_first[i];
@@ -153,8 +170,8 @@ void Model::finalize() {
     std::vector<std::int32_t> fill(tet_first.begin(), tet_first.end() - 1);
     for (std::size_t e = 0; e < 4 * nt; ++e) tet_corner[static_cast<std::size_t>(fill[tet[e]]++)] = static_cast<std::int32_t>(e);
   }
-  tet_chunk = std::clamp<std::int32_t>((n_tets + 15) / 16, 64, 2048);
-  n_tet_chunks = n_tets == 0 ? 0 : (n_tets + tet_chunk - 1) / tet_chunk;
+  tet_chunk = std::clamp<std::int32_t>((n_groups + 15) / 16, 64, 2048);
+  n_tet_chunks = n_groups == 0 ? 0 : (n_groups + tet_chunk - 1) / tet_chunk;
 
   // chunks: a function of n_nodes only
   chunk = std::clamp<std::int32_t>((n_nodes + 15) / 16, 64, 2048);
@@ -176,16 +193,25 @@ void Model::finalize() {
       gamma[b] += spring_c[s] * (inv_mass[b] + cross);
     }
   }
-  for (std::size_t t = 0; t < nt; ++t) {
-    const std::int32_t* c = &tet[4 * t];
-    const TetGradient g = tet_gradient(load3(rest_x.data(), c[0]), load3(rest_x.data(), c[1]), load3(rest_x.data(), c[2]),
-                                       load3(rest_x.data(), c[3]));
-    const Real coef = tet_k[t] / std::abs(tet_rest_volume[t]);
-    Real row = 0;  // sum_j |g_j| / sqrt(m_j)
-    for (int j = 0; j < 4; ++j) row += norm(g.g[j]) * std::sqrt(inv_mass[static_cast<std::size_t>(c[j])]);
-    for (int i = 0; i < 4; ++i) {
-      const auto a = static_cast<std::size_t>(c[i]);
-      if (inv_mass[a] > 0) omega2[a] += coef * norm(g.g[i]) * std::sqrt(inv_mass[a]) * row;
+  // the volume groups: (k/|V0|) |G_i| sum_j |G_j| / sqrt(m_i m_j), G the group's dV/dx at rest
+  for (std::int32_t g = 0; g < n_groups; ++g) {
+    std::vector<std::pair<std::int32_t, Vec3>> G;  // node, its summed gradient
+    for (std::int32_t t = tet_group_first[g]; t < tet_group_first[g + 1]; ++t) {
+      const std::int32_t* c = &tet[4 * static_cast<std::size_t>(t)];
+      const TetGradient tg = tet_gradient(load3(rest_x.data(), c[0]), load3(rest_x.data(), c[1]),
+                                          load3(rest_x.data(), c[2]), load3(rest_x.data(), c[3]));
+      for (int k = 0; k < 4; ++k) {
+        auto it = std::find_if(G.begin(), G.end(), [&](const auto& e) { return e.first == c[k]; });
+        if (it == G.end()) G.emplace_back(c[k], tg.g[k]);
+        else it->second += tg.g[k];
+      }
+    }
+    const Real coef = tet_k[tet_group_first[g]] / std::abs(group_rest_volume[static_cast<std::size_t>(g)]);
+    Real row = 0;  // sum_j |G_j| / sqrt(m_j)
+    for (const auto& [j, gj] : G) row += norm(gj) * std::sqrt(inv_mass[static_cast<std::size_t>(j)]);
+    for (const auto& [i, gi] : G) {
+      const auto a = static_cast<std::size_t>(i);
+      if (inv_mass[a] > 0) omega2[a] += coef * norm(gi) * std::sqrt(inv_mass[a]) * row;
     }
   }
   total_mass = 0;
@@ -310,22 +336,30 @@ Model assemble_model(const ModelSource& src) {
     append_springs(l, file, "/layers/" + name, is_loaded, to_local, m);
   }
   append_springs(src.extra_springs, file, "springs of unloaded layers", is_loaded, to_local, m);
-  // the volume term's tetrahedra, where every corner is in the model and one is loaded
+  // the volume term's groups of tetrahedra (volume_group each), where every
+  // corner is in the model and one is loaded
+  m.tet_group_first.assign(1, 0);
   for (std::size_t li : layer_order) {
     const auto& [name, l] = src.layers[li];
     if (!(l.volume_modulus > 0)) continue;
-    for (Eigen::Index t = 0; t < l.tets.rows(); ++t) {
-      std::int32_t c[4];
+    const Eigen::Index G = std::max(1, l.volume_group);
+    if (l.tets.rows() % G != 0)
+      throw Error(file, "/layers/" + name + ": " + std::to_string(l.tets.rows()) + " tets are not groups of volume_group " +
+                            std::to_string(G));
+    for (Eigen::Index t0 = 0; t0 < l.tets.rows(); t0 += G) {
+      std::vector<std::int32_t> c;
       bool any = false, all = true;
-      for (int k = 0; k < 4; ++k) {
-        any = any || is_loaded(l.tets(t, k));
-        auto it = local.find(l.tets(t, k));
-        all = all && it != local.end();
-        c[k] = all ? it->second : -1;
-      }
+      for (Eigen::Index t = t0; t < t0 + G && all; ++t)
+        for (int k = 0; k < 4; ++k) {
+          any = any || is_loaded(l.tets(t, k));
+          auto it = local.find(l.tets(t, k));
+          all = all && it != local.end();
+          c.push_back(all ? it->second : -1);
+        }
       if (!any || !all) continue;
-      m.tet.insert(m.tet.end(), c, c + 4);
-      m.tet_k.push_back(l.volume_modulus);
+      m.tet.insert(m.tet.end(), c.begin(), c.end());
+      m.tet_k.insert(m.tet_k.end(), static_cast<std::size_t>(G), l.volume_modulus);
+      m.tet_group_first.push_back(static_cast<std::int32_t>(m.tet_k.size()));
     }
   }
   m.n_tets = static_cast<std::int32_t>(m.tet_k.size());

@@ -78,17 +78,25 @@ struct Model {
   std::vector<std::int32_t> slot_b;     // (n_springs) entry of spring s in row b: neighbour a
 
   // ---- volume term (docs/runtime.md, "The volume term")
-  // Tetrahedra of tetra layers with a volume_modulus (Layer::volume_modulus):
-  // each adds the energy (k/2) (V - V0)^2 / |V0| with V its signed volume,
-  // so that a layer resists compression and folding through itself. Kept
-  // where all four corners are loaded nodes or anchors and one is loaded.
+  // Groups of tetrahedra of layers with a volume_modulus (Layer::tets in
+  // groups of Layer::volume_group: a tetra layer's each tetrahedron, a
+  // lattice layer's the 6 of each hexahedron):
+  // group g adds the energy (k/2) (V - V0)^2 / |V0|, V and V0 the sums of its
+  // tetrahedra's signed volumes ("mean dilatation": one pressure per group,
+  // so a thin layer does not lock), so that a layer resists compression and
+  // folding through itself. A group is kept where all its corners are loaded
+  // nodes or anchors and one is loaded.
   std::int32_t n_tets = 0;
-  std::vector<std::int32_t> tet;         // (n_tets x 4) local ids
-  std::vector<Real> tet_k;               // (n_tets) Pa, the volume modulus k
-  std::vector<Real> tet_rest_volume;     // (n_tets) m^3, signed V0 at rest_x (built by finalize)
-  std::vector<std::int32_t> tet_first;   // (n_nodes + 1) node i's corners: tet_corner[tet_first[i] .. tet_first[i+1])
-  std::vector<std::int32_t> tet_corner;  // (4 n_tets) 4 t + c for corner c of tetrahedron t, ascending per node
-  std::int32_t tet_chunk = 1;            // tetrahedra per work chunk (a function of n_tets only)
+  std::vector<std::int32_t> tet;             // (n_tets x 4) local ids
+  std::vector<Real> tet_k;                   // (n_tets) Pa, the volume modulus k of the tetrahedron's group
+  std::vector<std::int32_t> tet_group_first; // (n_groups + 1) each group's tetrahedra, consecutive; empty: one group each (finalize fills it)
+  std::int32_t n_groups = 0;                 // (built by finalize from here on)
+  std::vector<std::int32_t> tet_group;       // (n_tets) the group of each tetrahedron
+  std::vector<Real> tet_rest_volume;         // (n_tets) m^3, signed V0 at rest_x
+  std::vector<Real> group_rest_volume;       // (n_groups) m^3, signed sum over the group (non-zero)
+  std::vector<std::int32_t> tet_first;       // (n_nodes + 1) node i's corners: tet_corner[tet_first[i] .. tet_first[i+1])
+  std::vector<std::int32_t> tet_corner;      // (4 n_tets) 4 t + c for corner c of tetrahedron t, ascending per node
+  std::int32_t tet_chunk = 1;                // groups per work chunk (a function of n_groups only)
   std::int32_t n_tet_chunks = 0;
 
   // ---- deterministic work partition (built by finalize)
@@ -102,8 +110,9 @@ struct Model {
   // Gershgorin bounds per node on the spectrum of M^-1/2 K M^-1/2 and of the
   // damping: omega2[i] = sum_s k_s (1/m_i + 1/sqrt(m_i m_j)) (1/s^2), with k_s
   // the largest stiffness a spring can have (a tension-only spring counted as
-  // active), plus each volume term's (k/|V0|) |g_i| sum_j |g_j| / sqrt(m_i m_j)
-  // with g = dV/dx at rest; gamma[i] likewise with c_s (1/s). Anchors get 0.
+  // active), plus each volume group's (k/|V0|) |g_i| sum_j |g_j| / sqrt(m_i m_j)
+  // with g = dV/dx of the group's volume at rest; gamma[i] likewise with c_s
+  // (1/s). Anchors get 0.
   std::vector<Real> omega2;  // (n_nodes) 1/s^2
   std::vector<Real> gamma;   // (n_nodes) 1/s
   Real total_mass = 0;       // kg, free nodes
@@ -149,7 +158,7 @@ struct Model {
 // that reach loaded nodes.
 struct ModelSource {
   std::string file;  // for error messages
-  std::vector<std::pair<std::string, Layer>> layers;  // needs nodes, masses, lin_*; quads optional; tets where volume_modulus > 0
+  std::vector<std::pair<std::string, Layer>> layers;  // needs nodes, masses, lin_*; quads optional; tets where volume_modulus > 0 (groups of volume_group)
   std::map<std::int32_t, std::array<Real, 3>> anchor_positions;  // global id -> rest position
   Layer extra_springs;  // lin_* of unloaded layers' springs that reach loaded nodes
   std::map<std::string, VecXi> node_sets;  // global ids

@@ -184,10 +184,11 @@ Real move_kinematic(State& s, Real t1, Real h) {
 
 // ---- the volume term ------------------------------------------------------
 
-// Per tetrahedron at the current positions: its corners' dV/dx (tet_g), the
-// pressure k (V - V0)/|V0| (tet_p) and h2 k/|V0| (tet_c, for the implicit
-// matrix); returns the energy sum (k/2)(V - V0)^2/|V0|, added per chunk in
-// chunk order (the same for any thread count).
+// Per group of tetrahedra at the current positions: each tetrahedron's
+// corners' dV/dx (tet_g), the group's pressure k (V - V0)/|V0| (tet_p of each
+// of its tetrahedra) and h2 k/|V0| (tet_c, for the implicit matrix); returns
+// the energy sum (k/2)(V - V0)^2/|V0|, added per chunk of groups in chunk
+// order (the same for any thread count).
 Real tet_pass(const Model& m, State& s, Real h2) {
   if (m.n_tets == 0) return 0;
   Scratch& sc = s.scratch;
@@ -195,14 +196,21 @@ Real tet_pass(const Model& m, State& s, Real h2) {
   Real* tg = sc.tet_g.data();
   for_tet_chunks(m, [&](int ch) {
     Real u = 0;
-    for (std::int32_t t = ch * m.tet_chunk, e = std::min(m.n_tets, (ch + 1) * m.tet_chunk); t < e; ++t) {
-      const std::int32_t* c = &m.tet[4 * static_cast<std::size_t>(t)];
-      const TetGradient G = tet_gradient(load3(x, c[0]), load3(x, c[1]), load3(x, c[2]), load3(x, c[3]));
-      const Real v0 = m.tet_rest_volume[t], k = m.tet_k[t], av0 = std::abs(v0);
-      const Real strain = (G.volume - v0) / av0;
-      for (int j = 0; j < 4; ++j) store3(tg, 4 * static_cast<std::int64_t>(t) + j, G.g[j]);
-      sc.tet_p[t] = k * strain;
-      sc.tet_c[t] = h2 * k / av0;
+    for (std::int32_t g = ch * m.tet_chunk, ge = std::min(m.n_groups, (ch + 1) * m.tet_chunk); g < ge; ++g) {
+      const std::int32_t t0 = m.tet_group_first[g], t1 = m.tet_group_first[g + 1];
+      Real V = 0;
+      for (std::int32_t t = t0; t < t1; ++t) {
+        const std::int32_t* c = &m.tet[4 * static_cast<std::size_t>(t)];
+        const TetGradient G = tet_gradient(load3(x, c[0]), load3(x, c[1]), load3(x, c[2]), load3(x, c[3]));
+        for (int j = 0; j < 4; ++j) store3(tg, 4 * static_cast<std::int64_t>(t) + j, G.g[j]);
+        V += G.volume;
+      }
+      const Real v0 = m.group_rest_volume[static_cast<std::size_t>(g)], k = m.tet_k[t0], av0 = std::abs(v0);
+      const Real strain = (V - v0) / av0;
+      for (std::int32_t t = t0; t < t1; ++t) {
+        sc.tet_p[t] = k * strain;
+        sc.tet_c[t] = h2 * k / av0;
+      }
       u += Real(0.5) * k * av0 * strain * strain;
     }
     sc.tet_partial[static_cast<std::size_t>(ch)] = u;
@@ -213,7 +221,10 @@ Real tet_pass(const Model& m, State& s, Real h2) {
 }
 
 // The volume term's force on node i, -sum over its corners of p_t g_tc, and
-// (implicit) the Gauss-Newton diagonal block sum of tet_c g g^T and sum |f|^2.
+// (implicit) the Gauss-Newton diagonal block, the sum over its groups of
+// tet_c G G^T with G the node's summed corner gradients in the group, and
+// sum |f|^2 per group. A node's corners are in ascending tetrahedron order,
+// so each group's come together.
 struct TetNodeTerms {
   Vec3 f;
   Sym3 block;
@@ -222,16 +233,28 @@ struct TetNodeTerms {
 template <bool kImplicit>
 TetNodeTerms tet_node_terms(const Model& m, const Scratch& sc, std::int32_t i) {
   TetNodeTerms out;
-  for (std::int32_t q = m.tet_first[i], qe = m.tet_first[i + 1]; q < qe; ++q) {
-    const std::int32_t e = m.tet_corner[static_cast<std::size_t>(q)], t = e >> 2;
-    const Vec3 g = load3(sc.tet_g.data(), e);
-    const Vec3 f = -sc.tet_p[t] * g;
+  Vec3 G{};
+  std::int32_t group = -1, last_t = -1;
+  auto flush = [&] {
+    if (group < 0) return;
+    const Vec3 f = -sc.tet_p[last_t] * G;
     out.f += f;
     if constexpr (kImplicit) {
       out.f2 += dot(f, f);
-      out.block += outer(sc.tet_c[t], g);
+      out.block += outer(sc.tet_c[last_t], G);
     }
+  };
+  for (std::int32_t q = m.tet_first[i], qe = m.tet_first[i + 1]; q < qe; ++q) {
+    const std::int32_t e = m.tet_corner[static_cast<std::size_t>(q)], t = e >> 2;
+    if (m.tet_group[t] != group) {
+      flush();
+      group = m.tet_group[t];
+      G = Vec3{};
+    }
+    G += load3(sc.tet_g.data(), e);
+    last_t = t;
   }
+  flush();
   return out;
 }
 
@@ -363,18 +386,21 @@ Real apply_matrix(const Model& m, State& s, const Real* p, const Real* z, Real b
     else if constexpr (kRead == Read::fused_first) return load3(z, j);
     else return load3(z, j) + beta * load3(p, j);
   };
-  // the volume term, matrix-free: s_t = h^2 (k/|V0|) sum_c g_c . p_c per
-  // tetrahedron, then y_i += s_t g_c at each corner (the same direction
-  // values as the node pass reads)
+  // the volume term, matrix-free: s = h^2 (k/|V0|) sum over the group's
+  // corners of g_c . p_c per group, then y_i += s g_c at each corner (the same
+  // direction values as the node pass reads)
   const bool has_tets = m.n_tets > 0;
   if (has_tets) {
     const Real* tg = sc.tet_g.data();
     for_tet_chunks(m, [&](int ch) {
-      for (std::int32_t t = ch * m.tet_chunk, e = std::min(m.n_tets, (ch + 1) * m.tet_chunk); t < e; ++t) {
-        const std::int32_t* c = &m.tet[4 * static_cast<std::size_t>(t)];
+      for (std::int32_t g = ch * m.tet_chunk, ge = std::min(m.n_groups, (ch + 1) * m.tet_chunk); g < ge; ++g) {
+        const std::int32_t t0 = m.tet_group_first[g], t1 = m.tet_group_first[g + 1];
         Real gp = 0;
-        for (int j = 0; j < 4; ++j) gp += dot(load3(tg, 4 * static_cast<std::int64_t>(t) + j), dir(c[j]));
-        sc.tet_s[t] = sc.tet_c[t] * gp;
+        for (std::int32_t t = t0; t < t1; ++t) {
+          const std::int32_t* c = &m.tet[4 * static_cast<std::size_t>(t)];
+          for (int j = 0; j < 4; ++j) gp += dot(load3(tg, 4 * static_cast<std::int64_t>(t) + j), dir(c[j]));
+        }
+        for (std::int32_t t = t0; t < t1; ++t) sc.tet_s[t] = sc.tet_c[t] * gp;  // the group's, at each of its tetrahedra
       }
     });
   }
@@ -442,11 +468,12 @@ std::shared_ptr<const SparseFactor> build_factor(const Model& m, const State& s,
       if (j > i && s.inv_mass[j] > 0) row.push_back(j);
     }
     for (std::int32_t q = m.tet_first[i]; q < m.tet_first[i + 1]; ++q) {
-      const std::int32_t t = m.tet_corner[static_cast<std::size_t>(q)] >> 2;
-      for (int d = 0; d < 4; ++d) {
-        const std::int32_t j = m.tet[4 * static_cast<std::size_t>(t) + d];
-        if (j > i && s.inv_mass[j] > 0) row.push_back(j);
-      }
+      const std::int32_t g = m.tet_group[m.tet_corner[static_cast<std::size_t>(q)] >> 2];
+      for (std::int32_t t = m.tet_group_first[g]; t < m.tet_group_first[g + 1]; ++t)
+        for (int d = 0; d < 4; ++d) {
+          const std::int32_t j = m.tet[4 * static_cast<std::size_t>(t) + d];
+          if (j > i && s.inv_mass[j] > 0) row.push_back(j);
+        }
     }
     std::sort(row.begin() + 1, row.end());
     row.erase(std::unique(row.begin() + 1, row.end()), row.end());
@@ -462,19 +489,25 @@ std::shared_ptr<const SparseFactor> build_factor(const Model& m, const State& s,
       auto& b = blk[static_cast<std::size_t>(mark[static_cast<std::size_t>(j)])];
       for (int e = 0; e < 9; ++e) b[static_cast<std::size_t>(e)] -= o9[e];
     }
-    for (std::int32_t q = m.tet_first[i]; q < m.tet_first[i + 1]; ++q) {
-      const std::int32_t e = m.tet_corner[static_cast<std::size_t>(q)], t = e >> 2;
-      const Vec3 gi = load3(sc.tet_g.data(), e);
-      const double gi3[3] = {gi.x, gi.y, gi.z};
-      for (int d = 0; d < 4; ++d) {
-        const std::int32_t j = m.tet[4 * static_cast<std::size_t>(t) + d];
-        if (j < i || s.inv_mass[j] == 0) continue;
-        const Vec3 gj = load3(sc.tet_g.data(), 4 * static_cast<std::int64_t>(t) + d);
-        const double gj3[3] = {gj.x, gj.y, gj.z};
-        auto& b = blk[static_cast<std::size_t>(mark[static_cast<std::size_t>(j)])];
-        for (int qq = 0; qq < 3; ++qq)
-          for (int pp = 0; pp < 3; ++pp) b[static_cast<std::size_t>(3 * qq + pp)] += sc.tet_c[t] * gj3[qq] * gi3[pp];
-      }
+    // each group of node i: G_i, its summed corner gradients, then every
+    // corner d of the group's tetrahedra adds tet_c g_d G_i^T at its node
+    for (std::int32_t q = m.tet_first[i]; q < m.tet_first[i + 1];) {
+      const std::int32_t g = m.tet_group[m.tet_corner[static_cast<std::size_t>(q)] >> 2];
+      Vec3 Gi{};
+      for (; q < m.tet_first[i + 1] && m.tet_group[m.tet_corner[static_cast<std::size_t>(q)] >> 2] == g; ++q)
+        Gi += load3(sc.tet_g.data(), m.tet_corner[static_cast<std::size_t>(q)]);
+      const double gi3[3] = {Gi.x, Gi.y, Gi.z};
+      const std::int32_t t0 = m.tet_group_first[g];
+      for (std::int32_t t = t0; t < m.tet_group_first[g + 1]; ++t)
+        for (int d = 0; d < 4; ++d) {
+          const std::int32_t j = m.tet[4 * static_cast<std::size_t>(t) + d];
+          if (j < i || s.inv_mass[j] == 0) continue;
+          const Vec3 gj = load3(sc.tet_g.data(), 4 * static_cast<std::int64_t>(t) + d);
+          const double gj3[3] = {gj.x, gj.y, gj.z};
+          auto& b = blk[static_cast<std::size_t>(mark[static_cast<std::size_t>(j)])];
+          for (int qq = 0; qq < 3; ++qq)
+            for (int pp = 0; pp < 3; ++pp) b[static_cast<std::size_t>(3 * qq + pp)] += sc.tet_c[t0] * gj3[qq] * gi3[pp];
+        }
     }
     for (int p = 0; p < 3; ++p) {
       for (std::size_t r = 0; r < row.size(); ++r) {
@@ -1030,11 +1063,14 @@ Energies energies(const Model& m, const State& s, const SolverOptions& o) {
     const Vec3 d = load3(s.x.data(), m.spring_b[q]) - load3(s.x.data(), m.spring_a[q]);
     e.elastic += spring_force_elastic(d, m.spring_rest[q], m.spring_k[q], m.spring_tension[q] != 0).energy;
   }
-  for (std::int32_t t = 0; t < m.n_tets; ++t) {
-    const std::int32_t* c = &m.tet[4 * static_cast<std::size_t>(t)];
-    const Real V = tet_gradient(load3(s.x.data(), c[0]), load3(s.x.data(), c[1]), load3(s.x.data(), c[2]), load3(s.x.data(), c[3])).volume;
-    const Real v0 = m.tet_rest_volume[t];
-    e.elastic += Real(0.5) * m.tet_k[t] * (V - v0) * (V - v0) / std::abs(v0);
+  for (std::int32_t g = 0; g < m.n_groups; ++g) {
+    Real V = 0;
+    for (std::int32_t t = m.tet_group_first[g]; t < m.tet_group_first[g + 1]; ++t) {
+      const std::int32_t* c = &m.tet[4 * static_cast<std::size_t>(t)];
+      V += tet_gradient(load3(s.x.data(), c[0]), load3(s.x.data(), c[1]), load3(s.x.data(), c[2]), load3(s.x.data(), c[3])).volume;
+    }
+    const Real v0 = m.group_rest_volume[static_cast<std::size_t>(g)];
+    e.elastic += Real(0.5) * m.tet_k[m.tet_group_first[g]] * (V - v0) * (V - v0) / std::abs(v0);
   }
   return e;
 }

@@ -57,6 +57,8 @@ json report_json(const msm::BuildReport& r) {
       e["cells"] = l.cells;
       e["interface_springs"] = l.interface_springs;
       e["zero_stiffness_dropped"] = l.zero_stiffness_dropped;
+      e["volume_modulus_pa"] = l.volume_modulus_pa;
+      e["volume_group"] = l.volume_group;
       e["springs_by_class"] = l.springs_by_class;
       e["k1_pa"] = l.k1_pa;
       e["k2_pa"] = l.k2_pa;
@@ -75,7 +77,6 @@ json report_json(const msm::BuildReport& r) {
         e["projection"] = projection_json(l.projection);
         e["mean_cell_m_uvw"] = l.mean_cell_m;
         e["axis_factors_uvw"] = l.axes.factors;
-        e["volume_modulus_pa"] = l.volume_modulus_pa;
         // the trace rule's moduli / E before the factors, and with them (on
         // the calibration specimen); null without the axis correction
         const bool calibrated = l.axes.moduli_before[0] > 0;
@@ -119,9 +120,12 @@ void add_build_command(CLI::App& app) {
   sub->add_flag("!--no-axis-correction", opt.axis_correction,
                 "leave each layer's rule as it is: no equal Young's moduli along u, v and through (docs/msm.md)");
   sub->add_option("--poisson-ratio", opt.poisson_ratio,
-                  "Poisson's ratio of the tetra layers, in [0.25, 0.5): a volume term per tetrahedron (0.25: none; "
-                  "docs/msm.md, The volume term)")
+                  "Poisson's ratio of the layers, in [0.25, 0.5): a volume term per tetrahedron of a tetra layer, and "
+                  "with --lattice-volume-term per hexahedron of a lattice layer (0.25: none; docs/msm.md, The volume term)")
       ->capture_default_str();
+  sub->add_flag("--lattice-volume-term", opt.lattice_volume_term,
+                "give the lattice layers a volume term per hexahedron too (off: in cells far from cubes it buckles the "
+                "springs' weak shear under a few per cent of tension; docs/msm.md, The volume term)");
   sub->add_option("--damping-ratio", opt.damping_ratio, "damping ratio of each spring with its end masses")
       ->capture_default_str();
   sub->add_option("--min-thickness-mm", min_thickness_mm, "thinner layers are an error (mm)")->capture_default_str();

@@ -72,7 +72,8 @@ struct Args {
   std::uint64_t seed = 1;
   int through_cells = 1;  // build's --through-cells (a fine grid's lattice cells need it: 400x100 builds with 4)
   int bit_depth = 16;     // segment's --bit-depth (significant bits of 16-bit slices)
-  double poisson_ratio = msm::BuildOptions{}.poisson_ratio;  // build's --poisson-ratio (the tetra layers' volume term)
+  double poisson_ratio = msm::BuildOptions{}.poisson_ratio;  // build's --poisson-ratio (the layers' volume term)
+  bool lattice_volume_term = false;                          // build's --lattice-volume-term
   CommonOptions common;
 };
 
@@ -377,7 +378,7 @@ int run_stages(Args a, Report& report) {
   report.input(a.stack);
   report.input(a.tissues);
   if (!a.scene.empty()) report.input(a.scene);
-  report.parameters() = {{"grid", a.grid}, {"through_cells", a.through_cells}, {"poisson_ratio", a.poisson_ratio}, {"bit_depth", a.bit_depth}, {"spacing_mm", a.spacing}, {"origin_mm", a.origin},
+  report.parameters() = {{"grid", a.grid}, {"through_cells", a.through_cells}, {"poisson_ratio", a.poisson_ratio}, {"lattice_volume_term", a.lattice_volume_term}, {"bit_depth", a.bit_depth}, {"spacing_mm", a.spacing}, {"origin_mm", a.origin},
                          {"work", a.work}, {"texture", a.texture}, {"tune", a.tune},
                          {"tune_budget_s", a.tune_budget_s}, {"tune_evaluations", a.tune_evaluations}, {"seed", a.seed}, {"export", a.export_dir}};
 
@@ -640,10 +641,13 @@ int run_stages(Args a, Report& report) {
 
     // 5. build: the multilayer mass-spring model
     const auto bld = run.stage(
-        "build", {rem.key, table_hash, "through-cells " + std::to_string(a.through_cells), "poisson-ratio " + exact(a.poisson_ratio)},
+        "build", {rem.key, table_hash, "through-cells " + std::to_string(a.through_cells), "poisson-ratio " + exact(a.poisson_ratio),
+                  a.lattice_volume_term ? "lattice-volume-term" : "no-lattice-volume-term"},
         run.command([&](const std::string& d) {
-          return std::vector<std::string>{"build", "--model", d + "/model.h5", "--tissues", a.tissues, "--through-cells",
-                                          std::to_string(a.through_cells), "--poisson-ratio", exact(a.poisson_ratio)};
+          std::vector<std::string> args{"build", "--model", d + "/model.h5", "--tissues", a.tissues, "--through-cells",
+                                        std::to_string(a.through_cells), "--poisson-ratio", exact(a.poisson_ratio)};
+          if (a.lattice_volume_term) args.push_back("--lattice-volume-term");
+          return args;
         }),
         {"model.h5"}, [&](const std::string& d) { copy_path(rem.dir + "/model.h5", d + "/model.h5"); });
     std::string last = bld.dir + "/model.h5";
@@ -819,7 +823,7 @@ void add_pipeline_command(CLI::App& app) {
       ->check(CLI::Range(1, 64))
       ->capture_default_str();
   sub->add_option("--poisson-ratio", a.poisson_ratio,
-                  "Poisson's ratio of the tetra layers' volume term, build's ([0.25, 0.5); 0.25: none)")
+                  "Poisson's ratio of the layers' volume term, build's ([0.25, 0.5); 0.25: none)")
       ->check([](const std::string& v) -> std::string {
         try {
           const double x = std::stod(v);
@@ -829,6 +833,8 @@ void add_pipeline_command(CLI::App& app) {
         }
       })
       ->capture_default_str();
+  sub->add_flag("--lattice-volume-term", a.lattice_volume_term,
+                "build's: a volume term per hexahedron of the lattice layers too (docs/msm.md, The volume term)");
   sub->add_option("--work", a.work, "cache folder (default: <out>.work)");
   sub->add_option("--out", a.out, "model file to write")->required();
   sub->add_option("--export", a.export_dir,

@@ -248,6 +248,11 @@ void read_layer_attrs(const h5::File& f, const std::string& g, Layer& l) {
       throw Error(f.path(), g + ": attribute volume_modulus must be one finite value >= 0 (Pa)");
     l.volume_modulus = v[0];
   }
+  if (f.has_attr(g, "volume_group")) {
+    const std::int64_t n = f.attr_int(g, "volume_group");
+    if (n < 1 || n > 64) throw Error(f.path(), g + ": attribute volume_group must be in 1..64");
+    l.volume_group = static_cast<int>(n);
+  }
 }
 }  // namespace
 
@@ -372,7 +377,12 @@ void ModelWriter::write_layer(const std::string& name, const Layer& l) {
   file_->set_attr(g, "order", static_cast<std::int64_t>(l.order));
   file_->set_attr(g, "node_offset", l.node_offset);
   if (!l.spring_law.empty()) file_->set_attr(g, "spring_law", l.spring_law);
-  if (l.volume_modulus > 0) file_->set_attr(g, "volume_modulus", std::vector<double>{l.volume_modulus});
+  if (l.volume_modulus > 0) {
+    if (l.volume_group < 1 || l.volume_group > 64 || l.tets.rows() % l.volume_group != 0)
+      throw Error(out_.target(), g + ": a volume_modulus needs tets in groups of volume_group (1..64)");
+    file_->set_attr(g, "volume_modulus", std::vector<double>{l.volume_modulus});
+    if (l.volume_group != 1) file_->set_attr(g, "volume_group", static_cast<std::int64_t>(l.volume_group));
+  }
 }
 
 void ModelWriter::write_node_set(const std::string& name, const VecXi& ids) {

@@ -119,7 +119,7 @@ struct Layer {
   VecXd lin_k;            // (n_lin) N/m
   VecXd lin_damping;      // (n_lin) N s/m
   VecXu8 lin_slack;       // (n_lin) 1: acts only when stretched beyond its rest length
-  MatX4i tets;            // (n_tets x 4) global node ids (tetra layers)
+  MatX4i tets;            // (n_tets x 4) global node ids (tetra layers; lattice layers with a volume term: 6 per hexahedron)
   MatX4i quads;           // (n_quads x 4) global node ids of this layer's top surface
   // The law its springs follow, per spring class (structural, shear,
   // inter-layer, body) k1 Pa, turning strain, k2 Pa (12 values; every spring
@@ -128,15 +128,20 @@ struct Layer {
   // class) and by tune (the tuned laws); attribute "spring_law" of the layer
   // group. Empty in rigid layers and in files written before 2026-11-27.
   std::vector<double> spring_law;
-  // The volume term of a tetra layer's tetrahedra (docs/msm.md, "The volume
-  // term"): each tetrahedron of rest volume V0 adds the energy
-  // (volume_modulus / 2) (V - V0)^2 / |V0|, so the layer resists compression
-  // and folding through itself like a tissue of Poisson's ratio near 0.5, not
-  // the 1/4 of central springs alone. Pa; 0 = none (lattice and rigid layers,
-  // and files written before 2026-11-28). Attribute "volume_modulus" of the
-  // layer group; written by build (from --poisson-ratio and the law's K1) and
-  // rescaled by tune with K1.
+  // The volume term (docs/msm.md, "The volume term"): each group of
+  // volume_group consecutive rows of `tets`, of summed rest volume V0, adds
+  // the energy (volume_modulus / 2) (V - V0)^2 / |V0| with V their summed
+  // signed volume, so the layer resists compression and folding through
+  // itself like a tissue of Poisson's ratio near 0.5, not the 1/4 of central
+  // springs alone. A tetra layer's groups are its tetrahedra (volume_group
+  // 1); a lattice layer's are its hexahedra, 6 tetrahedra each (volume_group
+  // 6: one pressure per cell, which does not lock). Pa; 0 = none (rigid
+  // layers, and files written before 2026-11-28; lattice layers before
+  // 2026-11-28 (2)). Attributes "volume_modulus" and "volume_group" (absent:
+  // 1) of the layer group; written by build (from --poisson-ratio and the
+  // law's K1) and rescaled by tune with K1.
   double volume_modulus = 0;
+  int volume_group = 1;
 
   template <class V> void fields(V&& v) {
     v(nodes, "nodes", "n_nodes", "m", "rest positions (n_nodes x 3)");

@@ -334,6 +334,7 @@ BuiltModel build_layers(const std::vector<std::pair<std::string, QuadSurface>>& 
       lo.min_weight = o.lattice_min_weight;
       lo.inverted_ratio = o.inverted_ratio;
       lo.axis_correction = o.axis_correction;
+      lo.volume_ratio = o.lattice_volume_term ? volume_ratio(o.poisson_ratio) : 0.0;
       cells[l] = lattice_cells(top, bot, quads, blocks[l], lo);
     }
     casters[l].reset();
@@ -423,7 +424,12 @@ BuiltModel build_layers(const std::vector<std::pair<std::string, QuadSurface>>& 
     L.k2 = law.k2_pa * m.k_per_pa;
     L.turning_length = m.rest_length * (1 + law.turning_strain);
     for (int c = 0; c < 4; ++c) L.spring_law.insert(L.spring_law.end(), {law.k1_pa, law.turning_strain, law.k2_pa});
-    if (specs[l].kind == "tetra") L.volume_modulus = volume_ratio(o.poisson_ratio) * law.k1_pa;
+    // the volume term: per tetrahedron of a tetra layer, per hexahedron (its 6
+    // tetrahedra) of a lattice layer
+    if (!cells[l].tets.empty() && volume_ratio(o.poisson_ratio) > 0) {
+      L.volume_modulus = volume_ratio(o.poisson_ratio) * law.k1_pa;
+      L.volume_group = specs[l].kind == "lattice" ? 6 : 1;
+    }
     L.damping.resize(m.pairs.rows());
     for (Eigen::Index s = 0; s < m.pairs.rows(); ++s) {
       const double ma = mass(m.pairs(s, 0)), mb = mass(m.pairs(s, 1));
@@ -527,6 +533,7 @@ BuiltModel build_layers(const std::vector<std::pair<std::string, QuadSurface>>& 
     lr.lin_springs = L.lin_springs.rows();
     lr.tets = L.tets.rows();
     lr.volume_modulus_pa = L.volume_modulus;
+    lr.volume_group = L.volume_group;
     const Tissue* t = tissues.find(L.tissue);
     lr.density_kg_m3 = t->density_kg_m3;
     if (l < nl) {

@@ -84,14 +84,20 @@ struct BuildOptions {
   // layers by the axis factors calibrated on their mean cell
   // (msm::tetra_layer_axes). Off: the rules alone.
   bool axis_correction = true;
-  // Poisson's ratio of the tetra layers' tissue, [1/4, 1/2): their
-  // tetrahedra get a volume term of modulus volume_ratio(nu) x K1
-  // (Layer::volume_modulus; docs/msm.md, "The volume term"), which the axis
+  // Poisson's ratio of the layers' tissue, [1/4, 1/2): a volume term of
+  // modulus volume_ratio(nu) x K1 (Layer::volume_modulus; docs/msm.md, "The
+  // volume term") on each tetrahedron of a tetra layer, and with
+  // lattice_volume_term on each hexahedron of a lattice layer, which the axis
   // correction accounts for, so E along u, v and w stays the table's. 1/4:
   // none (central springs alone, the rules before 2026-11-28). Soft tissue is
-  // nearly incompressible (0.45-0.499 in the literature); lattice layers have
-  // no volume term yet.
+  // nearly incompressible (0.45-0.499 in the literature).
   double poisson_ratio = 0.49;
+  // The lattice layers' volume term (one per hexahedron), off by default:
+  // it keeps a lattice from folding through itself, but in cells far from
+  // cubes (the rule's shear moduli 1-3 % of E) its pressure buckles the
+  // springs' weak shear under a few per cent of tension (docs/msm.md, "The
+  // volume term": the demo's fat cells lose 29 % of their modulus at 3 %)
+  bool lattice_volume_term = false;
 };
 
 // Per-layer figures, in the report and in BENCHMARKS.md.
@@ -117,7 +123,8 @@ struct LayerReport {
   // correction, its calibration (factors 1 and moduli 0 without)
   std::array<double, 3> mean_cell_m{0, 0, 0};
   AxisCalibration axes;
-  double volume_modulus_pa = 0;    // tetra layers: Layer::volume_modulus (0: none)
+  double volume_modulus_pa = 0;    // Layer::volume_modulus (0: none)
+  int volume_group = 1;            // Layer::volume_group: tetrahedra per volume term (tetra 1, lattice 6)
 };
 
 struct BuildReport {

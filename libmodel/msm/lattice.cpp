@@ -116,11 +116,13 @@ CellRule scaled_rule(const CellRule& r, double a, double b, double c, const std:
 // is dominated by its own axis's springs).
 CellRule equalise_moduli(const CellRule& r, double a, double b, double c) {
   std::array<double, 3> s{1, 1, 1};
+  // with a volume term the moduli are not linear in s: the same fixed point
+  // converges (each modulus still follows its own axis's springs), more slowly
   CellRule best = r;
   double best_error = std::numeric_limits<double>::infinity();
-  for (int it = 0; it < 200; ++it) {
+  for (int it = 0; it < 2000; ++it) {
     const CellRule t = scaled_rule(r, a, b, c, s);
-    const std::array<double, 3> E = axis_moduli(box_stiffness(a, b, c, t));
+    const std::array<double, 3> E = axis_moduli(cell_stiffness(a, b, c, t));
     double error = 0;
     for (double e : E) error = std::max(error, std::abs(e - 1));
     if (!(error < best_error)) break;  // not contracting (never seen): keep the best
@@ -169,9 +171,12 @@ CellRule fit_cell_rule(double a, double b, double c, bool body_diagonals, double
 
 }  // namespace
 
-CellRule cell_rule(double a, double b, double c, bool body_diagonals, double min_weight, bool equal_moduli) {
-  const CellRule r = fit_cell_rule(a, b, c, body_diagonals, min_weight);
-  return equal_moduli && !r.exact ? equalise_moduli(r, a, b, c) : r;
+CellRule cell_rule(double a, double b, double c, bool body_diagonals, double min_weight, bool equal_moduli,
+                   double volume_ratio) {
+  if (!(volume_ratio >= 0 && volume_ratio < 1e6)) throw Error("", "lattice volume ratio must be in [0, 1e6)");
+  CellRule r = fit_cell_rule(a, b, c, body_diagonals, min_weight);
+  r.volume_ratio = volume_ratio;
+  return equal_moduli && (!r.exact || volume_ratio > 0) ? equalise_moduli(r, a, b, c) : r;
 }
 
 Eigen::Matrix<double, 6, 6> box_stiffness(double a, double b, double c, const CellRule& r) {
@@ -183,6 +188,12 @@ Eigen::Matrix<double, 6, 6> box_stiffness(double a, double b, double c, const Ce
   C(1, 2) = C(2, 1) = C(3, 3) = k(3);  // Cauchy relation: C44 = C23
   C(0, 2) = C(2, 0) = C(4, 4) = k(4);
   C(0, 1) = C(1, 0) = C(5, 5) = k(5);
+  return C;
+}
+
+Eigen::Matrix<double, 6, 6> cell_stiffness(double a, double b, double c, const CellRule& r) {
+  Eigen::Matrix<double, 6, 6> C = box_stiffness(a, b, c, r);
+  C.topLeftCorner<3, 3>().array() += r.volume_ratio;
   return C;
 }
 
@@ -247,6 +258,8 @@ LayerCells lattice_cells(const MatX3d& top, const MatX3d& bottom, const MatX4i& 
   std::vector<std::array<double, 3>> moduli(static_cast<std::size_t>(ncell), {0, 0, 0});
   std::vector<std::array<double, 3>> shears(static_cast<std::size_t>(ncell), {0, 0, 0});
   std::vector<char> ruled(static_cast<std::size_t>(ncell), 0);
+  const bool with_tets = o.volume_ratio > 0;
+  if (with_tets) out.tets.assign(static_cast<std::size_t>(ncell) * 6, {0, 0, 0, 0});
   std::vector<std::array<double, 3>> dims(static_cast<std::size_t>(ncell), {0, 0, 0});
   tbb::parallel_for(tbb::blocked_range<Eigen::Index>(0, ncell, 256), [&](const tbb::blocked_range<Eigen::Index>& range) {
     for (Eigen::Index cell = range.begin(); cell != range.end(); ++cell) {
@@ -265,6 +278,7 @@ LayerCells lattice_cells(const MatX3d& top, const MatX3d& bottom, const MatX4i& 
       // with side diagonals from the smaller local id (consistent between cells)
       double V = 0;
       int sub = 0;
+      std::array<std::int32_t, 4>* tet = with_tets ? &out.tets[static_cast<std::size_t>(cell) * 6] : nullptr;
       for (const auto& tri : {std::array<int, 3>{0, 1, 2}, std::array<int, 3>{0, 2, 3}}) {
         std::array<int, 3> s = tri;
         std::sort(s.begin(), s.end(), [&](int x, int y) { return v[x] < v[y]; });
@@ -272,11 +286,14 @@ LayerCells lattice_cells(const MatX3d& top, const MatX3d& bottom, const MatX4i& 
         const bool ccw = (s[0] == tri[0] && s[1] == tri[1]) || (s[0] == tri[1] && s[1] == tri[2]) ||
                          (s[0] == tri[2] && s[1] == tri[0]);
         const Vec3 &a = T[s[0]], &bb = T[s[1]], &c = T[s[2]], &a_ = B[s[0]], &b_ = B[s[1]], &c_ = B[s[2]];
+        const std::int32_t ia = t[s[0]], ib = t[s[1]], ic = t[s[2]], ia_ = b[s[0]], ib_ = b[s[1]], ic_ = b[s[2]];
         double tv[3];
         if (ccw) {
           tv[0] = tet_volume(a, b_, a_, c_), tv[1] = tet_volume(a, bb, b_, c_), tv[2] = tet_volume(a, c, bb, c_);
+          if (tet) *tet++ = {ia, ib_, ia_, ic_}, *tet++ = {ia, ib, ib_, ic_}, *tet++ = {ia, ic, ib, ic_};
         } else {
           tv[0] = tet_volume(a, a_, b_, c_), tv[1] = tet_volume(a, b_, bb, c_), tv[2] = tet_volume(a, bb, c, c_);
+          if (tet) *tet++ = {ia, ia_, ib_, ic_}, *tet++ = {ia, ib_, ib, ic_}, *tet++ = {ia, ib, ic, ic_};
         }
         for (double x : tv) {
           sub_v[static_cast<std::size_t>(cell) * 6 + sub++] = x;
@@ -293,9 +310,9 @@ LayerCells lattice_cells(const MatX3d& top, const MatX3d& bottom, const MatX4i& 
       const bool valid = a > 0 && bl > 0 && c > 0 && V > 0 && cell_j[static_cast<std::size_t>(cell)] > 0;  // else: inverted, k = 0
       CellRule r;
       if (valid) {
-        r = cell_rule(a, bl, c, o.body_diagonals, o.min_weight, o.axis_correction);
+        r = cell_rule(a, bl, c, o.body_diagonals, o.min_weight, o.axis_correction, o.volume_ratio);
         rules[static_cast<std::size_t>(cell)] = r;
-        const Eigen::Matrix<double, 6, 6> C = box_stiffness(a, bl, c, r);
+        const Eigen::Matrix<double, 6, 6> C = cell_stiffness(a, bl, c, r);
         moduli[static_cast<std::size_t>(cell)] = axis_moduli(C);
         shears[static_cast<std::size_t>(cell)] = {C(3, 3), C(4, 4), C(5, 5)};
         ruled[static_cast<std::size_t>(cell)] = 1;

@@ -48,6 +48,9 @@ struct CellRule {
   // the axis correction (equal_moduli): every spring scaled by
   // sum_a s_a n_a^2 (n its unit direction in the cell's u, v, w frame)
   std::array<double, 3> axis_factors{1, 1, 1};
+  // the volume term's modulus over E the axis correction allowed for (0:
+  // none): cell_stiffness adds it to the normal block
+  double volume_ratio = 0;
 };
 
 // Weights for a box cell a x b x c (m, each > 0). Edge and face-diagonal
@@ -57,12 +60,22 @@ struct CellRule {
 // cell's three Young's moduli exactly E (the least-squares fit leaves an
 // elongated cell up to 1.45x stiffer along one axis; docs/msm.md). The
 // shears and Poisson's ratios stay the fit's.
+// volume_ratio: the cell's volume term (Layer::volume_modulus over E, one per
+// hexahedron; docs/msm.md "The volume term"), whose Cauchy-Born stiffness
+// volume_ratio delta_ij delta_kl adds to the springs'. With equal_moduli the
+// axis factors then make the moduli of springs and term together E, for
+// exact cells too (springs alone would leave them 1.19x stiff at
+// volume_ratio 16).
 CellRule cell_rule(double a, double b, double c, bool body_diagonals, double min_weight = 0.01,
-                   bool equal_moduli = false);
+                   bool equal_moduli = false, double volume_ratio = 0);
 
 // The Cauchy-Born stiffness per unit E (Voigt 6x6, order 11 22 33 23 13 12)
 // of an infinite lattice of a x b x c boxes with these weights.
 Eigen::Matrix<double, 6, 6> box_stiffness(double a, double b, double c, const CellRule& r);
+
+// box_stiffness plus the rule's volume term (r.volume_ratio on the normal
+// block: C11..C33 and C12, C13, C23).
+Eigen::Matrix<double, 6, 6> cell_stiffness(double a, double b, double c, const CellRule& r);
 
 // Young's moduli along the three axes of a Voigt stiffness (1 / S_ii).
 std::array<double, 3> axis_moduli(const Eigen::Matrix<double, 6, 6>& C);
@@ -73,6 +86,11 @@ struct LatticeOptions {
   double min_weight = 0.01;     // floor of edge/face weights, times their cube values: no cell is a mechanism
   double inverted_ratio = 1e-9; // a cell whose Jacobian falls below this fraction of the mean cell volume is inverted
   bool axis_correction = true;  // cell_rule's equal_moduli: each cell's Young's moduli along u, v, w exactly E
+  // the volume term's modulus over E (msm::volume_ratio of Poisson's ratio;
+  // 0: none). > 0: the axis correction allows for it (cell_rule), and
+  // LayerCells::tets holds each hexahedron's 6 tetrahedra (positively
+  // oriented, in cell order: one volume term per 6, Layer::volume_group)
+  double volume_ratio = 0;
 };
 
 // Smallest Jacobian of the trilinear map of the hexahedron from the unit cube

@@ -35,8 +35,7 @@ double total_energy(const SpringNetwork& n, const MatX3d& x) {
     const double L = (x.row(n.springs(s, 1)) - x.row(n.springs(s, 0))).norm();
     e += biphasic_energy(L, n.rest_length(s), n.k1(s), n.k2(s), n.turning_length(s));
   }
-  for (Eigen::Index t = 0; t < n.tets.rows(); ++t)
-    e += tet_volume_term(tet_corners(n, x, t), n.tet_rest_volume(t), n.tet_k(t), true).energy;
+  for (Eigen::Index g = 0; g < n.n_volume_groups(); ++g) e += group_volume_term(n, x, g, true, false).energy;
   return e;
 }
 
@@ -55,11 +54,11 @@ VecXd gradient(const SpringNetwork& n, const MatX3d& x, double* fmax) {
     g.segment<3>(3 * b) += fv;
     g.segment<3>(3 * a) -= fv;
   }
-  for (Eigen::Index t = 0; t < n.tets.rows(); ++t) {
-    const TetVolumeTerm v = tet_volume_term(tet_corners(n, x, t), n.tet_rest_volume(t), n.tet_k(t), true);
-    for (int c = 0; c < 4; ++c) {
-      g.segment<3>(3 * n.tets(t, c)) += v.gradient.row(c).transpose();
-      m = std::max(m, v.gradient.row(c).norm());
+  for (Eigen::Index gr = 0; gr < n.n_volume_groups(); ++gr) {
+    const GroupVolumeTerm v = group_volume_term(n, x, gr, true, false);
+    for (std::size_t c = 0; c < v.nodes.size(); ++c) {
+      g.segment<3>(3 * v.nodes[c]) += v.gradient.segment<3>(3 * static_cast<Eigen::Index>(c));
+      m = std::max(m, v.gradient.segment<3>(3 * static_cast<Eigen::Index>(c)).norm());
     }
   }
   if (fmax) *fmax = m;
@@ -68,45 +67,101 @@ VecXd gradient(const SpringNetwork& n, const MatX3d& x, double* fmax) {
 
 }  // namespace
 
-TetVolumeTerm tet_volume_term(const Eigen::Matrix<double, 4, 3>& x, double rest_volume, double k, bool gauss_newton) {
-  TetVolumeTerm out;
+namespace {
+
+// V and dV/dx of the tetrahedron's corners (rows a, b, c, d)
+Eigen::Matrix<double, 4, 3> volume_gradient(const Eigen::Matrix<double, 4, 3>& x, double* volume) {
   const Vec3 e1 = (x.row(1) - x.row(0)).transpose(), e2 = (x.row(2) - x.row(0)).transpose(),
              e3 = (x.row(3) - x.row(0)).transpose();
-  out.volume = e1.dot(e2.cross(e3)) / 6;
-  const double v0 = std::abs(rest_volume);
-  // dV/d(e1, e2, e3), then corner a = minus their sum
   Eigen::Matrix<double, 4, 3> g;
   g.row(1) = e2.cross(e3).transpose() / 6;
   g.row(2) = e3.cross(e1).transpose() / 6;
   g.row(3) = e1.cross(e2).transpose() / 6;
   g.row(0) = -(g.row(1) + g.row(2) + g.row(3));
-  const double strain = v0 > 0 ? (out.volume - rest_volume) / v0 : 0.0;
-  out.energy = 0.5 * k * v0 * strain * strain;
-  out.gradient = k * strain * g;
-  out.hessian.setZero();
-  if (!(v0 > 0)) return out;
-  const Eigen::Matrix<double, 12, 1> gv = Eigen::Map<const Eigen::Matrix<double, 12, 1>>(Eigen::Matrix<double, 3, 4>(g.transpose()).data());
-  out.hessian = (k / v0) * gv * gv.transpose();
-  if (gauss_newton) return out;
-  // d2V/de_i de_j (i != j; zero on the diagonal): (1,2) = -[e3]x / 6,
-  // (1,3) = [e2]x / 6, (2,3) = -[e1]x / 6, and (j,i) the transpose
-  std::array<std::array<Eigen::Matrix3d, 3>, 3> B;
-  for (auto& row : B)
-    for (auto& b : row) b.setZero();
-  B[0][1] = -cross_matrix(e3) / 6, B[0][2] = cross_matrix(e2) / 6, B[1][2] = -cross_matrix(e1) / 6;
-  B[1][0] = B[0][1].transpose(), B[2][0] = B[0][2].transpose(), B[2][1] = B[1][2].transpose();
-  // corners: x_b = x_a + e1, ...; the rows and columns of a are minus the sums
+  *volume = e1.dot(e2.cross(e3)) / 6;
+  return g;
+}
+
+// d2V/dx2 (12 x 12, corners a, b, c, d): with e_i the edges from a,
+// d2V/de_i de_j (i != j; zero on the diagonal) is (1,2) = -[e3]x / 6,
+// (1,3) = [e2]x / 6, (2,3) = -[e1]x / 6, and (j,i) the transpose; the rows
+// and columns of a are minus the sums
+Eigen::Matrix<double, 12, 12> volume_second(const Eigen::Matrix<double, 4, 3>& x) {
+  const Vec3 e1 = (x.row(1) - x.row(0)).transpose(), e2 = (x.row(2) - x.row(0)).transpose(),
+             e3 = (x.row(3) - x.row(0)).transpose();
   std::array<std::array<Eigen::Matrix3d, 4>, 4> H;
-  for (int i = 0; i < 3; ++i)
-    for (int j = 0; j < 3; ++j) H[i + 1][j + 1] = B[i][j];
+  for (auto& row : H)
+    for (auto& b : row) b.setZero();
+  H[1][2] = -cross_matrix(e3) / 6, H[1][3] = cross_matrix(e2) / 6, H[2][3] = -cross_matrix(e1) / 6;
+  H[2][1] = H[1][2].transpose(), H[3][1] = H[1][3].transpose(), H[3][2] = H[2][3].transpose();
   for (int j = 1; j < 4; ++j) {
     H[0][j] = -(H[1][j] + H[2][j] + H[3][j]);
     H[j][0] = H[0][j].transpose();
   }
   H[0][0] = -(H[0][1] + H[0][2] + H[0][3]);
-  const double p = k * strain;
+  Eigen::Matrix<double, 12, 12> out;
   for (int i = 0; i < 4; ++i)
-    for (int j = 0; j < 4; ++j) out.hessian.block<3, 3>(3 * i, 3 * j) += p * H[i][j];
+    for (int j = 0; j < 4; ++j) out.block<3, 3>(3 * i, 3 * j) = H[i][j];
+  return out;
+}
+
+}  // namespace
+
+TetVolumeTerm tet_volume_term(const Eigen::Matrix<double, 4, 3>& x, double rest_volume, double k, bool gauss_newton) {
+  TetVolumeTerm out;
+  const Eigen::Matrix<double, 4, 3> g = volume_gradient(x, &out.volume);
+  const double v0 = std::abs(rest_volume);
+  const double strain = v0 > 0 ? (out.volume - rest_volume) / v0 : 0.0;
+  out.energy = 0.5 * k * v0 * strain * strain;
+  out.gradient = k * strain * g;
+  out.hessian.setZero();
+  if (!(v0 > 0)) return out;
+  Eigen::Matrix<double, 12, 1> gv;
+  for (int c = 0; c < 4; ++c) gv.segment<3>(3 * c) = g.row(c).transpose();
+  out.hessian = (k / v0) * gv * gv.transpose();
+  if (!gauss_newton) out.hessian += k * strain * volume_second(x);
+  return out;
+}
+
+GroupVolumeTerm group_volume_term(const SpringNetwork& net, const MatX3d& x, Eigen::Index group, bool gauss_newton,
+                                  bool want_hessian) {
+  const bool single = net.tet_group_first.size() == 0;
+  const Eigen::Index t0 = single ? group : net.tet_group_first(group), t1 = single ? group + 1 : net.tet_group_first(group + 1);
+  GroupVolumeTerm out;
+  std::vector<std::array<int, 4>> slot(static_cast<std::size_t>(t1 - t0));
+  for (Eigen::Index t = t0; t < t1; ++t)
+    for (int c = 0; c < 4; ++c) {
+      const int node = net.tets(t, c);
+      auto it = std::find(out.nodes.begin(), out.nodes.end(), node);
+      slot[static_cast<std::size_t>(t - t0)][static_cast<std::size_t>(c)] = static_cast<int>(it - out.nodes.begin());
+      if (it == out.nodes.end()) out.nodes.push_back(node);
+    }
+  const auto m = static_cast<Eigen::Index>(3 * out.nodes.size());
+  VecXd G = VecXd::Zero(m);
+  Eigen::MatrixXd H2 = Eigen::MatrixXd::Zero(want_hessian && !gauss_newton ? m : 0, want_hessian && !gauss_newton ? m : 0);
+  for (Eigen::Index t = t0; t < t1; ++t) {
+    const Eigen::Matrix<double, 4, 3> X = tet_corners(net, x, t);
+    double V = 0;
+    const Eigen::Matrix<double, 4, 3> g = volume_gradient(X, &V);
+    out.volume += V;
+    out.rest_volume += net.tet_rest_volume(t);
+    const auto& sl = slot[static_cast<std::size_t>(t - t0)];
+    for (int c = 0; c < 4; ++c) G.segment<3>(3 * sl[static_cast<std::size_t>(c)]) += g.row(c).transpose();
+    if (H2.size()) {
+      const Eigen::Matrix<double, 12, 12> d2V = volume_second(X);
+      for (int a = 0; a < 4; ++a)
+        for (int b = 0; b < 4; ++b)
+          H2.block<3, 3>(3 * sl[static_cast<std::size_t>(a)], 3 * sl[static_cast<std::size_t>(b)]) += d2V.block<3, 3>(3 * a, 3 * b);
+    }
+  }
+  const double k = net.tet_k(group), a0 = std::abs(out.rest_volume);
+  const double strain = a0 > 0 ? (out.volume - out.rest_volume) / a0 : 0.0;
+  out.energy = 0.5 * k * a0 * strain * strain;
+  out.gradient = k * strain * G;
+  if (want_hessian) {
+    out.hessian = a0 > 0 ? Eigen::MatrixXd((k / a0) * G * G.transpose()) : Eigen::MatrixXd::Zero(m, m);
+    if (H2.size()) out.hessian += k * strain * H2;
+  }
   return out;
 }
 
@@ -172,13 +227,14 @@ StaticResult solve_static(const SpringNetwork& net, const std::vector<std::int64
           }
         }
     }
-    for (Eigen::Index t = 0; t < net.tets.rows(); ++t) {
-      const TetVolumeTerm v = tet_volume_term(tet_corners(net, x, t), net.tet_rest_volume(t), net.tet_k(t), clamp_geometric);
-      for (int i = 0; i < 12; ++i) {
-        const auto fi = free_of[static_cast<std::size_t>(3 * net.tets(t, i / 3) + i % 3)];
+    for (Eigen::Index g = 0; g < net.n_volume_groups(); ++g) {
+      const GroupVolumeTerm v = group_volume_term(net, x, g, clamp_geometric, true);
+      const auto nl = static_cast<Eigen::Index>(3 * v.nodes.size());
+      for (Eigen::Index i = 0; i < nl; ++i) {
+        const auto fi = free_of[static_cast<std::size_t>(3 * v.nodes[static_cast<std::size_t>(i / 3)] + i % 3)];
         if (fi < 0) continue;
-        for (int j = 0; j < 12; ++j) {
-          const auto fj = free_of[static_cast<std::size_t>(3 * net.tets(t, j / 3) + j % 3)];
+        for (Eigen::Index j = 0; j < nl; ++j) {
+          const auto fj = free_of[static_cast<std::size_t>(3 * v.nodes[static_cast<std::size_t>(j / 3)] + j % 3)];
           if (fj >= 0) trip.emplace_back(static_cast<int>(fi), static_cast<int>(fj), v.hessian(i, j));
         }
       }
@@ -208,7 +264,7 @@ StaticResult solve_static(const SpringNetwork& net, const std::vector<std::int64
     kl = std::max(kl, std::max(net.k1(s), net.k2(s)) * std::max(net.rest_length(s), net.turning_length(s)));
   // and a volume term's, k |dV/dx| ~ k V0^(2/3) (an area)
   for (Eigen::Index t = 0; t < net.tets.rows(); ++t)
-    kl = std::max(kl, net.tet_k(t) * std::pow(std::abs(net.tet_rest_volume(t)), 2.0 / 3.0));
+    kl = std::max(kl, net.tet_k.maxCoeff() * std::pow(std::abs(net.tet_rest_volume(t)), 2.0 / 3.0));
   const double floor = 256 * std::numeric_limits<double>::epsilon() * kl;
   double fmax = 0;
   for (r.iterations = 0; r.iterations <= o.max_iterations; ++r.iterations) {
@@ -300,6 +356,7 @@ Specimen make_specimen(const SpecimenOptions& o) {
     lo.body_diagonals = o.body_diagonals;
     lo.min_weight = o.lattice_min_weight;
     lo.axis_correction = o.lattice_axis_correction;
+    lo.volume_ratio = o.volume_ratio;
     blocks.bottom = ng + ng * (cz - 1);
     cells = lattice_cells(top, bottom, quads, blocks, lo);
   } else {
@@ -333,8 +390,10 @@ Specimen make_specimen(const SpecimenOptions& o) {
   s.volume_m3 = cells.volume_m3;
   s.tets = static_cast<std::int64_t>(cells.tets.size());
   if (!(o.volume_ratio >= 0 && std::isfinite(o.volume_ratio))) throw Error("", "specimen volume ratio must be finite and >= 0");
-  if (o.volume_ratio > 0 && o.kind == "tetra") {
-    // the global ids of tetra_cells are the rows of X (top, created, bottom)
+  if (o.volume_ratio > 0) {
+    // the global ids of the cells are the rows of X (top, created, bottom);
+    // as build writes them: one term per tetrahedron of a tetra layer, per
+    // hexahedron (6 tetrahedra) of a lattice layer
     const auto nt = static_cast<Eigen::Index>(cells.tets.size());
     s.network.tets.resize(nt, 4);
     s.network.tet_rest_volume.resize(nt);
@@ -342,6 +401,11 @@ Specimen make_specimen(const SpecimenOptions& o) {
       const auto& c = cells.tets[static_cast<std::size_t>(t)];
       for (int k = 0; k < 4; ++k) s.network.tets(t, k) = c[static_cast<std::size_t>(k)];
       s.network.tet_rest_volume(t) = tet_volume(X.row(c[0]), X.row(c[1]), X.row(c[2]), X.row(c[3]));
+    }
+    if (o.kind == "lattice") {
+      const Eigen::Index ng = nt / 6;
+      s.network.tet_group_first.resize(ng + 1);
+      for (Eigen::Index g = 0; g <= ng; ++g) s.network.tet_group_first(g) = static_cast<int>(6 * g);
     }
   }
   apply_law(s, {1.0, 1.0, 0.0});
@@ -354,7 +418,7 @@ void apply_law(Specimen& s, const SpringLaw& law) {
   s.network.k1 = law.k1_pa * s.k_per_pa;
   s.network.k2 = law.k2_pa * s.k_per_pa;
   s.network.turning_length = s.network.rest_length * (1 + law.turning_strain);
-  s.network.tet_k = VecXd::Constant(s.network.tets.rows(), s.options.volume_ratio * law.k1_pa);
+  s.network.tet_k = VecXd::Constant(s.network.n_volume_groups(), s.options.volume_ratio * law.k1_pa);
 }
 
 UniaxialCurve uniaxial_test(const Specimen& s, const std::vector<double>& strains, const UniaxialOptions& o) {

@@ -38,11 +38,16 @@ struct SpringNetwork {
   VecXd k1;               // (n_springs) N/m
   VecXd k2;               // (n_springs) N/m, total slope past the turning length
   VecXd turning_length;   // (n_springs) m
-  // the volume term (Layer::volume_modulus): tetrahedron t adds
-  // (tet_k(t) / 2) (V - V0)^2 / |V0|; empty tets: none
+  // the volume term (Layer::volume_modulus), one per group of consecutive
+  // tetrahedra (a tetra layer's each tetrahedron, a lattice layer's the 6 of
+  // each hexahedron; Layer::volume_group): group g
+  // adds (tet_k(g) / 2) (V - V0)^2 / |V0| with V, V0 the sums of its
+  // tetrahedra's volumes; empty tets: none
   MatX4i tets;            // (n_tets x 4) node ids
-  VecXd tet_rest_volume;  // (n_tets) m^3, signed V0
-  VecXd tet_k;            // (n_tets) Pa
+  VecXd tet_rest_volume;  // (n_tets) m^3, signed rest volume of each tetrahedron
+  VecXi tet_group_first;  // (n_groups + 1) the groups' first tetrahedra; empty: one group per tetrahedron
+  VecXd tet_k;            // (n_groups) Pa
+  Eigen::Index n_volume_groups() const { return tet_group_first.size() ? tet_group_first.size() - 1 : tets.rows(); }
 };
 
 // The volume term of one tetrahedron, V = det[b-a, c-a, d-a] / 6: its
@@ -56,6 +61,18 @@ struct TetVolumeTerm {
   Eigen::Matrix<double, 12, 12> hessian;
 };
 TetVolumeTerm tet_volume_term(const Eigen::Matrix<double, 4, 3>& x, double rest_volume, double k, bool gauss_newton = false);
+
+// The same for group g of a network (SpringNetwork::tet_group_first): its
+// distinct nodes, and the energy, gradient (3 per node, in `nodes` order) and
+// Hessian (exact, or its Gauss-Newton part) of its one volume term.
+struct GroupVolumeTerm {
+  std::vector<int> nodes;
+  double energy = 0, volume = 0, rest_volume = 0;
+  VecXd gradient;
+  Eigen::MatrixXd hessian;
+};
+GroupVolumeTerm group_volume_term(const SpringNetwork& net, const MatX3d& x, Eigen::Index group, bool gauss_newton,
+                                  bool want_hessian);
 
 // The volume term's modulus over K1 for a tissue of Poisson's ratio nu
 // (docs/msm.md, "The volume term"): the bulk modulus K = E / (3 (1 - 2 nu))
@@ -97,8 +114,10 @@ struct SpecimenOptions {
   bool lattice_axis_correction = true;   // lattice only: LatticeOptions::axis_correction
   std::array<double, 3> tetra_axis_factors{1, 1, 1};  // tetra only: TetraOptions::axis_factors
   bool tetra_alternate_diagonals = false;  // tetra only: TetraOptions::alternate_diagonals
-  // tetra only: the volume term's modulus over the law's K1 (volume_ratio; 0:
-  // none); apply_law sets network.tet_k to volume_ratio x K1
+  // the volume term's modulus over the law's K1 (volume_ratio; 0: none);
+  // apply_law sets network.tet_k to volume_ratio x K1. One term per
+  // tetrahedron of a tetra layer, per hexahedron of a lattice layer (whose
+  // axis correction allows for it), as build writes them
   double volume_ratio = 0;
 };
 

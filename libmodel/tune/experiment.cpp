@@ -142,7 +142,7 @@ msm::Specimen make_tissue_specimen(const ExperimentOptions& o) {
   so.body_diagonals = o.body_diagonals;
   so.lattice_min_weight = o.lattice_min_weight;
   so.lattice_axis_correction = o.axis_correction;
-  if (o.kind == "tetra") so.volume_ratio = o.volume_ratio;
+  so.volume_ratio = o.volume_ratio;
   if (o.kind == "tetra" && o.axis_correction) {
     so.tetra_axis_factors = msm::tetra_layer_axes(o.cell_m, so.volume_ratio).factors;
     so.tetra_alternate_diagonals = true;
@@ -285,7 +285,7 @@ void apply_params(msm::Specimen& s, const SpringParams& p) {
     n.turning_length(i) = n.rest_length(i) * (1 + l.turning_strain);
   }
   // the volume term follows the structural class's K1, as build's and tune's layers do
-  n.tet_k = VecXd::Constant(n.tets.rows(), s.options.volume_ratio * p[0].k1_pa);
+  n.tet_k = VecXd::Constant(n.n_volume_groups(), s.options.volume_ratio * p[0].k1_pa);
 }
 
 std::vector<SpringClass> classes_of(const msm::Specimen& s) {

@@ -81,9 +81,10 @@ struct ExperimentOptions {
   // moduli along u, v, w, tetra prisms with the factors of
   // msm::tetra_layer_axes for this cell shape
   bool axis_correction = true;
-  // tetra: the layer's volume term over its K1 (msm::volume_ratio;
+  // the layer's volume term over its K1 (msm::volume_ratio;
   // experiment_for_layer reads it from the layer's volume_modulus): the
-  // specimen's tetrahedra carry it at every candidate K1
+  // specimen's tetrahedra (tetra) or hexahedra (lattice) carry it at every
+  // candidate K1
   double volume_ratio = 0;
 };
 // Throws Error("", ...) for out-of-range options.

@@ -338,10 +338,10 @@ ExperimentOptions experiment_for_layer(const Layer& layer, const Layer& below, c
   if (!(a > 0 && b > 0 && h > 0)) throw Error("", "layer '" + layer.tissue + "' has degenerate cells");
   ExperimentOptions o = defaults;
   o.kind = layer.kind;
+  o.volume_ratio = layer_volume_ratio(layer);
   if (layer.kind == "tetra") {
     o.cells[2] = 1;
     o.cell_m = {a, b, h};
-    o.volume_ratio = layer_volume_ratio(layer);
   } else {
     const Eigen::Index through = (layer.nodes.rows() - ng) / ng + 1;
     o.cell_m = {a, b, h / static_cast<double>(through)};

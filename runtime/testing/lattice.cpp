@@ -178,6 +178,8 @@ LayeredBlock make_layered_block(const LayeredBlockOptions& o) {
     if (static_cast<std::size_t>(s) < o.volume_modulus.size() && o.volume_modulus[static_cast<std::size_t>(s)] > 0 &&
         s + 1 < ns) {
       l.volume_modulus = o.volume_modulus[static_cast<std::size_t>(s)];
+      if (o.volume_group != 1 && o.volume_group != 6) throw Error("", "layered block: volume_group must be 1 or 6");
+      l.volume_group = o.volume_group;
       static constexpr int kOrders[6][3] = {{0, 1, 2}, {0, 2, 1}, {1, 0, 2}, {1, 2, 0}, {2, 0, 1}, {2, 1, 0}};
       l.tets.resize(static_cast<Eigen::Index>(nu - 1) * (nv - 1) * 6, 4);
       Eigen::Index t = 0;

@@ -46,6 +46,10 @@ struct LayeredBlockOptions {
   // of the Kuhn triangulation (around the cell's diagonal from corner (i, j,
   // s) to (i+1, j+1, s+1)), positively oriented
   std::vector<Real> volume_modulus;
+  // the volume term's groups (Layer::volume_group): 1, a term per
+  // tetrahedron, as build gives a tetra layer; 6, one per cell, as build
+  // gives a lattice layer
+  int volume_group = 1;
 };
 
 struct LayeredBlock {

@@ -544,3 +544,31 @@ TEST(TuneCli, ATissueWithoutALayerIsNotTunedByDefault) {
   const auto named = test::run_cli("tune --tissues " + kTable + " --model " + model + " --tissue muscle --max-evaluations 50");
   EXPECT_EQ(named.code, 2) << named.err;
 }
+
+// A lattice layer with a volume term (build --lattice-volume-term): its
+// specimen carries the term per hexahedron at the layer's ratio to K1, the
+// fit reaches the table, and tune writes the modulus back at that ratio to
+// the tuned K1. (The fat's cells here are about 4 x 15 x 6 mm; the other
+// axes, which the fit does not see, are recorded: ElongatedCellsBuckleInTensionWithTheTerm
+// is why the term is opt-in.)
+TEST(TuneCli, TunesALatticeLayerWithItsVolumeTerm) {
+  test::TempDir d("tune-cli-lattice-volume");
+  const std::string model = cylinders(d, "m.h5", 39, 9);
+  const auto b = test::run_cli("build --model " + model + " --tissues " + kTable + " --lattice-volume-term --quiet");
+  ASSERT_EQ(b.code, 0) << b.err;
+  const Layer before = ModelReader(model).layer("fat");
+  ASSERT_GT(before.volume_modulus, 0);
+  EXPECT_EQ(before.volume_group, 6);
+  const auto r = test::run_cli("tune --tissues " + kTable + " --tissue fat --model " + model +
+                               " --max-evaluations 3000 --quiet --report " + (d / "r.json"));
+  ASSERT_EQ(r.code, 0) << r.err;
+  const json rep = json::parse(test::read_file(d / "r.json"));
+  EXPECT_NEAR(rep["parameters"]["tissues"][0]["experiment"]["volume_ratio"].get<double>(), 16, 1e-9);
+  EXPECT_LT(rep["metrics"]["tissues"][0]["max_relative_error"].get<double>(), 0.02);
+  RecordProperty("fat_axis_ratio", rep["metrics"]["tissues"][0]["axis_ratio"].dump());
+  ModelReader m(model);
+  const tune::SpringParams tuned = tune::params_of(m.tuning("fat"));
+  const Layer after = m.layer("fat");
+  EXPECT_EQ(after.volume_group, 6);
+  EXPECT_NEAR(after.volume_modulus, 16 * tuned[0].k1_pa, 1e-9 * after.volume_modulus);
+}

@@ -25,9 +25,10 @@ Model block(int nu, int nv, int layers) {
 }
 
 // the same block with a volume term in its skin layer (6 Kuhn tetrahedra a cell)
-Model block_with_volume_term(int nu, int nv, int layers) {
+Model block_with_volume_term(int nu, int nv, int layers, int group = 1) {
   auto o = runtime::testing::make_layered_block(nu, nv, layers).options;
   o.volume_modulus = {16 * o.youngs[0]};
+  o.volume_group = group;
   const auto b = runtime::testing::make_layered_block(o);
   return model_from_layers(b.layers, b.sets);
 }
@@ -432,37 +433,53 @@ TEST(Cut, SceneFileCutToolErrors) {
 // edge across the blade (an independent oracle: the blade's plane between two
 // node columns, within its extent), and the cut model still steps.
 TEST(Cut, RemovesTheVolumeTermsTetrahedraAcrossTheBlade) {
-  Model m = block_with_volume_term(15, 5, 4);
-  const Model before = m;
-  ASSERT_EQ(before.n_tets, 14 * 4 * 6);
-  const Real xc = 7.5 * 4e-3, depth = 4e-3;
-  CutDef d;
-  d.polyline = {{xc, 0, -0.01}, {xc, 0, 0.03}};
-  d.direction = {0, 1, 0};
-  d.depth = depth;
-  const CutReport r = cut_model(m, before.rest_x, d);
-  std::int32_t expected = 0;
-  for (std::int32_t t = 0; t < before.n_tets; ++t) {
-    bool across = false;
-    for (int i = 0; i < 4; ++i)
-      for (int j = i + 1; j < 4; ++j) {
-        const Vec3 a = load3(before.rest_x.data(), before.tet[4 * t + i]), b = load3(before.rest_x.data(), before.tet[4 * t + j]);
-        if ((a.x - xc) * (b.x - xc) >= 0) continue;
-        const Vec3 p = a + ((xc - a.x) / (b.x - a.x)) * (b - a);
-        across = across || (p.y >= -d.lead * depth && p.y <= depth);
+  // a term per tetrahedron (a tetra layer's) and per cell of 6 (a lattice
+  // layer's: the whole cell's term goes when any of its tetrahedra is cut);
+  // the blade through the skin (2 mm), and a shallower one through part of
+  // each cell (each Kuhn tetrahedron with an edge across the blade at y = 0)
+  std::array<std::int32_t, 2> shallow{};
+  for (const int group : {1, 6})
+    for (const Real depth : {4e-3, 0.7e-3}) {
+      SCOPED_TRACE(std::to_string(group) + " " + std::to_string(depth));
+      Model m = block_with_volume_term(15, 5, 4, group);
+      const Model before = m;
+      ASSERT_EQ(before.n_tets, 14 * 4 * 6);
+      ASSERT_EQ(before.n_groups, 14 * 4 * 6 / group);
+      const Real xc = 7.5 * 4e-3;
+      CutDef d;
+      d.polyline = {{xc, 0, -0.01}, {xc, 0, 0.03}};
+      d.direction = {0, 1, 0};
+      d.depth = depth;
+      const CutReport r = cut_model(m, before.rest_x, d);
+      std::int32_t expected = 0, groups_cut = 0;
+      for (std::int32_t g = 0; g < before.n_groups; ++g) {
+        bool across = false;
+        for (std::int32_t t = before.tet_group_first[g]; t < before.tet_group_first[g + 1]; ++t)
+          for (int i = 0; i < 4; ++i)
+            for (int j = i + 1; j < 4; ++j) {
+              const Vec3 a = load3(before.rest_x.data(), before.tet[4 * t + i]), b = load3(before.rest_x.data(), before.tet[4 * t + j]);
+              if ((a.x - xc) * (b.x - xc) >= 0) continue;
+              const Vec3 p = a + ((xc - a.x) / (b.x - a.x)) * (b - a);
+              across = across || (p.y >= -d.lead * depth && p.y <= depth);
+            }
+        if (across) expected += before.tet_group_first[g + 1] - before.tet_group_first[g], ++groups_cut;
       }
-    expected += across;
-  }
-  EXPECT_EQ(expected, 4 * 6) << "the skin cells of one column of the grid";
-  EXPECT_EQ(r.tets_cut, expected);
-  EXPECT_EQ(m.n_tets, before.n_tets - expected);
-  State s = make_state(m);
-  fix_nodes(m, s, m.set("fixed"));
-  SolverOptions o;
-  o.integrator = Integrator::implicit_euler;
-  for (int k = 0; k < 20; ++k) step(m, s, 1.0 / 60, o);
-  EXPECT_TRUE(test::all_finite(s));
-  EXPECT_EQ(s.counters.failed, 0);
+      if (depth > 2e-3) EXPECT_EQ(expected, 4 * 6) << "the skin cells of one column of the grid";
+      if (depth < 2e-3) shallow[group == 1 ? 0 : 1] = expected;
+      EXPECT_GT(groups_cut, 0);
+      EXPECT_EQ(r.tets_cut, expected);
+      EXPECT_EQ(m.n_tets, before.n_tets - expected);
+      EXPECT_EQ(m.n_groups, before.n_groups - groups_cut);
+      State s = make_state(m);
+      fix_nodes(m, s, m.set("fixed"));
+      SolverOptions o;
+      o.integrator = Integrator::implicit_euler;
+      for (int k = 0; k < 20; ++k) step(m, s, 1.0 / 60, o);
+      EXPECT_TRUE(test::all_finite(s));
+      EXPECT_EQ(s.counters.failed, 0);
+    }
+  EXPECT_LT(shallow[0], 4 * 6) << "the shallow blade misses some tetrahedra of each cell";
+  EXPECT_EQ(shallow[1], 4 * 6) << "but not their cells' terms";
 }
 
 TEST(Cut, TenThousandRandomCutsNeverBreakTheSolver) {

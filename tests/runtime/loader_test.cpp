@@ -93,6 +93,43 @@ TEST_F(LoaderTest, TetsAreReadForAVolumeTermOnly) {
     EXPECT_NE(std::string(e.what()).find("volume_modulus but no tets"), std::string::npos) << e.what();
     EXPECT_EQ(std::string(e.what()).find('\n'), std::string::npos);
   }
+  // a lattice layer's term, one per cell of 6 (attribute volume_group)
+  o.volume_group = 6;
+  const auto cells = testing::make_layered_block(o);
+  const std::string f4 = dir / "cells.h5";
+  write_model_file(f4, cells);
+  {
+    ModelReader r(f4);
+    EXPECT_EQ(r.layer("dermis").volume_group, 6);
+    const Model m = load_model(r, {});
+    EXPECT_EQ(m.n_tets, 5 * 3 * 6);
+    EXPECT_EQ(m.n_groups, 5 * 3);
+    EXPECT_NEAR(std::abs(m.group_rest_volume[0]), 16e-6 * 2e-3, 1e-15) << "a cell's volume";
+  }
+  {
+    ModelReader r(f2);
+    EXPECT_EQ(r.layer("dermis").volume_group, 1) << "absent: 1";
+    EXPECT_EQ(load_model(r, {}).n_groups, 5 * 3 * 6);
+  }
+  // tets that are not whole groups, and a bad attribute: one line each
+  {
+    h5::File f(f4, h5::File::Mode::read_write);
+    f.set_attr("/layers/dermis", "volume_group", static_cast<std::int64_t>(4));
+  }
+  for (const char* want : {"not groups of volume_group 4", "volume_group must be in 1..64"}) {
+    if (std::string(want).find("1..64") != std::string::npos) {
+      h5::File f(f4, h5::File::Mode::read_write);
+      f.set_attr("/layers/dermis", "volume_group", static_cast<std::int64_t>(0));
+    }
+    try {
+      ModelReader r4(f4);
+      load_model(r4, {});
+      ADD_FAILURE() << want;
+    } catch (const Error& e) {
+      EXPECT_NE(std::string(e.what()).find(want), std::string::npos) << e.what();
+      EXPECT_EQ(std::string(e.what()).find('\n'), std::string::npos);
+    }
+  }
 }
 
 TEST_F(LoaderTest, VesselsAndSurfacesAreReadWhenNamed) {

@@ -605,8 +605,9 @@ TEST(Solver, AutomaticSubstepsFollowTheStabilityLimit) {
 
 // A two-sheet block (one cell layer 4 mm thick, 4 mm cells) whose cells carry
 // a volume term of modulus kv (6 Kuhn tetrahedra each), undamped springs of
-// modulus E, the second sheet rigid ("fixed").
-testing::LayeredBlock volume_block(Real kv, Real E, int nu = 4, int nv = 3) {
+// modulus E, the second sheet rigid ("fixed"); group: one term per
+// tetrahedron (1, a tetra layer's) or per cell (6, a lattice layer's).
+testing::LayeredBlock volume_block(Real kv, Real E, int nu = 4, int nv = 3, int group = 1) {
   testing::LayeredBlockOptions bo;
   bo.nu = nu, bo.nv = nv, bo.layers = 2;
   bo.thickness = {4e-3};
@@ -617,6 +618,7 @@ testing::LayeredBlock volume_block(Real kv, Real E, int nu = 4, int nv = 3) {
   bo.names = {"a", "b"};
   bo.damping_ratio = 0;
   bo.volume_modulus = {kv};
+  bo.volume_group = group;
   return make_layered_block(bo);
 }
 
@@ -632,10 +634,14 @@ std::vector<Real> tet_volumes(const Model& m, const std::vector<Real>& x) {
 // The force the solver applies is minus the gradient of the energy it
 // reports (energies().elastic), by central differences at a deformed state:
 // the volume term's force, energy and their bookkeeping per corner agree.
+// Both for a term per tetrahedron and one per cell (a group of 6).
 TEST(VolumeTerm, TheForceIsMinusTheGradientOfTheEnergy) {
-  const auto block = volume_block(1e5, 2e3);
+ for (const int group : {1, 6}) {
+  SCOPED_TRACE(group);
+  const auto block = volume_block(1e5, 2e3, 4, 3, group);
   const Model m = model_from_layers(block.layers, block.sets);
   ASSERT_EQ(m.n_tets, 3 * 2 * 6);
+  ASSERT_EQ(m.n_groups, 3 * 2 * 6 / group);
   State s = make_state(m);
   std::mt19937 rng(5);
   std::uniform_real_distribution<Real> u(-4e-4, 4e-4);  // 10 % of a cell
@@ -666,6 +672,7 @@ TEST(VolumeTerm, TheForceIsMinusTheGradientOfTheEnergy) {
   s0.x = x0;
   step(m0, s0, 1e-14, o);
   EXPECT_GT(max_node_distance(s0.f, f), 0.5 * fmax);
+ }
 }
 
 // Central springs do not resist a layer turned inside out: its mirror image
@@ -673,9 +680,9 @@ TEST(VolumeTerm, TheForceIsMinusTheGradientOfTheEnergy) {
 // term does: with it the layer unfolds to its rest shape, without it the
 // mirrored layer is an equilibrium and stays.
 TEST(VolumeTerm, AMirroredLayerUnfoldsOnlyWithIt) {
-  for (const Real kv : {0.0, 2e4}) {
-    SCOPED_TRACE(kv);
-    const auto block = volume_block(kv, 2e3, 6, 4);
+  for (const auto [kv, group] : {std::pair<Real, int>{0.0, 1}, {2e4, 1}, {2e4, 6}}) {
+    SCOPED_TRACE(std::to_string(kv) + " group " + std::to_string(group));
+    const auto block = volume_block(kv, 2e3, 6, 4, group);
     const Model m = model_from_layers(block.layers, block.sets);
     State s = make_state(m);
     fix_nodes(m, s, m.set("fixed"));
@@ -703,7 +710,9 @@ TEST(VolumeTerm, AMirroredLayerUnfoldsOnlyWithIt) {
 // bound counts it), its energy bounded at that step and kept at a tenth of
 // it; implicit Euler settles at the rest volume.
 TEST(VolumeTerm, BothIntegratorsAreStableWithAStiffVolumeTerm) {
-  const auto block = volume_block(1e6, 2e4);
+ for (const int group : {1, 6}) {
+  SCOPED_TRACE(group);
+  const auto block = volume_block(1e6, 2e4, 4, 3, group);
   const Model m = model_from_layers(block.layers, block.sets);
   const auto loose = volume_block(0, 2e4);
   const Model m0 = model_from_layers(loose.layers, loose.sets);
@@ -746,6 +755,7 @@ TEST(VolumeTerm, BothIntegratorsAreStableWithAStiffVolumeTerm) {
       EXPECT_EQ(s.counters.cg_unconverged, 0);
     }
   }
+ }
 }
 
 // The cholesky preconditioner (SolverOptions::preconditioner) on a stiff,

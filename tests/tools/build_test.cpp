@@ -172,9 +172,26 @@ TEST(BuildCli, TheVolumeTermKeepsASoftSkinRightWayOut) {
     ASSERT_EQ(r.code, 0) << r.err;
     const auto j = nlohmann::json::parse(test::read_file(dir / ("r" + nu + ".json")));
     EXPECT_EQ(j["metrics"]["volume_tets"].get<std::int64_t>(), nu == "0.25" ? 0 : 39 * 8 * 2 * 7);
+    for (int l = 1; l < 3; ++l) EXPECT_EQ(br["metrics"]["layers"][l]["volume_modulus_pa"].get<double>(), 0.0) << "lattices: opt-in";
     inverted[nu] = j["metrics"]["inverted_columns"]["skin"]["max"].get<std::int64_t>();
     EXPECT_EQ(r.err.find("turned inside out") != std::string::npos, inverted[nu] > 0) << r.err;
   }
   EXPECT_GT(inverted["0.25"], 100) << "central springs alone fold the soft skin";
   EXPECT_EQ(inverted["0.49"], 0);
+  // --lattice-volume-term: the fat's and muscle's hexahedra too, 6 tetrahedra a term
+  const std::string model = write_model(dir, test::cylinder_stack(39, 9), "lat.h5");
+  const auto b = test::run_cli("build --model " + model + " --tissues " + tissues +
+                               " --layers skin:tetra,fat:lattice,muscle:lattice --lattice-volume-term --quiet --report " +
+                               (dir / "blat.json"));
+  ASSERT_EQ(b.code, 0) << b.err;
+  const auto br = nlohmann::json::parse(test::read_file(dir / "blat.json"));
+  EXPECT_EQ(br["metrics"]["tets"].get<std::int64_t>(), 39 * 8 * 2 * 7 + 2 * 39 * 8 * 6);
+  for (int l = 1; l < 3; ++l) {
+    EXPECT_NEAR(br["metrics"]["layers"][l]["volume_modulus_pa"].get<double>(), 16 * (l == 1 ? 2300.0 : 3000.0), 1e-6);
+    EXPECT_EQ(br["metrics"]["layers"][l]["volume_group"].get<int>(), 6);
+  }
+  const auto in = test::run_cli("inspect " + model + " --json");
+  ASSERT_EQ(in.code, 0) << in.err;
+  const auto summary = nlohmann::json::parse(in.out);
+  EXPECT_EQ(summary["summary"]["layers"]["fat"]["volume_group"].get<int>(), 6) << summary["summary"]["layers"]["fat"].dump();
 }
