@@ -59,6 +59,14 @@ std::string cylinders(const test::TempDir& d, const std::string& name, int nu, i
   return model;
 }
 
+// cylinders built with the sample table and build's extra flags; the fat layer as built
+std::pair<std::string, Layer> built_fat(const test::TempDir& d, int nu, int nv, const std::string& flags) {
+  const std::string model = cylinders(d, "m.h5", nu, nv);
+  const auto b = test::run_cli("build --model " + model + " --tissues " + kTable + " " + flags + " --quiet");
+  EXPECT_EQ(b.code, 0) << b.err;
+  return {model, ModelReader(model).layer("fat")};
+}
+
 }  // namespace
 
 TEST(TuneCli, TunesTheSampleTableWithTableReportAndPlots) {
@@ -341,10 +349,8 @@ TEST(TuneCli, RetargetsAModelBuiltWithAnotherTable) {
 // specimen measured a layer without them).
 TEST(TuneCli, TheSpecimenHasTheBuildsCells) {
   test::TempDir d("tune-cli-body");
-  const std::string model = cylinders(d, "m.h5", 15, 5);
-  const auto b = test::run_cli("build --model " + model + " --tissues " + kTable + " --body-diagonals --quiet");
-  ASSERT_EQ(b.code, 0) << b.err;
-  const Layer before = ModelReader(model).layer("fat");
+  const auto [model, before] = built_fat(d, 15, 5, "--body-diagonals");
+  ASSERT_GT(before.springs.rows(), 0);
   const auto r = test::run_cli("tune --tissues " + kTable + " --tissue fat --model " + model +
                                " --max-evaluations 2000 --quiet --report " + (d / "r.json"));
   ASSERT_EQ(r.code, 0) << r.err;
@@ -553,10 +559,7 @@ TEST(TuneCli, ATissueWithoutALayerIsNotTunedByDefault) {
 // is why the term is opt-in.)
 TEST(TuneCli, TunesALatticeLayerWithItsVolumeTerm) {
   test::TempDir d("tune-cli-lattice-volume");
-  const std::string model = cylinders(d, "m.h5", 39, 9);
-  const auto b = test::run_cli("build --model " + model + " --tissues " + kTable + " --lattice-volume-term --quiet");
-  ASSERT_EQ(b.code, 0) << b.err;
-  const Layer before = ModelReader(model).layer("fat");
+  const auto [model, before] = built_fat(d, 39, 9, "--lattice-volume-term");
   ASSERT_GT(before.volume_modulus, 0);
   EXPECT_EQ(before.volume_group, 6);
   const auto r = test::run_cli("tune --tissues " + kTable + " --tissue fat --model " + model +

@@ -190,6 +190,14 @@ TEST(Pipeline, ColdWarmAndIncremental) {
     EXPECT_EQ(bad.code, 2) << bad.err;
     EXPECT_EQ(test::count_lines(bad.err), 1) << bad.err;
     EXPECT_NE(bad.err.find("--poisson-ratio"), std::string::npos) << bad.err;
+    // --lattice-volume-term: the lattices' term per hexahedron (a build, its own cache key)
+    EXPECT_EQ(ModelReader(s.dir / "model.h5").layer_fields("fat", {"nodes"}).volume_modulus, 0);
+    const auto lat = test::run_cli(s.args("--grid 20x6 --lattice-volume-term"));
+    ASSERT_EQ(lat.code, 0) << lat.err;
+    EXPECT_TRUE(s.ran().count("build"));
+    const Layer fat = ModelReader(s.dir / "model.h5").layer_fields("fat", {"nodes"});
+    EXPECT_NEAR(fat.volume_modulus, 16 * fat.spring_law.at(0), 1e-9 * fat.volume_modulus);
+    EXPECT_EQ(fat.volume_group, 6);
   }
 }
 
