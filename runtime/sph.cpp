@@ -861,20 +861,28 @@ ORTHOSIM_SPH_INLINE KernelSums kernel_sums(const Pass& c, const std::int32_t* li
   return k;
 }
 
-// Density pass of the particles of one cell: the list of the neighbours
+// The passes hand out the grid's pieces (NeighbourGrid::pieces: a cell's
+// particles, at most 32 at a time), kPieceGrain pieces or more a task: a
+// crowded cell is shared among tasks (it was one task, so a pool of the soft
+// PhysX blood, hundreds of particles a cell, kept the scene from scaling past
+// 4 threads; BENCHMARKS.md). Each particle's sums are its own, so the results
+// do not depend on the split.
+constexpr std::size_t kPieceGrain = 8;
+
+// Density pass of the particles of one piece of a cell: the list of the neighbours
 // within the search radius (self excluded; found in float, see scan_run),
 // then in double over the list the kernel sums S_i = sum_j (1 - q)^4 (1 + 4 q)
 // (self included) and the number of particles within H. A particle with more
 // than kMaxList neighbours is listed again into a list of its own (BigLists).
 ORTHOSIM_SPH_CLONES
-void density_cell(const Pass& c, std::int32_t cell, bool scan) {
+void density_cell(const Pass& c, const NeighbourGrid::Piece& piece, bool scan) {
   NeighbourRun runs[27];
   int nr = 0;
   if (scan) {
-    nr = neighbour_runs(*c.g, cell, runs);
-    kScan.cell(c, runs, nr, c.g->start[cell], c.g->start[cell + 1]);
+    nr = neighbour_runs(*c.g, piece.cell, runs);
+    kScan.cell(c, runs, nr, piece.begin, piece.end);
   }
-  for (std::int32_t i = c.g->start[cell]; i < c.g->start[cell + 1]; ++i) {
+  for (std::int32_t i = piece.begin; i < piece.end; ++i) {
     const std::int32_t cnt = c.count[i];
     std::int32_t* list = c.list + static_cast<std::int64_t>(i) * kListStride;
     if (scan) {  // kept lists (no overflow) are padded already
@@ -891,8 +899,8 @@ void density_cell(const Pass& c, std::int32_t cell, bool scan) {
 // the particles of one cell at the predicted positions (px, py, pz), over the
 // substep's lists, as density_cell sums them at the current ones.
 ORTHOSIM_SPH_CLONES
-void predicted_sum_cell(const Pass& c, const Real* px, const Real* py, const Real* pz, std::int32_t cell, Real* out) {
-  for (std::int32_t i = c.g->start[cell]; i < c.g->start[cell + 1]; ++i)
+void predicted_sum_cell(const Pass& c, const Real* px, const Real* py, const Real* pz, const NeighbourGrid::Piece& piece, Real* out) {
+  for (std::int32_t i = piece.begin; i < piece.end; ++i)
     out[i] = 1 + hsum(kernel_sums(c, list_of(c, i), c.count[i], i, px, py, pz).acc);  // lists padded with i past the count
 }
 
@@ -967,7 +975,7 @@ ORTHOSIM_SPH_INLINE void transpose8(const VF* r, VF* c) {
 
 // kVar: per-particle viscosity (carreau), mu_i + mu_j per pair; else 2 mu
 template <bool kVar>
-ORTHOSIM_SPH_INLINE void force_cell_impl(const Pass& c, std::int32_t cell) {
+ORTHOSIM_SPH_INLINE void force_cell_impl(const Pass& c, const NeighbourGrid::Piece& piece) {
   const Fluid& f = *c.f;
   const PairConstants k(f);
   const VF zero = {0, 0, 0, 0, 0, 0, 0, 0}, one = {1, 1, 1, 1, 1, 1, 1, 1};
@@ -975,7 +983,7 @@ ORTHOSIM_SPH_INLINE void force_cell_impl(const Pass& c, std::int32_t cell) {
   const V zero4 = {0, 0, 0, 0};
   const bool periodic = c.period[0] > 0 || c.period[1] > 0 || c.period[2] > 0;
   const float per[3] = {static_cast<float>(c.period[0]), static_cast<float>(c.period[1]), static_cast<float>(c.period[2])};
-  for (std::int32_t i = c.g->start[cell]; i < c.g->start[cell + 1]; ++i) {
+  for (std::int32_t i = piece.begin; i < piece.end; ++i) {
     const float* pi = c.pack + 8 * static_cast<std::int64_t>(i);
     const float xi = pi[0], yi = pi[1], zi = pi[2], Pi = pi[3], vxi = pi[4], vyi = pi[5], vzi = pi[6], iri = pi[7];
     const bool shepard = c.near[i] != 0;
@@ -1038,9 +1046,9 @@ ORTHOSIM_SPH_INLINE void force_cell_impl(const Pass& c, std::int32_t cell) {
 }
 
 ORTHOSIM_SPH_CLONES
-void force_cell(const Pass& c, std::int32_t cell) { force_cell_impl<false>(c, cell); }
+void force_cell(const Pass& c, const NeighbourGrid::Piece& piece) { force_cell_impl<false>(c, piece); }
 ORTHOSIM_SPH_CLONES
-void force_cell_var(const Pass& c, std::int32_t cell) { force_cell_impl<true>(c, cell); }
+void force_cell_var(const Pass& c, const NeighbourGrid::Piece& piece) { force_cell_impl<true>(c, piece); }
 
 // Carreau viscosity of every particle of the cell from its shear rate
 // sqrt(2 D:D), D = (A + A^T) / 2 and A the velocity gradient
@@ -1049,11 +1057,11 @@ void force_cell_var(const Pass& c, std::int32_t cell) { force_cell_impl<true>(c,
 // renormalised SPH gradient, exact for a linear velocity field also where the
 // neighbourhood is cut by a wall or a free surface (where the moment matrix
 // is near singular, the lattice-calibrated sum is used instead).
-void shear_viscosity_cell(const Pass& c, std::int32_t cell) {
+void shear_viscosity_cell(const Pass& c, const NeighbourGrid::Piece& piece) {
   const Fluid& f = *c.f;
   const Real invH = 1 / f.H, G = f.mass * Real(210) / (kPi * f.H * f.H * f.H * f.H * f.H);
   const bool periodic = c.period[0] > 0 || c.period[1] > 0 || c.period[2] > 0;
-  for (std::int32_t i = c.g->start[cell]; i < c.g->start[cell + 1]; ++i) {
+  for (std::int32_t i = piece.begin; i < piece.end; ++i) {
     // M = sum w d d^T (symmetric: 6 sums), A = sum w (v_i - v_j) d^T (9 sums)
     Real m00 = 0, m01 = 0, m02 = 0, m11 = 0, m12 = 0, m22 = 0;
     Real a[3][3] = {{0, 0, 0}, {0, 0, 0}, {0, 0, 0}};
@@ -1384,7 +1392,7 @@ struct Stepper {
 
   // rho_i = m W-sum + rho0 * wall share; p from the EOS. Returns max compression.
   Real density(const Pass& c) {
-    const auto& occ = c.g->occupied;
+    const auto& pieces = c.g->pieces;
     const Real mk = f.mass * Real(21) / (2 * kPi * f.H * f.H * f.H);
     const Real rho0 = f.params.rest_density;
     const int gamma = f.params.tait_gamma;
@@ -1402,12 +1410,12 @@ struct Stepper {
     const std::int32_t* order = built ? c.g->order.data() : nullptr;  // kept lists: the drift's order
     if (built) big.reset(static_cast<std::size_t>(c.n));
     const Real worst = tbb::parallel_reduce(
-        tbb::blocked_range<std::size_t>(0, occ.size(), 16), Real(-HUGE_VAL),
+        tbb::blocked_range<std::size_t>(0, pieces.size(), kPieceGrain), Real(-HUGE_VAL),
         [&](const tbb::blocked_range<std::size_t>& r, Real best) {
           for (std::size_t k = r.begin(); k < r.end(); ++k) {
-            const std::int32_t cell = occ[k];
-            density_cell(c, cell, built);
-            for (std::int32_t i = c.g->start[cell]; i < c.g->start[cell + 1]; ++i) {
+            const NeighbourGrid::Piece& piece = pieces[k];
+            density_cell(c, piece, built);
+            for (std::int32_t i = piece.begin; i < piece.end; ++i) {
               const Vec3 p{c.x[i], c.y[i], c.z[i]};
               Contact* cache = ntw > 0 ? contact_cache.data() + static_cast<std::size_t>(i) * ntw : nullptr;
               const std::int32_t* hint = ntw > 0 ? s.scratch.wall_hint.data() + static_cast<std::size_t>(i) * ntw : nullptr;
@@ -1441,26 +1449,26 @@ struct Stepper {
   // shear: the Carreau viscosities first (pcisph's corrections keep the velocities, so
   // they keep their viscosities too)
   std::array<Real, 2> forces(const Pass& c, std::vector<Reaction>& reactions, bool shear = true) {
-    const auto& occ = c.g->occupied;
+    const auto& pieces = c.g->pieces;
     if (c.mu && shear)
-      tbb::parallel_for(tbb::blocked_range<std::size_t>(0, occ.size(), 16), [&](const tbb::blocked_range<std::size_t>& r) {
-        for (std::size_t k = r.begin(); k < r.end(); ++k) shear_viscosity_cell(c, occ[k]);
+      tbb::parallel_for(tbb::blocked_range<std::size_t>(0, pieces.size(), kPieceGrain), [&](const tbb::blocked_range<std::size_t>& r) {
+        for (std::size_t k = r.begin(); k < r.end(); ++k) shear_viscosity_cell(c, pieces[k]);
       });
     tbb::enumerable_thread_specific<std::vector<Reaction>> local;
     const Vec3 g = vec(f.params.gravity);
     const bool any_surface = !walls.surfaces.empty();
     const std::size_t ntw = walls.n_triangle_walls();
     auto res = tbb::parallel_reduce(
-        tbb::blocked_range<std::size_t>(0, occ.size(), 16), std::array<Real, 2>{0, 0},
+        tbb::blocked_range<std::size_t>(0, pieces.size(), kPieceGrain), std::array<Real, 2>{0, 0},
         [&](const tbb::blocked_range<std::size_t>& r, std::array<Real, 2> best) {
           std::vector<Reaction>* rec = any_surface ? &local.local() : nullptr;
           for (std::size_t k = r.begin(); k < r.end(); ++k) {
-            const std::int32_t cell = occ[k];
+            const NeighbourGrid::Piece& piece = pieces[k];
             if (c.mu)
-              force_cell_var(c, cell);
+              force_cell_var(c, piece);
             else
-              force_cell(c, cell);
-            for (std::int32_t i = c.g->start[cell]; i < c.g->start[cell + 1]; ++i) {
+              force_cell(c, piece);
+            for (std::int32_t i = piece.begin; i < piece.end; ++i) {
               const Vec3 p{c.x[i], c.y[i], c.z[i]}, v{c.vx[i], c.vy[i], c.vz[i]};
               const auto pw = [&] { return shepard_pressure(c, i); };
               const Vec3 aw = !walls.maybe_near(p) ? Vec3{}
@@ -1564,18 +1572,18 @@ struct Stepper {
       });
       // density there (over the substep's lists: a pair that comes within H
       // meanwhile adds W ~ 0), the pressure's correction
-      const auto& occ = c.g->occupied;
+      const auto& pieces = c.g->pieces;
       Real* sums = sc.pred_sum.data();
       // the largest predicted compression, and its particle (the lowest index of a tie)
       using Worst = std::pair<Real, std::int32_t>;
       auto worse = [](const Worst& a, const Worst& b2) { return a.first != b2.first ? a.first > b2.first : a.second < b2.second; };
       const Worst worst = tbb::parallel_reduce(
-          tbb::blocked_range<std::size_t>(0, occ.size(), 16), Worst{-HUGE_VAL, -1},
+          tbb::blocked_range<std::size_t>(0, pieces.size(), kPieceGrain), Worst{-HUGE_VAL, -1},
           [&](const tbb::blocked_range<std::size_t>& r, Worst best) {
             for (std::size_t k = r.begin(); k < r.end(); ++k) {
-              const std::int32_t cell = occ[k];
-              predicted_sum_cell(c, px, py, pz, cell, sums);
-              for (std::int32_t i = c.g->start[cell]; i < c.g->start[cell + 1]; ++i) {
+              const NeighbourGrid::Piece& piece = pieces[k];
+              predicted_sum_cell(c, px, py, pz, piece, sums);
+              for (std::int32_t i = piece.begin; i < piece.end; ++i) {
                 const Vec3 p{px[i], py[i], pz[i]};
                 Real rho = mk * sums[i];
                 if (walls.maybe_near(p)) {
@@ -2248,6 +2256,10 @@ void build_neighbour_grid(const Real* x, const Real* y, const Real* z, std::int6
     if (g.start[c + 1] > 0) g.occupied.push_back(static_cast<std::int32_t>(c));
     g.start[c + 1] += g.start[c];
   }
+  g.pieces.clear();
+  for (const std::int32_t c : g.occupied)
+    for (std::int32_t b = g.start[c]; b < g.start[c + 1]; b += NeighbourGrid::kPieceSlots)
+      g.pieces.push_back({c, b, std::min(b + NeighbourGrid::kPieceSlots, g.start[c + 1])});
   g.order.resize(n);
   std::vector<std::int32_t> fill(g.start.begin(), g.start.end() - 1);
   for (std::int32_t i = 0; i < n; ++i) g.order[fill[g.point_cell[i]]++] = i;

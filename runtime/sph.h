@@ -437,6 +437,14 @@ struct NeighbourGrid {
   std::vector<std::int32_t> start;     // (n_cells + 1) first sorted slot of each cell
   std::vector<std::int32_t> order;     // (n) sorted slot -> input index
   std::vector<std::int32_t> occupied;  // non-empty cells, ascending
+  // the occupied cells' sorted slots in pieces of at most kPieceSlots, in
+  // slot order: the SPH passes' work items, so that a crowded cell (a pool
+  // of soft blood holds hundreds of particles a cell) is shared among tasks
+  struct Piece {
+    std::int32_t cell, begin, end;
+  };
+  static constexpr std::int32_t kPieceSlots = 32;
+  std::vector<Piece> pieces;
   std::vector<std::int32_t> point_cell;  // (n) scratch: cell of each input point
   std::int64_t n_cells() const { return static_cast<std::int64_t>(dims[0]) * dims[1] * dims[2]; }
   std::int32_t cell_of(Real x, Real y, Real z) const;  // clamped into the grid

@@ -680,7 +680,7 @@ TEST(VolumeTerm, TheForceIsMinusTheGradientOfTheEnergy) {
 // term does: with it the layer unfolds to its rest shape, without it the
 // mirrored layer is an equilibrium and stays.
 TEST(VolumeTerm, AMirroredLayerUnfoldsOnlyWithIt) {
-  for (const auto [kv, group] : {std::pair<Real, int>{0.0, 1}, {2e4, 1}, {2e4, 6}}) {
+  for (const auto& [kv, group] : {std::pair<Real, int>{0.0, 1}, {2e4, 1}, {2e4, 6}}) {
     SCOPED_TRACE(std::to_string(kv) + " group " + std::to_string(group));
     const auto block = volume_block(kv, 2e3, 6, 4, group);
     const Model m = model_from_layers(block.layers, block.sets);
