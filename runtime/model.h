@@ -82,9 +82,10 @@ struct Model {
   // groups of Layer::volume_group: a tetra layer's each tetrahedron, a
   // lattice layer's the 6 of each hexahedron):
   // group g adds the energy (k/2) (V - V0)^2 / |V0|, V and V0 the sums of its
-  // tetrahedra's signed volumes ("mean dilatation": one pressure per group,
-  // so a thin layer does not lock), so that a layer resists compression and
-  // folding through itself. A group is kept where all its corners are loaded
+  // tetrahedra's signed volumes, so that a layer resists compression and
+  // folding through itself (a lattice cell's 6 share one pressure, "mean
+  // dilatation", which does not lock; a tetra layer's term per tetrahedron
+  // locks a thin layer in bending: docs/msm.md, "The volume term"). A group is kept where all its corners are loaded
   // nodes or anchors and one is loaded.
   std::int32_t n_tets = 0;
   std::vector<std::int32_t> tet;             // (n_tets x 4) local ids
