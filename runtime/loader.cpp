@@ -92,9 +92,6 @@ Model load_model(const ModelReader& r, const LoadRequest& req) {
       if (f.exists(g + "/tets")) l.tets = r.layer_fields(name, {"tets"}).tets;
       if (l.tets.rows() == 0) throw Error(path, g + " has a volume_modulus but no tets");
       check_index_range(l.tets, n_global, path, g + "/tets");
-      if (l.tets.rows() % l.volume_group != 0)
-        throw Error(path, g + "/tets: " + std::to_string(l.tets.rows()) + " rows are not groups of volume_group " +
-                              std::to_string(l.volume_group));
     }
     check_index_range(l.lin_springs, n_global, path, g + "/lin_springs");
     if (req.surface) check_index_range(l.quads, n_global, path, g + "/quads");

@@ -56,9 +56,9 @@ VecXd gradient(const SpringNetwork& n, const MatX3d& x, double* fmax) {
   }
   for (Eigen::Index gr = 0; gr < n.n_volume_groups(); ++gr) {
     const GroupVolumeTerm v = group_volume_term(n, x, gr, true, false);
-    for (std::size_t c = 0; c < v.nodes.size(); ++c) {
-      g.segment<3>(3 * v.nodes[c]) += v.gradient.segment<3>(3 * static_cast<Eigen::Index>(c));
-      m = std::max(m, v.gradient.segment<3>(3 * static_cast<Eigen::Index>(c)).norm());
+    for (Eigen::Index c = 0; c < v.nodes.size(); ++c) {
+      g.segment<3>(3 * v.nodes(c)) += v.gradient.segment<3>(3 * c);
+      m = std::max(m, v.gradient.segment<3>(3 * c).norm());
     }
   }
   if (fmax) *fmax = m;
@@ -128,30 +128,34 @@ GroupVolumeTerm group_volume_term(const SpringNetwork& net, const MatX3d& x, Eig
   const bool single = net.tet_group_first.size() == 0;
   const Eigen::Index t0 = single ? group : net.tet_group_first(group), t1 = single ? group + 1 : net.tet_group_first(group + 1);
   GroupVolumeTerm out;
-  std::vector<std::array<int, 4>> slot(static_cast<std::size_t>(t1 - t0));
+  // the group's distinct nodes, in order of first appearance
+  int nodes[kMaxGroupNodes], n = 0;
+  auto slot_of = [&](int node) { return static_cast<int>(std::find(nodes, nodes + n, node) - nodes); };
   for (Eigen::Index t = t0; t < t1; ++t)
     for (int c = 0; c < 4; ++c) {
       const int node = net.tets(t, c);
-      auto it = std::find(out.nodes.begin(), out.nodes.end(), node);
-      slot[static_cast<std::size_t>(t - t0)][static_cast<std::size_t>(c)] = static_cast<int>(it - out.nodes.begin());
-      if (it == out.nodes.end()) out.nodes.push_back(node);
+      if (slot_of(node) < n) continue;
+      if (n == kMaxGroupNodes) throw Error("", "a volume group has more than " + std::to_string(kMaxGroupNodes) + " nodes");
+      nodes[n++] = node;
     }
-  const auto m = static_cast<Eigen::Index>(3 * out.nodes.size());
-  VecXd G = VecXd::Zero(m);
-  Eigen::MatrixXd H2 = Eigen::MatrixXd::Zero(want_hessian && !gauss_newton ? m : 0, want_hessian && !gauss_newton ? m : 0);
+  out.nodes = Eigen::Map<const Eigen::VectorXi>(nodes, n);
+  const Eigen::Index m = 3 * n;
+  const bool exact = want_hessian && !gauss_newton;
+  decltype(out.gradient) G = decltype(out.gradient)::Zero(m);
+  decltype(out.hessian) H2 = decltype(out.hessian)::Zero(exact ? m : 0, exact ? m : 0);
   for (Eigen::Index t = t0; t < t1; ++t) {
     const Eigen::Matrix<double, 4, 3> X = tet_corners(net, x, t);
     double V = 0;
     const Eigen::Matrix<double, 4, 3> g = volume_gradient(X, &V);
     out.volume += V;
     out.rest_volume += net.tet_rest_volume(t);
-    const auto& sl = slot[static_cast<std::size_t>(t - t0)];
-    for (int c = 0; c < 4; ++c) G.segment<3>(3 * sl[static_cast<std::size_t>(c)]) += g.row(c).transpose();
-    if (H2.size()) {
+    int sl[4];
+    for (int c = 0; c < 4; ++c) sl[c] = slot_of(net.tets(t, c));
+    for (int c = 0; c < 4; ++c) G.segment<3>(3 * sl[c]) += g.row(c).transpose();
+    if (exact) {
       const Eigen::Matrix<double, 12, 12> d2V = volume_second(X);
       for (int a = 0; a < 4; ++a)
-        for (int b = 0; b < 4; ++b)
-          H2.block<3, 3>(3 * sl[static_cast<std::size_t>(a)], 3 * sl[static_cast<std::size_t>(b)]) += d2V.block<3, 3>(3 * a, 3 * b);
+        for (int b = 0; b < 4; ++b) H2.block<3, 3>(3 * sl[a], 3 * sl[b]) += d2V.block<3, 3>(3 * a, 3 * b);
     }
   }
   const double k = net.tet_k(group), a0 = std::abs(out.rest_volume);
@@ -159,8 +163,9 @@ GroupVolumeTerm group_volume_term(const SpringNetwork& net, const MatX3d& x, Eig
   out.energy = 0.5 * k * a0 * strain * strain;
   out.gradient = k * strain * G;
   if (want_hessian) {
-    out.hessian = a0 > 0 ? Eigen::MatrixXd((k / a0) * G * G.transpose()) : Eigen::MatrixXd::Zero(m, m);
-    if (H2.size()) out.hessian += k * strain * H2;
+    out.hessian.setZero(m, m);
+    if (a0 > 0) out.hessian.noalias() += (k / a0) * G * G.transpose();
+    if (exact) out.hessian += k * strain * H2;
   }
   return out;
 }
@@ -229,12 +234,12 @@ StaticResult solve_static(const SpringNetwork& net, const std::vector<std::int64
     }
     for (Eigen::Index g = 0; g < net.n_volume_groups(); ++g) {
       const GroupVolumeTerm v = group_volume_term(net, x, g, clamp_geometric, true);
-      const auto nl = static_cast<Eigen::Index>(3 * v.nodes.size());
+      const Eigen::Index nl = 3 * v.nodes.size();
       for (Eigen::Index i = 0; i < nl; ++i) {
-        const auto fi = free_of[static_cast<std::size_t>(3 * v.nodes[static_cast<std::size_t>(i / 3)] + i % 3)];
+        const auto fi = free_of[static_cast<std::size_t>(3 * v.nodes(i / 3) + i % 3)];
         if (fi < 0) continue;
         for (Eigen::Index j = 0; j < nl; ++j) {
-          const auto fj = free_of[static_cast<std::size_t>(3 * v.nodes[static_cast<std::size_t>(j / 3)] + j % 3)];
+          const auto fj = free_of[static_cast<std::size_t>(3 * v.nodes(j / 3) + j % 3)];
           if (fj >= 0) trip.emplace_back(static_cast<int>(fi), static_cast<int>(fj), v.hessian(i, j));
         }
       }
@@ -263,8 +268,9 @@ StaticResult solve_static(const SpringNetwork& net, const std::vector<std::int64
   for (Eigen::Index s = 0; s < net.springs.rows(); ++s)
     kl = std::max(kl, std::max(net.k1(s), net.k2(s)) * std::max(net.rest_length(s), net.turning_length(s)));
   // and a volume term's, k |dV/dx| ~ k V0^(2/3) (an area)
+  const double k_volume = net.tet_k.size() ? net.tet_k.maxCoeff() : 0.0;
   for (Eigen::Index t = 0; t < net.tets.rows(); ++t)
-    kl = std::max(kl, net.tet_k.maxCoeff() * std::pow(std::abs(net.tet_rest_volume(t)), 2.0 / 3.0));
+    kl = std::max(kl, k_volume * std::pow(std::abs(net.tet_rest_volume(t)), 2.0 / 3.0));
   const double floor = 256 * std::numeric_limits<double>::epsilon() * kl;
   double fmax = 0;
   for (r.iterations = 0; r.iterations <= o.max_iterations; ++r.iterations) {

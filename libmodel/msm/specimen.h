@@ -64,12 +64,15 @@ TetVolumeTerm tet_volume_term(const Eigen::Matrix<double, 4, 3>& x, double rest_
 
 // The same for group g of a network (SpringNetwork::tet_group_first): its
 // distinct nodes, and the energy, gradient (3 per node, in `nodes` order) and
-// Hessian (exact, or its Gauss-Newton part) of its one volume term.
+// Hessian (exact, or its Gauss-Newton part) of its one volume term. At most
+// kMaxGroupNodes nodes (a hexahedron's 8; more is an Error), so that the
+// static solver's many calls allocate nothing.
+inline constexpr int kMaxGroupNodes = 8;
 struct GroupVolumeTerm {
-  std::vector<int> nodes;
+  Eigen::Matrix<int, Eigen::Dynamic, 1, 0, kMaxGroupNodes, 1> nodes;
   double energy = 0, volume = 0, rest_volume = 0;
-  VecXd gradient;
-  Eigen::MatrixXd hessian;
+  Eigen::Matrix<double, Eigen::Dynamic, 1, 0, 3 * kMaxGroupNodes, 1> gradient;
+  Eigen::Matrix<double, Eigen::Dynamic, Eigen::Dynamic, 0, 3 * kMaxGroupNodes, 3 * kMaxGroupNodes> hessian;
 };
 GroupVolumeTerm group_volume_term(const SpringNetwork& net, const MatX3d& x, Eigen::Index group, bool gauss_newton,
                                   bool want_hessian);

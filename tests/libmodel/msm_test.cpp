@@ -1066,16 +1066,16 @@ TEST(LatticeVolume, TheGroupTermsGradientAndHessianAreExact) {
   for (Eigen::Index i = 0; i < x.rows(); ++i)
     for (int a = 0; a < 3; ++a) x(i, a) += u(rng);
   const GroupVolumeTerm t = group_volume_term(s.network, x, 0, false, true);
-  ASSERT_EQ(t.nodes.size(), 8u) << "a hexahedron's 8 corners";
+  ASSERT_EQ(t.nodes.size(), 8) << "a hexahedron's 8 corners";
   EXPECT_GT(std::abs(t.volume - t.rest_volume), 1e-3 * std::abs(t.rest_volume)) << "deformed";
   const double h = 1e-8;
   double gerr = 0, herr = 0, gmax = 0, hmax = 0;
-  for (std::size_t c = 0; c < t.nodes.size(); ++c)
+  for (Eigen::Index c = 0; c < t.nodes.size(); ++c)
     for (int a = 0; a < 3; ++a) {
       MatX3d p = x, q = x;
-      p(t.nodes[c], a) += h, q(t.nodes[c], a) -= h;
+      p(t.nodes(c), a) += h, q(t.nodes(c), a) -= h;
       const GroupVolumeTerm tp = group_volume_term(s.network, p, 0, false, true), tq = group_volume_term(s.network, q, 0, false, true);
-      const Eigen::Index k = 3 * static_cast<Eigen::Index>(c) + a;
+      const Eigen::Index k = 3 * c + a;
       gerr = std::max(gerr, std::abs((tp.energy - tq.energy) / (2 * h) - t.gradient(k)));
       gmax = std::max(gmax, std::abs(t.gradient(k)));
       const VecXd col = (tp.gradient - tq.gradient) / (2 * h);
