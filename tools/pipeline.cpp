@@ -74,6 +74,7 @@ struct Args {
   int bit_depth = 16;     // segment's --bit-depth (significant bits of 16-bit slices)
   double poisson_ratio = msm::BuildOptions{}.poisson_ratio;  // build's --poisson-ratio (the layers' volume term)
   bool lattice_volume_term = false;                          // build's --lattice-volume-term
+  bool axis_correction = true;                               // build's axis correction (--no-axis-correction: off)
   CommonOptions common;
 };
 
@@ -378,7 +379,7 @@ int run_stages(Args a, Report& report) {
   report.input(a.stack);
   report.input(a.tissues);
   if (!a.scene.empty()) report.input(a.scene);
-  report.parameters() = {{"grid", a.grid}, {"through_cells", a.through_cells}, {"poisson_ratio", a.poisson_ratio}, {"lattice_volume_term", a.lattice_volume_term}, {"bit_depth", a.bit_depth}, {"spacing_mm", a.spacing}, {"origin_mm", a.origin},
+  report.parameters() = {{"grid", a.grid}, {"through_cells", a.through_cells}, {"poisson_ratio", a.poisson_ratio}, {"lattice_volume_term", a.lattice_volume_term}, {"axis_correction", a.axis_correction}, {"bit_depth", a.bit_depth}, {"spacing_mm", a.spacing}, {"origin_mm", a.origin},
                          {"work", a.work}, {"texture", a.texture}, {"tune", a.tune},
                          {"tune_budget_s", a.tune_budget_s}, {"tune_evaluations", a.tune_evaluations}, {"seed", a.seed}, {"export", a.export_dir}};
 
@@ -642,11 +643,13 @@ int run_stages(Args a, Report& report) {
     // 5. build: the multilayer mass-spring model
     const auto bld = run.stage(
         "build", {rem.key, table_hash, "through-cells " + std::to_string(a.through_cells), "poisson-ratio " + exact(a.poisson_ratio),
-                  a.lattice_volume_term ? "lattice-volume-term" : "no-lattice-volume-term"},
+                  a.lattice_volume_term ? "lattice-volume-term" : "no-lattice-volume-term",
+                  a.axis_correction ? "axis-correction" : "no-axis-correction"},
         run.command([&](const std::string& d) {
           std::vector<std::string> args{"build", "--model", d + "/model.h5", "--tissues", a.tissues, "--through-cells",
                                         std::to_string(a.through_cells), "--poisson-ratio", exact(a.poisson_ratio)};
           if (a.lattice_volume_term) args.push_back("--lattice-volume-term");
+          if (!a.axis_correction) args.push_back("--no-axis-correction");
           return args;
         }),
         {"model.h5"}, [&](const std::string& d) { copy_path(rem.dir + "/model.h5", d + "/model.h5"); });
@@ -835,6 +838,8 @@ void add_pipeline_command(CLI::App& app) {
       ->capture_default_str();
   sub->add_flag("--lattice-volume-term", a.lattice_volume_term,
                 "build's: a volume term per hexahedron of the lattice layers too (docs/msm.md, The volume term)");
+  sub->add_flag("!--no-axis-correction", a.axis_correction,
+                "build's: leave each layer's rule as it is, no equal Young's moduli along u, v and through (docs/msm.md)");
   sub->add_option("--work", a.work, "cache folder (default: <out>.work)");
   sub->add_option("--out", a.out, "model file to write")->required();
   sub->add_option("--export", a.export_dir,

@@ -478,6 +478,8 @@ struct PaperScene {
   double kept_lists = 0;   // share of the timed substeps that kept the last neighbour lists
   std::array<std::int64_t, 6> limits{};  // timed substeps by the limit that set them (FluidCounters::substep_limit)
   std::array<double, 6> phases{};        // timed steps' fluid phases, s (FluidCounters::phase_s)
+  double cg_iterations = 0;              // the tissue's PCG iterations per timed step
+  std::int64_t factorizations = 0;       // sparse factors built in the timed steps (cholesky preconditioner)
 };
 
 // the triangle walls' work savers (FluidParams; both exact): for the trade-off's figures
@@ -486,6 +488,7 @@ struct SceneKnobs {
   bool reuse_contacts = true;
   double cfl = rt::FluidParams{}.cfl;
   double sound_speed = 0;  // > 0: physical blood with this c0 (m/s) in place of the PhysX stiffness 20
+  rt::Preconditioner preconditioner = rt::SolverOptions{}.preconditioner;  // the tissue's implicit solve
 };
 
 PaperScene paper_scene(double dt, std::int64_t particles, int steps, int threads, const SceneKnobs& knobs = {}) {
@@ -504,6 +507,7 @@ PaperScene paper_scene(double dt, std::int64_t particles, int steps, int threads
   def.threads = threads;
   def.solver.gravity = {0, 9.81, 0};
   def.solver.integrator = rt::Integrator::implicit_euler;
+  def.solver.preconditioner = knobs.preconditioner;
   def.fluid.enabled = true;
   def.fluid.params.spacing = 0.002;
   def.fluid.params.physx_stiffness = knobs.sound_speed > 0 ? 0 : 20;
@@ -542,6 +546,8 @@ PaperScene paper_scene(double dt, std::int64_t particles, int steps, int threads
   const auto lim0 = fs.counters.substep_limit;
   const auto ph0 = fs.counters.phase_s;
   const std::int64_t lb0 = fs.counters.list_builds, lr0 = fs.counters.list_reuses;
+  const auto cg0 = scene.state().counters.cg_iterations;
+  const auto fac0 = scene.state().counters.factorizations;
   const auto t1 = clock_type::now();
   for (int k = 0; k < steps; ++k) {
     scene.simulate(dt);
@@ -551,6 +557,8 @@ PaperScene paper_scene(double dt, std::int64_t particles, int steps, int threads
   }
   const double wall = seconds_since(t1);
   r.steps_per_s = steps / wall;
+  r.cg_iterations = static_cast<double>(scene.state().counters.cg_iterations - cg0) / steps;
+  r.factorizations = scene.state().counters.factorizations - fac0;
   r.fluid_share = (scene.fluid_summary().wall_s - fluid0) / wall;
   r.substeps = static_cast<double>(fs.counters.substeps - sub0) / steps;
   for (std::size_t k = 0; k < r.limits.size(); ++k) r.limits[k] = fs.counters.substep_limit[k] - lim0[k];
@@ -586,6 +594,8 @@ void print_paper_scene(int threads, std::int64_t particles, const SceneKnobs& kn
       if (share[k] > 0) std::printf(" %s %.0f%%", rt::substep_limit_name(static_cast<int>(k)), 100 * share[k]);
     std::printf("; surface grid built in %.0f%% of the steps; neighbour lists kept in %.0f%% of the substeps\n",
                 100 * r.grid_builds, 100 * r.kept_lists);
+    std::printf("          tissue: %.1f PCG iterations a step, %lld sparse factors built in the timed steps\n",
+                r.cg_iterations, static_cast<long long>(r.factorizations));
     // where the blood went: a warm-up that ran the full 20 s never held the particles asked
     // for (what the jet emits leaves through the open top as fast)
     std::printf("          warm-up %.2f s simulated%s; timed steps: %lld emitted, %lld left the domain\n", r.warmup_t,
@@ -873,6 +883,13 @@ int main(int argc, char** argv) {
     } else if (std::strncmp(a, "--sound-speed=", 14) == 0) {
       knobs.sound_speed = number(a + 14);
       if (!(knobs.sound_speed > 0 && knobs.sound_speed <= 1e3)) return usage_error("--sound-speed must be a number in (0, 1000] (m/s)", a + 14);
+    } else if (std::strncmp(a, "--preconditioner=", 17) == 0) {
+      const std::string v = a + 17;
+      if (v == "auto") knobs.preconditioner = rt::Preconditioner::automatic;
+      else if (v == "cholesky") knobs.preconditioner = rt::Preconditioner::cholesky;
+      else if (v == "block_jacobi") knobs.preconditioner = rt::Preconditioner::block_jacobi;
+      else if (v == "jacobi") knobs.preconditioner = rt::Preconditioner::jacobi;
+      else return usage_error("--preconditioner must be auto, cholesky, block_jacobi or jacobi", a + 17);
     } else if (std::strcmp(a, "--requery") == 0) {
       knobs.reuse_contacts = false;
     } else if (std::strcmp(a, "--full") == 0) {

@@ -199,6 +199,29 @@ TEST(Pipeline, ColdWarmAndIncremental) {
     EXPECT_NEAR(fat.volume_modulus, 16 * fat.spring_law.at(0), 1e-9 * fat.volume_modulus);
     EXPECT_EQ(fat.volume_group, 6);
   }
+  {
+    // build's --no-axis-correction: the pipeline passes it (its own cache key); the
+    // build stage's report then has no axis factors on the tetra skin
+    auto skin_factors = [&] {
+      const nlohmann::json rep = s.report();
+      for (const auto& st : rep["stages"])
+        if (st["stage"] == "build") {
+          const nlohmann::json br = nlohmann::json::parse(test::read_file(st["dir"].get<std::string>() + "/report.json"));
+          for (const auto& l : br["metrics"]["layers"])
+            if (l["kind"] == "tetra") return l["axis_factors_uvw"].get<std::vector<double>>();
+        }
+      return std::vector<double>{};
+    };
+    const auto on = test::run_cli(s.args("--grid 20x6"));
+    ASSERT_EQ(on.code, 0) << on.err;
+    EXPECT_NE(skin_factors(), std::vector<double>({1.0, 1.0, 1.0}));
+    const auto off = test::run_cli(s.args("--grid 20x6 --no-axis-correction"));
+    ASSERT_EQ(off.code, 0) << off.err;
+    EXPECT_TRUE(s.ran().count("build"));
+    EXPECT_FALSE(s.ran().count("remesh"));
+    EXPECT_EQ(skin_factors(), std::vector<double>({1.0, 1.0, 1.0}));
+    EXPECT_FALSE(s.report()["parameters"]["axis_correction"].get<bool>());
+  }
 }
 
 // The tuning is bounded by --tune-evaluations, not by the clock: a re-run
