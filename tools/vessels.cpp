@@ -59,6 +59,7 @@ json metrics_json(const VesselMetrics& m) {
           {"loops_broken", m.loops_broken},
           {"contacts_cut", m.contacts_cut},
           {"components_dropped", m.components_dropped},
+          {"thin_components_dropped", m.thin_components_dropped},
           {"cuts", cuts},
           {"roots_used", m.roots_used},
           {"radius_min_m", m.radius_min_m},
@@ -102,6 +103,7 @@ void add_vessels_command(CLI::App& app) {
     std::string labels, model, out;
     std::vector<std::string> tissues, roots;
     double tolerance_mm = 0;
+    double min_radius_voxels = VesselOptions{}.min_radius_voxels;
     int ring_vertices = 24, threads = 0, max_children = 3;
     bool no_self_intersection_check = false, refuse_excess_children = false, skip_unformed = false;
     CommonOptions common;
@@ -126,6 +128,11 @@ void add_vessels_command(CLI::App& app) {
   sub->add_option("--max-children", a.max_children,
                   "most children a junction may have, 2..4 (4 needs --ring-vertices a multiple of 8)")
       ->capture_default_str();
+  sub->add_option("--min-radius-voxels", a.min_radius_voxels,
+                  "drop as noise a piece of vessel label whose largest inscribed radius is below this many of the "
+                  "smallest voxel spacing where a thicker piece exists (0.75: nowhere more than 2 voxels across), >= 0 (0: keep them)")
+      ->check(CLI::NonNegativeNumber)
+      ->capture_default_str();
   sub->add_flag("--refuse-excess-children", a.refuse_excess_children,
                 "refuse a junction with more children instead of dropping its shortest leaf children");
   sub->add_flag("--skip-unformed", a.skip_unformed,
@@ -143,6 +150,9 @@ void add_vessels_command(CLI::App& app) {
     o.tolerance_m = a.tolerance_mm * 1e-3;
     o.ring_vertices = a.ring_vertices;
     o.max_children = a.max_children;
+    if (!std::isfinite(a.min_radius_voxels) || a.min_radius_voxels < 0)
+      throw UsageError("--min-radius-voxels: must be a number >= 0");
+    o.min_radius_voxels = a.min_radius_voxels;
     o.prune_excess_children = !a.refuse_excess_children;
     o.check_self_intersections = !a.no_self_intersection_check;
     for (const std::string& r : a.roots) {

@@ -130,7 +130,7 @@ struct Forest {
 };
 
 struct GraphStats {
-  int spurs = 0, loops = 0, contacts = 0, dropped = 0, merged = 0;
+  int spurs = 0, loops = 0, contacts = 0, dropped = 0, thin = 0, merged = 0;
   std::vector<VesselCut> cuts;
   std::vector<int> roots_used;
 };

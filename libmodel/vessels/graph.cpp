@@ -418,6 +418,7 @@ Forest Graph::forest() {
   }
   // drop specks; find the ends of the others
   std::vector<int> keep;
+  std::vector<double> comp_rmax;  // of the kept ones
   for (int c = 0; c < static_cast<int>(comps.size()); ++c) {
     double len = 0, rmax = 0;
     std::set<int> es;
@@ -432,6 +433,20 @@ Forest Graph::forest() {
       continue;
     }
     keep.push_back(c);
+    comp_rmax.push_back(rmax);
+  }
+  // thin pieces beside a resolved one are noise: rmax is a voxel centre's
+  // distance to the nearest background centre, the inscribed radius plus half
+  // a voxel (1e-3 of a voxel spares the float distances of an exact width)
+  {
+    const double least = 0.5 * g_.hmin() + (o_.min_radius_voxels - 1e-3) * g_.hmin();
+    if (o_.min_radius_voxels > 0 && std::any_of(comp_rmax.begin(), comp_rmax.end(), [&](double r) { return r >= least; })) {
+      std::vector<int> resolved;
+      for (std::size_t k = 0; k < keep.size(); ++k)
+        if (comp_rmax[k] >= least) resolved.push_back(keep[k]);
+        else ++s_.dropped, ++s_.thin;
+      keep = std::move(resolved);
+    }
   }
   // roots: each root point picks the nearest end within reach; else the widest end
   std::map<int, int> root_of;  // component -> node

@@ -21,6 +21,7 @@ void validate(const VesselOptions& o) {
   need(std::isfinite(o.spur_ratio) && o.spur_ratio > 0, "spur_ratio must be > 0");
   need(std::isfinite(o.neck_ratio) && o.neck_ratio >= 0 && o.neck_ratio < 1, "neck_ratio must be in [0, 1)");
   need(std::isfinite(o.min_length_ratio) && o.min_length_ratio >= 0, "min_length_ratio must be >= 0");
+  need(std::isfinite(o.min_radius_voxels) && o.min_radius_voxels >= 0, "min_radius_voxels must be >= 0");
   need(std::isfinite(o.merge_ratio) && o.merge_ratio >= 0, "merge_ratio must be >= 0");
   need(std::isfinite(o.patch_gap) && o.patch_gap >= 0, "patch_gap must be >= 0");
   need(o.max_children >= 2 && o.max_children <= 4, "max_children must be in 2..4");
@@ -33,6 +34,7 @@ void validate(const VesselOptions& o) {
 std::string vessel_parameters_json(const VesselOptions& o) {
   nlohmann::json j = {{"tolerance_m", o.tolerance_m},     {"spur_ratio", o.spur_ratio},
                       {"neck_ratio", o.neck_ratio},       {"min_length_ratio", o.min_length_ratio},
+                      {"min_radius_voxels", o.min_radius_voxels},
                       {"merge_ratio", o.merge_ratio},     {"patch_gap", o.patch_gap},
                       {"max_children", o.max_children},   {"prune_excess_children", o.prune_excess_children},
                       {"ring_vertices", o.ring_vertices},
@@ -139,6 +141,7 @@ VesselResult extract_vessels(const Volume& v, const std::string& tissue, const V
   M.loops_broken = gs.loops;
   M.contacts_cut = gs.contacts;
   M.components_dropped = gs.dropped;
+  M.thin_components_dropped = gs.thin;
   M.cuts = gs.cuts;
   M.roots_used = gs.roots_used;
   if (f.branches.empty()) {

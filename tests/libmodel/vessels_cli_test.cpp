@@ -266,6 +266,8 @@ TEST(VesselsCli, BadInputIsOneLineExit2AndWritesNothing) {
   expect_error(test::run_cli("vessels" + labels + " --tissue artery --tolerance -1" + tail), "--tolerance");
   expect_error(test::run_cli("vessels" + labels + " --tissue artery --ring-vertices 10" + tail), "--ring-vertices");
   expect_error(test::run_cli("vessels" + labels + " --tissue artery --max-children 5" + tail), "--max-children");
+  expect_error(test::run_cli("vessels" + labels + " --tissue artery --min-radius-voxels -0.5" + tail), "--min-radius-voxels");
+  expect_error(test::run_cli("vessels" + labels + " --tissue artery --min-radius-voxels nan" + tail), "--min-radius-voxels");
   EXPECT_FALSE(fs::exists(model));
   EXPECT_FALSE(fs::exists(out));
 
