@@ -241,7 +241,7 @@ void add_remesh_command(CLI::App& app) {
       to.texel_m = a.texel_mm * 1e-3;
       to.depth_m = a.depth->count() > 0 ? a.depth_mm * 1e-3 : -1;
       tex = bake_texture(in[0].surface, r.sweep, o.around, o.arc_window, st, to, names[0]);
-      report.metrics()["texture"] = {{"width", tex.width}, {"height", tex.height}, {"outside", tex.outside}};
+      report.metrics()["texture"] = {{"width", tex.width}, {"height", tex.height}, {"outside", tex.outside}, {"side_loops", tex.side_loops}};
       // a texture sampled off the stack is one flat colour (an --origin of
       // 1000 mm wrote it, exit 0, nothing said): refused when all of it is,
       // said when much of it is
@@ -307,6 +307,7 @@ void add_remesh_command(CLI::App& app) {
                   {"cap_inset_m", {r.sweep.cap_inset_m[0], r.sweep.cap_inset_m[1]}},
                   {"plane_turn", r.sweep.plane_turn},
                   {"normal_window_m", r.sweep.normal_window_m},
+                  {"side_loops", r.side_loops},
                   {"stations_m", std::vector<double>(r.stations_m.data(), r.stations_m.data() + r.stations_m.size())}};
     // wall time of remesh's own phases; check (topology, containment) and
     // axis (axis, sweep, stations) overlap

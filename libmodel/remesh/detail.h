@@ -88,8 +88,18 @@ int winding(const Loop& l, const Eigen::Vector2d& x);
 // Largest t >= 0 with o + t w on the loop (plane frame), or -1 when the ray misses.
 double ray_hit(const Loop& l, const Eigen::Vector2d& o, const Eigen::Vector2d& w);
 
-// The loop of a ring plane that the sweep follows: the only loop, winding
-// around the centre. Throws Error(name, "not tube-like: ...") otherwise.
+// Side loops a ring plane may cut beside the tube's own, each at most this
+// share of the tube loop's area: noise on the surface (a bump of a few
+// voxels that folds back along the axis). For a limb 30 or more voxels
+// across (a cross-section of 700 voxels or more) it is under a voxel's area,
+// detail the data cannot hold; a branch (a second limb) or a fold of slices
+// off each other is far larger and is still refused.
+inline constexpr double kSideLoopAreaRatio = 1e-3;
+
+// The loop of a ring plane that the sweep follows: the one loop winding
+// around the centre, where every other loop (none winding around it) is a
+// side loop of at most kSideLoopAreaRatio of its area. Throws Error(name,
+// "not tube-like: ...") otherwise.
 const Loop& tube_loop(const std::vector<Loop>& loops, const std::string& name, double s, double length);
 
 // Points of a ring at fractions u (sorted, in [0, 1)): equal arc length from

@@ -21,6 +21,7 @@
 #include <optional>
 #include <numeric>
 #include <sstream>
+#include <iomanip>
 
 namespace orthosim {
 
@@ -482,13 +483,27 @@ namespace remesh_detail {
 const Loop& tube_loop(const std::vector<Loop>& loops, const std::string& name, double s, double length) {
   const std::string where = "the ring plane at " + mm(s) + " of " + mm(length) + " along the axis";
   if (loops.empty()) throw Error(name, "not tube-like: " + where + " misses the surface");
-  if (loops.size() > 1)
-    throw Error(name, "not tube-like: " + where + " cuts the surface in " + std::to_string(loops.size()) +
-                          " loops (branching, folded or ring-shaped surface, or jagged by slices off each other: segment "
-                          "--register); remesh needs a single tube");
-  if (remesh_detail::winding(loops[0], Vec2(0, 0)) == 0)
-    throw Error(name, "not tube-like: the axis leaves the surface at " + where);
-  return loops[0];
+  if (loops.size() == 1) {
+    if (remesh_detail::winding(loops[0], Vec2(0, 0)) == 0)
+      throw Error(name, "not tube-like: the axis leaves the surface at " + where);
+    return loops[0];
+  }
+  // several: the one around the axis, when the others are side loops
+  const Loop* tube = nullptr;
+  int around = 0;
+  for (const Loop& l : loops)
+    if (remesh_detail::winding(l, Vec2(0, 0)) != 0) tube = &l, ++around;
+  double side = 0;  // the largest other loop's area
+  for (const Loop& l : loops)
+    if (&l != tube) side = std::max(side, std::abs(l.area));
+  if (around == 1 && side <= kSideLoopAreaRatio * std::abs(tube->area)) return *tube;
+  std::ostringstream share;
+  if (around == 1) share << ", the largest beside the tube's " << std::setprecision(2) << 100 * side / std::abs(tube->area)
+                         << " % of its area";
+  throw Error(name, "not tube-like: " + where + " cuts the surface in " + std::to_string(loops.size()) + " loops (" +
+                        std::to_string(around) + " around the axis" + share.str() +
+                        "; branching, folded or ring-shaped surface, or jagged by slices off each other: segment "
+                        "--register); remesh needs a single tube");
 }
 
 // Points of a ring at fractions u (sorted, in [0, 1)): equal arc length from
@@ -1582,15 +1597,18 @@ RemeshResult remesh_layers(const std::vector<NamedSurface>& layers, const Remesh
   // correspondences). The target of every layer in every ring is kept: it is
   // the bound for the envelope of the layer below.
   std::vector<std::vector<Vec2>> prev_target(nv);  // layer k-1's section in ring j (plane frame), empty if filled
+  std::vector<std::int64_t> side(static_cast<std::size_t>(nv), 0);  // side loops left out, per ring
   each_ring([&](int j) {
     const auto loops = slicers[0]->slice(planes[j]);
     const Loop& l = tube_loop(loops, layers[0].name, res.stations_m(j), L);
+    side[static_cast<std::size_t>(j)] = static_cast<std::int64_t>(loops.size()) - 1;
     std::vector<Vec3> ring;
     sample_loop(l, planes[j], o.around, o.arc_window, u, ring, nullptr, layers[0].name);
     std::copy(ring.begin(), ring.end(), pts[0].begin() + static_cast<std::ptrdiff_t>(j) * nu);
     prev_target[j] = l.q;
   });
   res.stats[0].hit = static_cast<std::int64_t>(nu) * nv;
+  res.side_loops = std::accumulate(side.begin(), side.end(), std::int64_t{0});
   for (int k = 1; k < nl; ++k) {
     const std::string& name = layers[k].name;
     std::vector<char> has(nv, 0);

@@ -167,6 +167,9 @@ struct RemeshResult {
   std::vector<QuadSurface> layers;  // [0] the outer surface, then the inner ones in order
   std::vector<LayerStats> stats;    // one per layer
   VecXd stations_m;                 // (nv) arc length of each ring along the sweep
+  // loops the outer surface's ring planes cut beside the tube's own, left out
+  // as noise (each under remesh_detail::kSideLoopAreaRatio of its ring's area)
+  std::int64_t side_loops = 0;
   MatX3d ring_centre;               // (nv x 3) centre of each ring plane (on the axis)
   MatX3d ring_normal;               // (nv x 3)
   std::vector<MatX3d> ray_origin;   // per layer (nv x 3): origin of the rays of each ring (layer 0: the ring centres)

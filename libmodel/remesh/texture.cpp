@@ -110,6 +110,7 @@ TextureImage bake_texture(const Surface& outer, const TubeSweep& sweep, RingSamp
     const auto loops = sl.slice(pl);
     remesh_detail::sample_loop(remesh_detail::tube_loop(loops, name, s, sweep.length_m), pl, around, arc_window, u, pts, &inward,
                                name);
+    t.side_loops += static_cast<std::int64_t>(loops.size()) - 1;
     for (int a = 0; a < t.width; ++a) {
       const Vec3 p = pts[a] + depth * inward[a];
       double f[3];

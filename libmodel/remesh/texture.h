@@ -42,6 +42,7 @@ struct TextureImage {
   int width = 0, height = 0;
   std::vector<std::uint8_t> rgb;  // height * width * 3, row-major, RGB; row 0 is the start of the axis (v = 0)
   std::int64_t outside = 0;       // texels whose sample point fell outside the stack (clamped)
+  std::int64_t side_loops = 0;    // loops beside the tube's own in the texel rows' planes, left out (noise)
 };
 
 // Texel (a, b) holds the stack colour (trilinear) at the surface point at arc
