@@ -393,8 +393,8 @@ void add_surface_command(CLI::App& app) {
                                         " component(s))"
                                   : std::string())
                   << ": noise or misclassified voxels in the labels (the segment report's Dice), a tissue only a "
-                     "few voxels thin at this spacing, or slices off each other (segment --register); remesh needs "
-                     "layers without handles\n";
+                     "few voxels thin at this spacing, or slices off each other (segment --register); remesh refuses "
+                     "handles in the outermost layer (the skin)\n";
     }
     if (!a.common.quiet) {
       std::cout << std::fixed;
