@@ -409,11 +409,8 @@ SceneDef parse_scene(const std::string& text, const std::string& file) {
       s.fail("cg_tolerance must be a finite number in (0, 1) (got " + fmt(d.solver.cg_tolerance) + ")");
     d.solver.cg_max_iterations = static_cast<int>(s.integer("cg_max_iterations", d.solver.cg_max_iterations, 1, 100000));
     const std::string pc = s.string("preconditioner", "auto");
-    if (pc == "block_jacobi") d.solver.preconditioner = Preconditioner::block_jacobi;
-    else if (pc == "jacobi") d.solver.preconditioner = Preconditioner::jacobi;
-    else if (pc == "cholesky") d.solver.preconditioner = Preconditioner::cholesky;
-    else if (pc == "auto") d.solver.preconditioner = Preconditioner::automatic;
-    else s.fail("preconditioner must be auto, cholesky, block_jacobi or jacobi (got '" + pc + "')");
+    if (!parse_preconditioner(pc, d.solver.preconditioner))
+      s.fail("preconditioner must be auto, cholesky, block_jacobi or jacobi (got '" + pc + "')");
     d.solver.refactor_after = static_cast<int>(s.integer("refactor_after", d.solver.refactor_after, 1, 100000));
     d.solver.warm_start = s.boolean("warm_start", true);
     d.solver.redo_unconverged = s.boolean("redo_unconverged", true);

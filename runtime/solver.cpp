@@ -23,6 +23,15 @@ const char* to_string(Preconditioner p) {
   }
   return "?";
 }
+bool parse_preconditioner(std::string_view s, Preconditioner& p) {
+  for (const Preconditioner q : {Preconditioner::automatic, Preconditioner::cholesky, Preconditioner::block_jacobi,
+                                 Preconditioner::jacobi})
+    if (s == to_string(q)) {
+      p = q;
+      return true;
+    }
+  return false;
+}
 
 // The cholesky preconditioner: an LDL^T factor (Eigen's SimplicialLDLT, AMD
 // ordering) of the implicit matrix M + h C + h^2 K on the free nodes, the

@@ -43,6 +43,7 @@
 
 #include <array>
 #include <string>
+#include <string_view>
 
 namespace orthosim::runtime {
 
@@ -61,6 +62,8 @@ enum class Preconditioner { jacobi, block_jacobi, cholesky, automatic };
 
 const char* to_string(Integrator i);         // "symplectic" | "implicit"
 const char* to_string(Preconditioner p);     // "jacobi" | "block_jacobi" | "cholesky" | "auto"
+// The preconditioner to_string names s; false (p unchanged) for any other name.
+bool parse_preconditioner(std::string_view s, Preconditioner& p);
 
 struct SolverOptions {
   Integrator integrator = Integrator::symplectic_euler;

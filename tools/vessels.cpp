@@ -131,7 +131,6 @@ void add_vessels_command(CLI::App& app) {
   sub->add_option("--min-radius-voxels", a.min_radius_voxels,
                   "drop as noise a piece of vessel label whose largest inscribed radius is below this many of the "
                   "smallest voxel spacing where a thicker piece exists (0.75: nowhere more than 2 voxels across), >= 0 (0: keep them)")
-      ->check(CLI::NonNegativeNumber)
       ->capture_default_str();
   sub->add_flag("--refuse-excess-children", a.refuse_excess_children,
                 "refuse a junction with more children instead of dropping its shortest leaf children");

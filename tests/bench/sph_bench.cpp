@@ -884,12 +884,8 @@ int main(int argc, char** argv) {
       knobs.sound_speed = number(a + 14);
       if (!(knobs.sound_speed > 0 && knobs.sound_speed <= 1e3)) return usage_error("--sound-speed must be a number in (0, 1000] (m/s)", a + 14);
     } else if (std::strncmp(a, "--preconditioner=", 17) == 0) {
-      const std::string v = a + 17;
-      if (v == "auto") knobs.preconditioner = rt::Preconditioner::automatic;
-      else if (v == "cholesky") knobs.preconditioner = rt::Preconditioner::cholesky;
-      else if (v == "block_jacobi") knobs.preconditioner = rt::Preconditioner::block_jacobi;
-      else if (v == "jacobi") knobs.preconditioner = rt::Preconditioner::jacobi;
-      else return usage_error("--preconditioner must be auto, cholesky, block_jacobi or jacobi", a + 17);
+      if (!rt::parse_preconditioner(a + 17, knobs.preconditioner))
+        return usage_error("--preconditioner must be auto, cholesky, block_jacobi or jacobi", a + 17);
     } else if (std::strcmp(a, "--requery") == 0) {
       knobs.reuse_contacts = false;
     } else if (std::strcmp(a, "--full") == 0) {

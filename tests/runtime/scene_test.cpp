@@ -141,6 +141,8 @@ TEST_F(SceneTest, BadScenesAreOneLineErrorsBeforeAnyStep) {
       // 1 passed the scene's range and the solver refused it without the prefix
       {R"({"model": "model.h5", "integrator": "implicit", "implicit": {"cg_tolerance": 1}})",
        "implicit: cg_tolerance must be a finite number in (0, 1)"},
+      {R"({"model": "model.h5", "integrator": "implicit", "implicit": {"preconditioner": "ilu"}})",
+       "implicit: preconditioner must be auto, cholesky, block_jacobi or jacobi (got 'ilu')"},
       // settings the integrator ignores, names twice, output names that broke the series
       // (all accepted until 2026-11-27)
       {R"({"model": "model.h5", "implicit": {"cg_tolerance": 1e-4}})",
