@@ -104,6 +104,7 @@ void add_vessels_command(CLI::App& app) {
     std::vector<std::string> tissues, roots;
     double tolerance_mm = 0;
     double min_radius_voxels = VesselOptions{}.min_radius_voxels;
+    double spur_ratio = VesselOptions{}.spur_ratio;
     int ring_vertices = 24, threads = 0, max_children = 3;
     bool no_self_intersection_check = false, refuse_excess_children = false, skip_unformed = false;
     CommonOptions common;
@@ -132,6 +133,10 @@ void add_vessels_command(CLI::App& app) {
                   "drop as noise a piece of vessel label whose largest inscribed radius is below this many of the "
                   "smallest voxel spacing where a thicker piece exists (0.75: nowhere more than 2 voxels across), >= 0 (0: keep them)")
       ->capture_default_str();
+  sub->add_option("--spur-ratio", a.spur_ratio,
+                  "remove as a spur a skeleton branch from a junction to an end that is shorter than this many inscribed "
+                  "radii at its junction (raise it for noisy labels: docs/vessels.md), > 0")
+      ->capture_default_str();
   sub->add_flag("--refuse-excess-children", a.refuse_excess_children,
                 "refuse a junction with more children instead of dropping its shortest leaf children");
   sub->add_flag("--skip-unformed", a.skip_unformed,
@@ -152,6 +157,8 @@ void add_vessels_command(CLI::App& app) {
     if (!std::isfinite(a.min_radius_voxels) || a.min_radius_voxels < 0)
       throw UsageError("--min-radius-voxels: must be a number >= 0");
     o.min_radius_voxels = a.min_radius_voxels;
+    if (!std::isfinite(a.spur_ratio) || !(a.spur_ratio > 0)) throw UsageError("--spur-ratio: must be a number > 0");
+    o.spur_ratio = a.spur_ratio;
     o.prune_excess_children = !a.refuse_excess_children;
     o.check_self_intersections = !a.no_self_intersection_check;
     for (const std::string& r : a.roots) {

@@ -268,6 +268,8 @@ TEST(VesselsCli, BadInputIsOneLineExit2AndWritesNothing) {
   expect_error(test::run_cli("vessels" + labels + " --tissue artery --max-children 5" + tail), "--max-children");
   expect_error(test::run_cli("vessels" + labels + " --tissue artery --min-radius-voxels -0.5" + tail), "--min-radius-voxels");
   expect_error(test::run_cli("vessels" + labels + " --tissue artery --min-radius-voxels nan" + tail), "--min-radius-voxels");
+  expect_error(test::run_cli("vessels" + labels + " --tissue artery --spur-ratio 0" + tail), "--spur-ratio");
+  expect_error(test::run_cli("vessels" + labels + " --tissue artery --spur-ratio nan" + tail), "--spur-ratio");
   EXPECT_FALSE(fs::exists(model));
   EXPECT_FALSE(fs::exists(out));
 
