@@ -493,12 +493,14 @@ CutReport cut_model(Model& m, std::span<const Real> x, const CutDef& def, WoundC
     for (std::int32_t t = t0; t < t1; ++t, ++tkeep) {
       std::copy_n(&m.tet[4 * static_cast<std::size_t>(t)], 4, &m.tet[4 * tkeep]);
       m.tet_k[tkeep] = m.tet_k[static_cast<std::size_t>(t)];
+      m.tet_guard[tkeep] = m.tet_guard[static_cast<std::size_t>(t)];
     }
     first.push_back(static_cast<std::int32_t>(tkeep));
   }
   rep.tets_cut = m.n_tets - static_cast<std::int32_t>(tkeep);
   m.tet.resize(4 * tkeep);
   m.tet_k.resize(tkeep);
+  m.tet_guard.resize(tkeep);
   m.tet_group_first = std::move(first);
   m.n_tets = static_cast<std::int32_t>(tkeep);
 

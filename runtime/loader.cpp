@@ -87,10 +87,12 @@ Model load_model(const ModelReader& r, const LoadRequest& req) {
   for (const auto& name : wanted) {
     const std::string g = "/layers/" + name;
     Layer l = r.layer_fields(name, fields);
-    // the volume term's tetrahedra (a layer with a volume_modulus)
-    if (l.volume_modulus > 0) {
+    // the tetrahedra of the volume term and the inversion guard (a layer with
+    // a volume_modulus or a guard_modulus)
+    if (l.volume_modulus > 0 || l.guard_modulus > 0) {
       if (f.exists(g + "/tets")) l.tets = r.layer_fields(name, {"tets"}).tets;
-      if (l.tets.rows() == 0) throw Error(path, g + " has a volume_modulus but no tets");
+      if (l.tets.rows() == 0)
+        throw Error(path, g + " has a " + (l.volume_modulus > 0 ? "volume_modulus" : "guard_modulus") + " but no tets");
       check_index_range(l.tets, n_global, path, g + "/tets");
     }
     check_index_range(l.lin_springs, n_global, path, g + "/lin_springs");

@@ -4,7 +4,7 @@
 // - for each requested layer: nodes, masses and the linear decomposition
 //   lin_springs, lin_rest_length, lin_k, lin_damping, lin_slack; quads only
 //   when `surface` is set (the scene writes surfaces); tets when the layer
-//   has a volume_modulus (its volume term, Model::tet);
+//   has a volume_modulus or a guard_modulus (its volume term and inversion guard, Model::tet);
 // - the requested node sets /layers/sets/<name>;
 // - the requested vessels (nodes, radii, edges of /vessels/<name>);
 // - with `couple_unloaded`, the lin_springs index array of every other layer

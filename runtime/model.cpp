@@ -130,6 +130,8 @@ void Model::finalize() {
   if (n_tets < 0 || tet.size() != 4 * static_cast<std::size_t>(n_tets) || tet_k.size() != static_cast<std::size_t>(n_tets))
     throw Error("", "model: tetrahedron arrays do not match n_tets");
   const auto nt = static_cast<std::size_t>(n_tets);
+  if (tet_guard.empty()) tet_guard.assign(nt, 0);
+  if (tet_guard.size() != nt) throw Error("", "model: tetrahedron guard ratios do not match n_tets");
   if (tet_group_first.empty()) {
     tet_group_first.resize(nt + 1);
     std::iota(tet_group_first.begin(), tet_group_first.end(), 0);
@@ -152,6 +154,8 @@ void Model::finalize() {
       }
       if (!(finite_nonneg(tet_k[t]) && tet_k[t] < 1e15) || tet_k[t] != tet_k[tet_group_first[g]])
         throw Error("", "model: tetrahedron " + std::to_string(t) + " has a negative or non-finite volume modulus, or not its group's");
+      if (!(tet_guard[t] >= 0 && tet_guard[t] < 1) || tet_guard[t] != tet_guard[tet_group_first[g]])
+        throw Error("", "model: tetrahedron " + std::to_string(t) + " has a guard ratio outside [0, 1), or not its group's");
       const Real v = tet_gradient(load3(rest_x.data(), c[0]), load3(rest_x.data(), c[1]), load3(rest_x.data(), c[2]),
                                   load3(rest_x.data(), c[3])).volume;
       if (!std::isfinite(v)) throw Error("", "model: tetrahedron " + std::to_string(t) + " has a non-finite volume");
@@ -336,30 +340,41 @@ Model assemble_model(const ModelSource& src) {
     append_springs(l, file, "/layers/" + name, is_loaded, to_local, m);
   }
   append_springs(src.extra_springs, file, "springs of unloaded layers", is_loaded, to_local, m);
-  // the volume term's groups of tetrahedra (volume_group each), where every
-  // corner is in the model and one is loaded
+  // the volume term's groups of tetrahedra (volume_group each), then the
+  // inversion guard's (one tetrahedron each), where every corner is in the
+  // model and one is loaded
   m.tet_group_first.assign(1, 0);
-  for (std::size_t li : layer_order) {
-    const auto& [name, l] = src.layers[li];
-    if (!(l.volume_modulus > 0)) continue;
-    const Eigen::Index G = std::max(1, l.volume_group);
-    if (l.tets.rows() % G != 0)
-      throw Error(file, "/layers/" + name + ": " + std::to_string(l.tets.rows()) + " tets are not groups of volume_group " +
-                            std::to_string(G));
+  auto add_groups = [&](const Layer& l, Eigen::Index G, Real k, Real guard) {
     for (Eigen::Index t0 = 0; t0 < l.tets.rows(); t0 += G) {
       std::vector<std::int32_t> c;
       bool any = false, all = true;
       for (Eigen::Index t = t0; t < t0 + G && all; ++t)
-        for (int k = 0; k < 4; ++k) {
-          any = any || is_loaded(l.tets(t, k));
-          auto it = local.find(l.tets(t, k));
+        for (int q = 0; q < 4; ++q) {
+          any = any || is_loaded(l.tets(t, q));
+          auto it = local.find(l.tets(t, q));
           all = all && it != local.end();
           c.push_back(all ? it->second : -1);
         }
       if (!any || !all) continue;
       m.tet.insert(m.tet.end(), c.begin(), c.end());
-      m.tet_k.insert(m.tet_k.end(), static_cast<std::size_t>(G), l.volume_modulus);
+      m.tet_k.insert(m.tet_k.end(), static_cast<std::size_t>(G), k);
+      m.tet_guard.insert(m.tet_guard.end(), static_cast<std::size_t>(G), guard);
       m.tet_group_first.push_back(static_cast<std::int32_t>(m.tet_k.size()));
+    }
+  };
+  for (std::size_t li : layer_order) {
+    const auto& [name, l] = src.layers[li];
+    if (l.volume_modulus > 0) {
+      const Eigen::Index G = std::max(1, l.volume_group);
+      if (l.tets.rows() % G != 0)
+        throw Error(file, "/layers/" + name + ": " + std::to_string(l.tets.rows()) +
+                              " tets are not groups of volume_group " + std::to_string(G));
+      add_groups(l, G, l.volume_modulus, 0);
+    }
+    if (l.guard_modulus > 0) {
+      if (!(l.guard_ratio > 0 && l.guard_ratio < 1))
+        throw Error(file, "/layers/" + name + ": guard_ratio must be in (0, 1)");
+      add_groups(l, 1, l.guard_modulus, l.guard_ratio);
     }
   }
   m.n_tets = static_cast<std::int32_t>(m.tet_k.size());

@@ -90,6 +90,10 @@ struct Model {
   std::int32_t n_tets = 0;
   std::vector<std::int32_t> tet;             // (n_tets x 4) local ids
   std::vector<Real> tet_k;                   // (n_tets) Pa, the volume modulus k of the tetrahedron's group
+  // (n_tets; empty: all 0, finalize fills it) the group's guard ratio a: 0 for
+  // the two-sided term above; in (0, 1) for an inversion guard, one-sided:
+  // (k/2) min(0, V - a V0)^2 / |V0| (Layer::guard_modulus, guard_ratio)
+  std::vector<Real> tet_guard;
   std::vector<std::int32_t> tet_group_first; // (n_groups + 1) each group's tetrahedra, consecutive; empty: one group each (finalize fills it)
   std::int32_t n_groups = 0;                 // (built by finalize from here on)
   std::vector<std::int32_t> tet_group;       // (n_tets) the group of each tetrahedron
@@ -159,7 +163,7 @@ struct Model {
 // that reach loaded nodes.
 struct ModelSource {
   std::string file;  // for error messages
-  std::vector<std::pair<std::string, Layer>> layers;  // needs nodes, masses, lin_*; quads optional; tets where volume_modulus > 0 (groups of volume_group)
+  std::vector<std::pair<std::string, Layer>> layers;  // needs nodes, masses, lin_*; quads optional; tets where volume_modulus > 0 (groups of volume_group) or guard_modulus > 0
   std::map<std::int32_t, std::array<Real, 3>> anchor_positions;  // global id -> rest position
   Layer extra_springs;  // lin_* of unloaded layers' springs that reach loaded nodes
   std::map<std::string, VecXi> node_sets;  // global ids

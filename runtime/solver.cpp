@@ -197,7 +197,9 @@ Real move_kinematic(State& s, Real t1, Real h) {
 // corners' dV/dx (tet_g), the group's pressure k (V - V0)/|V0| (tet_p of each
 // of its tetrahedra) and h2 k/|V0| (tet_c, for the implicit matrix); returns
 // the energy sum (k/2)(V - V0)^2/|V0|, added per chunk of groups in chunk
-// order (the same for any thread count).
+// order (the same for any thread count). An inversion guard's group (guard
+// ratio a > 0) has V - a V0 in place of V - V0 where that is negative, and
+// neither pressure nor stiffness above it.
 Real tet_pass(const Model& m, State& s, Real h2) {
   if (m.n_tets == 0) return 0;
   Scratch& sc = s.scratch;
@@ -215,10 +217,13 @@ Real tet_pass(const Model& m, State& s, Real h2) {
         V += G.volume;
       }
       const Real v0 = m.group_rest_volume[static_cast<std::size_t>(g)], k = m.tet_k[t0], av0 = std::abs(v0);
-      const Real strain = (V - v0) / av0;
+      // a guard: sgn V below a |V0|, sgn the sign of V0 (a tetrahedron at rest is either way round)
+      const Real a = m.tet_guard[t0], sgn = v0 > 0 ? 1 : -1;
+      const Real strain = a > 0 ? sgn * std::min<Real>(0, (sgn * V - a * av0) / av0) : (V - v0) / av0;
+      const Real c = a > 0 && strain == 0 ? 0 : h2 * k / av0;
       for (std::int32_t t = t0; t < t1; ++t) {
         sc.tet_p[t] = k * strain;
-        sc.tet_c[t] = h2 * k / av0;
+        sc.tet_c[t] = c;
       }
       u += Real(0.5) * k * av0 * strain * strain;
     }
@@ -404,6 +409,10 @@ Real apply_matrix(const Model& m, State& s, const Real* p, const Real* z, Real b
     for_tet_chunks(m, [&](int ch) {
       for (std::int32_t g = ch * m.tet_chunk, ge = std::min(m.n_groups, (ch + 1) * m.tet_chunk); g < ge; ++g) {
         const std::int32_t t0 = m.tet_group_first[g], t1 = m.tet_group_first[g + 1];
+        if (sc.tet_c[t0] == 0) {  // an inversion guard above its ratio
+          for (std::int32_t t = t0; t < t1; ++t) sc.tet_s[t] = 0;
+          continue;
+        }
         Real gp = 0;
         for (std::int32_t t = t0; t < t1; ++t) {
           const std::int32_t* c = &m.tet[4 * static_cast<std::size_t>(t)];
@@ -1078,8 +1087,9 @@ Energies energies(const Model& m, const State& s, const SolverOptions& o) {
       const std::int32_t* c = &m.tet[4 * static_cast<std::size_t>(t)];
       V += tet_gradient(load3(s.x.data(), c[0]), load3(s.x.data(), c[1]), load3(s.x.data(), c[2]), load3(s.x.data(), c[3])).volume;
     }
-    const Real v0 = m.group_rest_volume[static_cast<std::size_t>(g)];
-    e.elastic += Real(0.5) * m.tet_k[m.tet_group_first[g]] * (V - v0) * (V - v0) / std::abs(v0);
+    const Real v0 = m.group_rest_volume[static_cast<std::size_t>(g)], a = m.tet_guard[m.tet_group_first[g]];
+    const Real d = a > 0 ? std::min<Real>(0, (v0 > 0 ? V : -V) - a * std::abs(v0)) : V - v0;
+    e.elastic += Real(0.5) * m.tet_k[m.tet_group_first[g]] * d * d / std::abs(v0);
   }
   return e;
 }

@@ -59,6 +59,8 @@ json report_json(const msm::BuildReport& r) {
       e["zero_stiffness_dropped"] = l.zero_stiffness_dropped;
       e["volume_modulus_pa"] = l.volume_modulus_pa;
       e["volume_group"] = l.volume_group;
+      e["guard_modulus_pa"] = l.guard_modulus_pa;
+      e["guard_ratio"] = l.guard_ratio;
       e["springs_by_class"] = l.springs_by_class;
       e["k1_pa"] = l.k1_pa;
       e["k2_pa"] = l.k2_pa;
@@ -122,6 +124,10 @@ void add_build_command(CLI::App& app) {
   sub->add_option("--poisson-ratio", opt.poisson_ratio,
                   "Poisson's ratio of the layers, in [0.25, 0.5): a volume term per tetrahedron of a tetra layer, and "
                   "with --lattice-volume-term per hexahedron of a lattice layer (0.25: none; docs/msm.md, The volume term)")
+      ->capture_default_str();
+  sub->add_option("--inversion-guard", opt.inversion_guard,
+                  "every tetrahedron of a layer resists being pressed below this fraction of its rest volume with the "
+                  "tissue's bulk modulus, in [0, 1) (0: none; docs/msm.md, The inversion guard)")
       ->capture_default_str();
   sub->add_flag("--lattice-volume-term", opt.lattice_volume_term,
                 "give the lattice layers a volume term per hexahedron too (off: in cells far from cubes it buckles the "

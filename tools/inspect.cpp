@@ -96,7 +96,7 @@ json summarise(const ModelReader& m) {
     for (const auto& name : m.names(g)) {
       const std::string p = g + "/" + name;
       if (!m.h5().is_group(p)) continue;
-      json e = group_attrs(m, p, {"tissue", "kind", "order", "node_offset", "volume_modulus", "volume_group", "nu", "nv", "method", "psi",
+      json e = group_attrs(m, p, {"tissue", "kind", "order", "node_offset", "volume_modulus", "volume_group", "guard_modulus", "guard_ratio", "nu", "nv", "method", "psi",
                                   "evaluations", "seed", "seconds"});
       for (const auto& ds : m.h5().children(p))
         if (!m.h5().is_group(p + "/" + ds)) e["n_" + ds] = m.h5().dims(p + "/" + ds)[0];

@@ -74,6 +74,7 @@ struct Args {
   int bit_depth = 16;     // segment's --bit-depth (significant bits of 16-bit slices)
   double poisson_ratio = msm::BuildOptions{}.poisson_ratio;  // build's --poisson-ratio (the layers' volume term)
   bool lattice_volume_term = false;                          // build's --lattice-volume-term
+  double inversion_guard = msm::BuildOptions{}.inversion_guard;  // build's --inversion-guard
   bool axis_correction = true;                               // build's axis correction (--no-axis-correction: off)
   CommonOptions common;
 };
@@ -379,7 +380,7 @@ int run_stages(Args a, Report& report) {
   report.input(a.stack);
   report.input(a.tissues);
   if (!a.scene.empty()) report.input(a.scene);
-  report.parameters() = {{"grid", a.grid}, {"through_cells", a.through_cells}, {"poisson_ratio", a.poisson_ratio}, {"lattice_volume_term", a.lattice_volume_term}, {"axis_correction", a.axis_correction}, {"bit_depth", a.bit_depth}, {"spacing_mm", a.spacing}, {"origin_mm", a.origin},
+  report.parameters() = {{"grid", a.grid}, {"through_cells", a.through_cells}, {"poisson_ratio", a.poisson_ratio}, {"lattice_volume_term", a.lattice_volume_term}, {"inversion_guard", a.inversion_guard}, {"axis_correction", a.axis_correction}, {"bit_depth", a.bit_depth}, {"spacing_mm", a.spacing}, {"origin_mm", a.origin},
                          {"work", a.work}, {"texture", a.texture}, {"tune", a.tune},
                          {"tune_budget_s", a.tune_budget_s}, {"tune_evaluations", a.tune_evaluations}, {"seed", a.seed}, {"export", a.export_dir}};
 
@@ -644,10 +645,11 @@ int run_stages(Args a, Report& report) {
     const auto bld = run.stage(
         "build", {rem.key, table_hash, "through-cells " + std::to_string(a.through_cells), "poisson-ratio " + exact(a.poisson_ratio),
                   a.lattice_volume_term ? "lattice-volume-term" : "no-lattice-volume-term",
-                  a.axis_correction ? "axis-correction" : "no-axis-correction"},
+                  a.axis_correction ? "axis-correction" : "no-axis-correction", "inversion-guard " + exact(a.inversion_guard)},
         run.command([&](const std::string& d) {
           std::vector<std::string> args{"build", "--model", d + "/model.h5", "--tissues", a.tissues, "--through-cells",
-                                        std::to_string(a.through_cells), "--poisson-ratio", exact(a.poisson_ratio)};
+                                        std::to_string(a.through_cells), "--poisson-ratio", exact(a.poisson_ratio),
+                                        "--inversion-guard", exact(a.inversion_guard)};
           if (a.lattice_volume_term) args.push_back("--lattice-volume-term");
           if (!a.axis_correction) args.push_back("--no-axis-correction");
           return args;
@@ -838,6 +840,18 @@ void add_pipeline_command(CLI::App& app) {
       ->capture_default_str();
   sub->add_flag("--lattice-volume-term", a.lattice_volume_term,
                 "build's: a volume term per hexahedron of the lattice layers too (docs/msm.md, The volume term)");
+  sub->add_option("--inversion-guard", a.inversion_guard,
+                  "build's: the fraction of its rest volume below which a tetrahedron resists with the bulk modulus, "
+                  "[0, 1) (0: none; docs/msm.md, The inversion guard)")
+      ->check([](const std::string& v) -> std::string {
+        try {
+          const double x = std::stod(v);
+          return x >= 0 && x < 1 ? "" : "must be in [0, 1)";
+        } catch (...) {
+          return "must be a number in [0, 1)";
+        }
+      })
+      ->capture_default_str();
   sub->add_flag("!--no-axis-correction", a.axis_correction,
                 "build's: leave each layer's rule as it is, no equal Young's moduli along u, v and through (docs/msm.md)");
   sub->add_option("--work", a.work, "cache folder (default: <out>.work)");

@@ -253,6 +253,16 @@ void read_layer_attrs(const h5::File& f, const std::string& g, Layer& l) {
     if (n < 1 || n > 64) throw Error(f.path(), g + ": attribute volume_group must be in 1..64");
     l.volume_group = static_cast<int>(n);
   }
+  if (f.has_attr(g, "guard_modulus")) {
+    const auto v = f.attr_doubles(g, "guard_modulus");
+    if (v.size() != 1 || !(std::isfinite(v[0]) && v[0] >= 0 && v[0] < 1e15))
+      throw Error(f.path(), g + ": attribute guard_modulus must be one finite value >= 0 (Pa)");
+    l.guard_modulus = v[0];
+    const auto r = f.has_attr(g, "guard_ratio") ? f.attr_doubles(g, "guard_ratio") : std::vector<double>{};
+    if (l.guard_modulus > 0 && (r.size() != 1 || !(r[0] > 0 && r[0] < 1)))
+      throw Error(f.path(), g + ": attribute guard_ratio must be one value in (0, 1) where guard_modulus is set");
+    if (l.guard_modulus > 0) l.guard_ratio = r[0];
+  }
 }
 }  // namespace
 
@@ -382,6 +392,12 @@ void ModelWriter::write_layer(const std::string& name, const Layer& l) {
       throw Error(out_.target(), g + ": a volume_modulus needs tets in groups of volume_group (1..64)");
     file_->set_attr(g, "volume_modulus", std::vector<double>{l.volume_modulus});
     if (l.volume_group != 1) file_->set_attr(g, "volume_group", static_cast<std::int64_t>(l.volume_group));
+  }
+  if (l.guard_modulus > 0) {
+    if (!(l.guard_ratio > 0 && l.guard_ratio < 1) || l.tets.rows() == 0)
+      throw Error(out_.target(), g + ": a guard_modulus needs tets and a guard_ratio in (0, 1)");
+    file_->set_attr(g, "guard_modulus", std::vector<double>{l.guard_modulus});
+    file_->set_attr(g, "guard_ratio", std::vector<double>{l.guard_ratio});
   }
 }
 

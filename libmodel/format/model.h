@@ -119,7 +119,7 @@ struct Layer {
   VecXd lin_k;            // (n_lin) N/m
   VecXd lin_damping;      // (n_lin) N s/m
   VecXu8 lin_slack;       // (n_lin) 1: acts only when stretched beyond its rest length
-  MatX4i tets;            // (n_tets x 4) global node ids (tetra layers; lattice layers with a volume term: 6 per hexahedron)
+  MatX4i tets;            // (n_tets x 4) global node ids (tetra layers: 7 per prism; lattice layers with a volume term or the inversion guard: 6 per hexahedron)
   MatX4i quads;           // (n_quads x 4) global node ids of this layer's top surface
   // The law its springs follow, per spring class (structural, shear,
   // inter-layer, body) k1 Pa, turning strain, k2 Pa (12 values; every spring
@@ -142,6 +142,18 @@ struct Layer {
   // law's K1) and rescaled by tune with K1.
   double volume_modulus = 0;
   int volume_group = 1;
+  // The inversion guard (docs/msm.md, "The inversion guard"): each row of
+  // `tets`, of signed rest volume V0, adds (guard_modulus / 2)
+  // min(0, V - guard_ratio V0)^2 / |V0|: nothing until the tetrahedron has
+  // lost 1 - guard_ratio of its volume, then the tissue's bulk modulus
+  // against more, so a layer never turns inside out while the small-strain
+  // response the tables and the calibration see is the springs' and the
+  // volume term's alone. Pa; 0 = none (files written before 2026-11-28 (3),
+  // rigid layers, build's --inversion-guard 0). Attributes "guard_modulus"
+  // and "guard_ratio" (in (0, 1)) of the layer group; written by build (the
+  // bulk modulus K1 / (3 (1 - 2 nu))) and rescaled by tune with K1.
+  double guard_modulus = 0;
+  double guard_ratio = 0;
 
   template <class V> void fields(V&& v) {
     v(nodes, "nodes", "n_nodes", "m", "rest positions (n_nodes x 3)");

@@ -98,6 +98,7 @@ void validate_options(const BuildOptions& o) {
     throw Error("", "min_barycentric must be in [0, 1/3)");
   if (!(o.projection.max_distance_factor > 0)) throw Error("", "max_distance_factor must be > 0");
   if (!(o.poisson_ratio >= 0.25 && o.poisson_ratio < 0.5)) throw Error("", "poisson_ratio must be in [0.25, 0.5)");
+  if (!(o.inversion_guard >= 0 && o.inversion_guard < 1)) throw Error("", "inversion_guard must be in [0, 1) (0: none)");
 }
 
 }  // namespace
@@ -335,6 +336,7 @@ BuiltModel build_layers(const std::vector<std::pair<std::string, QuadSurface>>& 
       lo.inverted_ratio = o.inverted_ratio;
       lo.axis_correction = o.axis_correction;
       lo.volume_ratio = o.lattice_volume_term ? volume_ratio(o.poisson_ratio) : 0.0;
+      lo.tets = o.inversion_guard > 0;
       cells[l] = lattice_cells(top, bot, quads, blocks[l], lo);
     }
     casters[l].reset();
@@ -424,11 +426,20 @@ BuiltModel build_layers(const std::vector<std::pair<std::string, QuadSurface>>& 
     L.k2 = law.k2_pa * m.k_per_pa;
     L.turning_length = m.rest_length * (1 + law.turning_strain);
     for (int c = 0; c < 4; ++c) L.spring_law.insert(L.spring_law.end(), {law.k1_pa, law.turning_strain, law.k2_pa});
-    // the volume term: per tetrahedron of a tetra layer, per hexahedron (its 6
-    // tetrahedra) of a lattice layer
-    if (!cells[l].tets.empty() && volume_ratio(o.poisson_ratio) > 0) {
+    // the volume term: per tetrahedron of a tetra layer, per hexahedron (its
+    // 6 tetrahedra) of a lattice layer with lattice_volume_term; the
+    // inversion guard on every tetrahedron
+    if (!cells[l].tets.empty() && volume_ratio(o.poisson_ratio) > 0 &&
+        (specs[l].kind == "tetra" || o.lattice_volume_term)) {
       L.volume_modulus = volume_ratio(o.poisson_ratio) * law.k1_pa;
       L.volume_group = specs[l].kind == "lattice" ? 6 : 1;
+    }
+    // (not where each tetrahedron has a two-sided term of its own: a tetra
+    // layer at nu > 1/4, whose term resists from the rest volume down)
+    const bool own_term = L.volume_modulus > 0 && L.volume_group == 1;
+    if (!cells[l].tets.empty() && o.inversion_guard > 0 && !own_term) {
+      L.guard_modulus = bulk_ratio(o.poisson_ratio) * law.k1_pa;
+      L.guard_ratio = o.inversion_guard;
     }
     L.damping.resize(m.pairs.rows());
     for (Eigen::Index s = 0; s < m.pairs.rows(); ++s) {
@@ -534,6 +545,8 @@ BuiltModel build_layers(const std::vector<std::pair<std::string, QuadSurface>>& 
     lr.tets = L.tets.rows();
     lr.volume_modulus_pa = L.volume_modulus;
     lr.volume_group = L.volume_group;
+    lr.guard_modulus_pa = L.guard_modulus;
+    lr.guard_ratio = L.guard_ratio;
     const Tissue* t = tissues.find(L.tissue);
     lr.density_kg_m3 = t->density_kg_m3;
     if (l < nl) {
@@ -633,6 +646,7 @@ std::string build_parameters_json(const BuildOptions& o, const Stack& st) {
   j["check_intersections"] = o.check_intersections;
   j["axis_correction"] = o.axis_correction;
   j["poisson_ratio"] = o.poisson_ratio;
+  j["inversion_guard"] = o.inversion_guard;
   j["surfaces"] = st.surfaces;
   nlohmann::json layers = nlohmann::json::array();
   for (const auto& l : st.layers) layers.push_back(l.tissue + ":" + l.kind);

@@ -98,6 +98,13 @@ struct BuildOptions {
   // springs' weak shear under a few per cent of tension (docs/msm.md, "The
   // volume term": the demo's fat cells lose 29 % of their modulus at 3 %)
   bool lattice_volume_term = false;
+  // The inversion guard (Layer::guard_modulus, guard_ratio; docs/msm.md, "The
+  // inversion guard"), in (0, 1), 0: none. Every tetrahedron of every layer
+  // (a tetra layer's 14 per quad, a lattice layer's 6 per hexahedron) resists
+  // being pressed below this fraction of its rest volume with the tissue's
+  // bulk modulus K1 / (3 (1 - 2 nu)); above it the guard does nothing, so the
+  // moduli the axis correction and tune calibrate are not changed.
+  double inversion_guard = 0.5;
 };
 
 // Per-layer figures, in the report and in BENCHMARKS.md.
@@ -125,6 +132,8 @@ struct LayerReport {
   AxisCalibration axes;
   double volume_modulus_pa = 0;    // Layer::volume_modulus (0: none)
   int volume_group = 1;            // Layer::volume_group: tetrahedra per volume term (tetra 1, lattice 6)
+  double guard_modulus_pa = 0;     // Layer::guard_modulus (0: none)
+  double guard_ratio = 0;          // Layer::guard_ratio
 };
 
 struct BuildReport {

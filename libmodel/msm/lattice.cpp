@@ -258,7 +258,7 @@ LayerCells lattice_cells(const MatX3d& top, const MatX3d& bottom, const MatX4i& 
   std::vector<std::array<double, 3>> moduli(static_cast<std::size_t>(ncell), {0, 0, 0});
   std::vector<std::array<double, 3>> shears(static_cast<std::size_t>(ncell), {0, 0, 0});
   std::vector<char> ruled(static_cast<std::size_t>(ncell), 0);
-  const bool with_tets = o.volume_ratio > 0;
+  const bool with_tets = o.volume_ratio > 0 || o.tets;
   if (with_tets) out.tets.assign(static_cast<std::size_t>(ncell) * 6, {0, 0, 0, 0});
   std::vector<std::array<double, 3>> dims(static_cast<std::size_t>(ncell), {0, 0, 0});
   tbb::parallel_for(tbb::blocked_range<Eigen::Index>(0, ncell, 256), [&](const tbb::blocked_range<Eigen::Index>& range) {

@@ -91,6 +91,9 @@ struct LatticeOptions {
   // LayerCells::tets holds each hexahedron's 6 tetrahedra (positively
   // oriented, in cell order: one volume term per 6, Layer::volume_group)
   double volume_ratio = 0;
+  // LayerCells::tets also without a volume term (for the inversion guard,
+  // Layer::guard_modulus): each hexahedron's 6 tetrahedra as above
+  bool tets = false;
 };
 
 // Smallest Jacobian of the trilinear map of the hexahedron from the unit cube

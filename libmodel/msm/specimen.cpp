@@ -171,8 +171,12 @@ GroupVolumeTerm group_volume_term(const SpringNetwork& net, const MatX3d& x, Eig
 }
 
 double volume_ratio(double nu) {
+  return std::max(0.0, bulk_ratio(nu) - 2.0 / 3.0);
+}
+
+double bulk_ratio(double nu) {
   if (!(nu >= 0.25 && nu < 0.5)) throw Error("", "Poisson's ratio must be in [0.25, 0.5)");
-  return std::max(0.0, 1 / (3 * (1 - 2 * nu)) - 2.0 / 3.0);
+  return 1 / (3 * (1 - 2 * nu));
 }
 
 StaticResult solve_static(const SpringNetwork& net, const std::vector<std::int64_t>& prescribed,
@@ -408,10 +412,12 @@ Specimen make_specimen(const SpecimenOptions& o) {
       for (int k = 0; k < 4; ++k) s.network.tets(t, k) = c[static_cast<std::size_t>(k)];
       s.network.tet_rest_volume(t) = tet_volume(X.row(c[0]), X.row(c[1]), X.row(c[2]), X.row(c[3]));
     }
-    if (o.kind == "lattice") {
-      const Eigen::Index ng = nt / 6;
+    const int G = o.volume_group > 0 ? o.volume_group : o.kind == "lattice" ? 6 : 1;
+    if (nt % G != 0) throw Error("", "specimen: its tetrahedra are not groups of volume_group " + std::to_string(G));
+    if (G > 1) {
+      const Eigen::Index ng = nt / G;
       s.network.tet_group_first.resize(ng + 1);
-      for (Eigen::Index g = 0; g <= ng; ++g) s.network.tet_group_first(g) = static_cast<int>(6 * g);
+      for (Eigen::Index g = 0; g <= ng; ++g) s.network.tet_group_first(g) = static_cast<int>(G * g);
     }
   }
   apply_law(s, {1.0, 1.0, 0.0});
@@ -574,9 +580,10 @@ AxisCalibration calibrate_tetra_axes(SpecimenOptions o, double tolerance, int ma
                       std::to_string(o.cell_m[1] * 1e3) + " x " + std::to_string(o.cell_m[2] * 1e3) + " mm)");
 }
 
-AxisCalibration tetra_layer_axes(const std::array<double, 3>& cell_m, double volume_ratio) {
+AxisCalibration tetra_layer_axes(const std::array<double, 3>& cell_m, double volume_ratio, int volume_group) {
   SpecimenOptions o;
   o.volume_ratio = volume_ratio;
+  o.volume_group = volume_group;
   o.kind = "tetra";
   o.cells = kTetraCalibrationCells;
   o.cell_m = cell_m;

@@ -83,6 +83,9 @@ GroupVolumeTerm group_volume_term(const SpringNetwork& net, const MatX3d& x, Eig
 // 1 / (3 (1 - 2 nu)) - 2 / 3; 0 at nu = 1/4, 16 at nu = 0.49. Throws Error
 // unless 1/4 <= nu < 1/2.
 double volume_ratio(double poisson_ratio);
+// The bulk modulus over K1, 1 / (3 (1 - 2 nu)): the inversion guard's modulus
+// (Layer::guard_modulus). Throws Error unless 1/4 <= nu < 1/2.
+double bulk_ratio(double poisson_ratio);
 
 struct StaticOptions {
   double force_tolerance = 1e-10;  // relative to the largest spring force, (0, 1e-3]
@@ -122,6 +125,13 @@ struct SpecimenOptions {
   // tetrahedron of a tetra layer, per hexahedron of a lattice layer (whose
   // axis correction allows for it), as build writes them
   double volume_ratio = 0;
+  // tetrahedra per volume term (Layer::volume_group); 0: as build writes
+  // them (tetra 1, lattice 6); a tetra layer's kTetsPerPrism is one term per
+  // prism (docs/msm.md, "The volume term": it does not lock in bending, but
+  // the layer loses its Poisson's ratio). The inversion guard is not
+  // modelled: it does nothing until a tetrahedron has lost 1 - guard_ratio
+  // of its volume, far beyond the specimens' strains.
+  int volume_group = 0;
 };
 
 // A block [0, X] x [0, Y] x [0, Z]: the top grid at z = Z, the bottom at z = 0,
@@ -169,7 +179,7 @@ AxisCalibration calibrate_tetra_axes(SpecimenOptions options, double tolerance =
 inline constexpr std::array<int, 3> kTetraCalibrationCells{6, 6, 1};
 // volume_ratio: the layer's volume term (SpecimenOptions::volume_ratio), which
 // the factors then account for.
-AxisCalibration tetra_layer_axes(const std::array<double, 3>& cell_m, double volume_ratio = 0);
+AxisCalibration tetra_layer_axes(const std::array<double, 3>& cell_m, double volume_ratio = 0, int volume_group = 0);
 
 // A layer's mean cell: the mean top-quad edge along u (q0q1, q3q2) and v
 // (q1q2, q0q3), and the mean distance between corresponding top and bottom

@@ -79,7 +79,7 @@ LayerCells tetra_cells(const MatX3d& top, const MatX3d& bottom, const MatX4i& qu
       std::max({blocks.top + ng, blocks.bottom + ng, blocks.created + static_cast<std::int32_t>(nf)});
   out.node_volume.assign(static_cast<std::size_t>(last), 0.0);
   // per prism: 7 tetrahedra and 18 distinct springs, in fixed slots
-  constexpr int kTets = 7, kPairs = 18;
+  constexpr int kTets = kTetsPerPrism, kPairs = 18;
   out.tets.assign(static_cast<std::size_t>(nf) * kTets, {0, 0, 0, 0});
   out.terms.assign(static_cast<std::size_t>(nf) * kPairs, SpringTerm{});
   std::vector<double> volumes(static_cast<std::size_t>(nf) * kTets, 0.0);

@@ -37,6 +37,11 @@
 
 namespace orthosim::msm {
 
+// A tetra layer's cell is two prisms (one per triangle of its quad) of 7
+// tetrahedra each, consecutive in LayerCells::tets (a prism is a possible
+// volume group, Layer::volume_group: docs/msm.md, "The volume term").
+inline constexpr int kTetsPerPrism = 7;
+
 struct TetraOptions {
   ProjectionOptions projection;
   double inverted_ratio = 1e-9;  // a tetrahedron below this fraction of the mean volume counts as inverted

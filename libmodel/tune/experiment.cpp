@@ -119,6 +119,7 @@ void validate(const ExperimentOptions& o) {
   if (!(o.linear_strain > 0 && o.linear_strain <= 0.2)) throw Error("", "linear_strain must be in (0, 0.2]");
   if (!(o.lattice_min_weight >= 0 && o.lattice_min_weight < 1)) throw Error("", "lattice_min_weight must be in [0, 1)");
   if (!(o.volume_ratio >= 0 && o.volume_ratio < 1e6)) throw Error("", "volume_ratio must be in [0, 1e6)");
+  if (!(o.volume_group >= 0 && o.volume_group <= 64)) throw Error("", "volume_group must be in 0..64");
 }
 
 std::vector<double> strain_schedule(const Target& q, const ExperimentOptions& o) {
@@ -143,8 +144,9 @@ msm::Specimen make_tissue_specimen(const ExperimentOptions& o) {
   so.lattice_min_weight = o.lattice_min_weight;
   so.lattice_axis_correction = o.axis_correction;
   so.volume_ratio = o.volume_ratio;
+  so.volume_group = o.volume_group;
   if (o.kind == "tetra" && o.axis_correction) {
-    so.tetra_axis_factors = msm::tetra_layer_axes(o.cell_m, so.volume_ratio).factors;
+    so.tetra_axis_factors = msm::tetra_layer_axes(o.cell_m, so.volume_ratio, so.volume_group).factors;
     so.tetra_alternate_diagonals = true;
   }
   return msm::make_specimen(so);

@@ -86,6 +86,9 @@ struct ExperimentOptions {
   // specimen's tetrahedra (tetra) or hexahedra (lattice) carry it at every
   // candidate K1
   double volume_ratio = 0;
+  // tetrahedra per volume term (experiment_for_layer: the layer's
+  // volume_group); 0: as build writes them (msm::SpecimenOptions::volume_group)
+  int volume_group = 0;
 };
 // Throws Error("", ...) for out-of-range options.
 void validate(const ExperimentOptions& options);

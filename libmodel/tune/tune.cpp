@@ -339,6 +339,7 @@ ExperimentOptions experiment_for_layer(const Layer& layer, const Layer& below, c
   ExperimentOptions o = defaults;
   o.kind = layer.kind;
   o.volume_ratio = layer_volume_ratio(layer);
+  o.volume_group = o.volume_ratio > 0 ? layer.volume_group : 0;
   if (layer.kind == "tetra") {
     o.cells[2] = 1;
     o.cell_m = {a, b, h};
@@ -421,6 +422,8 @@ void apply_to_layer(Layer& l, const SpringParams& current, const SpringParams& t
   }
   // the volume term keeps its ratio to the structural class's K1 (build's --poisson-ratio)
   if (l.volume_modulus > 0 && current[0].k1_pa > 0) l.volume_modulus *= tuned[0].k1_pa / current[0].k1_pa;
+  // so does the inversion guard's (the bulk modulus, build's --inversion-guard)
+  if (l.guard_modulus > 0 && current[0].k1_pa > 0) l.guard_modulus *= tuned[0].k1_pa / current[0].k1_pa;
   l.spring_law = law_values(tuned);
   msm::decompose_biphasic(l);
 }

@@ -175,11 +175,17 @@ LayeredBlock make_layered_block(const LayeredBlockOptions& o) {
     }
     // the volume term's tetrahedra: the Kuhn triangulation of each cell, a
     // path from corner 000 to 111 along the axes in each of the 6 orders
-    if (static_cast<std::size_t>(s) < o.volume_modulus.size() && o.volume_modulus[static_cast<std::size_t>(s)] > 0 &&
-        s + 1 < ns) {
-      l.volume_modulus = o.volume_modulus[static_cast<std::size_t>(s)];
-      if (o.volume_group != 1 && o.volume_group != 6) throw Error("", "layered block: volume_group must be 1 or 6");
-      l.volume_group = o.volume_group;
+    const auto per_layer = [&](const std::vector<Real>& v) { return static_cast<std::size_t>(s) < v.size() ? v[static_cast<std::size_t>(s)] : 0; };
+    if ((per_layer(o.volume_modulus) > 0 || per_layer(o.guard_modulus) > 0) && s + 1 < ns) {
+      if (per_layer(o.volume_modulus) > 0) {
+        l.volume_modulus = per_layer(o.volume_modulus);
+        if (o.volume_group != 1 && o.volume_group != 6) throw Error("", "layered block: volume_group must be 1 or 6");
+        l.volume_group = o.volume_group;
+      }
+      if (per_layer(o.guard_modulus) > 0) {
+        l.guard_modulus = per_layer(o.guard_modulus);
+        l.guard_ratio = o.guard_ratio;
+      }
       static constexpr int kOrders[6][3] = {{0, 1, 2}, {0, 2, 1}, {1, 0, 2}, {1, 2, 0}, {2, 0, 1}, {2, 1, 0}};
       l.tets.resize(static_cast<Eigen::Index>(nu - 1) * (nv - 1) * 6, 4);
       Eigen::Index t = 0;

@@ -50,6 +50,11 @@ struct LayeredBlockOptions {
   // tetrahedron, as build gives a tetra layer; 6, one per cell, as build
   // gives a lattice layer
   int volume_group = 1;
+  // Pa per cell layer, or empty: a layer with a value > 0 gets the inversion
+  // guard (Layer::guard_modulus) on the same 6 tetrahedra per cell, at
+  // guard_ratio (Layer::guard_ratio)
+  std::vector<Real> guard_modulus;
+  Real guard_ratio = 0.5;
 };
 
 struct LayeredBlock {

@@ -132,6 +132,69 @@ TEST_F(LoaderTest, TetsAreReadForAVolumeTermOnly) {
   }
 }
 
+// The inversion guard (Layer::guard_modulus, guard_ratio): its attributes
+// round-trip, its tets are read for it alone (one group each, at the ratio),
+// after the volume term's where both are set; a guard without tets or with a
+// ratio outside (0, 1) is a one-line error.
+TEST_F(LoaderTest, TheInversionGuardIsReadWithItsTets) {
+  auto o = block.options;
+  o.guard_modulus = {3e5};
+  o.guard_ratio = 0.4;
+  const std::string f1 = dir / "guard.h5";
+  write_model_file(f1, testing::make_layered_block(o));
+  {
+    ModelReader r(f1);
+    const Layer l = r.layer("dermis");
+    EXPECT_EQ(l.guard_modulus, 3e5);
+    EXPECT_EQ(l.guard_ratio, 0.4);
+    EXPECT_EQ(l.volume_modulus, 0);
+    const Model m = load_model(r, {});
+    EXPECT_TRUE(read_any(r.h5().stats(), "/layers/dermis/tets"));
+    ASSERT_EQ(m.n_tets, 5 * 3 * 6);
+    EXPECT_EQ(m.n_groups, m.n_tets);
+    for (std::int32_t t = 0; t < m.n_tets; ++t) {
+      EXPECT_EQ(m.tet_k[t], 3e5);
+      EXPECT_EQ(m.tet_guard[t], 0.4);
+    }
+  }
+  o.volume_modulus = {2e6};
+  o.volume_group = 6;
+  const std::string f2 = dir / "guard_and_term.h5";
+  write_model_file(f2, testing::make_layered_block(o));
+  {
+    ModelReader r(f2);
+    const Model m = load_model(r, {});
+    ASSERT_EQ(m.n_tets, 2 * 5 * 3 * 6);
+    EXPECT_EQ(m.n_groups, 5 * 3 + 5 * 3 * 6);
+    EXPECT_EQ(m.tet_guard[0], 0);
+    EXPECT_EQ(m.tet_k[0], 2e6);
+    EXPECT_EQ(m.tet_guard[static_cast<std::size_t>(m.n_tets - 1)], 0.4);
+    EXPECT_EQ(m.tet_k[static_cast<std::size_t>(m.n_tets - 1)], 3e5);
+  }
+  auto expect_one_line = [&](const std::string& f, const std::string& want) {
+    try {
+      ModelReader r(f);
+      load_model(r, {});
+      ADD_FAILURE() << want;
+    } catch (const Error& e) {
+      EXPECT_NE(std::string(e.what()).find(want), std::string::npos) << e.what();
+      EXPECT_EQ(std::string(e.what()).find('\n'), std::string::npos);
+    }
+  };
+  for (const double ratio : {0.0, 1.0}) {
+    {
+      h5::File f(f1, h5::File::Mode::read_write);
+      f.set_attr("/layers/dermis", "guard_ratio", std::vector<double>{ratio});
+    }
+    expect_one_line(f1, "guard_ratio must be one value in (0, 1)");
+  }
+  o.volume_modulus.clear();
+  auto bare = testing::make_layered_block(o);
+  bare.layers[0].second.tets.resize(0, 4);
+  const std::string f3 = dir / "guard_no_tets.h5";
+  EXPECT_THROW(write_model_file(f3, bare), Error) << "the writer refuses a guard without tets";
+}
+
 TEST_F(LoaderTest, VesselsAndSurfacesAreReadWhenNamed) {
   ModelReader r(file);
   LoadRequest req;

@@ -675,14 +675,88 @@ TEST(VolumeTerm, TheForceIsMinusTheGradientOfTheEnergy) {
  }
 }
 
+// The inversion guard (Layer::guard_modulus, guard_ratio; docs/msm.md, "The
+// inversion guard") does nothing until a tetrahedron has lost 1 - a of its
+// volume: a block squashed to 70 % of its thickness has the springs' energy
+// alone, to 30 % the springs' plus (k/2) (0.3 - a)^2 |V0| per tetrahedron
+// (0.5 here), also with the tetrahedra written the other way round (a
+// negative V0); and its force is minus the gradient of that energy where some
+// tetrahedra are past the ratio and some are not.
+TEST(VolumeTerm, TheGuardActsOnlyBelowItsRatio) {
+  constexpr Real kGuard = 1e5, kE = 2e3;
+  auto guarded = volume_block(0, kE, 4, 3);
+  guarded.options.guard_modulus = {kGuard};
+  guarded = testing::make_layered_block(guarded.options);
+  const auto plain = volume_block(0, kE, 4, 3);
+  auto flipped = guarded;
+  for (Eigen::Index t = 0; t < flipped.layers[0].second.tets.rows(); ++t)
+    std::swap(flipped.layers[0].second.tets(t, 2), flipped.layers[0].second.tets(t, 3));
+  const Model m = model_from_layers(guarded.layers, guarded.sets), mf = model_from_layers(flipped.layers, flipped.sets),
+              m0 = model_from_layers(plain.layers, plain.sets);
+  ASSERT_EQ(m.n_tets, 3 * 2 * 6);
+  ASSERT_EQ(m.n_groups, m.n_tets);
+  ASSERT_EQ(m0.n_tets, 0);
+  for (Real v : mf.tet_rest_volume) ASSERT_LT(v, 0);
+  const Real block_volume = 12e-3 * 8e-3 * 4e-3;
+  const SolverOptions o = no_gravity(Integrator::symplectic_euler);
+  // the top sheet (y = 0) moved towards the bottom one (y = 4 mm): every
+  // tetrahedron keeps the fraction f of its volume
+  auto squashed = [&](const Model& mm, Real f) {
+    State s = make_state(mm);
+    for (std::int32_t i : mm.set("skin")) s.x[3 * static_cast<std::size_t>(i) + 1] = 4e-3 * (1 - f);
+    return s;
+  };
+  for (const Model* g : {&m, &mf}) {
+    EXPECT_EQ(energies(*g, make_state(*g), o).elastic, 0);
+    const Real e70 = energies(*g, squashed(*g, 0.7), o).elastic, s70 = energies(m0, squashed(m0, 0.7), o).elastic;
+    EXPECT_GT(s70, 0);
+    EXPECT_EQ(e70, s70);
+    const Real e30 = energies(*g, squashed(*g, 0.3), o).elastic, s30 = energies(m0, squashed(m0, 0.3), o).elastic;
+    EXPECT_NEAR(e30 - s30, 0.5 * kGuard * 0.2 * 0.2 * block_volume, 1e-9 * e30);
+  }
+  // force against energy, squashed to 45 % and shaken by 10 % of a cell
+  State s = squashed(m, 0.45);
+  std::mt19937 rng(7);
+  std::uniform_real_distribution<Real> u(-4e-4, 4e-4);
+  for (auto& x : s.x) x += u(rng);
+  const auto v = tet_volumes(m, s.x);
+  int below = 0;
+  for (std::int32_t t = 0; t < m.n_tets; ++t) below += v[t] < 0.5 * m.tet_rest_volume[t];
+  ASSERT_GT(below, 0);
+  ASSERT_LT(below, m.n_tets);
+  const std::vector<Real> x0 = s.x;
+  SolverOptions o1 = o;
+  o1.substeps = 1;
+  step(m, s, 1e-14, o1);
+  const std::vector<Real> f = s.f;
+  Real fmax = 0, err = 0;
+  for (std::size_t d = 0; d < x0.size(); ++d) {
+    const Real eps = 1e-7 * 4e-3;
+    State p = s, q = s;
+    p.x = x0, q.x = x0;
+    p.x[d] += eps, q.x[d] -= eps;
+    const Real grad = (energies(m, p, o1).elastic - energies(m, q, o1).elastic) / (2 * eps);
+    fmax = std::max(fmax, std::abs(f[d]));
+    err = std::max(err, std::abs(f[d] + grad));
+  }
+  ASSERT_GT(fmax, 0);
+  EXPECT_LT(err, 1e-6 * fmax);
+}
+
 // Central springs do not resist a layer turned inside out: its mirror image
 // through the sheet below has every spring at its rest length. The volume
-// term does: with it the layer unfolds to its rest shape, without it the
-// mirrored layer is an equilibrium and stays.
+// term does, and so does the inversion guard alone: with either the layer
+// unfolds to its rest shape, without them the mirrored layer is an
+// equilibrium and stays.
 TEST(VolumeTerm, AMirroredLayerUnfoldsOnlyWithIt) {
-  for (const auto& [kv, group] : {std::pair<Real, int>{0.0, 1}, {2e4, 1}, {2e4, 6}}) {
+  // group 0: no volume term, the inversion guard alone (at its modulus kv)
+  for (const auto& [kv, group] : {std::pair<Real, int>{0.0, 1}, {2e4, 1}, {2e4, 6}, {2e4, 0}}) {
     SCOPED_TRACE(std::to_string(kv) + " group " + std::to_string(group));
-    const auto block = volume_block(kv, 2e3, 6, 4, group);
+    auto block = volume_block(group == 0 ? 0 : kv, 2e3, 6, 4, std::max(group, 1));
+    if (group == 0) {
+      block.options.guard_modulus = {kv};
+      block = testing::make_layered_block(block.options);
+    }
     const Model m = model_from_layers(block.layers, block.sets);
     State s = make_state(m);
     fix_nodes(m, s, m.set("fixed"));

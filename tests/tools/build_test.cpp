@@ -141,43 +141,76 @@ TEST(BuildCli, BadInputOneLineExit2NoOutput) {
 
 // The soft skin of the paper's Table 1 (dermis K1 = 0.1 kPa) hangs under
 // gravity and folds through the fat below it with central springs alone (the
-// demo's pull scene: 149 of 351 skin columns inside out within 0.05 s). With
-// the tetra layer's volume term (the default nu = 0.49) no column inverts; at
-// --poisson-ratio 0.25 (none) the same cylinders fold as the demo did.
+// demo's pull scene: 149 of 351 skin columns inside out within 0.05 s;
+// --poisson-ratio 0.25 --inversion-guard 0 here: 152 skin columns). The
+// inversion guard alone (docs/msm.md, "The inversion guard"; --poisson-ratio
+// 0.25, so its modulus is the bulk modulus of such a compressible tissue,
+// 2/3 K1) leaves 8; the default (nu = 0.49: the tetra layer's term per
+// tetrahedron, which makes its guard redundant, and the lattices' guard at
+// 16.7 K1) keeps every column right way out.
 TEST(BuildCli, TheVolumeTermKeepsASoftSkinRightWayOut) {
   test::TempDir dir("build-volume");
   const std::string tissues = write_table(dir);
   std::map<std::string, std::int64_t> inverted;
-  for (const std::string nu : {"0.25", "0.49"}) {
-    const std::string model = write_model(dir, test::cylinder_stack(39, 9), "m" + nu + ".h5");
+  const std::int64_t skin_tets = 39 * 8 * 2 * 7, lattice_tets = 2 * 39 * 8 * 6;
+  for (const std::string run : {"springs", "guard", "default"}) {
+    SCOPED_TRACE(run);
+    const std::string opts = run == "springs" ? " --poisson-ratio 0.25 --inversion-guard 0"
+                             : run == "guard" ? " --poisson-ratio 0.25"
+                                              : "";
+    // the skin's guard only where its tetrahedra have no term of their own
+    const bool term = run == "default", guard = run != "springs", skin_guard = run == "guard";
+    const std::string model = write_model(dir, test::cylinder_stack(39, 9), "m" + run + ".h5");
     const auto b = test::run_cli("build --model " + model + " --tissues " + tissues +
-                                 " --layers skin:tetra,fat:lattice,muscle:lattice --poisson-ratio " + nu +
-                                 " --quiet --report " + (dir / ("b" + nu + ".json")));
+                                 " --layers skin:tetra,fat:lattice,muscle:lattice" + opts +
+                                 " --quiet --report " + (dir / ("b" + run + ".json")));
     ASSERT_EQ(b.code, 0) << b.err;
-    const auto br = nlohmann::json::parse(test::read_file(dir / ("b" + nu + ".json")));
-    EXPECT_NEAR(br["metrics"]["layers"][0]["volume_modulus_pa"].get<double>(), nu == "0.25" ? 0.0 : 1600.0, 1e-9);
-    // inspect shows the layer's attribute (absent without a term)
+    const auto br = nlohmann::json::parse(test::read_file(dir / ("b" + run + ".json")));
+    EXPECT_NEAR(br["metrics"]["layers"][0]["volume_modulus_pa"].get<double>(), term ? 1600.0 : 0.0, 1e-9);
+    EXPECT_EQ(br["metrics"]["layers"][0]["volume_group"].get<int>(), 1);
+    // the guard: the bulk modulus K1 / (3 (1 - 2 nu)) at half the rest volume
+    const double bulk = run == "default" ? 100.0 / (3 * (1 - 2 * 0.49)) : 100.0 / 1.5;
+    EXPECT_NEAR(br["metrics"]["layers"][0]["guard_modulus_pa"].get<double>(), skin_guard ? bulk : 0.0, 1e-9);
+    EXPECT_EQ(br["metrics"]["layers"][0]["guard_ratio"].get<double>(), skin_guard ? 0.5 : 0.0);
+    EXPECT_NEAR(br["metrics"]["layers"][1]["guard_modulus_pa"].get<double>(), guard ? 23 * bulk : 0.0, 1e-6);
+    EXPECT_EQ(br["metrics"]["tets"].get<std::int64_t>(), skin_tets + (guard ? lattice_tets : 0));
+    // inspect shows the layer's attributes (absent without a term or a guard)
     const auto in = test::run_cli("inspect " + model + " --json");
     ASSERT_EQ(in.code, 0) << in.err;
     const auto summary = nlohmann::json::parse(in.out);
     const auto& skin = summary["summary"]["layers"]["skin"];
-    EXPECT_EQ(skin.contains("volume_modulus"), nu != "0.25") << skin.dump();
-    if (nu != "0.25") {
+    EXPECT_EQ(skin.contains("volume_modulus"), term) << skin.dump();
+    EXPECT_EQ(skin.contains("guard_modulus"), skin_guard) << skin.dump();
+    if (term) {
       EXPECT_NEAR(skin["volume_modulus"].get<double>(), 1600.0, 1e-9) << skin.dump();
     }
-    const std::string scene = dir / ("s" + nu + ".json");
-    test::write_file(scene, R"({"model": "m)" + nu + R"(.h5", "fixed": ["fixed"], "integrator": "implicit",
+    if (guard) {
+      EXPECT_NEAR(summary["summary"]["layers"]["fat"]["guard_modulus"].get<double>(), 2300.0 * bulk / 100.0, 1e-9);
+    }
+    const std::string scene = dir / ("s" + run + ".json");
+    test::write_file(scene, R"({"model": "m)" + run + R"(.h5", "fixed": ["fixed"], "integrator": "implicit",
                                "dt": 0.01, "duration": 0.3, "damping": {"mass": 5}})");
-    const auto r = test::run_cli("run " + scene + " --no-output --quiet --report " + (dir / ("r" + nu + ".json")));
+    const auto r = test::run_cli("run " + scene + " --no-output --quiet --report " + (dir / ("r" + run + ".json")));
     ASSERT_EQ(r.code, 0) << r.err;
-    const auto j = nlohmann::json::parse(test::read_file(dir / ("r" + nu + ".json")));
-    EXPECT_EQ(j["metrics"]["volume_tets"].get<std::int64_t>(), nu == "0.25" ? 0 : 39 * 8 * 2 * 7);
+    const auto j = nlohmann::json::parse(test::read_file(dir / ("r" + run + ".json")));
+    // the runtime's tetrahedra: the term's and the guard's (one group each)
+    EXPECT_EQ(j["metrics"]["volume_tets"].get<std::int64_t>(),
+              (term || skin_guard ? skin_tets : 0) + (guard ? lattice_tets : 0));
     for (int l = 1; l < 3; ++l) EXPECT_EQ(br["metrics"]["layers"][l]["volume_modulus_pa"].get<double>(), 0.0) << "lattices: opt-in";
-    inverted[nu] = j["metrics"]["inverted_columns"]["skin"]["max"].get<std::int64_t>();
-    EXPECT_EQ(r.err.find("turned inside out") != std::string::npos, inverted[nu] > 0) << r.err;
+    inverted[run] = 0;
+    for (const char* layer : {"skin", "fat", "muscle"}) {
+      inverted[run] += j["metrics"]["inverted_columns"][layer]["max"].get<std::int64_t>();
+      RecordProperty(run + "_" + layer, std::to_string(j["metrics"]["inverted_columns"][layer]["max"].get<std::int64_t>()));
+    }
+    EXPECT_EQ(r.err.find("turned inside out") != std::string::npos, inverted[run] > 0) << r.err;
   }
-  EXPECT_GT(inverted["0.25"], 100) << "central springs alone fold the soft skin";
-  EXPECT_EQ(inverted["0.49"], 0);
+  EXPECT_GT(inverted["springs"], 100) << "central springs alone fold the soft skin";
+  EXPECT_LT(inverted["guard"], inverted["springs"] / 10);
+  EXPECT_EQ(inverted["default"], 0);
+  // a guard ratio outside [0, 1) is refused
+  const std::string bad = write_model(dir, test::cylinder_stack(39, 9), "bad.h5");
+  for (const char* g : {"1", "-0.1", "nan"})
+    expect_refused("build --model " + bad + " --tissues " + tissues + " --inversion-guard " + g, bad, "inversion");
   // --lattice-volume-term: the fat's and muscle's hexahedra too, 6 tetrahedra a term
   const std::string model = write_model(dir, test::cylinder_stack(39, 9), "lat.h5");
   const auto b = test::run_cli("build --model " + model + " --tissues " + tissues +

@@ -198,6 +198,23 @@ TEST(Pipeline, ColdWarmAndIncremental) {
     const Layer fat = ModelReader(s.dir / "model.h5").layer_fields("fat", {"nodes"});
     EXPECT_NEAR(fat.volume_modulus, 16 * fat.spring_law.at(0), 1e-9 * fat.volume_modulus);
     EXPECT_EQ(fat.volume_group, 6);
+    // build's --inversion-guard: the lattices' guard (default 0.5, the bulk modulus;
+    // 0: none), its own cache key, the report's parameter; a value outside [0, 1) refused
+    EXPECT_NEAR(fat.guard_modulus, fat.spring_law.at(0) / (3 * (1 - 2 * 0.49)), 1e-9 * fat.guard_modulus);
+    EXPECT_EQ(fat.guard_ratio, 0.5);
+    const auto g = test::run_cli(s.args("--grid 20x6 --inversion-guard 0.7"));
+    ASSERT_EQ(g.code, 0) << g.err;
+    EXPECT_TRUE(s.ran().count("build"));
+    EXPECT_FALSE(s.ran().count("remesh"));
+    EXPECT_EQ(ModelReader(s.dir / "model.h5").layer_fields("muscle", {"nodes"}).guard_ratio, 0.7);
+    EXPECT_EQ(s.report()["parameters"]["inversion_guard"].get<double>(), 0.7);
+    const auto none = test::run_cli(s.args("--grid 20x6 --inversion-guard 0"));
+    ASSERT_EQ(none.code, 0) << none.err;
+    EXPECT_EQ(ModelReader(s.dir / "model.h5").layer_fields("muscle", {"nodes"}).guard_modulus, 0);
+    const auto badg = test::run_cli(s.args("--grid 20x6 --inversion-guard 1"));
+    EXPECT_EQ(badg.code, 2) << badg.err;
+    EXPECT_EQ(test::count_lines(badg.err), 1) << badg.err;
+    EXPECT_NE(badg.err.find("--inversion-guard"), std::string::npos) << badg.err;
   }
   {
     // build's --no-axis-correction: the pipeline passes it (its own cache key); the
