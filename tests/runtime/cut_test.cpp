@@ -24,11 +24,14 @@ Model block(int nu, int nv, int layers) {
   return model_from_layers(b.layers, b.sets);
 }
 
-// the same block with a volume term in its skin layer (6 Kuhn tetrahedra a cell)
-Model block_with_volume_term(int nu, int nv, int layers, int group = 1) {
+// the same block with a volume term in its skin layer (6 Kuhn tetrahedra a
+// cell), and with `guard` the inversion guard on the same tetrahedra (a group
+// of one each, after the term's)
+Model block_with_volume_term(int nu, int nv, int layers, int group = 1, bool guard = false) {
   auto o = runtime::testing::make_layered_block(nu, nv, layers).options;
   o.volume_modulus = {16 * o.youngs[0]};
   o.volume_group = group;
+  if (guard) o.guard_modulus = {16 * o.youngs[0]};
   const auto b = runtime::testing::make_layered_block(o);
   return model_from_layers(b.layers, b.sets);
 }
@@ -437,14 +440,16 @@ TEST(Cut, RemovesTheVolumeTermsTetrahedraAcrossTheBlade) {
   // layer's: the whole cell's term goes when any of its tetrahedra is cut);
   // the blade through the skin (2 mm), and a shallower one through part of
   // each cell (each Kuhn tetrahedron with an edge across the blade at y = 0)
+  // group 0: a term per cell and the inversion guard on each tetrahedron
   std::array<std::int32_t, 2> shallow{};
-  for (const int group : {1, 6})
+  for (const int group : {1, 6, 0})
     for (const Real depth : {4e-3, 0.7e-3}) {
       SCOPED_TRACE(std::to_string(group) + " " + std::to_string(depth));
-      Model m = block_with_volume_term(15, 5, 4, group);
+      const bool guard = group == 0;
+      Model m = block_with_volume_term(15, 5, 4, guard ? 6 : group, guard);
       const Model before = m;
-      ASSERT_EQ(before.n_tets, 14 * 4 * 6);
-      ASSERT_EQ(before.n_groups, 14 * 4 * 6 / group);
+      ASSERT_EQ(before.n_tets, 14 * 4 * 6 * (guard ? 2 : 1));
+      ASSERT_EQ(before.n_groups, guard ? 14 * 4 + 14 * 4 * 6 : 14 * 4 * 6 / group);
       const Real xc = 7.5 * 4e-3;
       CutDef d;
       d.polyline = {{xc, 0, -0.01}, {xc, 0, 0.03}};
@@ -465,13 +470,17 @@ TEST(Cut, RemovesTheVolumeTermsTetrahedraAcrossTheBlade) {
         if (across) expected += before.tet_group_first[g + 1] - before.tet_group_first[g], ++groups_cut;
       }
       if (depth > 2e-3) {
-        EXPECT_EQ(expected, 4 * 6) << "the skin cells of one column of the grid";
+        EXPECT_EQ(expected, 4 * 6 * (guard ? 2 : 1)) << "the skin cells of one column of the grid";
       }
-      if (depth < 2e-3) shallow[group == 1 ? 0 : 1] = expected;
+      if (depth < 2e-3 && !guard) shallow[group == 1 ? 0 : 1] = expected;
       EXPECT_GT(groups_cut, 0);
       EXPECT_EQ(r.tets_cut, expected);
       EXPECT_EQ(m.n_tets, before.n_tets - expected);
       EXPECT_EQ(m.n_groups, before.n_groups - groups_cut);
+      // every group keeps its guard ratio: the term's groups of 6 none, the guard's of one 0.5
+      for (std::int32_t g = 0; g < m.n_groups; ++g)
+        for (std::int32_t t = m.tet_group_first[g]; t < m.tet_group_first[g + 1]; ++t)
+          EXPECT_EQ(m.tet_guard[t], m.tet_group_first[g + 1] - m.tet_group_first[g] == 1 && guard ? 0.5 : 0.0);
       State s = make_state(m);
       fix_nodes(m, s, m.set("fixed"));
       SolverOptions o;
@@ -485,7 +494,7 @@ TEST(Cut, RemovesTheVolumeTermsTetrahedraAcrossTheBlade) {
 }
 
 TEST(Cut, TenThousandRandomCutsNeverBreakTheSolver) {
-  Model m = block_with_volume_term(10, 4, 4);  // the skin's volume term is cut too
+  Model m = block_with_volume_term(10, 4, 4, 1, true);  // the skin's volume term and guard are cut too
   State s = make_state(m);
   {
     auto b = runtime::testing::make_layered_block(10, 4, 4);
