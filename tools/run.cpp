@@ -260,8 +260,8 @@ void add_run_command(CLI::App& app) {
         std::cerr << "orthosim run: warning: " << scene_file << ": layer '" << layer << "' turned inside out in "
                   << v.max << " of its " << v.columns << " grid columns (" << v.end << " at the end, the first at "
                   << v.first_step * def.dt << " s): its top passed its bottom (docs/runtime.md, Inverted layers: "
-                     "build's inversion guard resists it, --inversion-guard, with a volume term from --poisson-ratio and "
-                     "--lattice-volume-term)\n";
+                     "build's volume term (--poisson-ratio, --lattice-volume-term) and inversion guard (--inversion-guard) "
+                     "resist it)\n";
     }
     met["stability"] = {{"events", c.events},       {"nonfinite", c.nonfinite},
                         {"blowups", c.blowups},     {"recovered_steps", c.recovered},
