@@ -805,6 +805,19 @@ int run_pipeline(const Args& a) {
   }
 }
 
+// A CLI11 check: a number in [lo, hi)
+std::function<std::string(const std::string&)> half_open_range(double lo, double hi) {
+  const std::string range = "[" + exact(lo) + ", " + exact(hi) + ")";
+  return [lo, hi, range](const std::string& v) -> std::string {
+    try {
+      const double x = std::stod(v);
+      return x >= lo && x < hi ? "" : "must be in " + range;
+    } catch (...) {
+      return "must be a number in " + range;
+    }
+  };
+}
+
 }  // namespace
 
 void add_pipeline_command(CLI::App& app) {
@@ -829,28 +842,14 @@ void add_pipeline_command(CLI::App& app) {
       ->capture_default_str();
   sub->add_option("--poisson-ratio", a.poisson_ratio,
                   "Poisson's ratio of the layers' volume term, build's ([0.25, 0.5); 0.25: none)")
-      ->check([](const std::string& v) -> std::string {
-        try {
-          const double x = std::stod(v);
-          return x >= 0.25 && x < 0.5 ? "" : "must be in [0.25, 0.5)";
-        } catch (...) {
-          return "must be a number in [0.25, 0.5)";
-        }
-      })
+      ->check(half_open_range(0.25, 0.5))
       ->capture_default_str();
   sub->add_flag("--lattice-volume-term", a.lattice_volume_term,
                 "build's: a volume term per hexahedron of the lattice layers too (docs/msm.md, The volume term)");
   sub->add_option("--inversion-guard", a.inversion_guard,
                   "build's: the fraction of its rest volume below which a tetrahedron resists with the bulk modulus, "
                   "[0, 1) (0: none; docs/msm.md, The inversion guard)")
-      ->check([](const std::string& v) -> std::string {
-        try {
-          const double x = std::stod(v);
-          return x >= 0 && x < 1 ? "" : "must be in [0, 1)";
-        } catch (...) {
-          return "must be a number in [0, 1)";
-        }
-      })
+      ->check(half_open_range(0, 1))
       ->capture_default_str();
   sub->add_flag("!--no-axis-correction", a.axis_correction,
                 "build's: leave each layer's rule as it is, no equal Young's moduli along u, v and through (docs/msm.md)");

@@ -353,6 +353,20 @@ double transverse_shear(const Specimen& s, int along) {
   return F / (s.size_m[0] * s.size_m[1]) / gamma;
 }
 
+// The tetra calibration specimen of a cell at Poisson's ratio nu, its volume
+// term in groups of volume_group, with the axis factors calibrated for it.
+SpecimenOptions calibrated_tetra_options(const std::array<double, 3>& cell, double nu, int volume_group) {
+  SpecimenOptions so;
+  so.kind = "tetra";
+  so.cells = kTetraCalibrationCells;
+  so.cell_m = cell;
+  so.tetra_axis_factors = tetra_layer_axes(cell, volume_ratio(nu), volume_group).factors;
+  so.tetra_alternate_diagonals = true;
+  so.volume_ratio = volume_ratio(nu);
+  so.volume_group = volume_group;
+  return so;
+}
+
 TEST(MsmVolume, TheTetraLayerGetsItsPoissonRatio) {
   const std::array<double, 3> cell{4.07e-3, 7.2e-3, 1.96e-3};
   std::array<double, 2> shear_xz{}, shear_yz{};
@@ -360,13 +374,7 @@ TEST(MsmVolume, TheTetraLayerGetsItsPoissonRatio) {
     SCOPED_TRACE(nu);
     const AxisCalibration c = tetra_layer_axes(cell, volume_ratio(nu));
     for (double e : c.moduli_after) EXPECT_NEAR(e, 1.0, 1e-3);
-    SpecimenOptions so;
-    so.kind = "tetra";
-    so.cells = kTetraCalibrationCells;
-    so.cell_m = cell;
-    so.tetra_axis_factors = c.factors;
-    so.tetra_alternate_diagonals = true;
-    so.volume_ratio = volume_ratio(nu);
+    const SpecimenOptions so = calibrated_tetra_options(cell, nu, 1);
     Specimen s = make_specimen(so);
     EXPECT_EQ(s.network.tets.rows(), nu > 0.25 ? s.tets : 0);
     const double E = 700;
@@ -972,16 +980,7 @@ TEST(MsmVolume, TheLayerLocksInBending) {
 TEST(MsmVolume, ATermPerPrismLosesThePoissonRatio) {
   const std::array<double, 3> cell{4.07e-3, 7.2e-3, 1.96e-3};
   const double nu = 0.49;
-  const AxisCalibration c = tetra_layer_axes(cell, volume_ratio(nu), kTetsPerPrism);
-  SpecimenOptions so;
-  so.kind = "tetra";
-  so.cells = kTetraCalibrationCells;
-  so.cell_m = cell;
-  so.tetra_axis_factors = c.factors;
-  so.tetra_alternate_diagonals = true;
-  so.volume_ratio = volume_ratio(nu);
-  so.volume_group = kTetsPerPrism;
-  Specimen s = make_specimen(so);
+  Specimen s = make_specimen(calibrated_tetra_options(cell, nu, kTetsPerPrism));
   ASSERT_EQ(s.network.n_volume_groups() * kTetsPerPrism, s.network.tets.rows());
   apply_law(s, {700, 700, 0});
   double lo = 1e9, hi = -1e9;

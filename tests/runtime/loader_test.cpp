@@ -18,6 +18,18 @@ bool read_any(const h5::ReadStats& st, const std::string& prefix) {
                      [&](const std::string& p) { return p.rfind(prefix, 0) == 0; });
 }
 
+// Loading the file fails with one line holding `want`.
+void expect_load_refused(const std::string& file, const std::string& want) {
+  try {
+    ModelReader r(file);
+    load_model(r, {});
+    ADD_FAILURE() << want;
+  } catch (const Error& e) {
+    EXPECT_NE(std::string(e.what()).find(want), std::string::npos) << e.what();
+    EXPECT_EQ(std::string(e.what()).find('\n'), std::string::npos);
+  }
+}
+
 struct LoaderTest : ::testing::Test {
   orthosim::test::TempDir dir{"loader"};
   std::string file = dir / "model.h5";
@@ -85,14 +97,7 @@ TEST_F(LoaderTest, TetsAreReadForAVolumeTermOnly) {
   broken.layers[0].second.tets.resize(0, 4);
   const std::string f3 = dir / "broken.h5";
   write_model_file(f3, broken);
-  ModelReader r(f3);
-  try {
-    load_model(r, {});
-    ADD_FAILURE() << "a volume term without tets was loaded";
-  } catch (const Error& e) {
-    EXPECT_NE(std::string(e.what()).find("volume_modulus but no tets"), std::string::npos) << e.what();
-    EXPECT_EQ(std::string(e.what()).find('\n'), std::string::npos);
-  }
+  expect_load_refused(f3, "volume_modulus but no tets");
   // a lattice layer's term, one per cell of 6 (attribute volume_group)
   o.volume_group = 6;
   const auto cells = testing::make_layered_block(o);
@@ -121,14 +126,7 @@ TEST_F(LoaderTest, TetsAreReadForAVolumeTermOnly) {
       h5::File f(f4, h5::File::Mode::read_write);
       f.set_attr("/layers/dermis", "volume_group", static_cast<std::int64_t>(0));
     }
-    try {
-      ModelReader r4(f4);
-      load_model(r4, {});
-      ADD_FAILURE() << want;
-    } catch (const Error& e) {
-      EXPECT_NE(std::string(e.what()).find(want), std::string::npos) << e.what();
-      EXPECT_EQ(std::string(e.what()).find('\n'), std::string::npos);
-    }
+    expect_load_refused(f4, want);
   }
 }
 
@@ -171,22 +169,12 @@ TEST_F(LoaderTest, TheInversionGuardIsReadWithItsTets) {
     EXPECT_EQ(m.tet_guard[static_cast<std::size_t>(m.n_tets - 1)], 0.4);
     EXPECT_EQ(m.tet_k[static_cast<std::size_t>(m.n_tets - 1)], 3e5);
   }
-  auto expect_one_line = [&](const std::string& f, const std::string& want) {
-    try {
-      ModelReader r(f);
-      load_model(r, {});
-      ADD_FAILURE() << want;
-    } catch (const Error& e) {
-      EXPECT_NE(std::string(e.what()).find(want), std::string::npos) << e.what();
-      EXPECT_EQ(std::string(e.what()).find('\n'), std::string::npos);
-    }
-  };
   for (const double ratio : {0.0, 1.0}) {
     {
       h5::File f(f1, h5::File::Mode::read_write);
       f.set_attr("/layers/dermis", "guard_ratio", std::vector<double>{ratio});
     }
-    expect_one_line(f1, "guard_ratio must be one value in (0, 1)");
+    expect_load_refused(f1, "guard_ratio must be one value in (0, 1)");
   }
   o.volume_modulus.clear();
   auto bare = testing::make_layered_block(o);

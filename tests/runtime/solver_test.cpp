@@ -622,6 +622,35 @@ testing::LayeredBlock volume_block(Real kv, Real E, int nu = 4, int nv = 3, int 
   return make_layered_block(bo);
 }
 
+Real max_abs(const std::vector<Real>& v) {
+  Real r = 0;
+  for (Real x : v) r = std::max(r, std::abs(x));
+  return r;
+}
+
+// The force the solver applies at s.x (one symplectic substep of 1e-14 s,
+// no gravity) against central differences of the elastic energy it
+// reports; returns the force.
+std::vector<Real> expect_force_is_minus_the_energy_gradient(const Model& m, State s) {
+  SolverOptions o = no_gravity(Integrator::symplectic_euler);
+  o.substeps = 1;
+  const std::vector<Real> x0 = s.x;
+  step(m, s, 1e-14, o);  // s.f: the forces at x0
+  const std::vector<Real> f = s.f;
+  Real err = 0;
+  for (std::size_t d = 0; d < x0.size(); ++d) {
+    const Real eps = 1e-7 * 4e-3;
+    State p = s, q = s;
+    p.x = x0, q.x = x0;
+    p.x[d] += eps, q.x[d] -= eps;
+    const Real grad = (energies(m, p, o).elastic - energies(m, q, o).elastic) / (2 * eps);
+    err = std::max(err, std::abs(f[d] + grad));
+  }
+  EXPECT_GT(max_abs(f), 0);
+  EXPECT_LT(err, 1e-6 * max_abs(f));
+  return f;
+}
+
 std::vector<Real> tet_volumes(const Model& m, const std::vector<Real>& x) {
   std::vector<Real> v;
   for (std::int32_t t = 0; t < m.n_tets; ++t) {
@@ -649,20 +678,8 @@ TEST(VolumeTerm, TheForceIsMinusTheGradientOfTheEnergy) {
   const std::vector<Real> x0 = s.x;
   SolverOptions o = no_gravity(Integrator::symplectic_euler);
   o.substeps = 1;
-  step(m, s, 1e-14, o);  // s.f: the forces at x0
-  const std::vector<Real> f = s.f;
-  Real fmax = 0, err = 0;
-  for (std::size_t d = 0; d < x0.size(); ++d) {
-    const Real eps = 1e-7 * 4e-3;
-    State p = s, q = s;
-    p.x = x0, q.x = x0;
-    p.x[d] += eps, q.x[d] -= eps;
-    const Real grad = (energies(m, p, o).elastic - energies(m, q, o).elastic) / (2 * eps);
-    fmax = std::max(fmax, std::abs(f[d]));
-    err = std::max(err, std::abs(f[d] + grad));
-  }
-  ASSERT_GT(fmax, 0);
-  EXPECT_LT(err, 1e-6 * fmax);
+  const std::vector<Real> f = expect_force_is_minus_the_energy_gradient(m, s);
+  const Real fmax = max_abs(f);
   // and most of it is the volume term's: without it the forces differ
   auto springs_only = block;
   springs_only.layers[0].second.volume_modulus = 0;
@@ -724,23 +741,7 @@ TEST(VolumeTerm, TheGuardActsOnlyBelowItsRatio) {
   for (std::int32_t t = 0; t < m.n_tets; ++t) below += v[t] < 0.5 * m.tet_rest_volume[t];
   ASSERT_GT(below, 0);
   ASSERT_LT(below, m.n_tets);
-  const std::vector<Real> x0 = s.x;
-  SolverOptions o1 = o;
-  o1.substeps = 1;
-  step(m, s, 1e-14, o1);
-  const std::vector<Real> f = s.f;
-  Real fmax = 0, err = 0;
-  for (std::size_t d = 0; d < x0.size(); ++d) {
-    const Real eps = 1e-7 * 4e-3;
-    State p = s, q = s;
-    p.x = x0, q.x = x0;
-    p.x[d] += eps, q.x[d] -= eps;
-    const Real grad = (energies(m, p, o1).elastic - energies(m, q, o1).elastic) / (2 * eps);
-    fmax = std::max(fmax, std::abs(f[d]));
-    err = std::max(err, std::abs(f[d] + grad));
-  }
-  ASSERT_GT(fmax, 0);
-  EXPECT_LT(err, 1e-6 * fmax);
+  expect_force_is_minus_the_energy_gradient(m, s);
 }
 
 // Central springs do not resist a layer turned inside out: its mirror image
