@@ -574,4 +574,9 @@ TEST(TuneCli, TunesALatticeLayerWithItsVolumeTerm) {
   const Layer after = m.layer("fat");
   EXPECT_EQ(after.volume_group, 6);
   EXPECT_NEAR(after.volume_modulus, 16 * tuned[0].k1_pa, 1e-9 * after.volume_modulus);
+  // and the inversion guard (build's default): the bulk modulus, 50/3 K1 at nu
+  // = 0.49, kept at that ratio to the tuned K1, its ratio unchanged
+  EXPECT_NEAR(before.guard_modulus, before.volume_modulus * (50.0 / 3) / 16, 1e-9 * before.guard_modulus);
+  EXPECT_NEAR(after.guard_modulus, (50.0 / 3) * tuned[0].k1_pa, 1e-9 * after.guard_modulus);
+  EXPECT_EQ(after.guard_ratio, 0.5);
 }
