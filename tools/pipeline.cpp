@@ -23,6 +23,7 @@
 #include "libmodel/segment/segment.h"
 #include "libmodel/tissues.h"
 #include "libmodel/tune/experiment.h"
+#include "libmodel/vessels/vessels.h"  // VesselOptions' defaults only (no link)
 #include "tools/common.h"
 
 #include <fcntl.h>
@@ -75,6 +76,7 @@ struct Args {
   double poisson_ratio = msm::BuildOptions{}.poisson_ratio;  // build's --poisson-ratio (the layers' volume term)
   bool lattice_volume_term = false;                          // build's --lattice-volume-term
   double inversion_guard = msm::BuildOptions{}.inversion_guard;  // build's --inversion-guard
+  double spur_ratio = VesselOptions{}.spur_ratio;                 // vessels' --spur-ratio
   bool axis_correction = true;                               // build's axis correction (--no-axis-correction: off)
   CommonOptions common;
 };
@@ -380,7 +382,7 @@ int run_stages(Args a, Report& report) {
   report.input(a.stack);
   report.input(a.tissues);
   if (!a.scene.empty()) report.input(a.scene);
-  report.parameters() = {{"grid", a.grid}, {"through_cells", a.through_cells}, {"poisson_ratio", a.poisson_ratio}, {"lattice_volume_term", a.lattice_volume_term}, {"inversion_guard", a.inversion_guard}, {"axis_correction", a.axis_correction}, {"bit_depth", a.bit_depth}, {"spacing_mm", a.spacing}, {"origin_mm", a.origin},
+  report.parameters() = {{"grid", a.grid}, {"through_cells", a.through_cells}, {"poisson_ratio", a.poisson_ratio}, {"lattice_volume_term", a.lattice_volume_term}, {"inversion_guard", a.inversion_guard}, {"spur_ratio", a.spur_ratio}, {"axis_correction", a.axis_correction}, {"bit_depth", a.bit_depth}, {"spacing_mm", a.spacing}, {"origin_mm", a.origin},
                          {"work", a.work}, {"texture", a.texture}, {"tune", a.tune},
                          {"tune_budget_s", a.tune_budget_s}, {"tune_evaluations", a.tune_evaluations}, {"seed", a.seed}, {"export", a.export_dir}};
 
@@ -593,10 +595,10 @@ int run_stages(Args a, Report& report) {
       run.skip("vessels", scene.given ? "the scene uses no vessels" : "the tissue table has no vessel tissue");
     } else {
       vessel_job = run.start(
-          "vessels", {seg.key, join(want), scene.given ? "all-required" : "skip-unformed"},
+          "vessels", {seg.key, join(want), scene.given ? "all-required" : "skip-unformed", "spur-ratio " + exact(a.spur_ratio)},
           [&](const std::string& d) {
             std::vector<std::string> args{"vessels", "--labels", labels, "--model", d + "/vessels.h5", "--out",
-                                          d + "/meshes"};
+                                          d + "/meshes", "--spur-ratio", exact(a.spur_ratio)};
             for (const auto& v : want) args.insert(args.end(), {"--tissue", v});
             // without a scene no tree is required: a vessel tissue whose few
             // voxels form no vessel is left out with a warning (it stopped the
@@ -850,6 +852,18 @@ void add_pipeline_command(CLI::App& app) {
                   "build's: the fraction of its rest volume below which a tetrahedron resists with the bulk modulus, "
                   "[0, 1) (0: none; docs/msm.md, The inversion guard)")
       ->check(half_open_range(0, 1))
+      ->capture_default_str();
+  sub->add_option("--spur-ratio", a.spur_ratio,
+                  "vessels': a skeleton branch from a junction to an end shorter than this many junction radii is a "
+                  "spur (raise it, e.g. to 4, for noisy labels; docs/vessels.md), > 0")
+      ->check([](const std::string& v) -> std::string {
+        try {
+          const double x = std::stod(v);
+          return std::isfinite(x) && x > 0 ? "" : "must be a number > 0";
+        } catch (...) {
+          return "must be a number > 0";
+        }
+      })
       ->capture_default_str();
   sub->add_flag("!--no-axis-correction", a.axis_correction,
                 "build's: leave each layer's rule as it is, no equal Young's moduli along u, v and through (docs/msm.md)");

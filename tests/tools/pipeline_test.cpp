@@ -215,6 +215,17 @@ TEST(Pipeline, ColdWarmAndIncremental) {
     EXPECT_EQ(badg.code, 2) << badg.err;
     EXPECT_EQ(test::count_lines(badg.err), 1) << badg.err;
     EXPECT_NE(badg.err.find("--inversion-guard"), std::string::npos) << badg.err;
+    // vessels' --spur-ratio: the vessels stage alone runs again (its own cache key),
+    // the report's parameter; a value <= 0 refused in one line
+    const auto sr = test::run_cli(s.args("--grid 20x6 --inversion-guard 0 --spur-ratio 4"));
+    ASSERT_EQ(sr.code, 0) << sr.err;
+    EXPECT_TRUE(s.ran().count("vessels"));
+    EXPECT_FALSE(s.ran().count("build"));
+    EXPECT_EQ(s.report()["parameters"]["spur_ratio"].get<double>(), 4.0);
+    const auto bads = test::run_cli(s.args("--grid 20x6 --spur-ratio 0"));
+    EXPECT_EQ(bads.code, 2) << bads.err;
+    EXPECT_EQ(test::count_lines(bads.err), 1) << bads.err;
+    EXPECT_NE(bads.err.find("--spur-ratio"), std::string::npos) << bads.err;
   }
   {
     // build's --no-axis-correction: the pipeline passes it (its own cache key); the
