@@ -356,6 +356,14 @@ Model assemble_model(const ModelSource& src) {
           c.push_back(all ? it->second : -1);
         }
       if (!any || !all) continue;
+      // a guard needs a rest orientation: a tetrahedron flat at rest has none
+      // and is left unguarded (counted) rather than refusing the model
+      if (guard > 0 && !(std::abs(tet_gradient(load3(m.rest_x.data(), c[0]), load3(m.rest_x.data(), c[1]),
+                                               load3(m.rest_x.data(), c[2]), load3(m.rest_x.data(), c[3]))
+                                      .volume) > 0)) {
+        ++m.flat_guards_skipped;
+        continue;
+      }
       m.tet.insert(m.tet.end(), c.begin(), c.end());
       m.tet_k.insert(m.tet_k.end(), static_cast<std::size_t>(G), k);
       m.tet_guard.insert(m.tet_guard.end(), static_cast<std::size_t>(G), guard);

@@ -94,6 +94,7 @@ struct Model {
   // the two-sided term above; in (0, 1) for an inversion guard, one-sided:
   // (k/2) min(0, V - a V0)^2 / |V0| (Layer::guard_modulus, guard_ratio)
   std::vector<Real> tet_guard;
+  std::int32_t flat_guards_skipped = 0;      // guarded tetrahedra of zero rest volume, left out by the loader
   std::vector<std::int32_t> tet_group_first; // (n_groups + 1) each group's tetrahedra, consecutive; empty: one group each (finalize fills it)
   std::int32_t n_groups = 0;                 // (built by finalize from here on)
   std::vector<std::int32_t> tet_group;       // (n_tets) the group of each tetrahedron

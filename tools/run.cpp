@@ -236,6 +236,7 @@ void add_run_command(CLI::App& app) {
     met["anchors"] = m.n_anchors;
     met["springs"] = m.n_springs;
     met["volume_tets"] = m.n_tets;
+    met["flat_guards_skipped"] = m.flat_guards_skipped;
     met["layers_loaded"] = m.layers.size();
     met["vessels_loaded"] = m.vessels.size();
     met["datasets_read"] = st.datasets_read;

@@ -713,6 +713,19 @@ TEST(VolumeTerm, TheGuardActsOnlyBelowItsRatio) {
   ASSERT_EQ(m.n_tets, 3 * 2 * 6);
   ASSERT_EQ(m.n_groups, m.n_tets);
   ASSERT_EQ(m0.n_tets, 0);
+  EXPECT_EQ(m.flat_guards_skipped, 0);
+  {
+    // a tetrahedron flat at rest (four nodes of the top sheet) has no
+    // orientation to guard: left out and counted, the model still loads
+    auto flat = guarded;
+    Layer& l = flat.layers[0].second;
+    l.tets.conservativeResize(l.tets.rows() + 1, 4);
+    const VecXi& top = flat.sets.at("skin");
+    l.tets.row(l.tets.rows() - 1) << top(0), top(1), top(2), top(3);
+    const Model mflat = model_from_layers(flat.layers, flat.sets);
+    EXPECT_EQ(mflat.n_tets, m.n_tets);
+    EXPECT_EQ(mflat.flat_guards_skipped, 1);
+  }
   for (Real v : mf.tet_rest_volume) ASSERT_LT(v, 0);
   const Real block_volume = 12e-3 * 8e-3 * 4e-3;
   const SolverOptions o = no_gravity(Integrator::symplectic_euler);
