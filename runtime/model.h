@@ -92,7 +92,8 @@ struct Model {
   std::vector<Real> tet_k;                   // (n_tets) Pa, the volume modulus k of the tetrahedron's group
   // (n_tets; empty: all 0, finalize fills it) the group's guard ratio a: 0 for
   // the two-sided term above; in (0, 1) for an inversion guard, one-sided:
-  // (k/2) min(0, V - a V0)^2 / |V0| (Layer::guard_modulus, guard_ratio)
+  // (k/2) min(0, s V - a |V0|)^2 / |V0|, s the sign of V0 (Layer::guard_modulus,
+  // guard_ratio)
   std::vector<Real> tet_guard;
   std::int32_t flat_guards_skipped = 0;      // guarded tetrahedra of zero rest volume, left out by the loader
   std::vector<std::int32_t> tet_group_first; // (n_groups + 1) each group's tetrahedra, consecutive; empty: one group each (finalize fills it)

@@ -198,8 +198,8 @@ Real move_kinematic(State& s, Real t1, Real h) {
 // of its tetrahedra) and h2 k/|V0| (tet_c, for the implicit matrix); returns
 // the energy sum (k/2)(V - V0)^2/|V0|, added per chunk of groups in chunk
 // order (the same for any thread count). An inversion guard's group (guard
-// ratio a > 0) has V - a V0 in place of V - V0 where that is negative, and
-// neither pressure nor stiffness above it.
+// ratio a > 0) has s V - a |V0| (s the sign of V0) in place of V - V0 where
+// that is negative, and neither pressure nor stiffness above it.
 Real tet_pass(const Model& m, State& s, Real h2) {
   if (m.n_tets == 0) return 0;
   Scratch& sc = s.scratch;

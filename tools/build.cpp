@@ -126,8 +126,9 @@ void add_build_command(CLI::App& app) {
                   "with --lattice-volume-term per hexahedron of a lattice layer (0.25: none; docs/msm.md, The volume term)")
       ->capture_default_str();
   sub->add_option("--inversion-guard", opt.inversion_guard,
-                  "every tetrahedron of a layer resists being pressed below this fraction of its rest volume with the "
-                  "tissue's bulk modulus, in [0, 1) (0: none; docs/msm.md, The inversion guard)")
+                  "every tetrahedron of a layer without a volume term of its own (the lattices') resists being pressed "
+                  "below this fraction of its rest volume with the tissue's bulk modulus, in [0, 1) (0: none; "
+                  "docs/msm.md, The inversion guard)")
       ->capture_default_str();
   sub->add_flag("--lattice-volume-term", opt.lattice_volume_term,
                 "give the lattice layers a volume term per hexahedron too (off: in cells far from cubes it buckles the "

@@ -807,17 +807,20 @@ int run_pipeline(const Args& a) {
   }
 }
 
-// A CLI11 check: a number in [lo, hi)
-std::function<std::string(const std::string&)> half_open_range(double lo, double hi) {
-  const std::string range = "[" + exact(lo) + ", " + exact(hi) + ")";
-  return [lo, hi, range](const std::string& v) -> std::string {
+// A CLI11 check: a number x with ok(x); `what` names the range ("> 0")
+std::function<std::string(const std::string&)> number_check(std::function<bool(double)> ok, std::string what) {
+  return [ok = std::move(ok), what = std::move(what)](const std::string& v) -> std::string {
     try {
-      const double x = std::stod(v);
-      return x >= lo && x < hi ? "" : "must be in " + range;
+      return ok(std::stod(v)) ? "" : "must be " + what;
     } catch (...) {
-      return "must be a number in " + range;
+      return "must be a number " + what;
     }
   };
+}
+
+// A CLI11 check: a number in [lo, hi)
+std::function<std::string(const std::string&)> half_open_range(double lo, double hi) {
+  return number_check([lo, hi](double x) { return x >= lo && x < hi; }, "in [" + exact(lo) + ", " + exact(hi) + ")");
 }
 
 }  // namespace
@@ -856,14 +859,7 @@ void add_pipeline_command(CLI::App& app) {
   sub->add_option("--spur-ratio", a.spur_ratio,
                   "vessels': a skeleton branch from a junction to an end shorter than this many junction radii is a "
                   "spur (raise it, e.g. to 4, for noisy labels; docs/vessels.md), > 0")
-      ->check([](const std::string& v) -> std::string {
-        try {
-          const double x = std::stod(v);
-          return std::isfinite(x) && x > 0 ? "" : "must be a number > 0";
-        } catch (...) {
-          return "must be a number > 0";
-        }
-      })
+      ->check(number_check([](double x) { return std::isfinite(x) && x > 0; }, "> 0"))
       ->capture_default_str();
   sub->add_flag("!--no-axis-correction", a.axis_correction,
                 "build's: leave each layer's rule as it is, no equal Young's moduli along u, v and through (docs/msm.md)");

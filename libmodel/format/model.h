@@ -143,12 +143,12 @@ struct Layer {
   double volume_modulus = 0;
   int volume_group = 1;
   // The inversion guard (docs/msm.md, "The inversion guard"): each row of
-  // `tets`, of signed rest volume V0, adds (guard_modulus / 2)
-  // min(0, V - guard_ratio V0)^2 / |V0|: nothing until the tetrahedron has
-  // lost 1 - guard_ratio of its volume, then the tissue's bulk modulus
-  // against more, so a layer never turns inside out while the small-strain
-  // response the tables and the calibration see is the springs' and the
-  // volume term's alone. Pa; 0 = none (files written before 2026-11-28 (3),
+  // `tets`, of signed rest volume V0 (s its sign), adds (guard_modulus / 2)
+  // min(0, s V - guard_ratio |V0|)^2 / |V0|: nothing until the tetrahedron
+  // has lost 1 - guard_ratio of its volume, then the tissue's bulk modulus
+  // against more, so a layer resists turning inside out while the
+  // small-strain response the tables and the calibration see is the
+  // springs' and the volume term's alone. Pa; 0 = none (files written before 2026-11-28 (3),
   // rigid layers, build's --inversion-guard 0). Attributes "guard_modulus"
   // and "guard_ratio" (in (0, 1)) of the layer group; written by build (the
   // bulk modulus K1 / (3 (1 - 2 nu))) and rescaled by tune with K1.

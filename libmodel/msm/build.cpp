@@ -427,15 +427,15 @@ BuiltModel build_layers(const std::vector<std::pair<std::string, QuadSurface>>& 
     L.turning_length = m.rest_length * (1 + law.turning_strain);
     for (int c = 0; c < 4; ++c) L.spring_law.insert(L.spring_law.end(), {law.k1_pa, law.turning_strain, law.k2_pa});
     // the volume term: per tetrahedron of a tetra layer, per hexahedron (its
-    // 6 tetrahedra) of a lattice layer with lattice_volume_term; the
-    // inversion guard on every tetrahedron
+    // 6 tetrahedra) of a lattice layer with lattice_volume_term
     if (!cells[l].tets.empty() && volume_ratio(o.poisson_ratio) > 0 &&
         (specs[l].kind == "tetra" || o.lattice_volume_term)) {
       L.volume_modulus = volume_ratio(o.poisson_ratio) * law.k1_pa;
       L.volume_group = specs[l].kind == "lattice" ? 6 : 1;
     }
-    // (not where each tetrahedron has a two-sided term of its own: a tetra
-    // layer at nu > 1/4, whose term resists from the rest volume down)
+    // the inversion guard on every tetrahedron, but not where each has a
+    // two-sided term of its own (a tetra layer at nu > 1/4: that term already
+    // resists from the rest volume down)
     const bool own_term = L.volume_modulus > 0 && L.volume_group == 1;
     if (!cells[l].tets.empty() && o.inversion_guard > 0 && !own_term) {
       L.guard_modulus = bulk_ratio(o.poisson_ratio) * law.k1_pa;

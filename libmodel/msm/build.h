@@ -99,8 +99,9 @@ struct BuildOptions {
   // volume term": the demo's fat cells lose 29 % of their modulus at 3 %)
   bool lattice_volume_term = false;
   // The inversion guard (Layer::guard_modulus, guard_ratio; docs/msm.md, "The
-  // inversion guard"), in (0, 1), 0: none. Every tetrahedron of every layer
-  // (a tetra layer's 14 per quad, a lattice layer's 6 per hexahedron) resists
+  // inversion guard"), in (0, 1), 0: none. Every tetrahedron of a layer whose
+  // tetrahedra have no volume term of their own (a lattice layer's 6 per
+  // hexahedron; a tetra layer's 14 per quad at poisson_ratio 1/4) resists
   // being pressed below this fraction of its rest volume with the tissue's
   // bulk modulus K1 / (3 (1 - 2 nu)); above it the guard does nothing, so the
   // moduli the axis correction and tune calibrate are not changed.
