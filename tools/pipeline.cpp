@@ -73,6 +73,7 @@ struct Args {
   std::uint64_t seed = 1;
   int through_cells = 1;  // build's --through-cells (a fine grid's lattice cells need it: 400x100 builds with 4)
   int bit_depth = 16;     // segment's --bit-depth (significant bits of 16-bit slices)
+  double smoothness = SegmentOptions{}.smoothness;  // segment's --smoothness (the labels' smoothness prior)
   double poisson_ratio = msm::BuildOptions{}.poisson_ratio;  // build's --poisson-ratio (the layers' volume term)
   bool lattice_volume_term = false;                          // build's --lattice-volume-term
   double inversion_guard = msm::BuildOptions{}.inversion_guard;  // build's --inversion-guard
@@ -382,7 +383,7 @@ int run_stages(Args a, Report& report) {
   report.input(a.stack);
   report.input(a.tissues);
   if (!a.scene.empty()) report.input(a.scene);
-  report.parameters() = {{"grid", a.grid}, {"through_cells", a.through_cells}, {"poisson_ratio", a.poisson_ratio}, {"lattice_volume_term", a.lattice_volume_term}, {"inversion_guard", a.inversion_guard}, {"spur_ratio", a.spur_ratio}, {"axis_correction", a.axis_correction}, {"bit_depth", a.bit_depth}, {"spacing_mm", a.spacing}, {"origin_mm", a.origin},
+  report.parameters() = {{"grid", a.grid}, {"through_cells", a.through_cells}, {"poisson_ratio", a.poisson_ratio}, {"lattice_volume_term", a.lattice_volume_term}, {"inversion_guard", a.inversion_guard}, {"spur_ratio", a.spur_ratio}, {"axis_correction", a.axis_correction}, {"bit_depth", a.bit_depth}, {"smoothness", a.smoothness}, {"spacing_mm", a.spacing}, {"origin_mm", a.origin},
                          {"work", a.work}, {"texture", a.texture}, {"tune", a.tune},
                          {"tune_budget_s", a.tune_budget_s}, {"tune_evaluations", a.tune_evaluations}, {"seed", a.seed}, {"export", a.export_dir}};
 
@@ -500,11 +501,12 @@ int run_stages(Args a, Report& report) {
     const auto seg = run.stage(
         "segment",
         {stack_hash, table_hash, a.spacing, a.origin, a.register_slices ? "registered" : "as-is",
-         "bit-depth " + std::to_string(a.bit_depth)},
+         "bit-depth " + std::to_string(a.bit_depth), "smoothness " + exact(a.smoothness)},
         run.command([&](const std::string& d) {
           std::vector<std::string> args{"segment", "--stack", a.stack, "--tissues", a.tissues, "--spacing",
                                         a.spacing, "--origin", a.origin, "--out", d + "/labels.h5",
-                                        "--nrrd", d + "/labels.nrrd", "--bit-depth", std::to_string(a.bit_depth)};
+                                        "--nrrd", d + "/labels.nrrd", "--bit-depth", std::to_string(a.bit_depth),
+                                        "--smoothness", exact(a.smoothness)};
           if (a.register_slices) args.push_back("--register");
           return args;
         }),
@@ -839,6 +841,11 @@ void add_pipeline_command(CLI::App& app) {
   sub->add_option("--bit-depth", a.bit_depth,
                   "significant bits of 16-bit slices, segment's (8..16; 12: a 12-bit camera's data in 16-bit files)")
       ->check(CLI::Range(8, 16))
+      ->capture_default_str();
+  sub->add_option("--smoothness", a.smoothness,
+                  "segment's smoothness prior: nats of colour evidence per unlike face neighbour (0: off, the per-voxel "
+                  "rule; docs/segment.md), >= 0")
+      ->check(number_check([](double x) { return std::isfinite(x) && x >= 0; }, ">= 0"))
       ->capture_default_str();
   sub->add_option("--through-cells", a.through_cells,
                   "lattice cells through each lattice layer, build's (1..64; a fine --grid needs more: 400x100 builds "

@@ -28,6 +28,8 @@ void add_segment_command(CLI::App& app) {
     std::int64_t min_island = 64, min_vessel = 4;
     double min_island_mm3 = 20;
     double refine_max_shift = 30, lightness_weight = 1, min_body_fraction = 0.1;
+    double smoothness = SegmentOptions{}.smoothness;
+    int smoothing_sweeps = SegmentOptions{}.smoothing_sweeps;
     CommonOptions common;
   };
   static Args a;
@@ -43,6 +45,11 @@ void add_segment_command(CLI::App& app) {
   sub->add_option("--classify", a.classify,
                   "colour to prototype: mahalanobis (under the calibrated colour spread) or nearest (CIELAB)")
       ->capture_default_str();
+  sub->add_option("--smoothness", a.smoothness,
+                  "smoothness prior: nats of colour evidence a voxel's label pays per unlike face neighbour (Potts, "
+                  "26 neighbours weighted by distance; 0: off; mahalanobis only; docs/segment.md)")
+      ->capture_default_str();
+  sub->add_option("--smoothing-sweeps", a.smoothing_sweeps, "sweeps of the smoothness prior, 1..16")->capture_default_str();
   sub->add_flag("--no-cleanup", a.no_cleanup, "no clean-up at all (order, rank filter, components)");
   sub->add_flag("--no-order", a.no_order, "do not enforce the anatomical order of the table's 'inside'");
   sub->add_flag("--no-fill-holes", a.no_fill_holes, "keep background enclosed by the body");
@@ -105,6 +112,8 @@ void add_segment_command(CLI::App& app) {
     if (a.classify == "mahalanobis") o.classify = SegmentOptions::Classify::mahalanobis;
     else if (a.classify == "nearest") o.classify = SegmentOptions::Classify::nearest;
     else throw UsageError("--classify: expected mahalanobis or nearest, got '" + a.classify + "'");
+    o.smoothness = a.smoothness;
+    o.smoothing_sweeps = a.smoothing_sweeps;
     o.cleanup = !a.no_cleanup;
     o.enforce_order = !a.no_order;
     o.fill_holes = !a.no_fill_holes;
@@ -213,6 +222,7 @@ void add_segment_command(CLI::App& app) {
       protos.push_back({{"tissue", name_of(p.label)},
                         {"table_lab", p.table_lab},
                         {"lab", p.lab},
+                        {"pixel_lab", p.pixel_lab},
                         {"shift", d},
                         {"samples", p.samples},
                         {"nearest_table_colour", name_of(nearer[k])}});
@@ -279,7 +289,7 @@ void add_segment_command(CLI::App& app) {
     j["gain_min"] = m.gain_min;
     j["gain_max"] = m.gain_max;
     j["normalise_fallbacks"] = m.normalise_fallbacks;
-    j["cleanup"] = {{"order_changed", m.order_changed},     {"speck_changed", m.speck_changed},
+    j["cleanup"] = {{"smooth_changed", m.smooth_changed}, {"order_changed", m.order_changed},     {"speck_changed", m.speck_changed},
                     {"holes_filled", m.holes_filled},       {"islands_absorbed", m.islands_absorbed}, {"misplaced_absorbed", m.misplaced_absorbed},
                     {"detached_removed", m.detached_removed}, {"components", m.components},
                     {"body_components", m.body_components}};

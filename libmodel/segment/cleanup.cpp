@@ -37,6 +37,149 @@ struct Span {
 
 }  // namespace
 
+// ---- smoothness prior ----------------------------------------------------------
+
+Smoother make_smoother(const ColourModel& m, double beta, const std::array<double, 3>& spacing) {
+  Smoother s;
+  s.beta = beta;
+  const double h = std::min({spacing[0], spacing[1], spacing[2]});
+  for (int dz = -1; dz <= 1; ++dz)
+    for (int dy = -1; dy <= 1; ++dy)
+      for (int dx = -1; dx <= 1; ++dx) {
+        const double r = std::sqrt(dx * dx * spacing[0] * spacing[0] + dy * dy * spacing[1] * spacing[1] +
+                                   dz * dz * spacing[2] * spacing[2]);
+        s.w[static_cast<std::size_t>((dz + 1) * 9 + (dy + 1) * 3 + dx + 1)] = r > 0 ? h / r : 0;
+      }
+  s.centres_of.assign(256, {});
+  for (std::size_t i = 0; i < m.centres.size(); ++i)
+    s.centres_of[static_cast<std::size_t>(m.centres[i].label)].push_back(static_cast<int>(i));
+  return s;
+}
+
+void uniform_3x3(const std::uint8_t* c, int nx, int ny, std::vector<std::uint8_t>& u) {
+  const std::size_t n = static_cast<std::size_t>(nx) * ny;
+  // row[i]: pixel i and its row neighbours agree; then the rows above and below
+  std::vector<std::uint8_t> row(n);
+  for (int y = 0; y < ny; ++y) {
+    const std::uint8_t* cr = c + static_cast<std::size_t>(y) * nx;
+    std::uint8_t* rr = row.data() + static_cast<std::size_t>(y) * nx;
+    rr[0] = nx == 1 || cr[1] == cr[0];
+    for (int x = 1; x + 1 < nx; ++x) rr[x] = static_cast<std::uint8_t>((cr[x - 1] == cr[x]) & (cr[x + 1] == cr[x]));
+    if (nx > 1) rr[nx - 1] = cr[nx - 2] == cr[nx - 1];
+  }
+  u.assign(row.begin(), row.end());
+  for (int y = 0; y < ny; ++y) {
+    const std::size_t r = static_cast<std::size_t>(y) * nx;
+    std::uint8_t* ur = u.data() + r;
+    const std::uint8_t* cr = c + r;
+    if (y > 0) {
+      const std::uint8_t *ca = cr - nx, *ra = row.data() + r - nx;
+      for (int x = 0; x < nx; ++x) ur[x] &= static_cast<std::uint8_t>(ra[x] & (ca[x] == cr[x]));
+    }
+    if (y + 1 < ny) {
+      const std::uint8_t *cb = cr + nx, *rb = row.data() + r + nx;
+      for (int x = 0; x < nx; ++x) ur[x] &= static_cast<std::uint8_t>(rb[x] & (cb[x] == cr[x]));
+    }
+  }
+}
+
+void changed_3x3(const std::uint8_t* a, const std::uint8_t* b, int nx, int ny, std::vector<std::uint8_t>& d) {
+  const std::size_t n = static_cast<std::size_t>(nx) * ny;
+  std::vector<std::uint8_t> row(n);
+  for (int y = 0; y < ny; ++y) {
+    const std::size_t r = static_cast<std::size_t>(y) * nx;
+    std::uint8_t* rr = row.data() + r;
+    for (int x = 0; x < nx; ++x) rr[x] = a[r + x] != b[r + x];
+    // dilate along the row (right to left keeps the unshifted neighbour)
+    std::uint8_t left = 0;
+    for (int x = 0; x < nx; ++x) {
+      const std::uint8_t c = rr[x];
+      rr[x] = static_cast<std::uint8_t>(c | left | (x + 1 < nx ? static_cast<std::uint8_t>(a[r + x + 1] != b[r + x + 1]) : 0));
+      left = c;
+    }
+  }
+  d.assign(row.begin(), row.end());
+  for (int y = 0; y < ny; ++y) {
+    std::uint8_t* dr = d.data() + static_cast<std::size_t>(y) * nx;
+    if (y > 0) {
+      const std::uint8_t* ra = row.data() + static_cast<std::size_t>(y - 1) * nx;
+      for (int x = 0; x < nx; ++x) dr[x] |= ra[x];
+    }
+    if (y + 1 < ny) {
+      const std::uint8_t* rb = row.data() + static_cast<std::size_t>(y + 1) * nx;
+      for (int x = 0; x < nx; ++x) dr[x] |= rb[x];
+    }
+  }
+}
+
+std::int64_t smooth_sweep(const Smoother& s, const ColourModel& m, const std::uint8_t* rgb, const SweepSlice& sp,
+                          const SweepSlice& sc, const SweepSlice& sn, int nx, int ny, std::uint8_t* out) {
+  std::int64_t changed = 0;
+  const std::uint8_t *prev = sp.labels, *cur = sc.labels, *next = sn.labels;
+  const std::uint8_t *uprev = sp.uniform, *ucur = sc.uniform, *unext = sn.uniform;
+  const std::uint8_t* planes[3] = {prev, cur, next};
+  std::array<std::uint8_t, 27> cand{};
+  std::array<double, 27> cw{};
+  for (int y = 0; y < ny; ++y) {
+    const std::size_t r = static_cast<std::size_t>(y) * nx;
+    for (int x = 0; x < nx; ++x) {
+      const std::size_t i = r + x;
+      const std::uint8_t l = cur[i];
+      // a voxel none of whose neighbours changed in the last sweep keeps its
+      // label, and so does one whose neighbours all share it (most voxels)
+      if (sc.active && !(sc.active[i] || (sp.active && sp.active[i]) || (sn.active && sn.active[i]))) {
+        out[i] = l;
+        continue;
+      }
+      if (ucur[i] && (!prev || (uprev[i] && prev[i] == l)) && (!next || (unext[i] && next[i] == l))) {
+        out[i] = l;
+        continue;
+      }
+      // the weight of each label among the neighbours
+      int nc = 1;
+      cand[0] = l, cw[0] = 0;
+      double total = 0;
+      for (int p = 0; p < 3; ++p) {
+        const std::uint8_t* pl = planes[p];
+        if (!pl) continue;
+        for (int dy = -1; dy <= 1; ++dy) {
+          const int yy = y + dy;
+          if (yy < 0 || yy >= ny) continue;
+          for (int dx = -1; dx <= 1; ++dx) {
+            const int xx = x + dx;
+            if (xx < 0 || xx >= nx || (p == 1 && dx == 0 && dy == 0)) continue;
+            const std::uint8_t v = pl[static_cast<std::size_t>(yy) * nx + xx];
+            const double w = s.w[static_cast<std::size_t>(p * 9 + (dy + 1) * 3 + dx + 1)];
+            total += w;
+            int k = 0;
+            while (k < nc && cand[static_cast<std::size_t>(k)] != v) ++k;
+            if (k == nc) cand[static_cast<std::size_t>(nc)] = v, cw[static_cast<std::size_t>(nc++)] = 0;
+            cw[static_cast<std::size_t>(k)] += w;
+          }
+        }
+      }
+      if (nc == 1) {
+        out[i] = l;
+        continue;
+      }
+      const std::uint8_t* c = rgb + 3 * i;
+      const std::array<double, 3> lab = srgb8_to_lab(c[0], c[1], c[2]);
+      std::uint8_t best = l;
+      double be = 1e300;
+      for (int k = 0; k < nc; ++k) {  // cand[0] is the voxel's own label: it wins ties
+        const auto cl = cand[static_cast<std::size_t>(k)];
+        double u = 1e300;
+        for (int ci : s.centres_of[cl]) u = std::min(u, 0.5 * m.score(lab, static_cast<std::size_t>(ci)));
+        const double e = u + s.beta * (total - cw[static_cast<std::size_t>(k)]);
+        if (e < be) be = e, best = cl;
+      }
+      out[i] = best;
+      changed += best != l;
+    }
+  }
+  return changed;
+}
+
 // ---- anatomical order ----------------------------------------------------------
 
 std::int64_t enforce_order(const LabelInfo& info, const ColourModel& m, const std::uint8_t* rgb, int nx, int ny,
@@ -431,7 +574,7 @@ std::vector<std::uint8_t> ComponentTracker::resolve(const LabelInfo& info, const
     auto small = [&](std::uint32_t r) {
       const std::uint8_t l = label_[r];
       if (l == 0) return o.fill_holes && !lateral_[r];
-      if (info.is_vessel[l]) return size_[r] < o.min_vessel_voxels;
+      if (info.is_vessel[l]) return size_[r] < o.min_vessel_voxels || misplaced(r);
       return size_[r] < min_island || misplaced(r);
     };
     std::vector<std::uint32_t> cand;

@@ -72,7 +72,16 @@ LabelInfo make_label_info(const TissueTable& t, bool fill_holes) {
   };
   info.touch.assign(256, {});
   for (const auto& x : t.tissues) {
-    if (x.inside.empty() || info.is_vessel[x.label]) continue;
+    if (info.is_vessel[x.label]) {
+      // vessels run inside the body: a piece of one that meets the embedding
+      // medium more than the body is the medium's noise or the skin's
+      // partial volume (blue gel next to pink skin looks like a vein)
+      auto& m = info.touch[x.label];
+      m.assign(256, 0);
+      for (const auto& y : t.tissues) m[y.label] = info.is_vessel[y.label] ? 2 : 1;
+      continue;
+    }
+    if (x.inside.empty()) continue;
     const Tissue* parent = t.find(x.inside);
     if (!parent) continue;
     auto& m = info.touch[x.label];
@@ -152,7 +161,7 @@ ColourModel initial_model(const TissueTable& t, const SegmentOptions& o) {
     c.label = label;
     c.table_rgb = {double(rgb[0]), double(rgb[1]), double(rgb[2])};
     c.table_lab = srgb_to_lab(rgb[0], rgb[1], rgb[2]);
-    c.lab = c.table_lab;
+    c.lab = c.pixel_lab = c.table_lab;
     m.centres.push_back(c);
   };
   for (const auto& rgb : t.background_rgb) add(0, rgb);
@@ -168,7 +177,8 @@ ColourModel initial_model(const TissueTable& t, const SegmentOptions& o) {
 namespace {
 
 struct Samples {
-  std::vector<std::uint8_t> rgb;  // raw, interleaved
+  std::vector<std::uint8_t> rgb;  // interleaved: the pixels, or their 3 x 3 medians
+  std::vector<std::uint8_t> raw;  // with medians: the pixels themselves (else empty)
   std::vector<double> u, v;       // position relative to the centre, in image sizes
 };
 
@@ -195,6 +205,7 @@ Samples grid_samples(const std::uint8_t* rgb, int nx, int ny, int stride, bool m
           std::nth_element(w.begin(), w.begin() + k / 2, w.begin() + k);
           s.rgb.push_back(w[static_cast<std::size_t>(k / 2)]);
         }
+        s.raw.insert(s.raw.end(), p, p + 3);
       } else {
         s.rgb.insert(s.rgb.end(), p, p + 3);
       }
@@ -206,12 +217,14 @@ Samples grid_samples(const std::uint8_t* rgb, int nx, int ny, int stride, bool m
 
 double gain_at(const GainField& g, int c, double u, double v) { return g.coef[c][0] + g.coef[c][1] * u + g.coef[c][2] * v; }
 
-void correct_samples(const GainField& g, const Samples& s, std::vector<std::uint8_t>& out) {
+// The samples' colours (or, raw, their pixels') under the gain field.
+void correct_samples(const GainField& g, const Samples& s, std::vector<std::uint8_t>& out, bool raw = false) {
   const std::size_t n = s.u.size();
+  const std::vector<std::uint8_t>& in = raw ? s.raw : s.rgb;
   out.resize(3 * n);
   for (std::size_t i = 0; i < n; ++i)
     for (int c = 0; c < 3; ++c) {
-      const double v = s.rgb[3 * i + c] / gain_at(g, c, s.u[i], s.v[i]);
+      const double v = in[3 * i + c] / gain_at(g, c, s.u[i], s.v[i]);
       out[3 * i + c] = static_cast<std::uint8_t>(std::clamp(std::lround(v), 0L, 255L));
     }
 }
@@ -345,6 +358,87 @@ void apply_gain(const GainField& g, const std::uint8_t* rgb, int nx, int ny, std
 
 // ---- calibration -------------------------------------------------------------
 
+namespace {
+
+// The fit above is made on 3 x 3 medians, but the classifier scores single
+// pixels. CIELAB is not linear in RGB, so under sensor noise the mean colour
+// of a tissue's pixels lies off that of its medians (8-bit noise 24: 4-11
+// units in a* for every tissue of the phantom), and the pixels spread wider
+// than the medians. Each centre's pixel_lab is its lab moved by the
+// responsibility-weighted mean of (pixel - median) over the samples, shrunk
+// towards the pooled mean by the prior's n0 samples (a rare tissue's own mean
+// is noisy), and P becomes the inverse of the pixels' shared covariance about
+// them, so that the Mahalanobis distance of a pixel is in units of its own
+// spread (what the smoothness prior's weights are measured against). The
+// responsibilities are the fit's, of each sample's median colour. `pairs`:
+// sorted (median key << 24 | pixel key), 24-bit sRGB keys.
+void pixel_statistics(ColourModel& m, const std::vector<std::uint64_t>& pairs, const std::vector<double>& log_pi,
+                      std::array<double, 6>& P, double n0) {
+  const std::size_t C = m.centres.size();
+  auto lab_of = [](std::uint32_t k) {
+    return srgb8_to_lab(static_cast<std::uint8_t>(k >> 16), static_cast<std::uint8_t>(k >> 8), static_cast<std::uint8_t>(k));
+  };
+  // distinct pairs with counts
+  std::vector<std::array<double, 3>> med, pix;
+  std::vector<double> count;
+  for (std::size_t i = 0; i < pairs.size();) {
+    std::size_t j = i;
+    while (j < pairs.size() && pairs[j] == pairs[i]) ++j;
+    med.push_back(lab_of(static_cast<std::uint32_t>(pairs[i] >> 24)));
+    pix.push_back(lab_of(static_cast<std::uint32_t>(pairs[i] & 0xFFFFFF)));
+    count.push_back(static_cast<double>(j - i));
+    i = j;
+  }
+  const std::size_t N = med.size();
+  if (N == 0) return;
+  auto responsibilities = [&](std::size_t i, std::vector<double>& r) {
+    double top = -1e300;
+    for (std::size_t c = 0; c < C; ++c) top = std::max(top, r[c] = log_pi[c] - 0.5 * mahalanobis2(P, med[i], m.centres[c].lab));
+    double z = 0;
+    for (std::size_t c = 0; c < C; ++c) z += (r[c] = std::exp(r[c] - top));
+    for (std::size_t c = 0; c < C; ++c) r[c] *= count[i] / z;
+  };
+  // 1. the mean (pixel - median) per centre, and pooled
+  std::vector<std::array<double, 4>> shift(C, {0, 0, 0, 0});
+  std::array<double, 4> pooled{0, 0, 0, 0};
+  std::vector<double> r(C);
+  for (std::size_t i = 0; i < N; ++i) {  // serial, fixed order: deterministic
+    responsibilities(i, r);
+    for (std::size_t c = 0; c < C; ++c) {
+      for (int k = 0; k < 3; ++k) shift[c][k] += r[c] * (pix[i][k] - med[i][k]);
+      shift[c][3] += r[c];
+    }
+  }
+  for (std::size_t c = 0; c < C; ++c)
+    for (int k = 0; k < 4; ++k) pooled[k] += shift[c][k];
+  for (std::size_t c = 0; c < C; ++c) {
+    Centre& ce = m.centres[c];
+    for (int k = 0; k < 3; ++k)
+      ce.pixel_lab[k] = ce.lab[k] + (shift[c][k] + n0 * pooled[k] / std::max(pooled[3], 1e-300)) / (shift[c][3] + n0 + 1e-300);
+  }
+  // 2. the pixels' shared covariance about their centres
+  std::array<double, 6> sc{0, 0, 0, 0, 0, 0};
+  double total = 0;
+  for (std::size_t i = 0; i < N; ++i) {
+    responsibilities(i, r);
+    for (std::size_t c = 0; c < C; ++c) {
+      const auto& mu = m.centres[c].pixel_lab;
+      const double d0 = pix[i][0] - mu[0], d1 = pix[i][1] - mu[1], d2 = pix[i][2] - mu[2];
+      sc[0] += r[c] * d0 * d0, sc[1] += r[c] * d1 * d1, sc[2] += r[c] * d2 * d2;
+      sc[3] += r[c] * d0 * d1, sc[4] += r[c] * d0 * d2, sc[5] += r[c] * d1 * d2;
+      total += r[c];
+    }
+  }
+  Eigen::Matrix3d S;
+  S << sc[0], sc[3], sc[4], sc[3], sc[1], sc[5], sc[4], sc[5], sc[2];
+  S /= std::max(total, 1e-300);
+  S.diagonal().array() += 0.0625;
+  const Eigen::Matrix3d Pi = S.inverse();
+  P = {Pi(0, 0), Pi(1, 1), Pi(2, 2), Pi(0, 1), Pi(0, 2), Pi(1, 2)};
+}
+
+}  // namespace
+
 void calibrate(ColourModel& m, const std::vector<std::vector<std::uint8_t>>& slices, int nx, int ny,
                const SegmentOptions& o) {
   const int nb = m.n_background();
@@ -396,7 +490,7 @@ void calibrate(ColourModel& m, const std::vector<std::vector<std::uint8_t>>& sli
         m.exposure = {gain, gain, gain};
         for (Centre& c : m.centres) {
           for (int k = 0; k < 3; ++k) c.table_rgb[k] = std::clamp(c.table_rgb[k] * gain, 0.0, 255.0);
-          c.table_lab = c.lab = srgb_to_lab(c.table_rgb[0], c.table_rgb[1], c.table_rgb[2]);
+          c.table_lab = c.lab = c.pixel_lab = srgb_to_lab(c.table_rgb[0], c.table_rgb[1], c.table_rgb[2]);
         }
         m.reset_table();
       }
@@ -429,17 +523,25 @@ void calibrate(ColourModel& m, const std::vector<std::vector<std::uint8_t>>& sli
   // 2. normalised colours of every calibration slice, as distinct colours
   // with their counts (24-bit keys, sorted: the order is fixed)
   std::vector<std::uint32_t> keys;
+  // (median, pixel) colour key pairs of every sample, for pixel_lab below
+  std::vector<std::uint64_t> pairs;
   {
-    std::vector<std::uint8_t> corr;
+    std::vector<std::uint8_t> corr, corr_raw;
+    auto key = [](const std::vector<std::uint8_t>& c, std::size_t i) {
+      return static_cast<std::uint32_t>(c[3 * i]) << 16 | static_cast<std::uint32_t>(c[3 * i + 1]) << 8 | c[3 * i + 2];
+    };
     for (std::size_t k = 0; k < slices.size(); ++k) {
       const GainField g = fit_gain(m, slices[k].data(), nx, ny, o.normalise);
       correct_samples(g, samples[k], corr);
-      for (std::size_t i = 0; i < samples[k].u.size(); ++i)
-        keys.push_back(static_cast<std::uint32_t>(corr[3 * i]) << 16 | static_cast<std::uint32_t>(corr[3 * i + 1]) << 8 |
-                       corr[3 * i + 2]);
+      correct_samples(g, samples[k], corr_raw, /*raw=*/true);
+      for (std::size_t i = 0; i < samples[k].u.size(); ++i) {
+        keys.push_back(key(corr, i));
+        pairs.push_back(std::uint64_t(key(corr, i)) << 24 | key(corr_raw, i));
+      }
     }
   }
   std::sort(keys.begin(), keys.end());
+  std::sort(pairs.begin(), pairs.end());
   std::vector<std::array<double, 3>> lab;
   std::vector<double> weight;
   for (std::size_t i = 0; i < keys.size();) {
@@ -532,7 +634,7 @@ void calibrate(ColourModel& m, const std::vector<std::vector<std::uint8_t>>& sli
       if (d > o.refine_max_shift && d > 0)
         for (int j = 0; j < 3; ++j) next[j] = ce.table_lab[j] + (next[j] - ce.table_lab[j]) * o.refine_max_shift / d;
       for (int j = 0; j < 3; ++j) moved = std::max(moved, std::abs(next[j] - ce.lab[j]));
-      ce.lab = next;
+      ce.lab = ce.pixel_lab = next;
       ce.samples = static_cast<std::int64_t>(std::llround(sum[3]));
     }
     // the mixing weights (with the prior's samples, so none reaches 0) and the
@@ -554,6 +656,7 @@ void calibrate(ColourModel& m, const std::vector<std::vector<std::uint8_t>>& sli
     P = {Pi(0, 0), Pi(1, 1), Pi(2, 2), Pi(0, 1), Pi(0, 2), Pi(1, 2)};
     if (it >= 0 && moved < 0.01) break;
   }
+  if (o.refine_iterations > 0) pixel_statistics(m, pairs, log_pi, P, n0);
   if (o.classify == SegmentOptions::Classify::mahalanobis && o.refine_iterations > 0) {
     m.mahalanobis = true;
     m.precision = P;

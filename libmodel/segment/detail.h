@@ -39,8 +39,9 @@ struct LabelInfo {
   // 1 in T's place (T's parent, or nested in the parent but not in T), 2 in
   // T itself (nested in T), 0 out of T's place; other vessels count as 2
   // (they cross layers), but a vessel that is T's parent or nested in it is
-  // T's place (a clot in a vein). Empty for tissues without a parent and for
-  // vessels.
+  // T's place (a clot in a vein). A vessel's place is the body: every bulk
+  // tissue 1, the background 0, other vessels 2. Empty for tissues without a
+  // parent.
   std::vector<std::vector<std::uint8_t>> touch;
 };
 LabelInfo make_label_info(const TissueTable& t, bool fill_holes);
@@ -55,7 +56,13 @@ inline double mahalanobis2(const std::array<double, 6>& P, const std::array<doub
 struct Centre {
   int label = 0;
   std::array<double, 3> table_lab{};
-  std::array<double, 3> lab{};
+  std::array<double, 3> lab{};  // calibrated on the samples' 3 x 3 medians
+  // What a single pixel of this tissue looks like on average: lab plus the
+  // mean difference between the raw pixels' colour and their 3 x 3 medians'
+  // (calibrate(); CIELAB is not linear in RGB, so under sensor noise the raw
+  // pixels' mean lies off the medians'). Classification scores pixels
+  // against this; = lab without calibration.
+  std::array<double, 3> pixel_lab{};
   std::array<double, 3> table_rgb{};
   std::int64_t samples = 0;
 };
@@ -87,9 +94,10 @@ struct ColourModel {
   // (xx, yy, zz, xy, xz, yz). Off: dist2.
   bool mahalanobis = false;
   std::array<double, 6> precision{0, 0, 0, 0, 0, 0};
-  // What a centre costs a colour: dist2, or the squared Mahalanobis distance.
+  // What a centre costs a pixel's colour: dist2, or the squared Mahalanobis
+  // distance, to the centre's pixel_lab.
   double score(const std::array<double, 3>& lab, std::size_t i) const {
-    return mahalanobis ? mahalanobis2(precision, lab, centres[i].lab) : dist2(lab, centres[i].lab);
+    return mahalanobis ? mahalanobis2(precision, lab, centres[i].pixel_lab) : dist2(lab, centres[i].pixel_lab);
   }
   // Best centre (first of equals) under score.
   int nearest(const std::array<double, 3>& lab) const;
@@ -154,6 +162,44 @@ struct SliceWork {
 // (ny*nx) and work.colour; returns the gain field used.
 GainField classify_slice(const ColourModel& m, const SegmentOptions& o, const std::uint8_t* rgb, int nx, int ny,
                          SliceWork& work, std::uint8_t* labels);
+
+// ---- smoothness prior (SegmentOptions::smoothness) -----------------------
+
+// A Potts prior on the labels, minimised by iterated conditional modes: each
+// voxel takes the label l of least
+//   E(l) = u_l(colour) + beta * sum over its 26 neighbours n with label != l of w_n,
+// u_l = min over l's centres of score / 2 (nats under the calibrated pixel
+// spread: needs the Mahalanobis rule), w_n = h_min / |offset to n| in
+// physical units (1 for an in-plane face neighbour of square pixels; the
+// slices' spacing weighs the neighbours across them less). Candidates are
+// the voxel's label and its neighbours'. Sweeps are Jacobi (every voxel from
+// the previous sweep's labels), so the result does not depend on the order,
+// the threads or the slab. The stack's end slices mirror their neighbour.
+struct Smoother {
+  double beta = 0;
+  std::array<double, 27> w{};                 // (dz + 1) * 9 + (dy + 1) * 3 + dx + 1; centre 0
+  std::vector<std::vector<int>> centres_of;  // label -> centre indices
+};
+Smoother make_smoother(const ColourModel& m, double beta, const std::array<double, 3>& spacing);
+// u[i] = 1 where the 3 x 3 neighbourhood of pixel i (clipped at the border)
+// has one label.
+void uniform_3x3(const std::uint8_t* labels, int nx, int ny, std::vector<std::uint8_t>& u);
+// A slice's labels from the previous sweep and their uniform_3x3 (both null
+// beyond the stack).
+// `active` (null: every voxel) marks, after the first sweep, the pixels
+// within the 3 x 3 of one the previous sweep changed: a voxel's energies
+// change only when a neighbour's label does.
+struct SweepSlice {
+  const std::uint8_t* labels = nullptr;
+  const std::uint8_t* uniform = nullptr;
+  const std::uint8_t* active = nullptr;
+};
+// d[i] = 1 where pixel i or one of its 3 x 3 neighbours has a != b.
+void changed_3x3(const std::uint8_t* a, const std::uint8_t* b, int nx, int ny, std::vector<std::uint8_t>& d);
+// One sweep over slice z: sp / sn the slices z - 1 / z + 1, sc slice z, `rgb`
+// its classified colours. Writes out; returns the voxels changed.
+std::int64_t smooth_sweep(const Smoother& s, const ColourModel& m, const std::uint8_t* rgb, const SweepSlice& sp,
+                          const SweepSlice& sc, const SweepSlice& sn, int nx, int ny, std::uint8_t* out);
 
 // ---- clean-up kernels ----------------------------------------------------
 

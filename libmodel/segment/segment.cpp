@@ -74,6 +74,8 @@ void validate(const SegmentOptions& o) {
   if (!(o.refine_prior >= 0) || !std::isfinite(o.refine_prior)) bad("refine prior must be >= 0 (the library's SegmentOptions::refine_prior)");
   if (!(o.refine_max_shift >= 0) || !std::isfinite(o.refine_max_shift)) bad("refine-max-shift: must be >= 0");
   if (!(o.lightness_weight > 0) || !std::isfinite(o.lightness_weight)) bad("lightness-weight: must be > 0");
+  if (!(o.smoothness >= 0) || !std::isfinite(o.smoothness)) bad("smoothness: must be >= 0 (0: off)");
+  if (o.smoothing_sweeps < 1 || o.smoothing_sweeps > 16) bad("smoothing-sweeps: must be in 1..16");
   if (o.speck_support < 0 || o.speck_support > 26) bad("speck-support: must be in 0..26");
   if (o.min_island_voxels < 0) bad("min-island: must be >= 0");
   if (!(o.min_island_mm3 >= 0) || !std::isfinite(o.min_island_mm3)) bad("min-island-mm3: must be >= 0 mm^3");
@@ -102,6 +104,8 @@ std::string segment_parameters_json(const SegmentOptions& o) {
                          {"max_shift_px", o.registration.max_shift_px},
                          {"min_response", o.registration.min_response}};
   j["lightness_weight"] = o.lightness_weight;
+  j["smoothness"] = o.smoothness;
+  j["smoothing_sweeps"] = o.smoothing_sweeps;
   j["cleanup"] = o.cleanup;
   j["enforce_order"] = o.enforce_order;
   j["fill_holes"] = o.fill_holes;
@@ -256,43 +260,106 @@ SegmentMetrics segment(const SliceSource& stack, const TissueTable& table, const
     p.label = c.label;
     p.table_lab = c.table_lab;
     p.lab = c.lab;
+    p.pixel_lab = c.pixel_lab;
     p.samples = c.samples;
     met.prototypes.push_back(p);
   }
 
-  // ---- pass 1: classify, order, rank filter, runs, 3-D components
+  // ---- pass 1: classify, smooth, order, rank filter, runs, 3-D components
   Scratch scratch(opt.scratch_memory_bytes, opt.scratch_dir);
   ComponentTracker tracker;
   std::map<int, std::vector<std::uint8_t>> l1;  // classified slices waiting for the rank filter
   SliceRuns prev_runs;
   bool have_prev = false;
   int next_filter = 0;
-  std::atomic<std::int64_t> order_changed{0}, speck_changed{0};
+  std::atomic<std::int64_t> order_changed{0}, speck_changed{0}, smooth_changed{0};
   std::vector<double> gains(static_cast<std::size_t>(nz), 1.0);
   std::vector<std::uint8_t> fallbacks(static_cast<std::size_t>(nz), 0);
   std::vector<double> read_cpu(static_cast<std::size_t>(nz), 0.0);
   tbb::enumerable_thread_specific<SliceWork> works;
   std::vector<std::uint8_t> blob;
   const bool cleanup = opt.cleanup;
+  // The smoothness prior (SegmentOptions::smoothness) needs each slice's
+  // colours and first labels until the sweeps of the slices within `sweeps`
+  // of it are done: slab [a, b) is classified ahead to b + sweeps, and its
+  // sweeps run over [a - sweeps, b + sweeps), one slice fewer at each end per
+  // sweep, which is what a sweep over the whole stack would give there.
+  const bool smooth = opt.smoothness > 0 && model.mahalanobis;
+  const int sweeps = smooth ? opt.smoothing_sweeps : 0;
+  const Smoother smoother = smooth ? make_smoother(model, opt.smoothness, opt.spacing_m) : Smoother{};
+  struct Classified {
+    std::vector<std::uint8_t> colour, labels;
+  };
+  std::map<int, Classified> l0;  // with the prior: classified slices within reach of a sweep
+  int next_classify = 0;
   for (int a = 0; a < nz; a += opt.slab) {
     const int b = std::min(nz, a + opt.slab);
     t0 = std::chrono::steady_clock::now();
-    std::vector<std::vector<std::uint8_t>> fresh(static_cast<std::size_t>(b - a));
-    tbb::parallel_for(a, b, [&](int z) {
+    const int c0 = next_classify, c1 = std::min(nz, b + sweeps);
+    std::vector<Classified> fresh(static_cast<std::size_t>(c1 - c0));
+    tbb::parallel_for(c0, c1, [&](int z) {
       SliceWork& w = works.local();
       std::vector<std::uint8_t>& rgb = w.rgb;
       const auto tr = std::chrono::steady_clock::now();
       src.read(z, rgb);
       if (rgb.size() != 3 * plane) throw Error(src.name, "slice " + std::to_string(z) + " has the wrong size");
       read_cpu[static_cast<std::size_t>(z)] = seconds_since(tr);
-      auto& lab = fresh[static_cast<std::size_t>(z - a)];
-      lab.resize(plane);
-      const GainField g = classify_slice(model, opt, rgb.data(), nx, ny, w, lab.data());
+      Classified& f = fresh[static_cast<std::size_t>(z - c0)];
+      f.labels.resize(plane);
+      const GainField g = classify_slice(model, opt, rgb.data(), nx, ny, w, f.labels.data());
       gains[static_cast<std::size_t>(z)] = g.mean_gain();
       fallbacks[static_cast<std::size_t>(z)] = g.fallback;
-      if (cleanup && opt.enforce_order) order_changed += enforce_order(info, model, w.colour, nx, ny, lab.data());
+      if (smooth)
+        f.colour.assign(w.colour, w.colour + 3 * plane);
+      else if (cleanup && opt.enforce_order)
+        order_changed += enforce_order(info, model, w.colour, nx, ny, f.labels.data());
     });
-    for (int z = a; z < b; ++z) l1[z] = std::move(fresh[static_cast<std::size_t>(z - a)]);
+    next_classify = c1;
+    if (!smooth) {
+      for (int z = c0; z < c1; ++z) l1[z] = std::move(fresh[static_cast<std::size_t>(z - c0)].labels);
+    } else {
+      for (int z = c0; z < c1; ++z) l0[z] = std::move(fresh[static_cast<std::size_t>(z - c0)]);
+      const int lo = std::max(0, a - sweeps);
+      // cur: the labels after the last sweep; before: those before it
+      std::map<int, std::vector<std::uint8_t>> cur, before, nxt, uni, act;
+      for (int z = lo; z < c1; ++z) cur[z] = l0.at(z).labels, uni[z], act[z];
+      for (int t = 1; t <= sweeps; ++t) {
+        const int z0 = std::max(0, a - sweeps + t), z1 = std::min(nz, b + sweeps - t);
+        nxt.clear();
+        for (int z = z0; z < z1; ++z) nxt[z].resize(plane);
+        const int u0 = std::max(0, z0 - 1), u1 = std::min(nz, z1 + 1);
+        tbb::parallel_for(u0, u1, [&](int z) {
+          uniform_3x3(cur.at(z).data(), nx, ny, uni.at(z));
+          if (t > 1) changed_3x3(cur.at(z).data(), before.at(z).data(), nx, ny, act.at(z));
+        });
+        // the stack's first and last slices see their one neighbour on both
+        // sides (a mirror), so that slices that do not change along the stack
+        // keep labels that do not either
+        auto slice = [&](int z) {
+          if (z < 0) z = nz > 1 ? 1 : -1;
+          if (z >= nz) z = nz > 1 ? nz - 2 : -1;
+          return z < 0 ? SweepSlice{}
+                       : SweepSlice{cur.at(z).data(), uni.at(z).data(), t > 1 ? act.at(z).data() : nullptr};
+        };
+        tbb::parallel_for(z0, z1, [&](int z) {
+          smooth_sweep(smoother, model, l0.at(z).colour.data(), slice(z - 1), slice(z), slice(z + 1), nx, ny,
+                       nxt.at(z).data());
+        });
+        before = std::move(cur);
+        cur = std::move(nxt);
+        nxt = {};
+      }
+      tbb::parallel_for(a, b, [&](int z) {
+        std::vector<std::uint8_t>& lab = cur.at(z);
+        const std::vector<std::uint8_t>& first = l0.at(z).labels;
+        std::int64_t n = 0;
+        for (std::size_t i = 0; i < plane; ++i) n += lab[i] != first[i];
+        smooth_changed += n;
+        if (cleanup && opt.enforce_order) order_changed += enforce_order(info, model, l0.at(z).colour.data(), nx, ny, lab.data());
+      });
+      for (int z = a; z < b; ++z) l1[z] = std::move(cur.at(z));
+      while (!l0.empty() && l0.begin()->first < b - sweeps) l0.erase(l0.begin());
+    }
     met.classify_s += seconds_since(t0);
 
     t0 = std::chrono::steady_clock::now();
@@ -325,6 +392,7 @@ SegmentMetrics segment(const SliceSource& stack, const TissueTable& table, const
   for (double r : read_cpu) met.read_s += r;
   met.order_changed = order_changed;
   met.speck_changed = speck_changed;
+  met.smooth_changed = smooth_changed;
   met.gain_min = *std::min_element(gains.begin(), gains.end());
   met.gain_max = *std::max_element(gains.begin(), gains.end());
   for (auto f : fallbacks) met.normalise_fallbacks += f;

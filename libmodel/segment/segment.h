@@ -234,6 +234,17 @@ struct SegmentOptions {
   // refine_iterations > 0 (else nearest).
   enum class Classify { nearest, mahalanobis };
   Classify classify = Classify::mahalanobis;
+  // Smoothness prior (docs/segment.md, "Smoothness prior"): a Potts prior
+  // over the 26 neighbours, in nats of colour evidence per unlike face
+  // neighbour (neighbours farther away count less, by their distance), so a
+  // voxel's label weighs its colour against its neighbours' labels instead of
+  // its colour alone. 0 = off (the per-voxel rule). Needs the Mahalanobis
+  // rule (its distances are in units of the pixels' own spread); with the
+  // nearest rule it is off. >= 0.
+  double smoothness = 1;
+  // Jacobi sweeps of iterated conditional modes, 1..16. Each keeps
+  // `smoothing_sweeps` slices each side of a slab in memory.
+  int smoothing_sweeps = 4;
   // -- clean-up (each can be switched off) --
   bool cleanup = true;        // master switch for steps 3-5 of the header
   bool enforce_order = true;  // anatomical order from the table's "inside"
@@ -276,7 +287,8 @@ const char* to_string(SegmentOptions::Classify c);
 struct Prototype {
   int label = 0;                      // tissue label, 0 = background
   std::array<double, 3> table_lab{};  // from the table's rgb (CIELAB, D65)
-  std::array<double, 3> lab{};        // refined on the stack
+  std::array<double, 3> lab{};        // refined on the stack (on its 3 x 3 medians)
+  std::array<double, 3> pixel_lab{};  // the mean colour of its single pixels, which classification scores against
   std::int64_t samples = 0;           // calibration samples assigned
 };
 
@@ -305,6 +317,7 @@ struct SegmentMetrics {
   // Voxels changed by each clean-up step.
   std::int64_t order_changed = 0;
   std::int64_t speck_changed = 0;
+  std::int64_t smooth_changed = 0;  // voxels the smoothness prior relabelled
   std::int64_t holes_filled = 0;
   std::int64_t islands_absorbed = 0;
   std::int64_t misplaced_absorbed = 0;  // components out of place (their parent's region not the majority around them)

@@ -309,7 +309,8 @@ TEST(SegmentCli, BadSpacingAndTable) {
   // sweep of 2026-11-27)
   for (const auto& [flag, value] : std::vector<std::pair<std::string, std::string>>{
            {"--speck-support", "30"}, {"--slab", "0"}, {"--min-body-fraction", "2"}, {"--calibration-slices", "0"},
-           {"--refine-iterations", "101"}, {"--lightness-weight", "0"}, {"--register-window", "0"}}) {
+           {"--refine-iterations", "101"}, {"--lightness-weight", "0"}, {"--register-window", "0"},
+           {"--smoothness", "-1"}, {"--smoothness", "inf"}, {"--smoothing-sweeps", "0"}, {"--smoothing-sweeps", "17"}}) {
     const auto r = test::run_cli("segment --stack " + stack().slices + " --tissues " + stack().tissues +
                                  " --spacing 1,1,2 --out " + (d / "o.h5") + " --quiet --register " + flag + " " + value);
     EXPECT_EQ(r.code, 2) << flag << ": " << r.err;

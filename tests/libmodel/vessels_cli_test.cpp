@@ -153,11 +153,14 @@ TEST(VesselsCli, SelfIntersectingTubeIsAWarning) {
   const std::string st = d / "stack", labels = d / "labels.h5";
   // the vein segmented at 8-bit noise 24: islands and short branches whose
   // tubes cut each other (the exact labels of a short wide stack did too
-  // until 2026-11-27, Vessels.PhantomTreesAtOtherResolutions)
-  auto r = test::run_cli("phantom -q --out " + st + " --size 128x128x48 --spacing 0.4,0.4,1.0 --noise 24 --seed 1");
+  // until 2026-11-27, Vessels.PhantomTreesAtOtherResolutions), segmented with
+  // the per-voxel rule (--smoothness 0; the smoothness prior removes them).
+  // Seed 2: seeds 1-5 give 0, 299, 135, 0, 188 pairs since the classifier
+  // scores pixels against their own mean colours (seed 1 gave some before).
+  auto r = test::run_cli("phantom -q --out " + st + " --size 128x128x48 --spacing 0.4,0.4,1.0 --noise 24 --seed 2");
   ASSERT_EQ(r.code, 0) << r.err;
-  r = test::run_cli("segment -q --stack " + st + "/slices --tissues " + st + "/tissues.json --spacing 0.4,0.4,1.0 --out " +
-                    labels);
+  r = test::run_cli("segment -q --smoothness 0 --stack " + st + "/slices --tissues " + st +
+                    "/tissues.json --spacing 0.4,0.4,1.0 --out " + labels);
   ASSERT_EQ(r.code, 0) << r.err;
   r = test::run_cli("vessels -q --labels " + labels + " --tissue vein --model " + (d / "m.h5") + " --report " +
                     (d / "r.json"));

@@ -457,7 +457,9 @@ TEST(Vessels, PhantomTrees) {
 // junctions, and moving a junction's last clean point back one radius took
 // it into the branch's own head region. The tail's rewrite then cut off the
 // head's index: an internal error (vector::_M_range_insert), exit 1. Now a
-// tree with valid Bezier curves and tube.
+// tree with valid Bezier curves and tube. The labels are the per-voxel
+// rule's (smoothness 0, as segment's default was then): the smoothness
+// prior gives the vein its one true branch.
 TEST(Vessels, NoisySegmentedVeinWithShortBranches) {
   PhantomOptions po;
   po.nx = po.ny = 160, po.nz = 64;
@@ -473,6 +475,7 @@ TEST(Vessels, NoisySegmentedVeinWithShortBranches) {
   }
   SegmentOptions so;
   so.spacing_m = po.spacing_m;
+  so.smoothness = 0;
   const Volume labels = segment_volume(memory_source(std::move(slices)), phantom_tissue_table(), so);
   const VesselResult r = extract_vessels(labels, "vein", {});
   std::printf("  noisy vein: %d trees, %d branches, %d self-intersecting face pairs\n", r.metrics.trees,

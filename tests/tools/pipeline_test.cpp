@@ -226,6 +226,12 @@ TEST(Pipeline, ColdWarmAndIncremental) {
     EXPECT_EQ(bads.code, 2) << bads.err;
     EXPECT_EQ(test::count_lines(bads.err), 1) << bads.err;
     EXPECT_NE(bads.err.find("--spur-ratio"), std::string::npos) << bads.err;
+    // segment's --smoothness: the report's parameter (the default prior); a negative value refused
+    EXPECT_EQ(s.report()["parameters"]["smoothness"].get<double>(), 1.0);
+    const auto badp = test::run_cli(s.args("--grid 20x6 --smoothness -1"));
+    EXPECT_EQ(badp.code, 2) << badp.err;
+    EXPECT_EQ(test::count_lines(badp.err), 1) << badp.err;
+    EXPECT_NE(badp.err.find("--smoothness"), std::string::npos) << badp.err;
   }
   {
     // build's --no-axis-correction: the pipeline passes it (its own cache key); the
