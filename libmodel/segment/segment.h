@@ -23,7 +23,14 @@
 //     onto the reference: illumination drift along and across slices goes.
 //     Then the nearest refined prototype under the calibration's covariance
 //     (Mahalanobis; or in CIELAB, see classify), memoised per 24-bit sRGB
-//     colour in a 16 MiB table filled as colours are met.
+//     colour in a 16 MiB table filled as colours are met. The prototypes'
+//     colours and covariance for this are those of single pixels (pixel_lab:
+//     the fit is made on 3 x 3 medians, whose mean lies off the pixels' under
+//     noise, CIELAB not being linear in RGB).
+//  2b. Smoothness prior (smoothness, 0 = off): a Potts prior over the 26
+//     neighbours, minimised by a few Jacobi sweeps of iterated conditional
+//     modes: a voxel weighs its colour's evidence against its neighbours'
+//     labels (segment_detail::Smoother).
 //  3. Per slice: anatomical order. For every tissue U that encloses others
 //     (the table's "inside"), the 2-D region of U and everything nested in it is
 //     filled; what that fill encloses but is neither U nor nested in U (skin
@@ -45,7 +52,9 @@
 //     of a vessel tissue smaller than min_vessel_voxels, and components of a
 //     nested tissue out of place (their parent's region is not the majority
 //     of what surrounds them; a tissue's anchor, the component meeting its
-//     place most, only when it meets none of it), are absorbed
+//     place most, only when it meets none of it; a vessel's place is the
+//     body, so a piece of one meeting the gel more than the body is out of
+//     place), are absorbed
 //     by their majority neighbour (not a tissue's largest component when it
 //     is larger than that neighbour: then the neighbour is misplaced); then
 //     only the body (the largest 6-connected
