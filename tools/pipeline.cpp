@@ -35,6 +35,7 @@
 #include <algorithm>
 #include <cerrno>
 #include <chrono>
+#include <iomanip>
 #include <array>
 #include <cstring>
 #include <filesystem>
@@ -524,11 +525,28 @@ int run_stages(Args a, Report& report) {
       // the segment stage's calibration samples per tissue: a tissue whose colour
       // was found but has no voxel left lost them to the clean-up (a wrong 'inside')
       std::map<std::string, std::int64_t> samples;
+      json disagree;
       try {
         const json rep = json::parse(std::ifstream(seg.dir + "/report.json"));
         for (const auto& pr : rep.at("metrics").at("prototypes")) samples[pr.at("tissue").get<std::string>()] += pr.at("samples").get<std::int64_t>();
+        disagree = rep.at("metrics").value("calibration_disagreements", json::array());
       } catch (const std::exception&) {
         // a report without prototypes: the warning cannot tell the two causes apart
+      }
+      // A collapsed calibration (segment's warning: a tissue's share of the voxels
+      // 4-fold off its share of the calibration samples; the phantom at noise 32)
+      // gives labels no model can be built from: said here, not in surface's
+      // nesting a stage later.
+      if (disagree.is_array() && !disagree.empty()) {
+        const json& d = disagree.front();
+        std::ostringstream why;
+        why << std::fixed << std::setprecision(0) << "the segmentation collapsed: '" << d.at("tissue").get<std::string>()
+            << "' has " << 100 * d.at("voxel_fraction").get<double>() << " % of the voxels but "
+            << 100 * d.at("sample_fraction").get<double>()
+            << " % of the colour calibration's samples (noise too strong for the tissue table's colours to be told "
+               "apart, or the table's colours far off: "
+            << a.tissues << "; the segment report in " << seg.dir << ")";
+        throw Error(a.stack, why.str());
       }
       json absent = json::array();
       auto present = [&](std::vector<std::string>& names) {
