@@ -59,7 +59,8 @@ Smoother make_smoother(const ColourModel& m, double beta, const std::array<doubl
 void uniform_3x3(const std::uint8_t* c, int nx, int ny, std::vector<std::uint8_t>& u) {
   const std::size_t n = static_cast<std::size_t>(nx) * ny;
   // row[i]: pixel i and its row neighbours agree; then the rows above and below
-  std::vector<std::uint8_t> row(n);
+  thread_local std::vector<std::uint8_t> row;
+  row.resize(n);
   for (int y = 0; y < ny; ++y) {
     const std::uint8_t* cr = c + static_cast<std::size_t>(y) * nx;
     std::uint8_t* rr = row.data() + static_cast<std::size_t>(y) * nx;
@@ -67,7 +68,7 @@ void uniform_3x3(const std::uint8_t* c, int nx, int ny, std::vector<std::uint8_t
     for (int x = 1; x + 1 < nx; ++x) rr[x] = static_cast<std::uint8_t>((cr[x - 1] == cr[x]) & (cr[x + 1] == cr[x]));
     if (nx > 1) rr[nx - 1] = cr[nx - 2] == cr[nx - 1];
   }
-  u.assign(row.begin(), row.end());
+  u.assign(row.begin(), row.begin() + static_cast<std::ptrdiff_t>(n));
   for (int y = 0; y < ny; ++y) {
     const std::size_t r = static_cast<std::size_t>(y) * nx;
     std::uint8_t* ur = u.data() + r;
@@ -83,33 +84,47 @@ void uniform_3x3(const std::uint8_t* c, int nx, int ny, std::vector<std::uint8_t
   }
 }
 
-void changed_3x3(const std::uint8_t* a, const std::uint8_t* b, int nx, int ny, std::vector<std::uint8_t>& d) {
+bool changed_3x3(const std::uint8_t* a, const std::uint8_t* b, int nx, int ny, std::vector<std::uint8_t>& d,
+                 std::vector<std::uint8_t>& rows) {
   const std::size_t n = static_cast<std::size_t>(nx) * ny;
-  std::vector<std::uint8_t> row(n);
+  d.resize(n);  // only the rows flagged in `rows` are written (and read)
+  rows.assign(static_cast<std::size_t>(ny), 0);
+  if (std::memcmp(a, b, n) == 0) return false;
+  // per row: the pixels that changed, dilated along the row (rows without a
+  // change are not used); scratch reused by the thread (a fresh megabyte a
+  // slice cost page faults)
+  thread_local std::vector<std::uint8_t> row, row_any;
+  row.resize(n);
+  row_any.assign(static_cast<std::size_t>(ny), 0);
   for (int y = 0; y < ny; ++y) {
     const std::size_t r = static_cast<std::size_t>(y) * nx;
+    if (std::memcmp(a + r, b + r, static_cast<std::size_t>(nx)) == 0) continue;
+    row_any[static_cast<std::size_t>(y)] = 1;
     std::uint8_t* rr = row.data() + r;
-    for (int x = 0; x < nx; ++x) rr[x] = a[r + x] != b[r + x];
-    // dilate along the row (right to left keeps the unshifted neighbour)
-    std::uint8_t left = 0;
+    std::uint8_t left = 0, here = a[r] != b[r];
     for (int x = 0; x < nx; ++x) {
-      const std::uint8_t c = rr[x];
-      rr[x] = static_cast<std::uint8_t>(c | left | (x + 1 < nx ? static_cast<std::uint8_t>(a[r + x + 1] != b[r + x + 1]) : 0));
-      left = c;
+      const std::uint8_t right = x + 1 < nx ? static_cast<std::uint8_t>(a[r + x + 1] != b[r + x + 1]) : 0;
+      rr[x] = static_cast<std::uint8_t>(left | here | right);
+      left = here, here = right;
     }
   }
-  d.assign(row.begin(), row.end());
+  // then across the rows
   for (int y = 0; y < ny; ++y) {
+    const bool up = y > 0 && row_any[static_cast<std::size_t>(y - 1)], down = y + 1 < ny && row_any[static_cast<std::size_t>(y + 1)];
+    if (!(up || down || row_any[static_cast<std::size_t>(y)])) continue;
+    rows[static_cast<std::size_t>(y)] = 1;
     std::uint8_t* dr = d.data() + static_cast<std::size_t>(y) * nx;
-    if (y > 0) {
-      const std::uint8_t* ra = row.data() + static_cast<std::size_t>(y - 1) * nx;
-      for (int x = 0; x < nx; ++x) dr[x] |= ra[x];
-    }
-    if (y + 1 < ny) {
-      const std::uint8_t* rb = row.data() + static_cast<std::size_t>(y + 1) * nx;
-      for (int x = 0; x < nx; ++x) dr[x] |= rb[x];
-    }
+    const std::uint8_t* rr = row.data() + static_cast<std::size_t>(y) * nx;
+    if (row_any[static_cast<std::size_t>(y)])
+      for (int x = 0; x < nx; ++x) dr[x] = rr[x];
+    else
+      std::memset(dr, 0, static_cast<std::size_t>(nx));
+    if (up)
+      for (int x = 0; x < nx; ++x) dr[x] |= rr[x - nx];
+    if (down)
+      for (int x = 0; x < nx; ++x) dr[x] |= rr[x + nx];
   }
+  return true;
 }
 
 std::int64_t smooth_sweep(const Smoother& s, const ColourModel& m, const std::uint8_t* rgb, const SweepSlice& sp,
@@ -122,12 +137,18 @@ std::int64_t smooth_sweep(const Smoother& s, const ColourModel& m, const std::ui
   std::array<double, 27> cw{};
   for (int y = 0; y < ny; ++y) {
     const std::size_t r = static_cast<std::size_t>(y) * nx;
+    // after the first sweep, a row without a change within reach keeps its labels
+    if (sc.active && !(sc.active_rows[y] || (sp.active && sp.active_rows[y]) || (sn.active && sn.active_rows[y]))) {
+      std::memcpy(out + r, cur + r, static_cast<std::size_t>(nx));
+      continue;
+    }
     for (int x = 0; x < nx; ++x) {
       const std::size_t i = r + x;
       const std::uint8_t l = cur[i];
       // a voxel none of whose neighbours changed in the last sweep keeps its
       // label, and so does one whose neighbours all share it (most voxels)
-      if (sc.active && !(sc.active[i] || (sp.active && sp.active[i]) || (sn.active && sn.active[i]))) {
+      if (sc.active && !((sc.active_rows[y] && sc.active[i]) || (sp.active && sp.active_rows[y] && sp.active[i]) ||
+                         (sn.active && sn.active_rows[y] && sn.active[i]))) {
         out[i] = l;
         continue;
       }
@@ -135,9 +156,12 @@ std::int64_t smooth_sweep(const Smoother& s, const ColourModel& m, const std::ui
         out[i] = l;
         continue;
       }
-      // the weight of each label among the neighbours
-      int nc = 1;
-      cand[0] = l, cw[0] = 0;
+      // the neighbours' labels and weights, then the weight of each label
+      // among them (summed per label afterwards: accumulating into a small
+      // array as they come chained every add through memory)
+      std::array<std::uint8_t, 26> nl{};
+      std::array<double, 26> nw{};
+      int n = 0;
       double total = 0;
       for (int p = 0; p < 3; ++p) {
         const std::uint8_t* pl = planes[p];
@@ -148,19 +172,30 @@ std::int64_t smooth_sweep(const Smoother& s, const ColourModel& m, const std::ui
           for (int dx = -1; dx <= 1; ++dx) {
             const int xx = x + dx;
             if (xx < 0 || xx >= nx || (p == 1 && dx == 0 && dy == 0)) continue;
-            const std::uint8_t v = pl[static_cast<std::size_t>(yy) * nx + xx];
+            nl[static_cast<std::size_t>(n)] = pl[static_cast<std::size_t>(yy) * nx + xx];
             const double w = s.w[static_cast<std::size_t>(p * 9 + (dy + 1) * 3 + dx + 1)];
+            nw[static_cast<std::size_t>(n++)] = w;
             total += w;
-            int k = 0;
-            while (k < nc && cand[static_cast<std::size_t>(k)] != v) ++k;
-            if (k == nc) cand[static_cast<std::size_t>(nc)] = v, cw[static_cast<std::size_t>(nc++)] = 0;
-            cw[static_cast<std::size_t>(k)] += w;
           }
         }
+      }
+      int nc = 1;  // candidates: the voxel's own label first, then the others as met
+      cand[0] = l;
+      for (int j = 0; j < n; ++j) {
+        const std::uint8_t v = nl[static_cast<std::size_t>(j)];
+        int k = 0;
+        while (k < nc && cand[static_cast<std::size_t>(k)] != v) ++k;
+        if (k == nc) cand[static_cast<std::size_t>(nc++)] = v;
       }
       if (nc == 1) {
         out[i] = l;
         continue;
+      }
+      for (int k = 0; k < nc; ++k) {
+        const std::uint8_t v = cand[static_cast<std::size_t>(k)];
+        double sum = 0;
+        for (int j = 0; j < n; ++j) sum += nl[static_cast<std::size_t>(j)] == v ? nw[static_cast<std::size_t>(j)] : 0.0;
+        cw[static_cast<std::size_t>(k)] = sum;
       }
       const std::uint8_t* c = rgb + 3 * i;
       const std::array<double, 3> lab = srgb8_to_lab(c[0], c[1], c[2]);

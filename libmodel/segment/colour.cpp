@@ -379,18 +379,22 @@ void pixel_statistics(ColourModel& m, const std::vector<std::uint64_t>& pairs, c
     return srgb8_to_lab(static_cast<std::uint8_t>(k >> 16), static_cast<std::uint8_t>(k >> 8), static_cast<std::uint8_t>(k));
   };
   // distinct pairs with counts
-  std::vector<std::array<double, 3>> med, pix;
+  std::vector<std::uint64_t> key;
   std::vector<double> count;
   for (std::size_t i = 0; i < pairs.size();) {
     std::size_t j = i;
     while (j < pairs.size() && pairs[j] == pairs[i]) ++j;
-    med.push_back(lab_of(static_cast<std::uint32_t>(pairs[i] >> 24)));
-    pix.push_back(lab_of(static_cast<std::uint32_t>(pairs[i] & 0xFFFFFF)));
+    key.push_back(pairs[i]);
     count.push_back(static_cast<double>(j - i));
     i = j;
   }
-  const std::size_t N = med.size();
+  const std::size_t N = key.size();
   if (N == 0) return;
+  std::vector<std::array<double, 3>> med(N), pix(N);
+  tbb::parallel_for(std::size_t(0), N, [&](std::size_t i) {
+    med[i] = lab_of(static_cast<std::uint32_t>(key[i] >> 24));
+    pix[i] = lab_of(static_cast<std::uint32_t>(key[i] & 0xFFFFFF));
+  });
   auto responsibilities = [&](std::size_t i, std::vector<double>& r) {
     double top = -1e300;
     for (std::size_t c = 0; c < C; ++c) top = std::max(top, r[c] = log_pi[c] - 0.5 * mahalanobis2(P, med[i], m.centres[c].lab));
@@ -398,17 +402,28 @@ void pixel_statistics(ColourModel& m, const std::vector<std::uint64_t>& pairs, c
     for (std::size_t c = 0; c < C; ++c) z += (r[c] = std::exp(r[c] - top));
     for (std::size_t c = 0; c < C; ++c) r[c] *= count[i] / z;
   };
+  // chunks summed in parallel, then in a fixed order: deterministic
+  constexpr std::size_t kChunk = 4096;
+  const std::size_t chunks = (N + kChunk - 1) / kChunk;
   // 1. the mean (pixel - median) per centre, and pooled
+  std::vector<std::vector<std::array<double, 4>>> part(chunks, std::vector<std::array<double, 4>>(C));
+  tbb::parallel_for(std::size_t(0), chunks, [&](std::size_t k) {
+    std::vector<double> r(C);
+    auto& acc = part[k];
+    for (auto& x : acc) x = {0, 0, 0, 0};
+    for (std::size_t i = k * kChunk; i < std::min(N, (k + 1) * kChunk); ++i) {
+      responsibilities(i, r);
+      for (std::size_t c = 0; c < C; ++c) {
+        for (int d = 0; d < 3; ++d) acc[c][d] += r[c] * (pix[i][d] - med[i][d]);
+        acc[c][3] += r[c];
+      }
+    }
+  });
   std::vector<std::array<double, 4>> shift(C, {0, 0, 0, 0});
   std::array<double, 4> pooled{0, 0, 0, 0};
-  std::vector<double> r(C);
-  for (std::size_t i = 0; i < N; ++i) {  // serial, fixed order: deterministic
-    responsibilities(i, r);
-    for (std::size_t c = 0; c < C; ++c) {
-      for (int k = 0; k < 3; ++k) shift[c][k] += r[c] * (pix[i][k] - med[i][k]);
-      shift[c][3] += r[c];
-    }
-  }
+  for (std::size_t k = 0; k < chunks; ++k)
+    for (std::size_t c = 0; c < C; ++c)
+      for (int d = 0; d < 4; ++d) shift[c][d] += part[k][c][d];
   for (std::size_t c = 0; c < C; ++c)
     for (int k = 0; k < 4; ++k) pooled[k] += shift[c][k];
   for (std::size_t c = 0; c < C; ++c) {
@@ -417,17 +432,27 @@ void pixel_statistics(ColourModel& m, const std::vector<std::uint64_t>& pairs, c
       ce.pixel_lab[k] = ce.lab[k] + (shift[c][k] + n0 * pooled[k] / std::max(pooled[3], 1e-300)) / (shift[c][3] + n0 + 1e-300);
   }
   // 2. the pixels' shared covariance about their centres
+  std::vector<std::array<double, 7>> part2(chunks);
+  tbb::parallel_for(std::size_t(0), chunks, [&](std::size_t k) {
+    std::vector<double> r(C);
+    std::array<double, 7> acc{0, 0, 0, 0, 0, 0, 0};
+    for (std::size_t i = k * kChunk; i < std::min(N, (k + 1) * kChunk); ++i) {
+      responsibilities(i, r);
+      for (std::size_t c = 0; c < C; ++c) {
+        const auto& mu = m.centres[c].pixel_lab;
+        const double d0 = pix[i][0] - mu[0], d1 = pix[i][1] - mu[1], d2 = pix[i][2] - mu[2];
+        acc[0] += r[c] * d0 * d0, acc[1] += r[c] * d1 * d1, acc[2] += r[c] * d2 * d2;
+        acc[3] += r[c] * d0 * d1, acc[4] += r[c] * d0 * d2, acc[5] += r[c] * d1 * d2;
+        acc[6] += r[c];
+      }
+    }
+    part2[k] = acc;
+  });
   std::array<double, 6> sc{0, 0, 0, 0, 0, 0};
   double total = 0;
-  for (std::size_t i = 0; i < N; ++i) {
-    responsibilities(i, r);
-    for (std::size_t c = 0; c < C; ++c) {
-      const auto& mu = m.centres[c].pixel_lab;
-      const double d0 = pix[i][0] - mu[0], d1 = pix[i][1] - mu[1], d2 = pix[i][2] - mu[2];
-      sc[0] += r[c] * d0 * d0, sc[1] += r[c] * d1 * d1, sc[2] += r[c] * d2 * d2;
-      sc[3] += r[c] * d0 * d1, sc[4] += r[c] * d0 * d2, sc[5] += r[c] * d1 * d2;
-      total += r[c];
-    }
+  for (std::size_t k = 0; k < chunks; ++k) {
+    for (int j = 0; j < 6; ++j) sc[j] += part2[k][j];
+    total += part2[k][6];
   }
   Eigen::Matrix3d S;
   S << sc[0], sc[3], sc[4], sc[3], sc[1], sc[5], sc[4], sc[5], sc[2];

@@ -189,13 +189,19 @@ void uniform_3x3(const std::uint8_t* labels, int nx, int ny, std::vector<std::ui
 // `active` (null: every voxel) marks, after the first sweep, the pixels
 // within the 3 x 3 of one the previous sweep changed: a voxel's energies
 // change only when a neighbour's label does.
+// active_rows[y] = 1 where row y of active has a 1 (active's other rows are
+// not read).
 struct SweepSlice {
   const std::uint8_t* labels = nullptr;
   const std::uint8_t* uniform = nullptr;
   const std::uint8_t* active = nullptr;
+  const std::uint8_t* active_rows = nullptr;
 };
-// d[i] = 1 where pixel i or one of its 3 x 3 neighbours has a != b.
-void changed_3x3(const std::uint8_t* a, const std::uint8_t* b, int nx, int ny, std::vector<std::uint8_t>& d);
+// d[i] = 1 where pixel i or one of its 3 x 3 neighbours has a != b, written
+// only in the rows y with rows[y] = 1 (the others are those with no 1).
+// Returns whether a and b differ at all.
+bool changed_3x3(const std::uint8_t* a, const std::uint8_t* b, int nx, int ny, std::vector<std::uint8_t>& d,
+                 std::vector<std::uint8_t>& rows);
 // One sweep over slice z: sp / sn the slices z - 1 / z + 1, sc slice z, `rgb`
 // its classified colours. Writes out; returns the voxels changed.
 std::int64_t smooth_sweep(const Smoother& s, const ColourModel& m, const std::uint8_t* rgb, const SweepSlice& sp,

@@ -280,10 +280,9 @@ SegmentMetrics segment(const SliceSource& stack, const TissueTable& table, const
   std::vector<std::uint8_t> blob;
   const bool cleanup = opt.cleanup;
   // The smoothness prior (SegmentOptions::smoothness) needs each slice's
-  // colours and first labels until the sweeps of the slices within `sweeps`
-  // of it are done: slab [a, b) is classified ahead to b + sweeps, and its
-  // sweeps run over [a - sweeps, b + sweeps), one slice fewer at each end per
-  // sweep, which is what a sweep over the whole stack would give there.
+  // colours and first labels until its last sweep is done, and that needs
+  // the slices `sweeps` ahead: slab [a, b) is classified ahead to b + sweeps,
+  // and the result is what sweeps over the whole stack at once would give.
   const bool smooth = opt.smoothness > 0 && model.mahalanobis;
   const int sweeps = smooth ? opt.smoothing_sweeps : 0;
   const Smoother smoother = smooth ? make_smoother(model, opt.smoothness, opt.spacing_m) : Smoother{};
@@ -292,6 +291,30 @@ SegmentMetrics segment(const SliceSource& stack, const TissueTable& table, const
   };
   std::map<int, Classified> l0;  // with the prior: classified slices within reach of a sweep
   int next_classify = 0;
+  // The sweeps as a wavefront along the stack: lev[t] holds the labels after
+  // sweep t (lev[0]: the first), each slice's uniform_3x3 and what sweep t
+  // changed; sweep t of a slice is computed once, as soon as sweep t - 1 of its
+  // neighbours is, and done[t] is the first slice it has not reached.
+  struct Level {
+    std::vector<std::uint8_t> labels, uniform, active, rows;
+  };
+  std::vector<std::map<int, Level>> lev(static_cast<std::size_t>(sweeps) + 1);
+  std::vector<int> done(static_cast<std::size_t>(sweeps) + 1, 0);
+  // levels no longer needed, their buffers kept for the next slices (a fresh
+  // megabyte a slice cost page faults)
+  std::vector<Level> spare;
+  auto take = [&](std::map<int, Level>& m, int z) -> Level& {
+    Level& L = m[z];
+    if (!spare.empty()) L = std::move(spare.back()), spare.pop_back();
+    L.labels.resize(plane);
+    return L;
+  };
+  auto release = [&](std::map<int, Level>& m, int below) {
+    while (!m.empty() && m.begin()->first < below) {
+      spare.push_back(std::move(m.begin()->second));
+      m.erase(m.begin());
+    }
+  };
   for (int a = 0; a < nz; a += opt.slab) {
     const int b = std::min(nz, a + opt.slab);
     t0 = std::chrono::steady_clock::now();
@@ -319,46 +342,61 @@ SegmentMetrics segment(const SliceSource& stack, const TissueTable& table, const
       for (int z = c0; z < c1; ++z) l1[z] = std::move(fresh[static_cast<std::size_t>(z - c0)].labels);
     } else {
       for (int z = c0; z < c1; ++z) l0[z] = std::move(fresh[static_cast<std::size_t>(z - c0)]);
-      const int lo = std::max(0, a - sweeps);
-      // cur: the labels after the last sweep; before: those before it
-      std::map<int, std::vector<std::uint8_t>> cur, before, nxt, uni, act;
-      for (int z = lo; z < c1; ++z) cur[z] = l0.at(z).labels, uni[z], act[z];
+      // lev[0]: the first labels of the new slices
+      for (int z = c0; z < c1; ++z) {
+        Level& L = take(lev[0], z);
+        std::copy(l0.at(z).labels.begin(), l0.at(z).labels.end(), L.labels.begin());
+      }
+      tbb::parallel_for(c0, c1, [&](int z) {
+        Level& L = lev[0].at(z);
+        uniform_3x3(L.labels.data(), nx, ny, L.uniform);
+      });
+      done[0] = c1;
       for (int t = 1; t <= sweeps; ++t) {
-        const int z0 = std::max(0, a - sweeps + t), z1 = std::min(nz, b + sweeps - t);
-        nxt.clear();
-        for (int z = z0; z < z1; ++z) nxt[z].resize(plane);
-        const int u0 = std::max(0, z0 - 1), u1 = std::min(nz, z1 + 1);
-        tbb::parallel_for(u0, u1, [&](int z) {
-          uniform_3x3(cur.at(z).data(), nx, ny, uni.at(z));
-          if (t > 1) changed_3x3(cur.at(z).data(), before.at(z).data(), nx, ny, act.at(z));
-        });
-        // the stack's first and last slices see their one neighbour on both
-        // sides (a mirror), so that slices that do not change along the stack
-        // keep labels that do not either
+        // sweep t of slice z needs sweep t - 1 of z - 1, z and z + 1 (the
+        // stack's first and last slices see their one neighbour on both
+        // sides, a mirror, so that slices that do not change along the stack
+        // keep labels that do not either)
+        const int from = done[t], to = done[t - 1] == nz ? nz : done[t - 1] - 1;
+        if (to <= from) continue;
+        for (int z = from; z < to; ++z) take(lev[static_cast<std::size_t>(t)], z);
+        auto& prevl = lev[static_cast<std::size_t>(t - 1)];
         auto slice = [&](int z) {
           if (z < 0) z = nz > 1 ? 1 : -1;
           if (z >= nz) z = nz > 1 ? nz - 2 : -1;
-          return z < 0 ? SweepSlice{}
-                       : SweepSlice{cur.at(z).data(), uni.at(z).data(), t > 1 ? act.at(z).data() : nullptr};
+          if (z < 0) return SweepSlice{};
+          const Level& L = prevl.at(z);
+          return SweepSlice{L.labels.data(), L.uniform.data(), t > 1 ? L.active.data() : nullptr,
+                            t > 1 ? L.rows.data() : nullptr};
         };
-        tbb::parallel_for(z0, z1, [&](int z) {
+        tbb::parallel_for(from, to, [&](int z) {
+          Level& L = lev[static_cast<std::size_t>(t)].at(z);
           smooth_sweep(smoother, model, l0.at(z).colour.data(), slice(z - 1), slice(z), slice(z + 1), nx, ny,
-                       nxt.at(z).data());
+                       L.labels.data());
+          // what this sweep changed (the next sweep looks only there), and the
+          // uniform_3x3 of the result (the last one's if nothing changed)
+          const Level& P = prevl.at(z);
+          if (changed_3x3(L.labels.data(), P.labels.data(), nx, ny, L.active, L.rows))
+            uniform_3x3(L.labels.data(), nx, ny, L.uniform);
+          else
+            L.uniform = P.uniform;
         });
-        before = std::move(cur);
-        cur = std::move(nxt);
-        nxt = {};
+        done[static_cast<std::size_t>(t)] = to;
       }
+      auto& last = lev[static_cast<std::size_t>(sweeps)];
       tbb::parallel_for(a, b, [&](int z) {
-        std::vector<std::uint8_t>& lab = cur.at(z);
+        std::vector<std::uint8_t>& lab = last.at(z).labels;
         const std::vector<std::uint8_t>& first = l0.at(z).labels;
         std::int64_t n = 0;
         for (std::size_t i = 0; i < plane; ++i) n += lab[i] != first[i];
         smooth_changed += n;
         if (cleanup && opt.enforce_order) order_changed += enforce_order(info, model, l0.at(z).colour.data(), nx, ny, lab.data());
       });
-      for (int z = a; z < b; ++z) l1[z] = std::move(cur.at(z));
-      while (!l0.empty() && l0.begin()->first < b - sweeps) l0.erase(l0.begin());
+      for (int z = a; z < b; ++z) l1[z] = last.at(z).labels;
+      // what no later sweep needs: level t's slices below the next sweep's first but one
+      for (int t = 0; t < sweeps; ++t) release(lev[static_cast<std::size_t>(t)], done[static_cast<std::size_t>(t) + 1] - 1);
+      release(last, b);
+      while (!l0.empty() && l0.begin()->first < b) l0.erase(l0.begin());
     }
     met.classify_s += seconds_since(t0);
 
