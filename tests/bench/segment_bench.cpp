@@ -232,6 +232,7 @@ json settings_table() {
   const std::vector<Setting> settings = {
       {"defaults", [](SegmentOptions&) {}},
       {"lightness_weight 3", [](SegmentOptions& o) { o.lightness_weight = 3; }},
+      {"no smoothness prior", [](SegmentOptions& o) { o.smoothness = 0; }},
       {"no rank filter", [](SegmentOptions& o) { o.speck_support = 0; }},
       {"no order", [](SegmentOptions& o) { o.enforce_order = false; }},
       {"no islands", [](SegmentOptions& o) { o.min_island_voxels = 0, o.min_vessel_voxels = 0; }},
