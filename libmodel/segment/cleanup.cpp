@@ -35,6 +35,26 @@ struct Span {
   std::int32_t x0, x1;
 };
 
+// Calls f(label, k) for each of the 26 neighbours of pixel (x, y) of the
+// middle plane that exist (planes[p] null: no such plane; the image's edge
+// clips), k = p * 9 + (dy + 1) * 3 + dx + 1 its place in a 3 x 3 x 3 block.
+template <class F>
+void for_each_neighbour(const std::uint8_t* const planes[3], int x, int y, int nx, int ny, F&& f) {
+  for (int p = 0; p < 3; ++p) {
+    const std::uint8_t* pl = planes[p];
+    if (!pl) continue;
+    for (int dy = -1; dy <= 1; ++dy) {
+      const int yy = y + dy;
+      if (yy < 0 || yy >= ny) continue;
+      for (int dx = -1; dx <= 1; ++dx) {
+        const int xx = x + dx;
+        if (xx < 0 || xx >= nx || (p == 1 && dx == 0 && dy == 0)) continue;
+        f(pl[static_cast<std::size_t>(yy) * nx + xx], p * 9 + (dy + 1) * 3 + dx + 1);
+      }
+    }
+  }
+}
+
 }  // namespace
 
 // ---- smoothness prior ----------------------------------------------------------
@@ -163,22 +183,12 @@ std::int64_t smooth_sweep(const Smoother& s, const ColourModel& m, const std::ui
       std::array<double, 26> nw{};
       int n = 0;
       double total = 0;
-      for (int p = 0; p < 3; ++p) {
-        const std::uint8_t* pl = planes[p];
-        if (!pl) continue;
-        for (int dy = -1; dy <= 1; ++dy) {
-          const int yy = y + dy;
-          if (yy < 0 || yy >= ny) continue;
-          for (int dx = -1; dx <= 1; ++dx) {
-            const int xx = x + dx;
-            if (xx < 0 || xx >= nx || (p == 1 && dx == 0 && dy == 0)) continue;
-            nl[static_cast<std::size_t>(n)] = pl[static_cast<std::size_t>(yy) * nx + xx];
-            const double w = s.w[static_cast<std::size_t>(p * 9 + (dy + 1) * 3 + dx + 1)];
-            nw[static_cast<std::size_t>(n++)] = w;
-            total += w;
-          }
-        }
-      }
+      for_each_neighbour(planes, x, y, nx, ny, [&](std::uint8_t v, int k) {
+        const double w = s.w[static_cast<std::size_t>(k)];
+        nl[static_cast<std::size_t>(n)] = v;
+        nw[static_cast<std::size_t>(n++)] = w;
+        total += w;
+      });
       int nc = 1;  // candidates: the voxel's own label first, then the others as met
       cand[0] = l;
       for (int j = 0; j < n; ++j) {
@@ -317,21 +327,10 @@ std::int64_t rank_filter(const LabelInfo& info, int support, const std::uint8_t*
       cnt = 0;
       std::uint8_t lab[26];
       int nl = 0;
-      for (int p = 0; p < 3; ++p) {
-        const std::uint8_t* pl = planes[p];
-        if (!pl) continue;
-        for (int dy = -1; dy <= 1; ++dy) {
-          const int yy = y + dy;
-          if (yy < 0 || yy >= ny) continue;
-          for (int dx = -1; dx <= 1; ++dx) {
-            const int xx = x + dx;
-            if (xx < 0 || xx >= nx || (p == 1 && dx == 0 && dy == 0)) continue;
-            const std::uint8_t v = pl[static_cast<std::size_t>(yy) * nx + xx];
-            lab[nl++] = v;
-            cnt += v == l;
-          }
-        }
-      }
+      for_each_neighbour(planes, x, y, nx, ny, [&](std::uint8_t v, int) {
+        lab[nl++] = v;
+        cnt += v == l;
+      });
       if (cnt >= need || nl == 0) {
         out[i] = l;
         continue;

@@ -528,6 +528,28 @@ std::vector<int> parse_ints(const std::string& s) {
 
 // ---- harness rows (orthosim bench; tests/bench/bench_results.h) -------------------------
 
+// A phantom of the sample's proportions (data-samples/phantom: 160 x 160 x 64
+// voxels of 0.45 x 0.45 x 1.5 mm; twice as fine in full runs) at that noise and
+// seed: its options, truth and slices in memory.
+struct SampleLike {
+  PhantomOptions p;
+  Volume truth;
+  std::vector<RgbImage> slices;
+  SampleLike(bool quick, double noise, unsigned seed) {
+    p.nx = p.ny = quick ? 160 : 320;
+    p.nz = quick ? 64 : 128;
+    p.spacing_m = {0.45e-3 * 160 / p.nx, 0.45e-3 * 160 / p.nx, 1.5e-3 * 64 / p.nz};
+    p.noise_sigma = noise;
+    p.seed = seed;
+    truth = phantom_labels(p);
+    slices.resize(static_cast<std::size_t>(p.nz));
+    for (int z = 0; z < p.nz; ++z) {
+      slices[static_cast<std::size_t>(z)].nx = p.nx, slices[static_cast<std::size_t>(z)].ny = p.ny;
+      phantom_slice_rgb(p, truth, z, slices[static_cast<std::size_t>(z)].rgb);
+    }
+  }
+};
+
 void results(const std::string& path, bool quick) {
   namespace ob = orthosim::bench;
   if (quick) g_size = 256, g_slices = 16;
@@ -574,19 +596,10 @@ void results(const std::string& path, bool quick) {
   // the per-voxel rule (--smoothness 0) timed in alternation: what the prior
   // costs and what it buys.
   {
-    PhantomOptions np;
-    np.nx = np.ny = quick ? 160 : 320;
-    np.nz = quick ? 64 : 128;
-    np.spacing_m = {0.45e-3 * 160 / np.nx, 0.45e-3 * 160 / np.nx, 1.5e-3 * 64 / np.nz};
-    np.noise_sigma = 24;
-    np.seed = 3;
-    const Volume ntruth = phantom_labels(np);
-    std::vector<RgbImage> nslices(static_cast<std::size_t>(np.nz));
-    for (int z = 0; z < np.nz; ++z) {
-      nslices[static_cast<std::size_t>(z)].nx = np.nx, nslices[static_cast<std::size_t>(z)].ny = np.ny;
-      phantom_slice_rgb(np, ntruth, z, nslices[static_cast<std::size_t>(z)].rgb);
-    }
-    const SliceSource src = memory_source(nslices, "memory");
+    const SampleLike sl(quick, 24, 3);
+    const PhantomOptions& np = sl.p;
+    const Volume& ntruth = sl.truth;
+    const SliceSource src = memory_source(sl.slices, "memory");
     SegmentOptions o = options_for(np), plain = o;
     plain.smoothness = 0;
     Run with, without;
@@ -627,18 +640,9 @@ void results(const std::string& path, bool quick) {
   // against the unregistered segmentation of the same stack timed in
   // alternation (the peer: the ratio is registration's cost).
   {
-    PhantomOptions rp;
-    rp.nx = rp.ny = quick ? 160 : 320;
-    rp.nz = quick ? 64 : 128;
-    rp.spacing_m = {0.45e-3 * 160 / rp.nx, 0.45e-3 * 160 / rp.nx, 1.5e-3 * 64 / rp.nz};
-    rp.noise_sigma = 4;
-    rp.seed = 5;
-    const Volume rtruth = phantom_labels(rp);
-    std::vector<RgbImage> rslices(static_cast<std::size_t>(rp.nz));
-    for (int z = 0; z < rp.nz; ++z) {
-      rslices[static_cast<std::size_t>(z)].nx = rp.nx, rslices[static_cast<std::size_t>(z)].ny = rp.ny;
-      phantom_slice_rgb(rp, rtruth, z, rslices[static_cast<std::size_t>(z)].rgb);
-    }
+    const SampleLike sl(quick, 4, 5);
+    const PhantomOptions& rp = sl.p;
+    const std::vector<RgbImage>& rslices = sl.slices;
     std::mt19937 rng(11);
     std::uniform_int_distribution<int> u(-2, 2);
     std::vector<std::array<int, 2>> jitter(rslices.size());
