@@ -35,7 +35,6 @@
 #include <algorithm>
 #include <cerrno>
 #include <chrono>
-#include <iomanip>
 #include <array>
 #include <cstring>
 #include <filesystem>
@@ -539,14 +538,13 @@ int run_stages(Args a, Report& report) {
       // nesting a stage later.
       if (disagree.is_array() && !disagree.empty()) {
         const json& d = disagree.front();
-        std::ostringstream why;
-        why << std::fixed << std::setprecision(0) << "the segmentation collapsed: '" << d.at("tissue").get<std::string>()
-            << "' has " << 100 * d.at("voxel_fraction").get<double>() << " % of the voxels but "
-            << 100 * d.at("sample_fraction").get<double>()
-            << " % of the colour calibration's samples (noise too strong for the tissue table's colours to be told "
-               "apart, or the table's colours far off: "
-            << a.tissues << "; the segment report in " << seg.dir << ")";
-        throw Error(a.stack, why.str());
+        throw Error(a.stack, "the segmentation collapsed: '" + d.at("tissue").get<std::string>() + "' has " +
+                                 std::to_string(std::lround(100 * d.at("voxel_fraction").get<double>())) +
+                                 " % of the voxels but " +
+                                 std::to_string(std::lround(100 * d.at("sample_fraction").get<double>())) +
+                                 " % of the colour calibration's samples (noise too strong for the tissue table's "
+                                 "colours to be told apart, or the table's colours far off: " +
+                                 a.tissues + "; the segment report in " + seg.dir + ")");
       }
       json absent = json::array();
       auto present = [&](std::vector<std::string>& names) {

@@ -284,13 +284,12 @@ void add_segment_command(CLI::App& app) {
         const double vf = (v == m.voxels.end() ? 0.0 : static_cast<double>(v->second)) / std::max(all_voxels, 1.0);
         if (std::max(sf, vf) < 0.2 || (vf <= 4 * sf && sf <= 4 * vf)) continue;
         disagree.push_back({{"tissue", tissue}, {"sample_fraction", sf}, {"voxel_fraction", vf}});
-        std::cerr << "orthosim segment: warning: " << a.stack << ": '" << tissue << "' has " << std::fixed
-                  << std::setprecision(0) << 100 * vf << " % of the voxels but " << 100 * sf
+        std::cerr << "orthosim segment: warning: " << a.stack << ": '" << tissue << "' has " << std::lround(100 * vf)
+                  << " % of the voxels but " << std::lround(100 * sf)
                   << " % of the calibration samples: the labels disagree with the colour calibration, which has "
                      "probably collapsed (noise too strong for the table's colours to be told apart, or the table's "
                      "colours far off; "
-                  << a.tissues << ")\n"
-                  << std::defaultfloat << std::setprecision(6);
+                  << a.tissues << ")\n";
       }
       j["calibration_disagreements"] = disagree;
     }

@@ -360,6 +360,32 @@ void apply_gain(const GainField& g, const std::uint8_t* rgb, int nx, int ny, std
 
 namespace {
 
+// The mixture's posteriors of colour x, unnormalised: lp[c] = exp(log p_c(x) -
+// max) for the shared precision P, their sum returned (r_c = lp[c] / sum).
+double posteriors(const ColourModel& m, const std::vector<double>& log_pi, const std::array<double, 6>& P,
+                  const std::array<double, 3>& x, std::vector<double>& lp) {
+  double top = -1e300;
+  for (std::size_t c = 0; c < m.centres.size(); ++c) {
+    lp[c] = log_pi[c] - 0.5 * mahalanobis2(P, x, m.centres[c].lab);
+    top = std::max(top, lp[c]);
+  }
+  double z = 0;
+  for (std::size_t c = 0; c < m.centres.size(); ++c) z += (lp[c] = std::exp(lp[c] - top));
+  return z;
+}
+
+// The inverse of the covariance scatter / total (xx, yy, zz, xy, xz, yz), its
+// diagonal floored at 0.25 CIE76 units (8-bit rounding), in the same packing.
+std::array<double, 6> precision_of(const std::array<double, 6>& scatter, double total) {
+  Eigen::Matrix3d S;
+  const double inv_total = 1 / std::max(total, 1e-300);
+  S << scatter[0], scatter[3], scatter[4], scatter[3], scatter[1], scatter[5], scatter[4], scatter[5], scatter[2];
+  S *= inv_total;
+  S.diagonal().array() += 0.0625;
+  const Eigen::Matrix3d Pi = S.inverse();
+  return {Pi(0, 0), Pi(1, 1), Pi(2, 2), Pi(0, 1), Pi(0, 2), Pi(1, 2)};
+}
+
 // The fit above is made on 3 x 3 medians, but the classifier scores single
 // pixels. CIELAB is not linear in RGB, so under sensor noise the mean colour
 // of a tissue's pixels lies off that of its medians (8-bit noise 24: 4-11
@@ -396,11 +422,8 @@ void pixel_statistics(ColourModel& m, const std::vector<std::uint64_t>& pairs, c
     pix[i] = lab_of(static_cast<std::uint32_t>(key[i] & 0xFFFFFF));
   });
   auto responsibilities = [&](std::size_t i, std::vector<double>& r) {
-    double top = -1e300;
-    for (std::size_t c = 0; c < C; ++c) top = std::max(top, r[c] = log_pi[c] - 0.5 * mahalanobis2(P, med[i], m.centres[c].lab));
-    double z = 0;
-    for (std::size_t c = 0; c < C; ++c) z += (r[c] = std::exp(r[c] - top));
-    for (std::size_t c = 0; c < C; ++c) r[c] *= count[i] / z;
+    const double z = posteriors(m, log_pi, P, med[i], r);
+    for (std::size_t c = 0; c < C; ++c) r[c] = count[i] * r[c] / z;
   };
   // chunks summed in parallel, then in a fixed order: deterministic
   constexpr std::size_t kChunk = 4096;
@@ -454,12 +477,7 @@ void pixel_statistics(ColourModel& m, const std::vector<std::uint64_t>& pairs, c
     for (int j = 0; j < 6; ++j) sc[j] += part2[k][j];
     total += part2[k][6];
   }
-  Eigen::Matrix3d S;
-  S << sc[0], sc[3], sc[4], sc[3], sc[1], sc[5], sc[4], sc[5], sc[2];
-  S /= std::max(total, 1e-300);
-  S.diagonal().array() += 0.0625;
-  const Eigen::Matrix3d Pi = S.inverse();
-  P = {Pi(0, 0), Pi(1, 1), Pi(2, 2), Pi(0, 1), Pi(0, 2), Pi(1, 2)};
+  P = precision_of(sc, total);
 }
 
 }  // namespace
@@ -547,8 +565,8 @@ void calibrate(ColourModel& m, const std::vector<std::vector<std::uint8_t>>& sli
 
   // 2. normalised colours of every calibration slice, as distinct colours
   // with their counts (24-bit keys, sorted: the order is fixed)
-  std::vector<std::uint32_t> keys;
-  // (median, pixel) colour key pairs of every sample, for pixel_lab below
+  // (median, pixel) colour key pairs of every sample: sorted, their median
+  // keys are the EM's colours in order; pixel_lab below uses both
   std::vector<std::uint64_t> pairs;
   {
     std::vector<std::uint8_t> corr, corr_raw;
@@ -559,14 +577,13 @@ void calibrate(ColourModel& m, const std::vector<std::vector<std::uint8_t>>& sli
       const GainField g = fit_gain(m, slices[k].data(), nx, ny, o.normalise);
       correct_samples(g, samples[k], corr);
       correct_samples(g, samples[k], corr_raw, /*raw=*/true);
-      for (std::size_t i = 0; i < samples[k].u.size(); ++i) {
-        keys.push_back(key(corr, i));
+      for (std::size_t i = 0; i < samples[k].u.size(); ++i)
         pairs.push_back(std::uint64_t(key(corr, i)) << 24 | key(corr_raw, i));
-      }
     }
   }
-  std::sort(keys.begin(), keys.end());
   std::sort(pairs.begin(), pairs.end());
+  std::vector<std::uint32_t> keys(pairs.size());
+  for (std::size_t i = 0; i < pairs.size(); ++i) keys[i] = static_cast<std::uint32_t>(pairs[i] >> 24);
   std::vector<std::array<double, 3>> lab;
   std::vector<double> weight;
   for (std::size_t i = 0; i < keys.size();) {
@@ -628,13 +645,7 @@ void calibrate(ColourModel& m, const std::vector<std::vector<std::uint8_t>>& sli
           accumulate(acc[c], w, x, m.centres[c].lab);
           continue;
         }
-        double top = -1e300;
-        for (std::size_t c = 0; c < C; ++c) {
-          lp[c] = log_pi[c] - 0.5 * mahalanobis2(P, x, m.centres[c].lab);
-          top = std::max(top, lp[c]);
-        }
-        double z = 0;
-        for (std::size_t c = 0; c < C; ++c) z += (lp[c] = std::exp(lp[c] - top));
+        const double z = posteriors(m, log_pi, P, x, lp);
         for (std::size_t c = 0; c < C; ++c) {
           const double r = w * lp[c] / z;
           if (r != 0) accumulate(acc[c], r, x, m.centres[c].lab);
@@ -672,13 +683,7 @@ void calibrate(ColourModel& m, const std::vector<std::vector<std::uint8_t>>& sli
     // collapsed).
     for (std::size_t c = 0; c < C; ++c)
       log_pi[c] = std::log((weight_of[c] + n0 + 1e-300) / (total + static_cast<double>(C) * n0 + 1e-300));
-    Eigen::Matrix3d S;
-    const double inv_total = 1 / std::max(total, 1e-300);
-    S << scatter[0], scatter[3], scatter[4], scatter[3], scatter[1], scatter[5], scatter[4], scatter[5], scatter[2];
-    S *= inv_total;
-    S.diagonal().array() += 0.0625;
-    const Eigen::Matrix3d Pi = S.inverse();
-    P = {Pi(0, 0), Pi(1, 1), Pi(2, 2), Pi(0, 1), Pi(0, 2), Pi(1, 2)};
+    P = precision_of(scatter, total);
     if (it >= 0 && moved < 0.01) break;
   }
   if (o.refine_iterations > 0) pixel_statistics(m, pairs, log_pi, P, n0);
