@@ -278,6 +278,35 @@ CLI::Validator seed_check() {
       "UINT64");
 }
 
+std::vector<int> parse_ints(const std::string& text, int n, const std::string& flag, int min_value) {
+  const std::vector<double> v = parse_list(text, n, flag, false);
+  std::vector<int> out;
+  for (double x : v) {
+    if (x != std::floor(x) || x < min_value || x > 2147483647.0)
+      throw UsageError(flag + ": expected " + std::to_string(n) + " whole numbers >= " + std::to_string(min_value) +
+                       ", got '" + text + "'");
+    out.push_back(static_cast<int>(x));
+  }
+  return out;
+}
+
+std::array<int, 6> parse_roi_flags(const std::string& roi, const std::string& slices) {
+  std::array<int, 6> r{0, 0, 0, 0, 0, -1};
+  if (!roi.empty()) {
+    const std::vector<int> v = parse_ints(roi, 4, "--roi", 0);
+    if (v[2] < 1 || v[3] < 1) throw UsageError("--roi: width and height must be >= 1 px, got '" + roi + "'");
+    for (std::size_t k = 0; k < 4; ++k) r[k] = v[k];
+  }
+  if (!slices.empty()) {
+    const std::vector<int> v = parse_ints(slices, 2, "--slices", -1);
+    if (v[0] < 0) throw UsageError("--slices: the first slice must be >= 0, got '" + slices + "'");
+    if (v[1] != -1 && v[1] < v[0])
+      throw UsageError("--slices: the last slice must be >= the first (or -1: to the last), got '" + slices + "'");
+    r[4] = v[0], r[5] = v[1];
+  }
+  return r;
+}
+
 std::vector<int> parse_size(const std::string& text, int n, const std::string& flag) {
   std::vector<int> out;
   std::stringstream s(text);

@@ -14,6 +14,7 @@
 #include <CLI/CLI.hpp>
 #include <nlohmann/json.hpp>
 
+#include <array>
 #include <chrono>
 #include <functional>
 #include <string>
@@ -114,6 +115,12 @@ void on_run(CLI::App* sub, const std::string& command, const CommonOptions& comm
 std::vector<int> parse_size(const std::string& text, int n, const std::string& flag);
 // Parses "a,b,c" into n finite numbers; `positive` requires each > 0.
 std::vector<double> parse_list(const std::string& text, int n, const std::string& flag, bool positive);
+// Parses "a,b,c" into n integers, each >= min_value (UsageError naming the flag).
+std::vector<int> parse_ints(const std::string& text, int n, const std::string& flag, int min_value);
+// --roi X,Y,W,H (px) and --slices FIRST,LAST (0-based, inclusive; LAST -1:
+// to the last) of segment and pipeline into x0, y0, width, height, first,
+// last; empty flags select everything ({0, 0, 0, 0, 0, -1}).
+std::array<int, 6> parse_roi_flags(const std::string& roi, const std::string& slices);
 // --spacing X,Y,Z and --origin X,Y,Z (mm) within the voxel geometry every
 // stage takes (voxel_geometry_problem): UsageError naming the flag otherwise.
 void check_voxel_flags(const std::vector<double>& spacing_mm, const std::vector<double>& origin_mm);

@@ -63,7 +63,7 @@ const std::array<std::array<std::string, 3>, 6> kExportItems = {{{"segment", "la
 const std::array<std::string, 2> kExportFolders = {"surfaces", "reports"};
 
 struct Args {
-  std::string stack, tissues, spacing, origin = "0,0,0", scene, grid = "39x9", work, out, export_dir;
+  std::string stack, tissues, spacing, origin = "0,0,0", roi, slices, scene, grid = "39x9", work, out, export_dir;
   bool texture = true, tune = true, register_slices = false;
   // virtual experiments per tuned tissue: the bound that keeps the pipeline
   // reproducible; the wall-clock budget is only a safety cap (a run it cuts
@@ -354,8 +354,16 @@ int run_stages(Args a, Report& report) {
     }
   }
   check_voxel_flags(parse_list(a.spacing, 3, "--spacing", true), parse_list(a.origin, 3, "--origin", false));
+  const std::array<int, 6> roi = parse_roi_flags(a.roi, a.slices);
   std::error_code ec;
   if (!fs::is_directory(a.stack, ec)) throw Error(a.stack, "not a folder of slices");
+  if (!a.roi.empty() || !a.slices.empty()) {
+    // a region beyond the slices is refused before any stage (reads the first slice's size)
+    SegmentOptions so;
+    so.roi_px = {roi[0], roi[1], roi[2], roi[3]};
+    so.first_slice = roi[4], so.last_slice = roi[5];
+    roi_source(stack_source(a.stack, a.bit_depth), so);
+  }
   if (fs::is_directory(a.out, ec)) throw Error(a.out, "is a folder; --out names a model file");
   check_output_file(a.out);
   check_output_dir(a.work);
@@ -383,7 +391,7 @@ int run_stages(Args a, Report& report) {
   report.input(a.stack);
   report.input(a.tissues);
   if (!a.scene.empty()) report.input(a.scene);
-  report.parameters() = {{"grid", a.grid}, {"through_cells", a.through_cells}, {"poisson_ratio", a.poisson_ratio}, {"lattice_volume_term", a.lattice_volume_term}, {"inversion_guard", a.inversion_guard}, {"spur_ratio", a.spur_ratio}, {"axis_correction", a.axis_correction}, {"bit_depth", a.bit_depth}, {"smoothness", a.smoothness}, {"spacing_mm", a.spacing}, {"origin_mm", a.origin},
+  report.parameters() = {{"grid", a.grid}, {"through_cells", a.through_cells}, {"poisson_ratio", a.poisson_ratio}, {"lattice_volume_term", a.lattice_volume_term}, {"inversion_guard", a.inversion_guard}, {"spur_ratio", a.spur_ratio}, {"axis_correction", a.axis_correction}, {"bit_depth", a.bit_depth}, {"smoothness", a.smoothness}, {"spacing_mm", a.spacing}, {"origin_mm", a.origin}, {"roi_px", {roi[0], roi[1], roi[2], roi[3]}}, {"slices", {roi[4], roi[5]}},
                          {"work", a.work}, {"texture", a.texture}, {"tune", a.tune},
                          {"tune_budget_s", a.tune_budget_s}, {"tune_evaluations", a.tune_evaluations}, {"seed", a.seed}, {"export", a.export_dir}};
 
@@ -501,13 +509,17 @@ int run_stages(Args a, Report& report) {
     const auto seg = run.stage(
         "segment",
         {stack_hash, table_hash, a.spacing, a.origin, a.register_slices ? "registered" : "as-is",
-         "bit-depth " + std::to_string(a.bit_depth), "smoothness " + exact(a.smoothness)},
+         "bit-depth " + std::to_string(a.bit_depth), "smoothness " + exact(a.smoothness),
+         "roi " + std::to_string(roi[0]) + "," + std::to_string(roi[1]) + "," + std::to_string(roi[2]) + "," +
+             std::to_string(roi[3]) + " slices " + std::to_string(roi[4]) + "," + std::to_string(roi[5])},
         run.command([&](const std::string& d) {
           std::vector<std::string> args{"segment", "--stack", a.stack, "--tissues", a.tissues, "--spacing",
                                         a.spacing, "--origin", a.origin, "--out", d + "/labels.h5",
                                         "--nrrd", d + "/labels.nrrd", "--bit-depth", std::to_string(a.bit_depth),
                                         "--smoothness", exact(a.smoothness)};
           if (a.register_slices) args.push_back("--register");
+          if (!a.roi.empty()) args.insert(args.end(), {"--roi", a.roi});
+          if (!a.slices.empty()) args.insert(args.end(), {"--slices", a.slices});
           return args;
         }),
         {"labels.h5", "labels.nrrd"});
@@ -538,13 +550,19 @@ int run_stages(Args a, Report& report) {
       // nesting a stage later.
       if (disagree.is_array() && !disagree.empty()) {
         const json& d = disagree.front();
+        const double vf = d.at("voxel_fraction").get<double>(), sf = d.at("sample_fraction").get<double>();
+        // the embedding medium's colour found, its voxels gone (segment's warning says the same)
+        const bool enclosed = d.at("tissue").get<std::string>() == table.label_names().at(0) && vf < sf;
         throw Error(a.stack, "the segmentation collapsed: '" + d.at("tissue").get<std::string>() + "' has " +
-                                 std::to_string(std::lround(100 * d.at("voxel_fraction").get<double>())) +
-                                 " % of the voxels but " +
-                                 std::to_string(std::lround(100 * d.at("sample_fraction").get<double>())) +
+                                 std::to_string(std::lround(100 * vf)) + " % of the voxels but " +
+                                 std::to_string(std::lround(100 * sf)) +
                                  " % of the colour calibration's samples (noise too strong for the tissue table's "
                                  "colours to be told apart, or the table's colours far off: " +
-                                 a.tissues + "; the segment report in " + seg.dir + ")");
+                                 a.tissues + "; the segment report in " + seg.dir + ")" +
+                                 (enclosed ? ", or something around the specimen that the table does not name (the "
+                                             "photograph's frame, a scale, a label) was taken for tissue: --roi "
+                                             "around the specimen"
+                                           : ""));
       }
       json absent = json::array();
       auto present = [&](std::vector<std::string>& names) {
@@ -852,6 +870,12 @@ void add_pipeline_command(CLI::App& app) {
   sub->add_option("--tissues", a.tissues, "tissue table (tissues.json)")->required();
   sub->add_option("--spacing", a.spacing, "voxel size in mm, X,Y,Z")->required();
   sub->add_option("--origin", a.origin, "position of voxel (0,0,0) in mm, X,Y,Z")->capture_default_str();
+  sub->add_option("--roi", a.roi,
+                  "segment's: only this part of the slices, X,Y,W,H in pixels (default: whole slices); --origin stays "
+                  "that of the slice files' pixel (0,0)");
+  sub->add_option("--slices", a.slices,
+                  "segment's: only the slices FIRST,LAST in natural name order, 0-based, inclusive (LAST -1: to the "
+                  "last)");
   sub->add_option("--scene", a.scene, "scene file: build only what it uses");
   sub->add_option("--grid", a.grid, "quad grid NUxNV")->capture_default_str();
   sub->add_option("--bit-depth", a.bit_depth,

@@ -203,12 +203,25 @@ void add_remesh_command(CLI::App& app) {
     if (a.texture) {
       Phase p(report, "texture");
       std::array<double, 3> spacing{0, 0, 0}, origin{0, 0, 0};
+      std::array<int, 3> offset{0, 0, 0};  // the volume's voxel (0,0,0) in the stack (segment --roi, --slices)
+      int volume_nz = 0;
       bool have_spacing = false;
       if (!a.model.empty() && std::filesystem::exists(a.model)) {
         ModelReader m(a.model);
         if (m.has("/volume")) {
           const Volume v = m.volume();
-          spacing = v.spacing_m, origin = v.origin_m;
+          spacing = v.spacing_m, volume_nz = v.nz;
+          if (m.h5().has_attr("/volume", "stack_offset_voxels")) {
+            const std::vector<double> off = m.h5().attr_doubles("/volume", "stack_offset_voxels");
+            if (off.size() != 3) throw Error(a.model, "/volume@stack_offset_voxels must hold 3 numbers");
+            for (std::size_t k = 0; k < 3; ++k) {
+              if (!(off[k] >= 0 && off[k] <= 1e9) || off[k] != std::floor(off[k]))
+                throw Error(a.model, "/volume@stack_offset_voxels must hold whole numbers >= 0");
+              offset[k] = static_cast<int>(off[k]);
+            }
+          }
+          // the stack's pixel (0,0) of its first slice, where the texture's lookup starts
+          for (std::size_t k = 0; k < 3; ++k) origin[k] = v.origin_m[k] - offset[k] * v.spacing_m[k];
           have_spacing = true;
         }
       }
@@ -229,11 +242,16 @@ void add_remesh_command(CLI::App& app) {
         if (m.h5().exists("/volume/slice_shift_px")) {
           std::vector<std::uint64_t> d;
           const auto sh = m.h5().read<std::int32_t>("/volume/slice_shift_px", &d);
-          if (d.size() != 2 || d[1] != 2 || d[0] != st.files.size())
+          // one row per segmented slice: the stack's offset[2] .. offset[2] + rows - 1
+          if (d.size() != 2 || d[1] != 2 || d[0] != static_cast<std::uint64_t>(volume_nz))
             throw Error(a.model, "/volume/slice_shift_px has " + std::to_string(d.empty() ? 0 : d[0]) +
-                                     " rows, but --stack " + a.stack + " has " + std::to_string(st.files.size()) +
-                                     " slices");
-          for (std::size_t k = 0; k < d[0]; ++k) st.shift.push_back({sh[2 * k], sh[2 * k + 1]});
+                                     " rows, but /volume has " + std::to_string(volume_nz) + " slices");
+          if (offset[2] + d[0] > st.files.size())
+            throw Error(a.model, "/volume's slices " + std::to_string(offset[2]) + ".." +
+                                     std::to_string(offset[2] + d[0] - 1) + " reach beyond --stack " + a.stack +
+                                     ", which has " + std::to_string(st.files.size()) + " slices");
+          st.shift.assign(st.files.size(), {0, 0});
+          for (std::size_t k = 0; k < d[0]; ++k) st.shift[offset[2] + k] = {sh[2 * k], sh[2 * k + 1]};
         }
       }
       report.input(a.stack);

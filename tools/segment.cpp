@@ -20,7 +20,7 @@ namespace orthosim::cli {
 void add_segment_command(CLI::App& app) {
   auto* sub = app.add_subcommand("segment", "classify a colour slice stack into tissue labels (/volume)");
   struct Args {
-    std::string stack, tissues, spacing, origin = "0,0,0", out, nrrd, truth, normalise = "plane", classify = "mahalanobis", scratch_dir;
+    std::string stack, tissues, spacing, origin = "0,0,0", roi, slices, out, nrrd, truth, normalise = "plane", classify = "mahalanobis", scratch_dir;
     bool no_cleanup = false, no_order = false, no_fill_holes = false, exposure = false, register_slices = false;
     int register_window = 8;
     double register_max_shift = 32, register_min_response = 0.1;
@@ -38,6 +38,12 @@ void add_segment_command(CLI::App& app) {
   sub->add_option("--tissues", a.tissues, "tissue table (tissues.json) with colour prototypes")->required();
   sub->add_option("--spacing", a.spacing, "voxel size in mm along x (columns), y (rows), z (slices)")->required();
   sub->add_option("--origin", a.origin, "position of voxel (0,0,0) in mm")->capture_default_str();
+  sub->add_option("--roi", a.roi,
+                  "segment only this part of the slices: X,Y,W,H in pixels (x columns, y rows, from the top left; "
+                  "default: whole slices); --origin stays that of the slice files' pixel (0,0)");
+  sub->add_option("--slices", a.slices,
+                  "segment only the slices FIRST,LAST of the stack in natural name order, 0-based, inclusive (LAST -1: "
+                  "to the last)");
   sub->add_option("--out", a.out, "output model file (writes /volume)")->required();
   sub->add_option("--nrrd", a.nrrd, "also write the labels as NRRD (3D Slicer)");
   sub->add_option("--truth", a.truth, "model file with a true /volume: per-tissue Dice in the report");
@@ -105,6 +111,9 @@ void add_segment_command(CLI::App& app) {
     const std::vector<double> org = parse_list(a.origin, 3, "--origin", false);
     check_voxel_flags(s, org);
     for (int k = 0; k < 3; ++k) o.spacing_m[k] = s[k] * 1e-3, o.origin_m[k] = org[k] * 1e-3;
+    const std::array<int, 6> roi = parse_roi_flags(a.roi, a.slices);
+    o.roi_px = {roi[0], roi[1], roi[2], roi[3]};
+    o.first_slice = roi[4], o.last_slice = roi[5];
     if (a.normalise == "none") o.normalise = SegmentOptions::Normalise::none;
     else if (a.normalise == "gain") o.normalise = SegmentOptions::Normalise::gain;
     else if (a.normalise == "plane") o.normalise = SegmentOptions::Normalise::plane;
@@ -149,22 +158,29 @@ void add_segment_command(CLI::App& app) {
     require_background_colour(table);
     check_output_file(a.out);
     if (!a.nrrd.empty()) check_output_file(a.nrrd);
+    // the region of interest within the stack, checked before anything is written
+    const SliceSource whole = stack_source(a.stack, a.bit_depth);
+    const SliceSource part = roi_source(whole, o);
+    std::array<int, 3> truth_offset{0, 0, 0};
     if (!a.truth.empty()) {
-      // the truth must match the stack voxel for voxel: checked here, since
-      // the Dice comes after --out is written
-      const SliceSource src = stack_source(a.stack, a.bit_depth);
+      // the truth must match the stack (or the region of interest) voxel for
+      // voxel: checked here, since the Dice comes after --out is written
       ModelReader truth(a.truth);
       const std::string ds = "/volume/labels";
       if (!truth.has(ds)) throw Error(a.truth, "missing dataset /volume/labels (no truth volume)");
       if (!truth.h5().has_attr("/volume", "label_names")) throw Error(a.truth, "/volume has no label_names");
       const auto d = truth.h5().dims(ds);
-      const std::vector<std::uint64_t> want = {static_cast<std::uint64_t>(src.nz), static_cast<std::uint64_t>(src.ny),
-                                               static_cast<std::uint64_t>(src.nx)};
-      if (d != want) {
+      auto dims = [](const SliceSource& q) {
+        return std::vector<std::uint64_t>{static_cast<std::uint64_t>(q.nz), static_cast<std::uint64_t>(q.ny),
+                                          static_cast<std::uint64_t>(q.nx)};
+      };
+      if (d == dims(whole) && d != dims(part)) truth_offset = roi_offset(o);  // the whole stack's truth
+      else if (d != dims(part)) {
         std::ostringstream m;
         m << "truth volume is ";
         for (std::size_t k = d.size(); k-- > 0;) m << d[k] << (k ? "x" : "");
-        m << " voxels, the stack " << a.stack << " is " << src.nx << "x" << src.ny << "x" << src.nz;
+        m << " voxels, the stack " << a.stack << " is " << whole.nx << "x" << whole.ny << "x" << whole.nz;
+        if (has_roi(o)) m << " and its region of interest " << part.nx << "x" << part.ny << "x" << part.nz;
         throw Error(a.truth, m.str());
       }
     }
@@ -200,6 +216,8 @@ void add_segment_command(CLI::App& app) {
     auto& j = report.metrics();
     const double voxels = static_cast<double>(m.nx) * m.ny * m.nz;
     j["size"] = {m.nx, m.ny, m.nz};
+    j["stack_size"] = m.stack_size;
+    j["stack_offset_voxels"] = roi_offset(o);
     j["bit_depth"] = a.bit_depth;
     if (!m.stack_note.empty()) {
       j["stack_note"] = m.stack_note;
@@ -284,12 +302,22 @@ void add_segment_command(CLI::App& app) {
         const double vf = (v == m.voxels.end() ? 0.0 : static_cast<double>(v->second)) / std::max(all_voxels, 1.0);
         if (std::max(sf, vf) < 0.2 || (vf <= 4 * sf && sf <= 4 * vf)) continue;
         disagree.push_back({{"tissue", tissue}, {"sample_fraction", sf}, {"voxel_fraction", vf}});
+        // the embedding medium's colour found, its voxels gone: the body's outline
+        // enclosed it (a whole cryosection photograph: its dark frame taken for
+        // muscle around the gel, the gel then filled as muscle; 30 % of the samples,
+        // 0 % of the voxels)
+        const bool enclosed = tissue == name_of(0) && vf < sf;
         std::cerr << "orthosim segment: warning: " << a.stack << ": '" << tissue << "' has " << std::lround(100 * vf)
                   << " % of the voxels but " << std::lround(100 * sf)
                   << " % of the calibration samples: the labels disagree with the colour calibration, which has "
                      "probably collapsed (noise too strong for the table's colours to be told apart, or the table's "
                      "colours far off; "
-                  << a.tissues << ")\n";
+                  << a.tissues << ")"
+                  << (enclosed ? ", or something around the specimen that the table does not name (the photograph's "
+                                 "frame, a scale, a label) was taken for tissue and the body's outline enclosed the "
+                                 "embedding medium: segment a --roi around the specimen"
+                               : "")
+                  << "\n";
       }
       j["calibration_disagreements"] = disagree;
     }
@@ -327,7 +355,7 @@ void add_segment_command(CLI::App& app) {
     if (!a.truth.empty()) {
       Phase p(report, "dice");
       std::map<std::string, std::int64_t> tv;
-      j["dice"] = dice_per_tissue(a.out, a.truth, &tv);
+      j["dice"] = dice_per_tissue(a.out, a.truth, &tv, truth_offset);
       j["truth_voxels"] = tv;
       // a tissue the truth does not name has no Dice: said, not left out silently
       // (a table naming the skin 'dermis' reported a perfect Dice of the rest; sweep

@@ -83,13 +83,68 @@ void validate(const SegmentOptions& o) {
   if (!(o.min_body_fraction > 0 && o.min_body_fraction <= 1)) bad("min-body-fraction: must be in (0, 1]");
   if (o.slab < 1 || o.slab > 256) bad("slab: must be in 1..256");
   if (o.scratch_memory_bytes < 0) bad("scratch memory must be >= 0 (the library's SegmentOptions::scratch_memory_bytes)");
+  const auto& r = o.roi_px;
+  if (r[0] < 0 || r[1] < 0 || r[2] < 0 || r[3] < 0 || (r[2] == 0) != (r[3] == 0))
+    bad("roi: x and y must be >= 0 and width and height both > 0 (or both 0: whole slices)");
+  if (o.first_slice < 0) bad("slices: the first slice must be >= 0");
+  if (o.last_slice < -1 || (o.last_slice >= 0 && o.last_slice < o.first_slice))
+    bad("slices: the last slice must be >= the first (or -1: to the last)");
   validate(o.registration);
+}
+
+bool has_roi(const SegmentOptions& o) { return o.roi_px[2] > 0 || o.first_slice > 0 || o.last_slice >= 0; }
+
+std::array<int, 3> roi_offset(const SegmentOptions& o) {
+  return {o.roi_px[2] > 0 ? o.roi_px[0] : 0, o.roi_px[2] > 0 ? o.roi_px[1] : 0, o.first_slice};
+}
+
+std::array<double, 3> volume_origin(const SegmentOptions& o) {
+  const std::array<int, 3> off = roi_offset(o);
+  std::array<double, 3> v{};
+  for (int k = 0; k < 3; ++k) v[k] = o.origin_m[k] + off[k] * o.spacing_m[k];
+  return v;
+}
+
+SliceSource roi_source(SliceSource src, const SegmentOptions& o) {
+  if (!has_roi(o)) return src;
+  const std::array<int, 3> off = roi_offset(o);
+  const int nx = o.roi_px[2] > 0 ? o.roi_px[2] : src.nx, ny = o.roi_px[3] > 0 ? o.roi_px[3] : src.ny;
+  const int last = o.last_slice >= 0 ? o.last_slice : src.nz - 1;
+  if (off[0] + static_cast<std::int64_t>(nx) > src.nx || off[1] + static_cast<std::int64_t>(ny) > src.ny)
+    throw Error(src.name, "the region of interest (x " + std::to_string(off[0]) + ", y " + std::to_string(off[1]) +
+                              ", " + std::to_string(nx) + " x " + std::to_string(ny) +
+                              " px) reaches beyond the slices, which are " + std::to_string(src.nx) + " x " +
+                              std::to_string(src.ny) + " px");
+  if (last >= src.nz || off[2] > last)
+    throw Error(src.name, "the slices " + std::to_string(off[2]) + ".." + std::to_string(last) +
+                              " reach beyond the stack, which has " + std::to_string(src.nz) + " (0.." +
+                              std::to_string(src.nz - 1) + ")");
+  auto in = std::make_shared<SliceSource>(std::move(src));
+  SliceSource s;
+  s.nx = nx, s.ny = ny, s.nz = last - off[2] + 1;
+  s.name = in->name, s.note = in->note;
+  s.read = [in, off, nx, ny](int z, std::vector<std::uint8_t>& rgb) {
+    std::vector<std::uint8_t> raw;
+    in->read(z + off[2], raw);
+    if (nx == in->nx && ny == in->ny) {
+      rgb = std::move(raw);
+      return;
+    }
+    rgb.resize(static_cast<std::size_t>(nx) * ny * 3);
+    const std::size_t row = static_cast<std::size_t>(nx) * 3;
+    for (int y = 0; y < ny; ++y)
+      std::memcpy(rgb.data() + y * row, raw.data() + ((static_cast<std::size_t>(y) + off[1]) * in->nx + off[0]) * 3, row);
+  };
+  return s;
 }
 
 std::string segment_parameters_json(const SegmentOptions& o) {
   nlohmann::json j;
   j["spacing_m"] = o.spacing_m;
   j["origin_m"] = o.origin_m;
+  j["roi_px"] = o.roi_px;
+  j["first_slice"] = o.first_slice;
+  j["last_slice"] = o.last_slice;
   j["calibration_slices"] = o.calibration_slices;
   j["sample_stride"] = o.sample_stride;
   j["normalise"] = to_string(o.normalise);
@@ -223,13 +278,15 @@ void check_table(const TissueTable& table) {
 
 // ---- the driver --------------------------------------------------------------------
 
-SegmentMetrics segment(const SliceSource& stack, const TissueTable& table, const SegmentOptions& opt,
+SegmentMetrics segment(const SliceSource& whole, const TissueTable& table, const SegmentOptions& opt,
                        const LabelSink& sink, const std::function<void(long, long)>& progress) {
   validate(opt);
   check_table(table);
-  if (stack.nx <= 0 || stack.ny <= 0 || stack.nz <= 0) throw Error(stack.name, "empty stack");
+  if (whole.nx <= 0 || whole.ny <= 0 || whole.nz <= 0) throw Error(whole.name, "empty stack");
+  const SliceSource stack = roi_source(whole, opt);
   CvThreads cv_threads;
   SegmentMetrics met;
+  met.stack_size = {whole.nx, whole.ny, whole.nz};
   // registered: every later read (calibration, both passes) sees moved slices
   if (opt.register_slices) met.registration = register_slices(stack, opt.registration);
   const SliceSource src = opt.register_slices ? shifted_source(stack, met.registration.shift) : stack;
@@ -482,10 +539,11 @@ SegmentMetrics segment(const SliceSource& stack, const TissueTable& table, const
 
 Volume segment_volume(const SliceSource& src, const TissueTable& table, const SegmentOptions& opt,
                       SegmentMetrics* metrics) {
+  const SliceSource roi = roi_source(src, opt);
   Volume v;
-  v.nx = src.nx, v.ny = src.ny, v.nz = src.nz;
+  v.nx = roi.nx, v.ny = roi.ny, v.nz = roi.nz;
   v.spacing_m = opt.spacing_m;
-  v.origin_m = opt.origin_m;
+  v.origin_m = volume_origin(opt);
   v.label_names = table.label_names();
   v.labels.resize(static_cast<std::size_t>(v.nx) * v.ny * v.nz);
   const std::size_t plane = static_cast<std::size_t>(v.nx) * v.ny;
@@ -500,7 +558,8 @@ Volume segment_volume(const SliceSource& src, const TissueTable& table, const Se
 
 namespace {
 
-std::string nrrd_header(int nx, int ny, int nz, const SegmentOptions& o, const std::vector<std::string>& names) {
+std::string nrrd_header(int nx, int ny, int nz, const std::array<double, 3>& spacing_m,
+                        const std::array<double, 3>& origin_m, const std::vector<std::string>& names) {
   std::ostringstream h;
   h.precision(17);
   h << "NRRD0004\n";
@@ -511,12 +570,12 @@ std::string nrrd_header(int nx, int ny, int nz, const SegmentOptions& o, const s
   h << "dimension: 3\n";
   h << "space: left-posterior-superior\n";
   h << "sizes: " << nx << " " << ny << " " << nz << "\n";
-  const double s[3] = {o.spacing_m[0] * 1e3, o.spacing_m[1] * 1e3, o.spacing_m[2] * 1e3};
+  const double s[3] = {spacing_m[0] * 1e3, spacing_m[1] * 1e3, spacing_m[2] * 1e3};
   h << "space directions: (" << s[0] << ",0,0) (0," << s[1] << ",0) (0,0," << s[2] << ")\n";
   h << "kinds: domain domain domain\n";
   h << "endian: little\n";
   h << "encoding: raw\n";
-  h << "space origin: (" << o.origin_m[0] * 1e3 << "," << o.origin_m[1] * 1e3 << "," << o.origin_m[2] * 1e3
+  h << "space origin: (" << origin_m[0] * 1e3 << "," << origin_m[1] * 1e3 << "," << origin_m[2] * 1e3
     << ")\n";
   for (std::size_t l = 0; l < names.size(); ++l)
     if (!names[l].empty()) h << "orthosim_label_" << l << ":=" << names[l] << "\n";
@@ -533,7 +592,8 @@ SegmentMetrics segment_stack(const SegmentFiles& files, const TissueTable& table
   check_table(table);
   check_output_file(files.out_h5);
   if (!files.nrrd_path.empty()) check_output_file(files.nrrd_path);
-  SliceSource src = stack_source(files.stack_dir, opt.bit_depth);
+  const SliceSource whole = stack_source(files.stack_dir, opt.bit_depth);
+  const SliceSource src = roi_source(whole, opt);  // the labels' size (segment cuts `whole` itself)
 
   ModelWriter w(files.out_h5, ModelWriter::Start::fresh);
   const std::string g = "/volume";
@@ -549,10 +609,10 @@ SegmentMetrics segment_stack(const SegmentFiles& files, const TissueTable& table
     nrrd.emplace(files.nrrd_path);
     nrrd_out.open(nrrd->temp(), std::ios::binary);
     if (!nrrd_out) throw Error(files.nrrd_path, "cannot write NRRD file");
-    nrrd_out << nrrd_header(src.nx, src.ny, src.nz, opt, names);
+    nrrd_out << nrrd_header(src.nx, src.ny, src.nz, opt.spacing_m, volume_origin(opt), names);
   }
   const std::size_t plane = static_cast<std::size_t>(src.nx) * src.ny;
-  SegmentMetrics m = segment(src, table, opt, [&](int z0, int n, const std::uint8_t* labels) {
+  SegmentMetrics m = segment(whole, table, opt, [&](int z0, int n, const std::uint8_t* labels) {
     w.h5().write_rows<std::uint8_t>(g + "/labels", static_cast<std::uint64_t>(z0), static_cast<std::uint64_t>(n),
                                     labels);
     if (nrrd) {
@@ -561,7 +621,11 @@ SegmentMetrics segment_stack(const SegmentFiles& files, const TissueTable& table
     }
   }, progress);
   w.h5().set_attr(g, "spacing_m", std::vector<double>(opt.spacing_m.begin(), opt.spacing_m.end()));
-  w.h5().set_attr(g, "origin_m", std::vector<double>(opt.origin_m.begin(), opt.origin_m.end()));
+  const std::array<double, 3> origin = volume_origin(opt);
+  w.h5().set_attr(g, "origin_m", std::vector<double>(origin.begin(), origin.end()));
+  // where the labels lie in the slice files (remesh's texture reads the files)
+  const std::array<int, 3> off = roi_offset(opt);
+  w.h5().set_attr(g, "stack_offset_voxels", std::vector<double>(off.begin(), off.end()));
   w.h5().set_attr(g, "label_names", names);
   w.h5().set_attr(g, "label_inside", label_inside(table));
   if (opt.register_slices) {
@@ -642,22 +706,38 @@ std::map<std::string, double> dice_per_tissue(const Volume& labels, const Volume
 }
 
 std::map<std::string, double> dice_per_tissue(const std::string& labels_h5, const std::string& truth_h5,
-                                              std::map<std::string, std::int64_t>* truth_voxels) {
+                                              std::map<std::string, std::int64_t>* truth_voxels,
+                                              const std::array<int, 3>& truth_offset) {
   ModelReader a(labels_h5), b(truth_h5);
   const std::string ds = "/volume/labels";
   if (!a.has(ds)) throw Error(labels_h5, "missing dataset /volume/labels");
   if (!b.has(ds)) throw Error(truth_h5, "missing dataset /volume/labels");
   const auto da = a.h5().dims(ds), db = b.h5().dims(ds);
-  if (da != db || da.size() != 3) throw Error(truth_h5, "truth volume size differs from " + labels_h5);
+  if (da.size() != 3 || db.size() != 3) throw Error(truth_h5, "truth volume size differs from " + labels_h5);
+  // the labels' voxel (i, j, k) is the truth's (i, j, k) + truth_offset
+  const std::uint64_t ox = static_cast<std::uint64_t>(truth_offset[0]), oy = static_cast<std::uint64_t>(truth_offset[1]),
+                      oz = static_cast<std::uint64_t>(truth_offset[2]);
+  if (truth_offset[0] < 0 || truth_offset[1] < 0 || truth_offset[2] < 0 || ox + da[2] > db[2] || oy + da[1] > db[1] ||
+      oz + da[0] > db[0])
+    throw Error(truth_h5, "truth volume size differs from " + labels_h5);
   DiceAcc acc;
   acc.init(a.h5().attr_strings("/volume", "label_names"), b.h5().attr_strings("/volume", "label_names"));
-  const std::uint64_t plane = da[1] * da[2], slab = std::max<std::uint64_t>(1, (64u << 20) / std::max<std::uint64_t>(plane, 1));
-  std::vector<std::uint8_t> x, y;
+  const std::uint64_t plane = da[1] * da[2], tplane = db[1] * db[2];
+  const std::uint64_t slab = std::max<std::uint64_t>(1, (64u << 20) / std::max<std::uint64_t>(tplane, 1));
+  std::vector<std::uint8_t> x, y, t;
   for (std::uint64_t z = 0; z < da[0]; z += slab) {
     const std::uint64_t n = std::min(slab, da[0] - z);
     x.resize(n * plane), y.resize(n * plane);
     a.h5().read_rows<std::uint8_t>(ds, z, n, x.data());
-    b.h5().read_rows<std::uint8_t>(ds, z, n, y.data());
+    if (db == da) {
+      b.h5().read_rows<std::uint8_t>(ds, z, n, y.data());
+    } else {
+      t.resize(n * tplane);
+      b.h5().read_rows<std::uint8_t>(ds, z + oz, n, t.data());
+      for (std::uint64_t k = 0; k < n; ++k)
+        for (std::uint64_t j = 0; j < da[1]; ++j)
+          std::memcpy(y.data() + k * plane + j * da[2], t.data() + k * tplane + (j + oy) * db[2] + ox, da[2]);
+    }
     acc.add(x.data(), y.data(), x.size());
   }
   return acc.result(truth_voxels);

@@ -194,6 +194,19 @@ struct SegmentOptions {
   std::array<double, 3> spacing_m{1e-3, 1e-3, 1e-3};
   std::array<double, 3> origin_m{0, 0, 0};
 
+  // -- region of interest (default: the whole stack) --
+  // The part of the slices segmented: x0, y0, width, height in pixels of the
+  // slice files (x along columns, y along rows; width or height 0: whole
+  // slices), and the slices first_slice..last_slice of the stack in natural
+  // name order, 0-based and inclusive (last_slice -1: to the last). A full
+  // cryosection photograph holds the body, the embedding block, its frame, a
+  // grey scale and a label card; a limb model wants the limb. origin_m stays
+  // the position of the stack's voxel (0,0,0): the labels' voxel (0,0,0) is at
+  // volume_origin(o) (docs/segment.md, "Region of interest").
+  std::array<int, 4> roi_px{0, 0, 0, 0};
+  int first_slice = 0;
+  int last_slice = -1;
+
   // -- registration (off by default: a registered stack has no jitter to undo,
   // and a stack's true slice-to-slice drift stays either way) --
   bool register_slices = false;
@@ -287,6 +300,15 @@ struct SegmentOptions {
 
 // Throws Error("", ...) naming the bad option.
 void validate(const SegmentOptions& o);
+// True when o selects a part of the stack (roi_px or the slice range).
+bool has_roi(const SegmentOptions& o);
+// The stack's voxel the labels' voxel (0,0,0) is: (roi x0, roi y0, first_slice).
+std::array<int, 3> roi_offset(const SegmentOptions& o);
+// Where the labels' voxel (0,0,0) lies: origin_m + roi_offset(o) * spacing_m.
+std::array<double, 3> volume_origin(const SegmentOptions& o);
+// `src` cut to o's region of interest (`src` itself without one). Throws
+// Error(src.name, ...) when the region reaches beyond the stack.
+SliceSource roi_source(SliceSource src, const SegmentOptions& o);
 // The options as a JSON object (reports, provenance).
 std::string segment_parameters_json(const SegmentOptions& o);
 const char* to_string(SegmentOptions::Normalise n);
@@ -309,7 +331,8 @@ struct Prototype {
 std::vector<int> nearest_table_labels(const std::vector<Prototype>& prototypes);
 
 struct SegmentMetrics {
-  int nx = 0, ny = 0, nz = 0;
+  int nx = 0, ny = 0, nz = 0;                // the labels' size (the region of interest's)
+  std::array<int, 3> stack_size{0, 0, 0};    // the whole stack's, px and slices
   std::string stack_note;  // SliceSource::note: worth a warning (empty: none)
   std::map<std::string, std::int64_t> voxels;  // per tissue name, "background" included
   std::vector<Prototype> prototypes;
@@ -343,7 +366,8 @@ struct SegmentMetrics {
 // labels[(k*ny + y)*nx + x] for slices z0 .. z0+n-1.
 using LabelSink = std::function<void(int z0, int n, const std::uint8_t* labels)>;
 
-// Segments `src` with `table` and calls `sink` with the labels.
+// Segments `src` with `table` and calls `sink` with the labels: of o's region
+// of interest (roi_source), the whole stack by default.
 // progress(done, total) is called from the calling thread, slices done of
 // 2*nz (two passes). Throws Error for bad options, a bad table (no tissue,
 // labels without prototypes) or a bad slice, and Error(src.name, ...) when no
@@ -351,7 +375,8 @@ using LabelSink = std::function<void(int z0, int n, const std::uint8_t* labels)>
 SegmentMetrics segment(const SliceSource& src, const TissueTable& table, const SegmentOptions& opt,
                        const LabelSink& sink, const std::function<void(long, long)>& progress = {});
 
-// The same into a Volume (spacing, origin and label names filled).
+// The same into a Volume (spacing, origin and label names filled; the origin
+// is volume_origin(opt)).
 Volume segment_volume(const SliceSource& src, const TissueTable& table, const SegmentOptions& opt,
                       SegmentMetrics* metrics = nullptr);
 
@@ -381,8 +406,12 @@ std::vector<std::string> label_inside(const TissueTable& table);
 std::map<std::string, double> dice_per_tissue(const Volume& labels, const Volume& truth,
                                               std::map<std::string, std::int64_t>* truth_voxels = nullptr);
 
-// The same between two model files, streamed slab by slab.
+// The same between two model files, streamed slab by slab. A truth larger
+// than the labels is compared where the labels lie in it: the labels' voxel
+// (i, j, k) against the truth's (i, j, k) + truth_offset (a region of
+// interest's roi_offset against the whole stack's truth).
 std::map<std::string, double> dice_per_tissue(const std::string& labels_h5, const std::string& truth_h5,
-                                              std::map<std::string, std::int64_t>* truth_voxels = nullptr);
+                                              std::map<std::string, std::int64_t>* truth_voxels = nullptr,
+                                              const std::array<int, 3>& truth_offset = {0, 0, 0});
 
 }  // namespace orthosim

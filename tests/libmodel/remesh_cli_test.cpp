@@ -116,7 +116,8 @@ TEST(RemeshCli, TextureFollowsTheSlicesOrderAndRegistration) {
   Files f;
   const int n = 80, nz = 101;
   std::vector<std::array<int, 2>> jitter(nz);
-  for (int k = 0; k < nz; ++k) jitter[static_cast<std::size_t>(k)] = {(k * 7) % 5 - 2, (k * 3) % 5 - 2};
+  // (slices 10..90 only: the region of interest below leaves the others out)
+  for (int k = 10; k <= 90; ++k) jitter[static_cast<std::size_t>(k)] = {(k * 7) % 5 - 2, (k * 3) % 5 - 2};
   auto slice = [&](int k, int dx, int dy) {  // colours vary along x, y and z; content moved by (dx, dy)
     cv::Mat img(n, n, CV_8UC3);
     for (int y = 0; y < n; ++y)
@@ -165,6 +166,28 @@ TEST(RemeshCli, TextureFollowsTheSlicesOrderAndRegistration) {
   EXPECT_FALSE(same(plain, moved)) << "the jitter should show (the test could not fail)";
   EXPECT_TRUE(same(plain, texture("jittered", "t_registered", "--model " + f / "registered.h5")))
       << "the model's slice shifts were not applied";
+  // a region of interest's labels (segment --roi 10,10,60,60 --slices 10,90
+  // --register): their voxel (0,0,0) is the stack's (10, 10, 10), and their 81
+  // shifts are those of slices 10..90; the texture reads the slices where the
+  // whole stack's model does
+  {
+    const int o = 10, m = 60, mz = 81;
+    Volume v;
+    v.nx = v.ny = m, v.nz = mz;
+    v.spacing_m = {1e-3, 1e-3, 1e-3};
+    v.origin_m = {(-39.5 + o) * 1e-3, (-39.5 + o) * 1e-3, o * 1e-3};
+    v.labels.assign(static_cast<std::size_t>(m) * m * mz, 0);
+    v.label_names = {"background", "skin"};
+    ModelWriter w(f / "roi.h5", ModelWriter::Start::fresh);
+    w.write(v);
+    w.h5().set_attr("/volume", "stack_offset_voxels", std::vector<double>{o, o, o});
+    std::vector<std::int32_t> sh;
+    for (int k = o; k < o + mz; ++k) sh.push_back(-jitter[static_cast<std::size_t>(k)][0]), sh.push_back(-jitter[static_cast<std::size_t>(k)][1]);
+    w.h5().write<std::int32_t>("/volume/slice_shift_px", sh.data(), {static_cast<std::uint64_t>(mz), 2}, "px");
+    w.commit();
+  }
+  EXPECT_TRUE(same(plain, texture("jittered", "t_roi", "--model " + f / "roi.h5")))
+      << "the region's offset or its slices' shifts were not applied";
   // shifts for another number of slices: refused
   {
     ModelWriter w(f / "registered.h5", ModelWriter::Start::update);
@@ -176,7 +199,7 @@ TEST(RemeshCli, TextureFollowsTheSlicesOrderAndRegistration) {
   const auto bad = test::run_cli("remesh -q --surface " + f / "skin.stl" + " --grid 39x9 --out " + f / "t_bad" + " --stack " +
                                  f / "jittered --texture --model " + f / "registered.h5");
   EXPECT_EQ(bad.code, 2) << bad.err;
-  EXPECT_NE(bad.err.find("/volume/slice_shift_px has 5 rows, but --stack " + f / "jittered" + " has 101 slices"),
+  EXPECT_NE(bad.err.find("/volume/slice_shift_px has 5 rows, but /volume has 101 slices"),
             std::string::npos)
       << bad.err;
   EXPECT_FALSE(fs::exists(f / "t_bad"));

@@ -703,6 +703,52 @@ TEST(SegmentReal, ArmCropIsPlausible) {
 // ring the muscle. The anatomical order must not then take the muscle, a
 // pocket larger than that ring, for misplaced marrow (it did: muscle 0.1 %,
 // marrow 24 % of the crop); bone is overestimated, the muscle stays.
+// The whole photograph the sample crop was cut from (a chest slice with both
+// arms, the embedding block, its dark frame, a grey scale and a label card):
+// segmented whole with the arm's table, its frame came out as muscle around the
+// gel and the gel as muscle inside it. A region of interest around the arm is
+// segmented exactly as the crop is, and placed where it lies in the slice.
+TEST(SegmentReal, TheFullSlicesRegionOfTheArmIsTheCrop) {
+  const std::string dir = std::string(ORTHOSIM_SOURCE_DIR) + "/data-samples/real";
+  const TissueTable table = load_tissue_table(dir + "/tissues.json");
+  test::TempDir full("segreal-full"), crop("segreal-crop");
+  for (char z = '0'; z < '3'; ++z) {
+    fs::create_symlink(std::string(ORTHOSIM_SHARED_DIR) + "/reference/real/vhp-female-avf1432a.png",
+                       full.path / (std::string("s") + z + ".png"));
+    fs::create_symlink(dir + "/vhp-f-1432a-arm.png", crop.path / (std::string("s") + z + ".png"));
+  }
+  SegmentOptions o;
+  o.spacing_m = {0.33e-3, 0.33e-3, 0.33e-3};
+  o.origin_m = {-1e-3, 2e-3, 5e-3};
+  const Volume want = segment_volume(stack_source(crop.path.string()), table, o);
+  o.roi_px = {1578, 150, 300, 410};  // the crop's columns and rows (data-samples/real/README.md)
+  SegmentMetrics m;
+  const Volume got = segment_volume(stack_source(full.path.string()), table, o, &m);
+  ASSERT_EQ(got.nx, 300);
+  ASSERT_EQ(got.ny, 410);
+  ASSERT_EQ(got.nz, 3);
+  EXPECT_EQ(m.stack_size, (std::array<int, 3>{2048, 1216, 3}));
+  EXPECT_TRUE(got.labels == want.labels) << "the region's labels differ from the crop's";
+  EXPECT_NEAR(got.origin_m[0], -1e-3 + 1578 * 0.33e-3, 1e-12);
+  EXPECT_NEAR(got.origin_m[1], 2e-3 + 150 * 0.33e-3, 1e-12);
+  EXPECT_NEAR(got.origin_m[2], 5e-3, 1e-12);
+  // the slice range: the last two slices, from slice 1 on
+  o.first_slice = 1;
+  const Volume tail = segment_volume(stack_source(full.path.string()), table, o);
+  ASSERT_EQ(tail.nz, 2);
+  EXPECT_NEAR(tail.origin_m[2], 5e-3 + 0.33e-3, 1e-12);
+  // a region beyond the slice: refused, naming the stack
+  o.roi_px = {1900, 150, 300, 410};
+  try {
+    segment_volume(stack_source(full.path.string()), table, o);
+    ADD_FAILURE() << "a region beyond the slices was segmented";
+  } catch (const Error& e) {
+    EXPECT_EQ(e.file(), full.path.string());
+    EXPECT_NE(std::string(e.what()).find("reaches beyond the slices, which are 2048 x 1216 px"), std::string::npos)
+        << e.what();
+  }
+}
+
 TEST(SegmentReal, MisplacedOutlineDoesNotSwallowMuscle) {
   const std::string dir = std::string(ORTHOSIM_SOURCE_DIR) + "/data-samples/real";
   TissueTable table = load_tissue_table(dir + "/tissues.json");

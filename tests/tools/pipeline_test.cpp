@@ -541,6 +541,50 @@ TEST(Pipeline, RegisterMovesTheSlicesBeforeSegmenting) {
   EXPECT_FALSE(ModelReader(s.dir / "registered_export/labels.h5").h5().exists("/volume/slice_shift_px"));
 }
 
+// --roi and --slices go to segment (its own cache entry); the labels sit where
+// they lie in the stack, and the texture reads the slices there.
+TEST(Pipeline, ARegionOfInterestIsSegmentedAndTextured) {
+  const Sample& s = sample();
+  const std::string base = "pipeline --stack " + s.stack + " --tissues " + s.tissues + " --spacing 0.75,0.75,3 --work " +
+                           (s.dir / "work") + " --no-tune --quiet --out " + (s.dir / "roi.h5") + " --export " +
+                           (s.dir / "roi_export") + " --report " + (s.dir / "roi.json");
+  const auto r = test::run_cli(base + " --roi 6,5,84,86 --slices 1,30");
+  ASSERT_EQ(r.code, 0) << r.err;
+  ModelReader labels(s.dir / "roi_export/labels.h5");
+  EXPECT_EQ(labels.h5().attr_doubles("/volume", "stack_offset_voxels"), (std::vector<double>{6, 5, 1}));
+  const Volume v = labels.volume();
+  EXPECT_EQ(v.nx, 84);
+  EXPECT_EQ(v.ny, 86);
+  EXPECT_EQ(v.nz, 30);
+  EXPECT_NEAR(v.origin_m[0], 6 * 0.75e-3, 1e-12);
+  EXPECT_NEAR(v.origin_m[2], 3e-3, 1e-12);
+  ModelReader m(s.dir / "roi.h5");
+  for (const char* l : {"skin", "fat", "muscle"}) EXPECT_TRUE(m.h5().is_group(std::string("/layers/") + l)) << l;
+  const nlohmann::json rep = nlohmann::json::parse(test::read_file(s.dir / "roi.json"));
+  EXPECT_EQ(rep["parameters"]["roi_px"], nlohmann::json({6, 5, 84, 86}));
+  EXPECT_EQ(rep["parameters"]["slices"], nlohmann::json({1, 30}));
+  int textured = 0;
+  for (const auto& st : rep["stages"])
+    if (st["stage"] == "remesh") {
+      const nlohmann::json rr = nlohmann::json::parse(test::read_file(st["dir"].get<std::string>() + "/report.json"));
+      EXPECT_EQ(rr["metrics"]["texture"]["outside"].get<std::int64_t>(), 0) << rr["metrics"]["texture"].dump();
+      EXPECT_GT(rr["metrics"]["texture"]["width"].get<std::int64_t>(), 0);
+      ++textured;
+    }
+  EXPECT_EQ(textured, 1);
+  // a region beyond the slices: refused before any stage, naming the stack
+  const auto bad = test::run_cli(base + " --roi 6,5,91,86");
+  EXPECT_EQ(bad.code, 2) << bad.err;
+  EXPECT_EQ(test::count_lines(bad.err), 1) << bad.err;
+  EXPECT_NE(bad.err.find(s.stack + ": the region of interest (x 6, y 5, 91 x 86 px) reaches beyond the slices, which are "
+                                   "96 x 96 px"),
+            std::string::npos)
+      << bad.err;
+  const auto badz = test::run_cli(base + " --slices 0,32");
+  EXPECT_EQ(badz.code, 2) << badz.err;
+  EXPECT_NE(badz.err.find("the slices 0..32 reach beyond the stack, which has 32 (0..31)"), std::string::npos) << badz.err;
+}
+
 TEST(Pipeline, AFailingStageKeepsThePreviousModel) {
   const Sample& s = sample();
   ASSERT_TRUE(fs::exists(s.dir / "model.h5"));
