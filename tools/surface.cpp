@@ -268,10 +268,23 @@ void add_surface_command(CLI::App& app) {
       const double clearance = o.nest_clearance_vox * std::min({v.spacing_m[0], v.spacing_m[1], v.spacing_m[2]});
       tbb::task_group checks;
       std::vector<Surface> nested(names.size());
-      tbb::parallel_for(std::size_t{0}, names.size(), [&](std::size_t i) {
-        if (outer[i] == none) return;
-        nested[i] = results[i].surface;
-        nesting[i] = enforce_nesting(nested[i], results[outer[i]].surface, clearance, caps);
+      // each parent's mesh and search trees once for all its children (the
+      // muscle's three: bone and the two vessels), one parent's at a time per thread
+      std::vector<std::size_t> parents_used;
+      for (std::size_t i = 0; i < names.size(); ++i)
+        if (outer[i] != none && std::find(parents_used.begin(), parents_used.end(), outer[i]) == parents_used.end())
+          parents_used.push_back(outer[i]);
+      tbb::parallel_for(std::size_t{0}, parents_used.size(), [&](std::size_t k) {
+        const std::size_t q = parents_used[k];
+        const auto index = make_nesting_index(results[q].surface, caps);
+        std::vector<std::size_t> children;
+        for (std::size_t i = 0; i < names.size(); ++i)
+          if (outer[i] == q) children.push_back(i);
+        tbb::parallel_for(std::size_t{0}, children.size(), [&](std::size_t j) {
+          const std::size_t i = children[j];
+          nested[i] = results[i].surface;
+          nesting[i] = enforce_nesting(nested[i], *index, clearance);
+        });
       });
       try {
         for (std::size_t i : order) {

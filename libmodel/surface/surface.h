@@ -48,6 +48,7 @@
 
 #include <array>
 #include <cstdint>
+#include <memory>
 #include <string>
 #include <vector>
 
@@ -273,6 +274,13 @@ std::vector<CapPlane> cap_planes(const Volume& v, const SurfaceOptions& o);
 // pairs in its fat where 88 were left before, until the untangling took them.
 NestingResult enforce_nesting(Surface& inner, const Surface& outer, double clearance_m,
                               const std::vector<CapPlane>& caps = {}, bool cap_folds = true);
+// The same against an outer surface prepared once (its mesh, the AABB tree
+// and the distance queries' search tree, its cap faces: most of the cost on
+// large surfaces) and shared by every tissue nested in it, read-only, from
+// several threads at once.
+struct NestingIndex;
+std::shared_ptr<const NestingIndex> make_nesting_index(const Surface& outer, const std::vector<CapPlane>& caps = {});
+NestingResult enforce_nesting(Surface& inner, const NestingIndex& outer, double clearance_m, bool cap_folds = true);
 
 // Untangles an outermost surface (one no nesting moves: the skin): the
 // faces that intersect others (CGAL, over the whole surface), and those

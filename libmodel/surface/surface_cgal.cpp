@@ -22,6 +22,8 @@
 #include <tbb/parallel_for.h>
 
 #include <algorithm>
+#include <memory>
+#include <optional>
 #include <array>
 #include <cmath>
 #include <stdexcept>
@@ -288,17 +290,28 @@ std::int64_t surface_self_intersections(const Surface& s) {
   return static_cast<std::int64_t>(surface_self_intersection_pairs(s).size());
 }
 
-NestingResult enforce_nesting(Surface& inner, const Surface& outer, double clearance_m, const std::vector<CapPlane>& caps,
-                              bool cap_folds) {
+struct NestingIndex {
   using Primitive = CGAL::AABB_face_graph_triangle_primitive<Mesh>;
   using Tree = CGAL::AABB_tree<CGAL::AABB_traits<K, Primitive>>;
-  NestingResult res;
-  const Eigen::Index n = inner.vertices.rows();
-  if (n == 0 || outer.faces.rows() == 0) return res;
-  const Mesh m = to_mesh(outer, "nesting");
-  Tree tree(faces(m).first, faces(m).second, m);
-  tree.accelerate_distance_queries();
-  const CGAL::Side_of_triangle_mesh<Mesh, K> side(tree);
+  Mesh m;
+  Tree tree;
+  std::optional<CGAL::Side_of_triangle_mesh<Mesh, K>> side;
+  std::vector<std::uint8_t> cap;  // per face of m: on a border cap
+  std::vector<CapPlane> caps;
+  double tol = 0;
+};
+
+std::shared_ptr<const NestingIndex> make_nesting_index(const Surface& outer, const std::vector<CapPlane>& caps) {
+  auto x = std::make_shared<NestingIndex>();
+  x->caps = caps;
+  if (outer.faces.rows() == 0) return x;
+  x->m = to_mesh(outer, "nesting");
+  const Mesh& m = x->m;
+  x->tree.insert(faces(m).first, faces(m).second, m);
+  x->tree.build();  // built here: the queries only read it
+  // (no search tree of hints for the distance queries: after the cube test
+  // below few vertices ask one, and building it cost as much as the AABB tree)
+  x->side.emplace(x->tree);
   // Flat caps where the volume border cuts a tissue: outer's faces whose
   // corners lie on one cap plane (or, without the planes, in a plane of its
   // bounding box). A nested tissue cut by the same border has its cap in the
@@ -310,14 +323,33 @@ NestingResult enforce_nesting(Surface& inner, const Surface& outer, double clear
   const Eigen::RowVector3d lo = outer.vertices.colwise().minCoeff(), hi = outer.vertices.colwise().maxCoeff();
   if (planes.empty())
     for (int k = 0; k < 3; ++k) planes.push_back({k, lo(k)}), planes.push_back({k, hi(k)});
-  const double tol = 1e-9 * (hi - lo).maxCoeff();  // decimation's placement in a plane rounds
-  std::vector<std::uint8_t> cap(m.number_of_faces() + m.number_of_removed_faces(), 0);
+  x->tol = 1e-9 * (hi - lo).maxCoeff();  // decimation's placement in a plane rounds
+  x->cap.assign(m.number_of_faces() + m.number_of_removed_faces(), 0);
   for (auto f : m.faces())
     for (const CapPlane& pl : planes) {
       bool on = true;
-      for (auto v : CGAL::vertices_around_face(m.halfedge(f), m)) on = on && std::abs(m.point(v)[pl.axis] - pl.at) <= tol;
-      if (on) cap[f.idx()] = 1;
+      for (auto v : CGAL::vertices_around_face(m.halfedge(f), m)) on = on && std::abs(m.point(v)[pl.axis] - pl.at) <= x->tol;
+      if (on) x->cap[f.idx()] = 1;
     }
+  return x;
+}
+
+NestingResult enforce_nesting(Surface& inner, const Surface& outer, double clearance_m, const std::vector<CapPlane>& caps,
+                              bool cap_folds) {
+  if (inner.vertices.rows() == 0 || outer.faces.rows() == 0) return {};
+  return enforce_nesting(inner, *make_nesting_index(outer, caps), clearance_m, cap_folds);
+}
+
+NestingResult enforce_nesting(Surface& inner, const NestingIndex& index, double clearance_m, bool cap_folds) {
+  NestingResult res;
+  const Eigen::Index n = inner.vertices.rows();
+  if (n == 0 || !index.side) return res;
+  const Mesh& m = index.m;
+  const auto& tree = index.tree;
+  const auto& side = *index.side;
+  const std::vector<std::uint8_t>& cap = index.cap;
+  const std::vector<CapPlane>& caps = index.caps;
+  const double tol = index.tol;
   const double c2 = clearance_m * clearance_m;
   std::vector<std::uint8_t> was_outside(static_cast<std::size_t>(n), 0), moved(static_cast<std::size_t>(n), 0),
       on_cap(static_cast<std::size_t>(n), 0);
@@ -326,6 +358,14 @@ NestingResult enforce_nesting(Surface& inner, const Surface& outer, double clear
     const auto u = static_cast<std::size_t>(i);
     const Point p(inner.vertices(i, 0), inner.vertices(i, 1), inner.vertices(i, 2));
     const auto where = side(p);
+    // Most vertices lie deep inside: no face of outer meets the cube of half
+    // side `clearance` around them, so none lies within the clearance and the
+    // vertex stays, as the closest point below would say, at a fraction of
+    // its cost (the distance queries were most of a 256^3 stack's nesting).
+    if (where == CGAL::ON_BOUNDED_SIDE &&
+        !tree.do_intersect(K::Iso_cuboid_3(p.x() - clearance_m, p.y() - clearance_m, p.z() - clearance_m,
+                                           p.x() + clearance_m, p.y() + clearance_m, p.z() + clearance_m)))
+      return;
     const auto [c, f] = tree.closest_point_and_primitive(p);
     const double d2 = CGAL::squared_distance(p, c);
     if (where == CGAL::ON_BOUNDED_SIDE && d2 >= c2) return;
@@ -340,8 +380,7 @@ NestingResult enforce_nesting(Surface& inner, const Surface& outer, double clear
     moved[u] = 1;
     was_outside[u] = where != CGAL::ON_BOUNDED_SIDE;
   };
-  fix(0);  // the first query finishes the trees' construction; the rest only read them
-  tbb::parallel_for(tbb::blocked_range<Eigen::Index>(1, n, 512), [&](const tbb::blocked_range<Eigen::Index>& r) {
+  tbb::parallel_for(tbb::blocked_range<Eigen::Index>(0, n, 512), [&](const tbb::blocked_range<Eigen::Index>& r) {
     for (Eigen::Index i = r.begin(); i != r.end(); ++i) fix(i);
   });
   // Where the outer shell is thinner than the clearance (a fin of a noisy

@@ -13,6 +13,7 @@
 #include "tests/test_util.h"
 
 #include <gtest/gtest.h>
+#include <tbb/parallel_for.h>
 #include <nlohmann/json.hpp>
 #include <tbb/global_control.h>
 
@@ -413,6 +414,49 @@ TEST(SurfaceNesting, EnforceNestingKeepsTheInnerSurfaceInside) {
   // a surface already nested is left alone
   Surface small = extract_surface(ball({0, 0, 0}, r), {1}, o).surface;
   EXPECT_EQ(enforce_nesting(small, outer, clearance).moved, 0);
+}
+
+// The outer surface's mesh and search trees are built once and shared by the
+// tissues nested in it (the muscle's bone and vessels), from several threads:
+// the same results as one call per tissue. Vertices inside but nearer than
+// the clearance are still found (the cube test that spares most vertices the
+// distance query must not spare them): a copy of the outer surface shrunk
+// by half the clearance moves every vertex, one shrunk by three clearances none.
+TEST(SurfaceNesting, OneIndexServesEveryNestedSurfaceAtOnce) {
+  const double R = 9e-3, r = 5e-3;
+  auto ball = [](const Eigen::Vector3d& c, double rad) {
+    return voxelise(26, 26, 26, {1e-3, 1e-3, 1e-3}, {-12.5e-3, -12.5e-3, -12.5e-3},
+                    [&](const Eigen::Vector3d& p) { return (p - c).norm() < rad ? 1 : 0; });
+  };
+  SurfaceOptions o;
+  o.check_self_intersections = false;
+  const Surface outer = extract_surface(ball({0, 0, 0}, R), {1}, o).surface;
+  const double clearance = 0.1e-3;
+  auto shrunk = [&](double by) {
+    Surface s = outer;
+    s.vertices *= 1 - by / R;  // every vertex within `by` of the outer surface, inside it
+    return s;
+  };
+  std::vector<Surface> inners = {extract_surface(ball({5e-3, 0, 0}, r), {1}, o).surface,
+                                 extract_surface(ball({-5e-3, 0, 0}, r), {1}, o).surface, shrunk(0.5 * clearance),
+                                 shrunk(3 * clearance)};
+  std::vector<Surface> alone = inners, shared = inners;
+  std::vector<NestingResult> ra(inners.size()), rs(inners.size());
+  for (std::size_t i = 0; i < inners.size(); ++i) ra[i] = enforce_nesting(alone[i], outer, clearance);
+  const auto index = make_nesting_index(outer);
+  tbb::parallel_for(std::size_t{0}, inners.size(), [&](std::size_t i) { rs[i] = enforce_nesting(shared[i], *index, clearance); });
+  for (std::size_t i = 0; i < inners.size(); ++i) {
+    EXPECT_EQ(shared[i].vertices, alone[i].vertices) << i;
+    EXPECT_EQ(rs[i].moved, ra[i].moved) << i;
+    EXPECT_EQ(rs[i].outside, ra[i].outside) << i;
+  }
+  EXPECT_GT(ra[0].outside, 0);  // both balls poke out
+  EXPECT_GT(ra[1].outside, 0);
+  EXPECT_EQ(ra[2].moved, inners[2].vertices.rows()) << "vertices inside but within the clearance were spared";
+  EXPECT_EQ(ra[2].outside, 0);
+  EXPECT_EQ(ra[3].moved, 0);
+  const VecXd d = distance_to_surface(outer, alone[2].vertices);
+  EXPECT_GT(d.minCoeff(), 0.5 * clearance);
 }
 
 // Where the outer shell is thinner than the clearance (a 0.2 mm slab, 0.3 mm
