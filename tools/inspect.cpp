@@ -64,7 +64,7 @@ json summarise(const ModelReader& m) {
   if (m.has("/volume")) {
     auto d = m.h5().dims("/volume/labels");
     counts["volume"] = {{"nz", d[0]}, {"ny", d[1]}, {"nx", d[2]},
-                        {"attributes", group_attrs(m, "/volume", {"spacing_m", "origin_m", "label_names"})}};
+                        {"attributes", group_attrs(m, "/volume", {"spacing_m", "origin_m", "stack_offset_voxels", "label_names"})}};
     // what every stage that reads the volume refuses, without reading the voxels
     // (a NaN spacing printed as null, as if the file were fine; sweep of 2026-11-27)
     const json& at = counts["volume"]["attributes"];
@@ -125,6 +125,10 @@ void print_text(const json& s, std::ostream& out) {
     const json& v = c["volume"];
     out << "  /volume: " << v["nx"] << " x " << v["ny"] << " x " << v["nz"] << " voxels";
     if (v["attributes"].contains("spacing_m")) out << ", spacing_m " << v["attributes"]["spacing_m"].dump();
+    // a region of the stack (segment --roi, --slices): where it lies in the slice files
+    if (const auto& off = v["attributes"].value("stack_offset_voxels", json());
+        off.is_array() && off != json::array({0, 0, 0}))
+      out << ", from the stack's voxel " << off.dump();
     if (v["attributes"].contains("label_names")) {
       // the named labels only (a table with labels 200 and 255 printed 256 names, most "")
       const json& names = v["attributes"]["label_names"];

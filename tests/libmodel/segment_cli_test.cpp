@@ -476,9 +476,12 @@ TEST(SegmentCli, ARegionOfInterestIsCutFromTheStackAndPlacedInIt) {
   test::TempDir d("segcli-roi");
   const auto r = test::run_cli(segment_args(stack().slices, d / "roi.h5",
                                             "--roi 6,4,52,56 --slices 2,9 --origin 1,2,3 --truth " + stack().truth +
-                                                " --report " + (d / "r.json")));
+                                                " --report " + (d / "r.json") + " --nrrd " + (d / "roi.nrrd")));
   ASSERT_EQ(r.code, 0) << r.err;
   EXPECT_EQ(r.err, "");
+  // the NRRD copy is placed there too, and inspect says where the region lies
+  EXPECT_NE(test::read_file(d / "roi.nrrd").find("space origin: (7,6,7)\n"), std::string::npos);
+  EXPECT_NE(test::run_cli("inspect " + (d / "roi.h5")).out.find("from the stack's voxel [6,4,2]"), std::string::npos);
   ModelReader m(d / "roi.h5");
   const Volume v = m.volume();
   EXPECT_EQ(v.nx, 52);
