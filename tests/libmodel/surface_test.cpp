@@ -377,17 +377,22 @@ TEST(SurfaceNesting, InferredAndFromTable) {
   EXPECT_THROW(solid_label_set(v, "background", table), Error);
 }
 
+// The surface of a ball of radius `rad` about `c`, voxelised at 1 mm in a
+// 26 mm cube centred on the origin (no self-intersection check).
+Surface ball_surface(const Eigen::Vector3d& c, double rad) {
+  SurfaceOptions o;
+  o.check_self_intersections = false;
+  return extract_surface(voxelise(26, 26, 26, {1e-3, 1e-3, 1e-3}, {-12.5e-3, -12.5e-3, -12.5e-3},
+                                  [&](const Eigen::Vector3d& p) { return (p - c).norm() < rad ? 1 : 0; }),
+                         {1}, o)
+      .surface;
+}
+
 TEST(SurfaceNesting, EnforceNestingKeepsTheInnerSurfaceInside) {
   // the "inner" ball pokes 1.5 mm out of the "outer" one on +x
   const double R = 9e-3, r = 6e-3;
-  auto ball = [](const Eigen::Vector3d& c, double rad) {
-    return voxelise(26, 26, 26, {1e-3, 1e-3, 1e-3}, {-12.5e-3, -12.5e-3, -12.5e-3},
-                    [&](const Eigen::Vector3d& p) { return (p - c).norm() < rad ? 1 : 0; });
-  };
-  SurfaceOptions o;
-  o.check_self_intersections = false;
-  const Surface outer = extract_surface(ball({0, 0, 0}, R), {1}, o).surface;
-  Surface inner = extract_surface(ball({4.5e-3, 0, 0}, r), {1}, o).surface;
+  const Surface outer = ball_surface({0, 0, 0}, R);
+  Surface inner = ball_surface({4.5e-3, 0, 0}, r);
   const Surface before = inner;
   const double clearance = 0.1e-3;
   const NestingResult n = enforce_nesting(inner, outer, clearance);
@@ -412,7 +417,7 @@ TEST(SurfaceNesting, EnforceNestingKeepsTheInnerSurfaceInside) {
   const SurfaceMetrics m = check_surface(inner, true);
   EXPECT_TRUE(m.closed && m.manifold && m.outward);
   // a surface already nested is left alone
-  Surface small = extract_surface(ball({0, 0, 0}, r), {1}, o).surface;
+  Surface small = ball_surface({0, 0, 0}, r);
   EXPECT_EQ(enforce_nesting(small, outer, clearance).moved, 0);
 }
 
@@ -424,21 +429,14 @@ TEST(SurfaceNesting, EnforceNestingKeepsTheInnerSurfaceInside) {
 // by half the clearance moves every vertex, one shrunk by three clearances none.
 TEST(SurfaceNesting, OneIndexServesEveryNestedSurfaceAtOnce) {
   const double R = 9e-3, r = 5e-3;
-  auto ball = [](const Eigen::Vector3d& c, double rad) {
-    return voxelise(26, 26, 26, {1e-3, 1e-3, 1e-3}, {-12.5e-3, -12.5e-3, -12.5e-3},
-                    [&](const Eigen::Vector3d& p) { return (p - c).norm() < rad ? 1 : 0; });
-  };
-  SurfaceOptions o;
-  o.check_self_intersections = false;
-  const Surface outer = extract_surface(ball({0, 0, 0}, R), {1}, o).surface;
+  const Surface outer = ball_surface({0, 0, 0}, R);
   const double clearance = 0.1e-3;
   auto shrunk = [&](double by) {
     Surface s = outer;
     s.vertices *= 1 - by / R;  // every vertex within `by` of the outer surface, inside it
     return s;
   };
-  std::vector<Surface> inners = {extract_surface(ball({5e-3, 0, 0}, r), {1}, o).surface,
-                                 extract_surface(ball({-5e-3, 0, 0}, r), {1}, o).surface, shrunk(0.5 * clearance),
+  std::vector<Surface> inners = {ball_surface({5e-3, 0, 0}, r), ball_surface({-5e-3, 0, 0}, r), shrunk(0.5 * clearance),
                                  shrunk(3 * clearance)};
   std::vector<Surface> alone = inners, shared = inners;
   std::vector<NestingResult> ra(inners.size()), rs(inners.size());
