@@ -1516,8 +1516,7 @@ RemeshResult remesh_layers(const std::vector<NamedSurface>& layers, const Remesh
               const Eigen::Index n = pts.rows(), stride = std::max<Eigen::Index>(1, n / 1024);
               MatX3d q((n + stride - 1) / stride, 3);
               for (Eigen::Index i = 0, r = 0; i < n; i += stride, ++r) q.row(r) = pts.row(i);
-              const std::vector<double> d = remesh_detail::distances_to_surface(outer, q);
-              if (!d.empty() && *std::max_element(d.begin(), d.end()) <= tol)
+              if (q.rows() > 0 && remesh_detail::all_on_surface(outer, q, tol))
                 throw Error(layers[k].name, "lies on " + layers[k - 1].name +
                                                 ": every vertex sampled is on its surface, no thickness between the "
                                                 "layers (the same surface twice?)");

@@ -56,6 +56,23 @@ std::vector<double> remesh_detail::distances_to_surface(const Surface& s, const 
   return distances(tris, pts);
 }
 
+bool remesh_detail::all_on_surface(const Surface& s, const MatX3d& points, double tol) {
+  const double tol2 = tol * tol;
+  for (Eigen::Index i = 0; i < points.rows(); ++i) {
+    const Vec3 p = points.row(i).transpose();
+    bool on = false;
+    for (Eigen::Index f = 0; f < s.faces.rows() && !on; ++f) {
+      const Vec3 a = s.vertices.row(s.faces(f, 0)), b = s.vertices.row(s.faces(f, 1)), c = s.vertices.row(s.faces(f, 2));
+      if ((p.array() < a.array().min(b.array()).min(c.array()) - tol).any() ||
+          (p.array() > a.array().max(b.array()).max(c.array()) + tol).any())
+        continue;
+      on = CGAL::squared_distance(P(p), Triangle(P(a), P(b), P(c))) <= tol2;
+    }
+    if (!on) return false;
+  }
+  return true;
+}
+
 SurfaceDistance quad_surface_distance(const QuadSurface& q, const Surface& input, const SweepPlane& first,
                                       const SweepPlane& last, int k) {
   SurfaceDistance r;
