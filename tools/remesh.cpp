@@ -9,7 +9,10 @@
 #include "libmodel/remesh/texture.h"
 #include "tools/common.h"
 
+#include <tbb/parallel_for.h>
+
 #include <cctype>
+#include <exception>
 #include <cmath>
 #include <filesystem>
 #include <iomanip>
@@ -174,8 +177,21 @@ void add_remesh_command(CLI::App& app) {
     std::vector<NamedSurface> in;
     {
       Phase p(report, "read");
+      // the files side by side (a 256^3 stack's four took 4.4 s one after
+      // another); a bad file is reported as before: the first in order
+      std::vector<Surface> read(files.size());
+      std::vector<std::exception_ptr> failed(files.size());
+      tbb::parallel_for(std::size_t{0}, files.size(), [&](std::size_t i) {
+        try {
+          read[i] = read_stl(files[i]);
+        } catch (...) {
+          failed[i] = std::current_exception();
+        }
+      });
+      for (const auto& e : failed)
+        if (e) std::rethrow_exception(e);
       for (std::size_t i = 0; i < files.size(); ++i) {
-        in.push_back({names[i], read_stl(files[i])});
+        in.push_back({names[i], std::move(read[i])});
         report.input(files[i]);
       }
     }

@@ -155,10 +155,14 @@ SurfaceDistance quad_surface_distance(const QuadSurface& q, const Surface& input
 RemeshEvaluation evaluate_remesh(const RemeshResult& res, const std::vector<NamedSurface>& inputs, int k) {
   RemeshEvaluation e;
   const SweepPlane first = sweep_plane(res.sweep, 0), last = sweep_plane(res.sweep, res.sweep.length_m);
-  for (std::size_t l = 0; l < res.layers.size(); ++l) {
-    e.quality.push_back(quad_quality(res.layers[l], res.ray_origin[l]));
-    e.distance.push_back(quad_surface_distance(res.layers[l], inputs.at(l).surface, first, last, k));
-  }
+  // the layers side by side: each builds its own AABB trees over its input
+  // surface (single-threaded in CGAL; the layers in turn left a core idle)
+  e.quality.resize(res.layers.size());
+  e.distance.resize(res.layers.size());
+  tbb::parallel_for(std::size_t{0}, res.layers.size(), [&](std::size_t l) {
+    e.quality[l] = quad_quality(res.layers[l], res.ray_origin[l]);
+    e.distance[l] = quad_surface_distance(res.layers[l], inputs.at(l).surface, first, last, k);
+  });
   for (std::size_t l = 1; l < res.layers.size(); ++l) {
     LayerAlignment a = layer_alignment(res.layers[l - 1], res.layers[l], inputs[l - 1].name, inputs[l].name);
     e.worst_lateral_m = std::max(e.worst_lateral_m, a.max_lateral_m);
