@@ -283,6 +283,11 @@ TEST(RemeshCli, BadInputExitsTwoWithoutOutput) {
   expect_usage_error(test::run_cli("remesh" + skin + " --inner " + f / "big.stl" + " --out " + out),
                      "big.stl: not inside skin", out);
   expect_usage_error(test::run_cli("remesh --surface " + f / "missing.stl" + " --out " + out), "missing.stl", out);
+  // the files are read side by side; of two bad ones the first in order is named, every time
+  for (int again = 0; again < 3; ++again)
+    expect_usage_error(test::run_cli("remesh" + skin + " --inner " + f / "missing.stl" + "," + f / "empty.stl" +
+                                     " --out " + out),
+                       "missing.stl: cannot open STL file", out);
   // found by a sweep (2026-11-27): a folder was an "internal error"; names that are
   // no file or group names failed after all the work naming a temporary path (or
   // wrote a hidden file and /quads/..); a texture all off the stack was written
