@@ -12,8 +12,8 @@
 #include <tbb/parallel_for.h>
 
 #include <cctype>
-#include <exception>
 #include <cmath>
+#include <exception>
 #include <filesystem>
 #include <iomanip>
 #include <iostream>

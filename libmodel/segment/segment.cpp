@@ -126,6 +126,8 @@ SliceSource roi_source(SliceSource src, const SegmentOptions& o) {
   s.read = [in, off, nx, ny](int z, std::vector<std::uint8_t>& rgb) {
     std::vector<std::uint8_t> raw;
     in->read(z + off[2], raw);
+    if (raw.size() != static_cast<std::size_t>(in->nx) * in->ny * 3)  // (never cut past a short slice)
+      throw Error(in->name, "slice " + std::to_string(z + off[2]) + " has the wrong size");
     if (nx == in->nx && ny == in->ny) {
       rgb = std::move(raw);
       return;

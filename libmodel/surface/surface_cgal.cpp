@@ -22,10 +22,10 @@
 #include <tbb/parallel_for.h>
 
 #include <algorithm>
-#include <memory>
-#include <optional>
 #include <array>
 #include <cmath>
+#include <memory>
+#include <optional>
 #include <stdexcept>
 #include <vector>
 
@@ -308,9 +308,11 @@ std::shared_ptr<const NestingIndex> make_nesting_index(const Surface& outer, con
   x->m = to_mesh(outer, "nesting");
   const Mesh& m = x->m;
   x->tree.insert(faces(m).first, faces(m).second, m);
-  x->tree.build();  // built here: the queries only read it
-  // (no search tree of hints for the distance queries: after the cube test
-  // below few vertices ask one, and building it cost as much as the AABB tree)
+  // built here, with the distance queries' k-d tree of hints (CGAL would
+  // build that at the first query): the children's queries only read them
+  x->tree.build();
+  x->tree.accelerate_distance_queries();
+  x->tree.closest_point(m.point(*m.vertices().begin()));
   x->side.emplace(x->tree);
   // Flat caps where the volume border cuts a tissue: outer's faces whose
   // corners lie on one cap plane (or, without the planes, in a plane of its
