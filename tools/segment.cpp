@@ -158,13 +158,13 @@ void add_segment_command(CLI::App& app) {
     require_background_colour(table);
     check_output_file(a.out);
     if (!a.nrrd.empty()) check_output_file(a.nrrd);
-    // the region of interest within the stack, checked before anything is written
-    const SliceSource whole = stack_source(a.stack, a.bit_depth);
-    const SliceSource part = roi_source(whole, o);
     std::array<int, 3> truth_offset{0, 0, 0};
     if (!a.truth.empty()) {
       // the truth must match the stack (or the region of interest) voxel for
       // voxel: checked here, since the Dice comes after --out is written
+      // (segment_stack checks the region itself before it writes anything)
+      const SliceSource whole = stack_source(a.stack, a.bit_depth);
+      const SliceSource part = roi_source(whole, o);
       ModelReader truth(a.truth);
       const std::string ds = "/volume/labels";
       if (!truth.has(ds)) throw Error(a.truth, "missing dataset /volume/labels (no truth volume)");
