@@ -24,14 +24,15 @@ struct Box {
     lo = {std::min(lo.x, p.x), std::min(lo.y, p.y), std::min(lo.z, p.z)};
     hi = {std::max(hi.x, p.x), std::max(hi.y, p.y), std::max(hi.z, p.z)};
   }
-  bool misses(const Vec3& p, const Vec3& q) const {
-    return std::max(p.x, q.x) < lo.x || std::min(p.x, q.x) > hi.x || std::max(p.y, q.y) < lo.y ||
-           std::min(p.y, q.y) > hi.y || std::max(p.z, q.z) < lo.z || std::min(p.z, q.z) > hi.z;
+  // the segment p q's box, grown by `margin`, misses this one
+  bool misses(const Vec3& p, const Vec3& q, Real margin = 0) const {
+    return std::max(p.x, q.x) + margin < lo.x || std::min(p.x, q.x) - margin > hi.x || std::max(p.y, q.y) + margin < lo.y ||
+           std::min(p.y, q.y) - margin > hi.y || std::max(p.z, q.z) + margin < lo.z || std::min(p.z, q.z) - margin > hi.z;
   }
 };
 
 bool crosses(const Vec3& p, const Vec3& q, const Vec3& a, const Vec3& b, const Vec3& c, Real* t_out, bool open_ac,
-             bool open_bc, bool touch = false);
+             bool open_bc, bool touch = false, Real snap_p = 0, Real snap_q = 0);
 
 // the blade: two triangles per polyline segment. Its two end edges (the
 // polyline's first and last point swept along the direction) are open: a
@@ -50,6 +51,15 @@ struct Blade {
     return false;
   }
   bool touches(const Vec3& p, const Vec3& q) const { return crosses(p, q, nullptr, true); }
+  // a segment between two nodes, each end within its snap distance (m) of a
+  // triangle's plane counting as on it (CutDef::node_snap)
+  bool severs(const Vec3& p, const Vec3& q, Real snap_p, Real snap_q) const {
+    if (box.misses(p, q, std::max(snap_p, snap_q))) return false;  // an end snapped onto the blade may lie outside its box
+    for (std::size_t i = 0; i < tris.size(); ++i)
+      if (runtime::crosses(p, q, tris[i][0], tris[i][1], tris[i][2], nullptr, open[i][0], open[i][1], false, snap_p, snap_q))
+        return true;
+    return false;
+  }
 };
 
 Blade make_blade(const CutDef& def, const Vec3& d) {
@@ -186,7 +196,7 @@ namespace {
 // b c (u + v = 1) optionally left out (open); with touch, an end on the
 // triangle's plane (the other end off it) counts as crossing
 bool crosses(const Vec3& p, const Vec3& q, const Vec3& a, const Vec3& b, const Vec3& c, Real* t_out, bool open_ac,
-             bool open_bc, bool touch) {
+             bool open_bc, bool touch, Real snap_p, Real snap_q) {
   // Half-open: the ends' sides of the triangle's plane must differ, a point
   // on the plane counting as behind it. So of the springs of a node the blade
   // passes through, only those to the front are crossed: the node stays with
@@ -195,7 +205,14 @@ bool crosses(const Vec3& p, const Vec3& q, const Vec3& a, const Vec3& b, const V
   // The side of a point is one orientation sign per triangle, the same for
   // every segment that ends there. Coplanar triangles of the blade agree when
   // the point lies exactly in their plane, as the nodes of a grid line do.
-  const Real sp = orient(a, b, c, p), sq = orient(a, b, c, q);
+  Real sp = orient(a, b, c, p), sq = orient(a, b, c, q);
+  // node snapping: an end within its snap distance of the plane is on it
+  // (orient is the signed distance times |(b - a) x (c - a)|)
+  if (snap_p > 0 || snap_q > 0) {
+    const Real area2 = norm(cross(b - a, c - a));
+    if (std::abs(sp) <= snap_p * area2) sp = 0;
+    if (std::abs(sq) <= snap_q * area2) sq = 0;
+  }
   if (touch ? (sp > 0 && sq > 0) || (sp < 0 && sq < 0) || (sp == 0 && sq == 0)
             : (sp > 0) == (sq > 0))
     return false;  // one side, or parallel, or a degenerate triangle (both 0)
@@ -232,6 +249,7 @@ void validate(const CutDef& def) {
   if (!(def.depth > 0) || !std::isfinite(def.depth)) throw Error("", "cut: depth must be > 0 m");
   if (!(def.lead >= 0 && def.lead <= 1)) throw Error("", "cut: lead must be in [0, 1]");
   if (!finite(def.direction)) throw Error("", "cut: direction is not finite");
+  if (!(def.node_snap >= 0 && def.node_snap < 0.5)) throw Error("", "cut: node_snap must be in [0, 0.5)");
 }
 
 namespace {
@@ -454,15 +472,25 @@ CutReport cut_model(Model& m, std::span<const Real> x, const CutDef& def, WoundC
     return finite(p) ? p : load3(m.rest_x.data(), i);
   };
 
-  // nodes with springs before the cut
+  // nodes with springs before the cut, and each node's snap distance:
+  // node_snap x the rest length of its shortest spring
   std::vector<std::uint8_t> had(static_cast<std::size_t>(m.n_nodes), 0);
-  for (std::int32_t s = 0; s < m.n_springs; ++s) had[m.spring_a[s]] = had[m.spring_b[s]] = 1;
+  std::vector<Real> snap(static_cast<std::size_t>(m.n_nodes), std::numeric_limits<Real>::infinity());
+  for (std::int32_t s = 0; s < m.n_springs; ++s)
+    for (const std::int32_t i : {m.spring_a[s], m.spring_b[s]}) {
+      had[static_cast<std::size_t>(i)] = 1;
+      snap[static_cast<std::size_t>(i)] = std::min(snap[static_cast<std::size_t>(i)], m.spring_rest[static_cast<std::size_t>(s)]);
+    }
+  for (Real& e : snap) e = std::isfinite(e) ? def.node_snap * e : 0;
+  auto severs = [&](std::int32_t i, std::int32_t j) {
+    return blade.severs(pos(i), pos(j), snap[static_cast<std::size_t>(i)], snap[static_cast<std::size_t>(j)]);
+  };
 
   // springs
   std::size_t keep = 0;
   const auto ns = static_cast<std::size_t>(m.n_springs);
   for (std::size_t s = 0; s < ns; ++s) {
-    if (blade.crosses(pos(m.spring_a[s]), pos(m.spring_b[s]))) continue;
+    if (severs(m.spring_a[s], m.spring_b[s])) continue;
     m.spring_a[keep] = m.spring_a[s];
     m.spring_b[keep] = m.spring_b[s];
     m.spring_rest[keep] = m.spring_rest[s];
@@ -485,9 +513,8 @@ CutReport cut_model(Model& m, std::span<const Real> x, const CutDef& def, WoundC
     bool cut = false;
     for (std::int32_t t = t0; t < t1 && !cut; ++t) {
       const std::int32_t* c = &m.tet[4 * static_cast<std::size_t>(t)];
-      const Vec3 p[4] = {pos(c[0]), pos(c[1]), pos(c[2]), pos(c[3])};
       for (int i = 0; i < 4 && !cut; ++i)
-        for (int j = i + 1; j < 4 && !cut; ++j) cut = blade.crosses(p[i], p[j]);
+        for (int j = i + 1; j < 4 && !cut; ++j) cut = severs(c[i], c[j]);
     }
     if (cut) continue;
     for (std::int32_t t = t0; t < t1; ++t, ++tkeep) {
@@ -508,9 +535,8 @@ CutReport cut_model(Model& m, std::span<const Real> x, const CutDef& def, WoundC
   std::size_t qkeep = 0;
   for (std::int32_t q = 0; q < m.n_quads; ++q) {
     const std::int32_t* v = &m.quads[4 * static_cast<std::size_t>(q)];
-    const Vec3 p[4] = {pos(v[0]), pos(v[1]), pos(v[2]), pos(v[3])};
-    const bool open = blade.crosses(p[0], p[1]) || blade.crosses(p[1], p[2]) || blade.crosses(p[2], p[3]) ||
-                      blade.crosses(p[3], p[0]) || blade.crosses(p[0], p[2]) || blade.crosses(p[1], p[3]);
+    const bool open = severs(v[0], v[1]) || severs(v[1], v[2]) || severs(v[2], v[3]) || severs(v[3], v[0]) ||
+                      severs(v[0], v[2]) || severs(v[1], v[3]);
     if (open) continue;
     std::copy(v, v + 4, &m.quads[4 * qkeep]);
     ++qkeep;

@@ -228,6 +228,8 @@ ToolDef parse_tool(const json& j, std::size_t index, const std::string& file) {
     if (!o.has("depth")) o.fail("depth (m) is required");
     t.direction = unit_direction(o.vec3("direction", {0, 0, 0}));
     t.snap = o.boolean("snap", true);
+    t.node_snap = o.number("node_snap", 0.25, 0, 0.5);
+    if (!(t.node_snap < 0.5)) o.fail("node_snap must be in [0, 0.5) (a fraction of a node's shortest spring)");
   }
   t.start = o.number("start", 0, 0, 1e9);
   // a cut acts once, at its start: an "end" was ignored
@@ -1017,6 +1019,7 @@ void Scene::update_tools(Real t) {
           cd.polyline.push_back(tr.nodes.empty() ? load3(d.polyline.data(), static_cast<std::int64_t>(k))
                                                  : load3(state_.x.data(), tr.nodes[k]));
         cd.depth = d.depth;
+        cd.node_snap = d.node_snap;
         cd.direction = {d.direction[0], d.direction[1], d.direction[2]};
         apply_cut(cd);
         cuts_.back().tool = d.name;

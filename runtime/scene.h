@@ -79,6 +79,7 @@ struct ToolDef {
   bool polyline_relative = false;
   bool snap = true;
   Real depth = 0;
+  Real node_snap = 0.25;  // cut: CutDef::node_snap, [0, 0.5)
   // drain (needs the scene's fluid): removes the blood particles within
   // `radius` of the tool point (center, or center_in_box over every loaded
   // node; `path` moves it as for pull) and counts the drained volume.
