@@ -208,15 +208,30 @@ bool crosses(const Vec3& p, const Vec3& q, const Vec3& a, const Vec3& b, const V
   Real sp = orient(a, b, c, p), sq = orient(a, b, c, q);
   // node snapping: an end within its snap distance of the plane is on it
   // (orient is the signed distance times |(b - a) x (c - a)|)
+  const Vec3* snapped = nullptr;
   if (snap_p > 0 || snap_q > 0) {
     const Real area2 = norm(cross(b - a, c - a));
-    if (std::abs(sp) <= snap_p * area2) sp = 0;
-    if (std::abs(sq) <= snap_q * area2) sq = 0;
+    if (sp != 0 && std::abs(sp) <= snap_p * area2) sp = 0, snapped = &p;
+    if (sq != 0 && std::abs(sq) <= snap_q * area2) sq = 0, snapped = snapped ? nullptr : &q;
   }
   if (touch ? (sp > 0 && sq > 0) || (sp < 0 && sq < 0) || (sp == 0 && sq == 0)
             : (sp > 0) == (sq > 0))
     return false;  // one side, or parallel, or a degenerate triangle (both 0)
   const Vec3 dir = q - p, e1 = b - a, e2 = c - a;
+  if (snapped) {
+    // the segment meets the blade where the snapped end lies on it: its
+    // projection, not the line's crossing (which a segment slanted to the
+    // blade puts beyond its end)
+    const Vec3 w = *snapped - a;
+    const Real d00 = dot(e1, e1), d01 = dot(e1, e2), d11 = dot(e2, e2), d20 = dot(w, e1), d21 = dot(w, e2);
+    const Real den = d00 * d11 - d01 * d01;
+    if (!(den > 0)) return false;  // a degenerate triangle
+    const Real u = (d11 * d20 - d01 * d21) / den, v = (d00 * d21 - d01 * d20) / den;
+    if (u < 0 || u > 1 || (open_ac && !(u > 0))) return false;
+    if (v < 0 || u + v > 1 || (open_bc && !(u + v < 1))) return false;
+    if (t_out) *t_out = snapped == &p ? 0 : 1;
+    return true;
+  }
   const Vec3 h = cross(dir, e2);
   const Real det = dot(e1, h);
   const Real scale = norm(e1) * norm(e2) * norm(dir);
@@ -473,15 +488,12 @@ CutReport cut_model(Model& m, std::span<const Real> x, const CutDef& def, WoundC
   };
 
   // nodes with springs before the cut, and each node's snap distance:
-  // node_snap x the rest length of its shortest spring
+  // node_snap x the rest length of its shortest spring in the uncut model
   std::vector<std::uint8_t> had(static_cast<std::size_t>(m.n_nodes), 0);
-  std::vector<Real> snap(static_cast<std::size_t>(m.n_nodes), std::numeric_limits<Real>::infinity());
-  for (std::int32_t s = 0; s < m.n_springs; ++s)
-    for (const std::int32_t i : {m.spring_a[s], m.spring_b[s]}) {
-      had[static_cast<std::size_t>(i)] = 1;
-      snap[static_cast<std::size_t>(i)] = std::min(snap[static_cast<std::size_t>(i)], m.spring_rest[static_cast<std::size_t>(s)]);
-    }
-  for (Real& e : snap) e = std::isfinite(e) ? def.node_snap * e : 0;
+  for (std::int32_t s = 0; s < m.n_springs; ++s) had[m.spring_a[s]] = had[m.spring_b[s]] = 1;
+  std::vector<Real> snap(static_cast<std::size_t>(m.n_nodes), 0);
+  if (m.shortest_spring.size() == snap.size())
+    for (std::size_t i = 0; i < snap.size(); ++i) snap[i] = def.node_snap * m.shortest_spring[i];
   auto severs = [&](std::int32_t i, std::int32_t j) {
     return blade.severs(pos(i), pos(j), snap[static_cast<std::size_t>(i)], snap[static_cast<std::size_t>(j)]);
   };
@@ -599,6 +611,15 @@ CutReport cut_model(Model& m, std::span<const Real> x, const CutDef& def, WoundC
         if (crossed) o = 1, ++rep.columns_opened;
       }
   }
+
+  // the layer columns whose two ends the blade parts (inverted_columns skips them)
+  for (const LayerColumns& lc : layer_columns(m))
+    for (const auto& pair : lc.columns)
+      if (severs(pair.first, pair.second) &&
+          !std::binary_search(m.severed_columns.begin(), m.severed_columns.end(), pair)) {
+        m.severed_columns.insert(std::upper_bound(m.severed_columns.begin(), m.severed_columns.end(), pair), pair);
+        ++rep.columns_severed;
+      }
 
   m.finalize();
 

@@ -18,7 +18,9 @@
 // The model stays immutable for the solver: a cut edits a copy and calls
 // Model::finalize() again (runtime/model.h); node ids do not change, so a
 // State and the tools' node lists stay valid. Nodes left with no spring at
-// all are reported (a scene pins them: a lone mass point is not tissue).
+// all are reported (a scene pins them: a lone mass point is not tissue). The
+// layer columns whose top and bottom the blade parts are recorded
+// (Model::severed_columns): the inversion check skips them.
 //
 // Cost: O(n_springs + n_quads + n_vessel_edges) per cut after an AABB test
 // against the blade, plus finalize() (O(n_springs log n_springs)).
@@ -44,14 +46,13 @@ struct CutDef {
   Real depth = 0;   // m, > 0: how deep the blade goes along `direction`
   Real lead = 0.1;  // the blade starts lead x depth outside the polyline, [0, 1]
   // Node snapping (Nienhuys and van der Stappen 2001), [0, 0.5): a node
-  // within node_snap x (its shortest spring's rest length) of the blade's
-  // plane counts as on the blade, which leaves it with the tissue behind it.
-  // A blade along a grid line otherwise passes the line's nodes a hair to
-  // either side, as the tissue has moved them, and cuts their springs along
-  // the line and through the layers in a zigzag: wound-edge nodes left
-  // hanging by a few springs, layer columns severed from their own bottoms
-  // (the sample's bleeding scene folded one of the fat's columns so). 0: the
-  // exact sides.
+  // within node_snap x (its shortest spring's rest length in the uncut model,
+  // Model::shortest_spring) of a blade triangle's plane counts as on it, which
+  // leaves it with the tissue behind the blade; a segment from it meets the
+  // blade at its projection. A blade along a grid line otherwise passes the
+  // line's nodes a hair to either side, as the tissue has moved them, and
+  // cuts their springs along the line and through the layers in a zigzag
+  // that depends on sub-millimetre motion. 0: the exact sides.
   Real node_snap = 0.25;
 };
 
@@ -74,6 +75,7 @@ struct CutReport {
   std::int32_t tets_cut = 0;           // volume-term tetrahedra removed (their group had an edge across the blade)
   std::int32_t quads_removed = 0;      // surface quads removed
   std::int32_t columns_opened = 0;     // tissue columns it opened for the blood (WoundColumns)
+  std::int32_t columns_severed = 0;    // layer columns (layer_columns) whose top and bottom it parted (Model::severed_columns)
   std::int32_t vessel_edges_open_already = 0;  // crossed vessel edges an earlier cut had opened (no new wound)
   bool quads_loaded = false;           // the model had surface quads to cut (a scene loads them only when it draws or collides with them)
   std::vector<std::int32_t> detached;  // nodes left without any spring, ascending

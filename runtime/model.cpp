@@ -241,6 +241,16 @@ void Model::finalize() {
   }
   for (auto q : quads)
     if (q < 0 || q >= n_nodes) throw Error("", "model: a surface quad has a node outside the model");
+
+  // each node's shortest spring, at the first finalize (a cut keeps it)
+  if (shortest_spring.size() != n) {
+    shortest_spring.assign(n, 0);
+    for (std::size_t s = 0; s < ns; ++s)
+      for (const std::int32_t i : {spring_a[s], spring_b[s]}) {
+        Real& l = shortest_spring[static_cast<std::size_t>(i)];
+        l = l > 0 ? std::min(l, spring_rest[s]) : spring_rest[s];
+      }
+  }
 }
 
 const std::vector<std::int32_t>& Model::set(const std::string& name) const {
@@ -430,8 +440,8 @@ Model model_from_layers(const std::vector<std::pair<std::string, Layer>>& layers
   return assemble_model(src);
 }
 
-std::vector<InvertedColumns> inverted_columns(const Model& m, std::span<const Real> x) {
-  std::vector<InvertedColumns> out;
+std::vector<LayerColumns> layer_columns(const Model& m) {
+  std::vector<LayerColumns> out;
   if (m.layers.size() < 2) return out;
   std::vector<const Model::LayerInfo*> by_order;
   for (const auto& l : m.layers) by_order.push_back(&l);
@@ -453,12 +463,26 @@ std::vector<InvertedColumns> inverted_columns(const Model& m, std::span<const Re
     if (bottom.order != top.order + 1 || top.count < ng || bottom.count < ng) continue;
     const std::int32_t top0 = m.file_id[static_cast<std::size_t>(top.first)];
     const std::int32_t bottom0 = m.file_id[static_cast<std::size_t>(bottom.first)];
-    InvertedColumns c;
+    LayerColumns c;
     c.layer = top.name;
     for (std::int32_t i = 0; i < ng; ++i) {
       const std::size_t ft = static_cast<std::size_t>(top0 + i), fb = static_cast<std::size_t>(bottom0 + i);
       if (ft >= local.size() || fb >= local.size() || local[ft] < 0 || local[fb] < 0 || split[ft] || split[fb]) continue;
-      const std::size_t a = 3 * static_cast<std::size_t>(local[ft]), b = 3 * static_cast<std::size_t>(local[fb]);
+      c.columns.push_back({local[ft], local[fb]});
+    }
+    out.push_back(std::move(c));
+  }
+  return out;
+}
+
+std::vector<InvertedColumns> inverted_columns(const Model& m, std::span<const Real> x) {
+  std::vector<InvertedColumns> out;
+  for (const LayerColumns& lc : layer_columns(m)) {
+    InvertedColumns c;
+    c.layer = lc.layer;
+    for (const auto& pair : lc.columns) {
+      if (std::binary_search(m.severed_columns.begin(), m.severed_columns.end(), pair)) continue;
+      const std::size_t a = 3 * static_cast<std::size_t>(pair.first), b = 3 * static_cast<std::size_t>(pair.second);
       Real dot = 0;
       for (int d = 0; d < 3; ++d) dot += (x[a + d] - x[b + d]) * (m.rest_x[a + d] - m.rest_x[b + d]);
       ++c.columns;

@@ -122,6 +122,10 @@ struct Model {
   // (1/s). Anchors get 0.
   std::vector<Real> omega2;  // (n_nodes) 1/s^2
   std::vector<Real> gamma;   // (n_nodes) 1/s
+  // (n_nodes) m, the rest length of each node's shortest spring in the model
+  // as first finalized (0: none); a cut's re-finalize keeps it, so a node's
+  // snap distance (CutDef::node_snap) does not grow as cuts take its springs
+  std::vector<Real> shortest_spring;
   Real total_mass = 0;       // kg, free nodes
   Real extent = 0;           // m, diagonal of the rest bounding box
 
@@ -150,6 +154,11 @@ struct Model {
     std::vector<std::int32_t> tube_triangles;   // (n_tri x 3), outward
   };
   std::vector<Vessel> vessels;
+
+  // (top, bottom) local ids of the layer columns (layer_columns) a cut has
+  // severed: a blade passed between the two ends (cut_model), which then lie
+  // on two faces of the wound. Sorted; inverted_columns skips them.
+  std::vector<std::pair<std::int32_t, std::int32_t>> severed_columns;
 
   // Builds the adjacency, chunks and stability data from the arrays above
   // (after sorting the springs). Throws Error("", ...) on inconsistent sizes,
@@ -180,6 +189,18 @@ Model assemble_model(const ModelSource& source);
 Model model_from_layers(const std::vector<std::pair<std::string, Layer>>& layers,
                         const std::map<std::string, VecXi>& node_sets);
 
+// The layer columns: each loaded layer's top grid and the next layer's (its
+// bottom, by order) correspond node for node, column i of the grid, when the
+// deepest loaded layer is the rigid fixed bottom (its nodes are one grid: the
+// grid's size). Per such pair of layers, the top layer's name and its
+// columns' (top, bottom) local ids, in grid order; columns whose nodes a cut
+// has split (two local nodes of one file id) are left out. Empty otherwise.
+struct LayerColumns {
+  std::string layer;
+  std::vector<std::pair<std::int32_t, std::int32_t>> columns;
+};
+std::vector<LayerColumns> layer_columns(const Model& m);
+
 // A layer turned inside out (docs/runtime.md, "Inverted layers"): each
 // layer's top grid and the next layer's (its bottom) correspond node for
 // node, column i of the grid; a column is inverted where the top node has
@@ -188,7 +209,9 @@ Model model_from_layers(const std::vector<std::pair<std::string, Layer>>& layers
 // pressed or hung under gravity can fold through itself. Checked for every
 // loaded layer whose next layer (by order) is loaded, when the deepest
 // loaded layer is the rigid fixed bottom (its nodes are one grid: the grid's
-// size); empty otherwise. Columns whose nodes a cut has split are skipped.
+// size); empty otherwise (layer_columns). Columns a cut has severed
+// (Model::severed_columns) are skipped: their two ends lie on two faces of the
+// wound, and their order says nothing about a fold.
 struct InvertedColumns {
   std::string layer;
   std::int32_t columns = 0;   // grid columns checked

@@ -336,7 +336,8 @@ void add_run_command(CLI::App& app) {
                              {"quads_removed", c.quads_loaded ? nlohmann::json(c.quads_removed) : nlohmann::json()},
                              {"detached_nodes", c.detached.size()}, {"vessel_hits", c.vessel_hits.size()},
                              {"vessel_edges_open_already", c.vessel_edges_open_already},
-                             {"columns_opened", c.columns_opened}});
+                             {"columns_opened", c.columns_opened},
+                             {"columns_severed", c.columns_severed}});
     met["frames"] = r.frames;
     met["kinetic_energy_j"] = scene->state().kinetic_energy;
     met["elastic_energy_j"] = scene->state().spring_energy;
