@@ -12,6 +12,7 @@
 #include <array>
 #include <cmath>
 #include <limits>
+#include <map>
 #include <random>
 #include <cstring>
 #include <filesystem>
@@ -56,6 +57,88 @@ TEST(RemeshStl, BinaryRoundTripWelds) {
   EXPECT_EQ(c.euler, 2);
   EXPECT_GT(c.volume_m3, 0);
   EXPECT_NEAR(c.volume_m3, kPi * 0.03 * 0.03 * 0.1, 0.01 * kPi * 0.03 * 0.03 * 0.1);
+}
+
+// Welding against an independent oracle (a std::map of the corners as the
+// file stores them, -0 as +0, numbered in the order of first appearance):
+// a grid of 121 x 121 points in triangles whose corners the file repeats, the
+// points at x = 0 written as -0 in every other triangle, binary (the table
+// sized from the header) and ASCII (grown from its smallest size, 1 024 slots).
+TEST(RemeshStl, WeldsExactlyInTheOrderOfFirstAppearance) {
+  test::TempDir d("stl");
+  const int n = 121;
+  std::mt19937 rng(5);
+  std::uniform_real_distribution<double> jitter(-0.3, 0.3);
+  std::vector<std::array<double, 3>> pts;
+  for (int j = 0; j < n; ++j)
+    for (int i = 0; i < n; ++i)
+      pts.push_back({1e-3 * i, 1e-3 * (j + jitter(rng) * (i > 0)), 1e-4 * jitter(rng)});
+  std::vector<std::array<int, 3>> tris;
+  for (int j = 0; j + 1 < n; ++j)
+    for (int i = 0; i + 1 < n; ++i) {
+      const int a = j * n + i, b = a + 1, c = a + n, e = c + 1;
+      tris.push_back({a, b, e});
+      tris.push_back({a, e, c});
+    }
+  std::shuffle(tris.begin(), tris.end(), rng);
+  // the oracle, on the corners rounded to float as a binary STL stores them
+  auto as_float = [](double v) { return static_cast<double>(static_cast<float>(v)); };
+  // corner k of triangle t as written: x = 0 as -0 in the odd triangles
+  auto corner = [&](std::size_t t, int k) {
+    std::array<double, 3> p = pts[tris[t][k]];
+    if (p[0] == 0 && t % 2) p[0] = -0.0;
+    return p;
+  };
+  std::map<std::array<double, 3>, int> seen;
+  std::vector<std::array<double, 3>> expected_v;
+  std::vector<int> expected_f;
+  for (std::size_t t = 0; t < tris.size(); ++t)
+    for (int k = 0; k < 3; ++k) {
+      std::array<double, 3> key;
+      for (int c = 0; c < 3; ++c) key[c] = as_float(corner(t, k)[c]) + 0.0;  // -0 + 0 = +0
+      auto [it, fresh] = seen.emplace(key, static_cast<int>(expected_v.size()));
+      if (fresh) expected_v.push_back(key);
+      expected_f.push_back(it->second);
+    }
+  ASSERT_EQ(expected_v.size(), static_cast<std::size_t>(n * n)) << "the -0 corners are the +0 points";
+  // binary: each triangle its own three corners
+  Surface soup;
+  soup.vertices.resize(static_cast<Eigen::Index>(3 * tris.size()), 3);
+  soup.faces.resize(static_cast<Eigen::Index>(tris.size()), 3);
+  for (std::size_t t = 0; t < tris.size(); ++t)
+    for (int k = 0; k < 3; ++k) {
+      for (int c = 0; c < 3; ++c) soup.vertices(static_cast<Eigen::Index>(3 * t + k), c) = corner(t, k)[c];
+      soup.faces(static_cast<Eigen::Index>(t), k) = static_cast<int>(3 * t + k);
+    }
+  write_stl(d / "grid.stl", soup);
+  // ASCII: the first 1 800 triangles, the binary's floats printed exactly
+  std::string text = "solid g\n";
+  char buf[128];
+  for (std::size_t t = 0; t < 1800; ++t) {
+    text += "facet normal 0 0 1\n outer loop\n";
+    for (int k = 0; k < 3; ++k) {
+      const auto p = corner(t, k);
+      std::snprintf(buf, sizeof buf, "  vertex %.17g %.17g %.17g\n", as_float(p[0]), as_float(p[1]), as_float(p[2]));
+      text += buf;
+    }
+    text += " endloop\nendfacet\n";
+  }
+  text += "endsolid g\n";
+  test::write_file(d / "grid_ascii.stl", text);
+  for (const auto& [file, faces] : {std::pair<std::string, std::size_t>{"grid.stl", tris.size()}, {"grid_ascii.stl", 1800}}) {
+    SCOPED_TRACE(file);
+    const Surface r = read_stl(d / file);
+    ASSERT_EQ(r.faces.rows(), static_cast<Eigen::Index>(faces));
+    std::size_t nv = 0;
+    for (std::size_t i = 0; i < 3 * faces; ++i) nv = std::max<std::size_t>(nv, expected_f[i] + 1);
+    ASSERT_EQ(r.vertices.rows(), static_cast<Eigen::Index>(nv));
+    for (std::size_t v = 0; v < nv; ++v)
+      for (int c = 0; c < 3; ++c) ASSERT_EQ(r.vertices(static_cast<Eigen::Index>(v), c), expected_v[v][c]) << v;
+    for (std::size_t i = 0; i < 3 * faces; ++i) ASSERT_EQ(r.faces(static_cast<Eigen::Index>(i / 3), i % 3), expected_f[i]) << i;
+    if (faces < tris.size()) {
+      EXPECT_GT(nv, 2048u) << "the ASCII table grew past 1 024 slots";
+    }
+  }
 }
 
 TEST(RemeshStl, AsciiTetrahedron) {
