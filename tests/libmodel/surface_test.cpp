@@ -12,6 +12,10 @@
 #include "tests/libmodel/real_stack.h"
 #include "tests/test_util.h"
 
+#include <CGAL/Exact_predicates_inexact_constructions_kernel.h>
+#include <CGAL/Polygon_mesh_processing/self_intersections.h>
+#include <CGAL/Surface_mesh.h>
+#include <Eigen/Geometry>
 #include <gtest/gtest.h>
 #include <tbb/parallel_for.h>
 #include <nlohmann/json.hpp>
@@ -22,6 +26,7 @@
 #include <cmath>
 #include <filesystem>
 #include <functional>
+#include <map>
 
 using namespace orthosim;
 namespace fs = std::filesystem;
@@ -626,6 +631,90 @@ TEST(SurfaceCheck, ReportsWhatIsWrong) {
   EXPECT_EQ(m.components, 2);
   EXPECT_EQ(m.euler, 4);
   EXPECT_GT(m.self_intersections, 0);
+}
+
+// surface_self_intersection_pairs gives exactly CGAL's self_intersections
+// (the oracle, called here directly): its box filter works in a rotated frame
+// so that flat faces (a stack's caps) do not make CGAL's segment tree fall
+// back to a scan of all of them. Three cubes whose faces are 24 x 24 grids of
+// exact planes, two overlapping with coplanar faces, a third tilted through
+// them; a collinear face; and one cube alone (no pair).
+TEST(SurfaceCheck, SelfIntersectionPairsAreCgals) {
+  auto cube = [](const Eigen::RowVector3d& at, double side, int n, const Eigen::Matrix3d& rot) {
+    Surface c;
+    std::vector<Eigen::RowVector3d> v;
+    std::vector<std::array<int, 3>> f;
+    std::map<std::array<long, 3>, int> id;  // grid point -> vertex
+    auto vertex = [&](long i, long j, long k) {
+      auto [it, fresh] = id.emplace(std::array<long, 3>{i, j, k}, static_cast<int>(v.size()));
+      if (fresh) v.push_back(at + (side / n) * (rot * Eigen::Vector3d(double(i), double(j), double(k))).transpose());
+      return it->second;
+    };
+    for (int axis = 0; axis < 3; ++axis)
+      for (const long side_at : {0L, static_cast<long>(n)})
+        for (long a = 0; a < n; ++a)
+          for (long b = 0; b < n; ++b) {
+            auto p = [&](long u, long w) {
+              std::array<long, 3> g{};
+              g[static_cast<std::size_t>(axis)] = side_at;
+              g[static_cast<std::size_t>((axis + 1) % 3)] = u;
+              g[static_cast<std::size_t>((axis + 2) % 3)] = w;
+              return vertex(g[0], g[1], g[2]);
+            };
+            const int q0 = p(a, b), q1 = p(a + 1, b), q2 = p(a + 1, b + 1), q3 = p(a, b + 1);
+            if (side_at == 0) f.push_back({q0, q2, q1}), f.push_back({q0, q3, q2});
+            else f.push_back({q0, q1, q2}), f.push_back({q0, q2, q3});
+          }
+    c.vertices.resize(static_cast<Eigen::Index>(v.size()), 3);
+    for (std::size_t i = 0; i < v.size(); ++i) c.vertices.row(static_cast<Eigen::Index>(i)) = v[i];
+    c.faces.resize(static_cast<Eigen::Index>(f.size()), 3);
+    for (std::size_t i = 0; i < f.size(); ++i) c.faces.row(static_cast<Eigen::Index>(i)) << f[i][0], f[i][1], f[i][2];
+    return c;
+  };
+  auto join = [](const std::vector<Surface>& parts) {
+    Surface s;
+    Eigen::Index nv = 0, nf = 0;
+    for (const auto& p : parts) nv += p.vertices.rows(), nf += p.faces.rows();
+    s.vertices.resize(nv, 3), s.faces.resize(nf, 3);
+    nv = nf = 0;
+    for (const auto& p : parts) {
+      s.vertices.middleRows(nv, p.vertices.rows()) = p.vertices;
+      s.faces.middleRows(nf, p.faces.rows()) = p.faces.array() + static_cast<int>(nv);
+      nv += p.vertices.rows(), nf += p.faces.rows();
+    }
+    return s;
+  };
+  auto cgal_pairs = [](const Surface& s) {
+    using K = CGAL::Exact_predicates_inexact_constructions_kernel;
+    CGAL::Surface_mesh<K::Point_3> m;
+    std::vector<CGAL::Surface_mesh<K::Point_3>::Vertex_index> v;
+    for (Eigen::Index i = 0; i < s.vertices.rows(); ++i) v.push_back(m.add_vertex(K::Point_3(s.vertices(i, 0), s.vertices(i, 1), s.vertices(i, 2))));
+    for (Eigen::Index i = 0; i < s.faces.rows(); ++i) m.add_face(v[static_cast<std::size_t>(s.faces(i, 0))], v[static_cast<std::size_t>(s.faces(i, 1))], v[static_cast<std::size_t>(s.faces(i, 2))]);
+    std::vector<std::pair<CGAL::Surface_mesh<K::Point_3>::Face_index, CGAL::Surface_mesh<K::Point_3>::Face_index>> pairs;
+    CGAL::Polygon_mesh_processing::self_intersections(faces(m), m, std::back_inserter(pairs));
+    std::vector<std::array<std::int64_t, 2>> out;
+    for (const auto& [a, b] : pairs) out.push_back({std::min<std::int64_t>(a.idx(), b.idx()), std::max<std::int64_t>(a.idx(), b.idx())});
+    std::sort(out.begin(), out.end());
+    return out;
+  };
+  const Eigen::Matrix3d I = Eigen::Matrix3d::Identity();
+  const Eigen::Matrix3d tilt = Eigen::AngleAxisd(0.3, Eigen::Vector3d(1, 1, 0).normalized()).toRotationMatrix();
+  const Surface a = cube({0, 0, 0}, 1, 24, I), b = cube({0.3, 0.3, 0}, 1, 24, I), c = cube({0.2, -0.4, 0.25}, 1, 24, tilt);
+  Surface sliver;  // a collinear face, far away
+  sliver.vertices.resize(3, 3);
+  sliver.vertices << 5, 5, 5, 6, 5, 5, 7, 5, 5;
+  sliver.faces.resize(1, 3);
+  sliver.faces << 0, 1, 2;
+  for (const auto& [name, s] : {std::pair<std::string, Surface>{"one cube", a}, {"two coplanar", join({a, b})},
+                                {"three", join({a, b, c})}, {"with a collinear face", join({a, c, sliver})}}) {
+    SCOPED_TRACE(name);
+    const auto ours = surface_self_intersection_pairs(s);
+    const auto theirs = cgal_pairs(s);
+    std::printf("  %s: %zu faces, %zu pairs\n", name.c_str(), static_cast<std::size_t>(s.faces.rows()), ours.size());
+    EXPECT_EQ(ours, theirs);
+    if (name == "one cube") EXPECT_TRUE(ours.empty());
+    else EXPECT_GT(ours.size(), 100u);
+  }
 }
 
 // ---- the phantom -----------------------------------------------------------------------------------
