@@ -124,7 +124,9 @@ struct Model {
   std::vector<Real> gamma;   // (n_nodes) 1/s
   // (n_nodes) m, the rest length of each node's shortest spring in the model
   // as first finalized (0: none); a cut's re-finalize keeps it, so a node's
-  // snap distance (CutDef::node_snap) does not grow as cuts take its springs
+  // snap distance (CutDef::node_snap) does not grow as cuts take its springs.
+  // finalize() computes it when it is empty or the node count changed: code
+  // that adds springs otherwise clears it (as runtime/testing/stress.cpp)
   std::vector<Real> shortest_spring;
   Real total_mass = 0;       // kg, free nodes
   Real extent = 0;           // m, diagonal of the rest bounding box

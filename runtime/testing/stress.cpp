@@ -90,6 +90,7 @@ Model stress_model(const StressCase& c, const StressSize& size) {
   m.inv_mass.clear();
   m.omega2.clear();
   m.gamma.clear();
+  m.shortest_spring.clear();
   m.finalize();
   return m;
 }
