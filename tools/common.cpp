@@ -3,6 +3,7 @@
 #include "libmodel/format/atomic.h"
 #include "libmodel/format/model.h"
 #include "libmodel/provenance.h"
+#include "libmodel/segment/segment.h"
 
 #include <charconv>
 #include <unistd.h>
@@ -290,21 +291,19 @@ std::vector<int> parse_ints(const std::string& text, int n, const std::string& f
   return out;
 }
 
-std::array<int, 6> parse_roi_flags(const std::string& roi, const std::string& slices) {
-  std::array<int, 6> r{0, 0, 0, 0, 0, -1};
+void parse_roi_flags(const std::string& roi, const std::string& slices, SegmentOptions& o) {
   if (!roi.empty()) {
     const std::vector<int> v = parse_ints(roi, 4, "--roi", 0);
     if (v[2] < 1 || v[3] < 1) throw UsageError("--roi: width and height must be >= 1 px, got '" + roi + "'");
-    for (std::size_t k = 0; k < 4; ++k) r[k] = v[k];
+    o.roi_px = {v[0], v[1], v[2], v[3]};
   }
   if (!slices.empty()) {
     const std::vector<int> v = parse_ints(slices, 2, "--slices", -1);
     if (v[0] < 0) throw UsageError("--slices: the first slice must be >= 0, got '" + slices + "'");
     if (v[1] != -1 && v[1] < v[0])
       throw UsageError("--slices: the last slice must be >= the first (or -1: to the last), got '" + slices + "'");
-    r[4] = v[0], r[5] = v[1];
+    o.first_slice = v[0], o.last_slice = v[1];
   }
-  return r;
 }
 
 std::vector<int> parse_size(const std::string& text, int n, const std::string& flag) {

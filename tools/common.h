@@ -14,10 +14,13 @@
 #include <CLI/CLI.hpp>
 #include <nlohmann/json.hpp>
 
-#include <array>
 #include <chrono>
 #include <functional>
 #include <string>
+
+namespace orthosim {
+struct SegmentOptions;
+}
 
 namespace orthosim::cli {
 
@@ -118,9 +121,9 @@ std::vector<double> parse_list(const std::string& text, int n, const std::string
 // Parses "a,b,c" into n integers, each >= min_value (UsageError naming the flag).
 std::vector<int> parse_ints(const std::string& text, int n, const std::string& flag, int min_value);
 // --roi X,Y,W,H (px) and --slices FIRST,LAST (0-based, inclusive; LAST -1:
-// to the last) of segment and pipeline into x0, y0, width, height, first,
-// last; empty flags select everything ({0, 0, 0, 0, 0, -1}).
-std::array<int, 6> parse_roi_flags(const std::string& roi, const std::string& slices);
+// to the last) of segment and pipeline into o's roi_px, first_slice and
+// last_slice; an empty flag leaves its fields as they are (everything).
+void parse_roi_flags(const std::string& roi, const std::string& slices, SegmentOptions& o);
 // --spacing X,Y,Z and --origin X,Y,Z (mm) within the voxel geometry every
 // stage takes (voxel_geometry_problem): UsageError naming the flag otherwise.
 void check_voxel_flags(const std::vector<double>& spacing_mm, const std::vector<double>& origin_mm);

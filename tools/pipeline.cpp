@@ -354,15 +354,13 @@ int run_stages(Args a, Report& report) {
     }
   }
   check_voxel_flags(parse_list(a.spacing, 3, "--spacing", true), parse_list(a.origin, 3, "--origin", false));
-  const std::array<int, 6> roi = parse_roi_flags(a.roi, a.slices);
+  SegmentOptions region;  // segment's --roi and --slices
+  parse_roi_flags(a.roi, a.slices, region);
   std::error_code ec;
   if (!fs::is_directory(a.stack, ec)) throw Error(a.stack, "not a folder of slices");
   if (!a.roi.empty() || !a.slices.empty()) {
     // a region beyond the slices is refused before any stage (reads the first slice's size)
-    SegmentOptions so;
-    so.roi_px = {roi[0], roi[1], roi[2], roi[3]};
-    so.first_slice = roi[4], so.last_slice = roi[5];
-    roi_source(stack_source(a.stack, a.bit_depth), so);
+    roi_source(stack_source(a.stack, a.bit_depth), region);
   }
   if (fs::is_directory(a.out, ec)) throw Error(a.out, "is a folder; --out names a model file");
   check_output_file(a.out);
@@ -391,7 +389,7 @@ int run_stages(Args a, Report& report) {
   report.input(a.stack);
   report.input(a.tissues);
   if (!a.scene.empty()) report.input(a.scene);
-  report.parameters() = {{"grid", a.grid}, {"through_cells", a.through_cells}, {"poisson_ratio", a.poisson_ratio}, {"lattice_volume_term", a.lattice_volume_term}, {"inversion_guard", a.inversion_guard}, {"spur_ratio", a.spur_ratio}, {"axis_correction", a.axis_correction}, {"bit_depth", a.bit_depth}, {"smoothness", a.smoothness}, {"spacing_mm", a.spacing}, {"origin_mm", a.origin}, {"roi_px", {roi[0], roi[1], roi[2], roi[3]}}, {"slices", {roi[4], roi[5]}},
+  report.parameters() = {{"grid", a.grid}, {"through_cells", a.through_cells}, {"poisson_ratio", a.poisson_ratio}, {"lattice_volume_term", a.lattice_volume_term}, {"inversion_guard", a.inversion_guard}, {"spur_ratio", a.spur_ratio}, {"axis_correction", a.axis_correction}, {"bit_depth", a.bit_depth}, {"smoothness", a.smoothness}, {"spacing_mm", a.spacing}, {"origin_mm", a.origin}, {"roi_px", region.roi_px}, {"slices", {region.first_slice, region.last_slice}},
                          {"work", a.work}, {"texture", a.texture}, {"tune", a.tune},
                          {"tune_budget_s", a.tune_budget_s}, {"tune_evaluations", a.tune_evaluations}, {"seed", a.seed}, {"export", a.export_dir}};
 
@@ -510,8 +508,9 @@ int run_stages(Args a, Report& report) {
         "segment",
         {stack_hash, table_hash, a.spacing, a.origin, a.register_slices ? "registered" : "as-is",
          "bit-depth " + std::to_string(a.bit_depth), "smoothness " + exact(a.smoothness),
-         "roi " + std::to_string(roi[0]) + "," + std::to_string(roi[1]) + "," + std::to_string(roi[2]) + "," +
-             std::to_string(roi[3]) + " slices " + std::to_string(roi[4]) + "," + std::to_string(roi[5])},
+         "roi " + std::to_string(region.roi_px[0]) + "," + std::to_string(region.roi_px[1]) + "," +
+             std::to_string(region.roi_px[2]) + "," + std::to_string(region.roi_px[3]) + " slices " +
+             std::to_string(region.first_slice) + "," + std::to_string(region.last_slice)},
         run.command([&](const std::string& d) {
           std::vector<std::string> args{"segment", "--stack", a.stack, "--tissues", a.tissues, "--spacing",
                                         a.spacing, "--origin", a.origin, "--out", d + "/labels.h5",

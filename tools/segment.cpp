@@ -111,9 +111,7 @@ void add_segment_command(CLI::App& app) {
     const std::vector<double> org = parse_list(a.origin, 3, "--origin", false);
     check_voxel_flags(s, org);
     for (int k = 0; k < 3; ++k) o.spacing_m[k] = s[k] * 1e-3, o.origin_m[k] = org[k] * 1e-3;
-    const std::array<int, 6> roi = parse_roi_flags(a.roi, a.slices);
-    o.roi_px = {roi[0], roi[1], roi[2], roi[3]};
-    o.first_slice = roi[4], o.last_slice = roi[5];
+    parse_roi_flags(a.roi, a.slices, o);
     if (a.normalise == "none") o.normalise = SegmentOptions::Normalise::none;
     else if (a.normalise == "gain") o.normalise = SegmentOptions::Normalise::gain;
     else if (a.normalise == "plane") o.normalise = SegmentOptions::Normalise::plane;
