@@ -64,7 +64,7 @@ json summarise(const ModelReader& m) {
   if (m.has("/volume")) {
     auto d = m.h5().dims("/volume/labels");
     counts["volume"] = {{"nz", d[0]}, {"ny", d[1]}, {"nx", d[2]},
-                        {"attributes", group_attrs(m, "/volume", {"spacing_m", "origin_m", "stack_offset_voxels", "label_names"})}};
+                        {"attributes", group_attrs(m, "/volume", {"spacing_m", "origin_m", "stack_offset_voxels", "stack_shape_voxels", "label_names"})}};
     // what every stage that reads the volume refuses, without reading the voxels
     // (a NaN spacing printed as null, as if the file were fine; sweep of 2026-11-27)
     const json& at = counts["volume"]["attributes"];
@@ -129,6 +129,8 @@ void print_text(const json& s, std::ostream& out) {
     if (const auto& off = v["attributes"].value("stack_offset_voxels", json());
         off.is_array() && off != json::array({0, 0, 0}))
       out << ", from the stack's voxel " << off.dump();
+    if (const auto& sh = v["attributes"].value("stack_shape_voxels", json()); sh.is_array())
+      out << ", stack " << sh.dump();
     if (v["attributes"].contains("label_names")) {
       // the named labels only (a table with labels 200 and 255 printed 256 names, most "")
       const json& names = v["attributes"]["label_names"];

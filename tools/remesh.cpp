@@ -220,6 +220,8 @@ void add_remesh_command(CLI::App& app) {
       Phase p(report, "texture");
       std::array<double, 3> spacing{0, 0, 0}, origin{0, 0, 0};
       std::array<int, 3> offset{0, 0, 0};  // the volume's voxel (0,0,0) in the stack (segment --roi, --slices)
+      std::array<int, 3> volume_n{0, 0, 0};
+      std::vector<double> stack_shape;  // the slice files segment read (/volume@stack_shape_voxels), if said
       int volume_nz = 0;
       bool have_spacing = false;
       if (!a.model.empty() && std::filesystem::exists(a.model)) {
@@ -227,6 +229,11 @@ void add_remesh_command(CLI::App& app) {
         if (m.has("/volume")) {
           const Volume v = m.volume();
           spacing = v.spacing_m, volume_nz = v.nz;
+          volume_n = {v.nx, v.ny, v.nz};
+          if (m.h5().has_attr("/volume", "stack_shape_voxels")) {
+            stack_shape = m.h5().attr_doubles("/volume", "stack_shape_voxels");
+            if (stack_shape.size() != 3) throw Error(a.model, "/volume@stack_shape_voxels must hold 3 numbers");
+          }
           if (m.h5().has_attr("/volume", "stack_offset_voxels")) {
             const std::vector<double> off = m.h5().attr_doubles("/volume", "stack_offset_voxels");
             if (off.size() != 3) throw Error(a.model, "/volume@stack_offset_voxels must hold 3 numbers");
@@ -252,6 +259,31 @@ void add_remesh_command(CLI::App& app) {
       }
       if (!have_spacing) throw UsageError("--texture needs the voxel size: --spacing X,Y,Z (mm) or a --model with /volume");
       ColourStack st = open_colour_stack(a.stack, spacing, origin);
+      // the model's labels were segmented from slice files of a known shape:
+      // another stack (a neighbouring block of the same size, the stack before
+      // a crop) would texture the surface with colours that are not its own
+      // and say nothing. An explicit --spacing says the stack is another
+      // sampling of the same body, and only its extent is checked then.
+      if (volume_n[0] > 0) {
+        const std::array<double, 3> got{static_cast<double>(st.nx), static_cast<double>(st.ny),
+                                        static_cast<double>(st.files.size())};
+        auto shape = [](const std::array<double, 3>& d) {
+          std::ostringstream s;
+          s << d[0] << " x " << d[1] << " px, " << d[2] << " slices";
+          return s.str();
+        };
+        if (a.spacing.empty() && stack_shape.size() == 3 &&
+            (got[0] != stack_shape[0] || got[1] != stack_shape[1] || got[2] != stack_shape[2]))
+          throw Error(a.stack, "has " + shape(got) + ", but " + a.model + "'s labels were segmented from " +
+                                   shape({stack_shape[0], stack_shape[1], stack_shape[2]}) +
+                                   " (/volume@stack_shape_voxels): not the stack segment read");
+        if (a.spacing.empty())
+          for (std::size_t k = 0; k < 3; ++k)
+            if (offset[k] + volume_n[k] > got[k])
+              throw Error(a.stack, "has " + shape(got) + ", but " + a.model + "'s labels reach its " +
+                                       std::string(k == 0 ? "column " : k == 1 ? "row " : "slice ") +
+                                       std::to_string(offset[k] + volume_n[k] - 1) + ": not the stack segment read");
+      }
       // a registered segmentation moved its slices: the texture's colours move with them
       if (!a.model.empty() && std::filesystem::exists(a.model)) {
         ModelReader m(a.model);

@@ -628,6 +628,10 @@ SegmentMetrics segment_stack(const SegmentFiles& files, const TissueTable& table
   // where the labels lie in the slice files (remesh's texture reads the files)
   const std::array<int, 3> off = roi_offset(opt);
   w.h5().set_attr(g, "stack_offset_voxels", std::vector<double>(off.begin(), off.end()));
+  // and what the slice files were: remesh's texture refuses another stack
+  w.h5().set_attr(g, "stack_shape_voxels", std::vector<double>{static_cast<double>(whole.nx),
+                                                               static_cast<double>(whole.ny),
+                                                               static_cast<double>(whole.nz)});
   w.h5().set_attr(g, "label_names", names);
   w.h5().set_attr(g, "label_inside", label_inside(table));
   if (opt.register_slices) {

@@ -205,6 +205,59 @@ TEST(RemeshCli, TextureFollowsTheSlicesOrderAndRegistration) {
   EXPECT_FALSE(fs::exists(f / "t_bad"));
 }
 
+// A texture baked from slice files that are not the ones segment read: the
+// surface wore another block's colours, exit 0, nothing said (a stack with
+// more slices or wider images than the labels' was taken as long as the
+// labels fit inside it). The model says the stack's shape; remesh compares.
+TEST(RemeshCli, TextureRefusesAStackThatIsNotTheSegmentedOne) {
+  Files f;
+  const int n = 80, nz = 101;
+  auto stack = [&](const std::string& dir, int w, int h, int slices) {
+    fs::create_directories(f / dir);
+    for (int k = 0; k < slices; ++k)
+      cv::imwrite(f / (dir + "/s" + std::to_string(k) + ".png"), cv::Mat(h, w, CV_8UC3, cv::Scalar(40, 80, 2 * k)));
+  };
+  stack("same", n, n, nz);
+  stack("longer", n, n, nz + 20);
+  stack("wider", n + 16, n, nz);
+  stack("shorter", n, n, 60);
+  auto model = [&](const std::string& name, bool with_shape, int offset) {
+    Volume v;
+    v.nx = v.ny = n - offset, v.nz = nz - offset;
+    v.spacing_m = {1e-3, 1e-3, 1e-3};
+    v.origin_m = {(-39.5 + offset) * 1e-3, (-39.5 + offset) * 1e-3, offset * 1e-3};
+    v.labels.assign(static_cast<std::size_t>(v.nx) * v.ny * v.nz, 0);
+    v.label_names = {"background", "skin"};
+    ModelWriter w(f / name, ModelWriter::Start::fresh);
+    w.write(v);
+    w.h5().set_attr("/volume", "stack_offset_voxels", std::vector<double>{1.0 * offset, 1.0 * offset, 1.0 * offset});
+    if (with_shape) w.h5().set_attr("/volume", "stack_shape_voxels", std::vector<double>{n, n, nz});
+    w.commit();
+  };
+  model("shaped.h5", true, 0);
+  model("old.h5", false, 10);  // a file from before the shape was kept: its extent is still checked
+  auto remesh = [&](const std::string& stack, const std::string& m, const std::string& out, const std::string& extra = "") {
+    return test::run_cli("remesh -q --surface " + f / "skin.stl" + " --grid 15x5 --out " + f / out + " --stack " +
+                         f / stack + " --texture --model " + f / m + extra);
+  };
+  expect_usage_error(remesh("longer", "shaped.h5", "t1"),
+                     "longer: has 80 x 80 px, 121 slices, but " + f / "shaped.h5" +
+                         "'s labels were segmented from 80 x 80 px, 101 slices (/volume@stack_shape_voxels)",
+                     f / "t1");
+  expect_usage_error(remesh("wider", "shaped.h5", "t2"), "wider: has 96 x 80 px, 101 slices", f / "t2");
+  expect_usage_error(remesh("shorter", "old.h5", "t3"), "old.h5's labels reach its slice 100: not the stack segment read",
+                     f / "t3");
+  // the model is not touched by a refusal either
+  EXPECT_FALSE(ModelReader(f / "shaped.h5").has("/quads"));
+  EXPECT_EQ(remesh("longer", "old.h5", "t4").code, 0);  // fits: all a file without the shape can tell
+  // an explicit --spacing: another sampling of the body, the shapes differ by design
+  EXPECT_EQ(remesh("wider", "shaped.h5", "t5", " --spacing 1,1,1").code, 0);
+  const auto r = remesh("same", "shaped.h5", "ok");
+  EXPECT_EQ(r.code, 0) << r.err;
+  EXPECT_TRUE(fs::exists(f / "ok/skin_texture.png"));
+  EXPECT_TRUE(ModelReader(f / "shaped.h5").has("/quads"));
+}
+
 // Layers whose cap planes coincide, tilted: every cap vertex of the inner one
 // lies on the outer's cap but for the float32 rounding of the STL (2e-12 m at
 // 0.5 degrees), and the exact containment test called it outside ("not

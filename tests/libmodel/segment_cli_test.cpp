@@ -491,6 +491,7 @@ TEST(SegmentCli, ARegionOfInterestIsCutFromTheStackAndPlacedInIt) {
   EXPECT_NEAR(v.origin_m[1], 6e-3, 1e-12);  // 2 mm + 4 px of 1 mm
   EXPECT_NEAR(v.origin_m[2], 7e-3, 1e-12);  // 3 mm + 2 slices of 2 mm
   EXPECT_EQ(m.h5().attr_doubles("/volume", "stack_offset_voxels"), (std::vector<double>{6, 4, 2}));
+  EXPECT_EQ(m.h5().attr_doubles("/volume", "stack_shape_voxels"), (std::vector<double>{64, 64, 12}));
   const auto rep = nlohmann::json::parse(test::read_file(d / "r.json"));
   EXPECT_EQ(rep["metrics"]["size"], nlohmann::json({52, 56, 8}));
   EXPECT_EQ(rep["metrics"]["stack_size"], nlohmann::json({64, 64, 12}));
