@@ -43,20 +43,19 @@ struct Blade {
   std::vector<std::array<Vec3, 3>> tris;
   std::vector<std::array<bool, 2>> open;  // per triangle: edge a c, edge b c
   Box box;
-  // touch: an end on the blade counts too (both sides' columns of a slit through nodes)
-  bool crosses(const Vec3& p, const Vec3& q, Real* t = nullptr, bool touch = false) const {
+  bool crosses(const Vec3& p, const Vec3& q, Real* t = nullptr) const {
     if (box.misses(p, q)) return false;
     for (std::size_t i = 0; i < tris.size(); ++i)
-      if (runtime::crosses(p, q, tris[i][0], tris[i][1], tris[i][2], t, open[i][0], open[i][1], touch)) return true;
+      if (runtime::crosses(p, q, tris[i][0], tris[i][1], tris[i][2], t, open[i][0], open[i][1])) return true;
     return false;
   }
-  bool touches(const Vec3& p, const Vec3& q) const { return crosses(p, q, nullptr, true); }
   // a segment between two nodes, each end within its snap distance (m) of a
-  // triangle's plane counting as on it (CutDef::node_snap)
-  bool severs(const Vec3& p, const Vec3& q, Real snap_p, Real snap_q) const {
+  // triangle's plane counting as on it (CutDef::node_snap); touch: an end on
+  // the blade counts too (both sides' columns of a slit through nodes)
+  bool severs(const Vec3& p, const Vec3& q, Real snap_p, Real snap_q, bool touch = false) const {
     if (box.misses(p, q, std::max(snap_p, snap_q))) return false;  // an end snapped onto the blade may lie outside its box
     for (std::size_t i = 0; i < tris.size(); ++i)
-      if (runtime::crosses(p, q, tris[i][0], tris[i][1], tris[i][2], nullptr, open[i][0], open[i][1], false, snap_p, snap_q))
+      if (runtime::crosses(p, q, tris[i][0], tris[i][1], tris[i][2], nullptr, open[i][0], open[i][1], touch, snap_p, snap_q))
         return true;
     return false;
   }
@@ -494,8 +493,8 @@ CutReport cut_model(Model& m, std::span<const Real> x, const CutDef& def, WoundC
   std::vector<Real> snap(static_cast<std::size_t>(m.n_nodes), 0);
   if (m.shortest_spring.size() == snap.size())
     for (std::size_t i = 0; i < snap.size(); ++i) snap[i] = def.node_snap * m.shortest_spring[i];
-  auto severs = [&](std::int32_t i, std::int32_t j) {
-    return blade.severs(pos(i), pos(j), snap[static_cast<std::size_t>(i)], snap[static_cast<std::size_t>(j)]);
+  auto severs = [&](std::int32_t i, std::int32_t j, bool touch = false) {
+    return blade.severs(pos(i), pos(j), snap[static_cast<std::size_t>(i)], snap[static_cast<std::size_t>(j)], touch);
   };
 
   // springs
@@ -594,19 +593,21 @@ CutReport cut_model(Model& m, std::span<const Real> x, const CutDef& def, WoundC
       for (std::int32_t k = 0; k < nq; ++k) {
         std::uint8_t& o = w.open[static_cast<std::size_t>(l) * nq + k];
         if (o) continue;
-        std::array<Vec3, 4> t, b;
-        column_corners(w, l, k, pos, t, b);
+        std::array<std::int32_t, 4> t, b;
+        for (int c = 0; c < 4; ++c) t[c] = w.corner(l, k, c), b[c] = w.corner(l + 1, k, c);
         // touches: a slit along the face between two columns (a blade through
         // their shared nodes) opens both to the blood, though only one side's
         // springs and quads go: the vessel's emitter lies on the slit, and
         // with one column open half its jet ran into the closed one's walls
-        // (1 ms after the cut its fastest particle was 6 % past the Bernoulli speed)
-        bool crossed = blade.touches(t[0], t[2]) || blade.touches(t[1], t[3]) || blade.touches(b[0], b[2]) ||
-                       blade.touches(b[1], b[3]);
+        // (1 ms after the cut its fastest particle was 6 % past the Bernoulli speed).
+        // Nodes within their snap distance of the blade are on it here as for
+        // the springs (a blade 0.1 quad off a grid line opened one side only)
+        auto touches = [&](std::int32_t i, std::int32_t j) { return severs(i, j, true); };
+        bool crossed = touches(t[0], t[2]) || touches(t[1], t[3]) || touches(b[0], b[2]) || touches(b[1], b[3]);
         for (int c = 0; c < 4 && !crossed; ++c) {
           const int d = (c + 1) % 4;
-          crossed = blade.touches(t[c], t[d]) || blade.touches(b[c], b[d]) || blade.touches(t[c], b[c]) ||
-                    blade.touches(t[c], b[d]) || blade.touches(t[d], b[c]);
+          crossed = touches(t[c], t[d]) || touches(b[c], b[d]) || touches(t[c], b[c]) || touches(t[c], b[d]) ||
+                    touches(t[d], b[c]);
         }
         if (crossed) o = 1, ++rep.columns_opened;
       }

@@ -195,7 +195,7 @@ TEST(Cut, ABladeThroughNodesOpensOneColumn) {
     WoundColumns w = wound_columns(m);
     return cut_model(m, std::vector<Real>(m.rest_x), d, &w);
   };
-  Model between = block(15, 5, 4), through = block(15, 5, 4);
+  Model between = block(15, 5, 4), through = block(15, 5, 4), near = block(15, 5, 4);
   const Model before = through;
   const CutReport rb = cut_at(7.5 * h, between), rt = cut_at(7 * h, through);
   std::printf("  between node columns: %d springs, %d quads; through one: %d springs, %d quads, %zu nodes detached\n",
@@ -204,6 +204,14 @@ TEST(Cut, ABladeThroughNodesOpensOneColumn) {
   EXPECT_EQ(rt.quads_removed, rb.quads_removed);
   EXPECT_GT(rb.columns_opened, 0);
   EXPECT_EQ(rt.columns_opened, 2 * rb.columns_opened);
+  // 2 % of a quad off the node column, within the nodes' snap distance: the
+  // springs and quads are those of the blade through them, and so are the
+  // columns opened to the blood (they were the one side's only: the open
+  // columns looked at the exact blade, the springs at the snapped one)
+  const CutReport rn = cut_at(7.02 * h, near);
+  EXPECT_EQ(spring_pairs(near), spring_pairs(through));
+  EXPECT_EQ(rn.quads_removed, rt.quads_removed);
+  EXPECT_EQ(rn.columns_opened, rt.columns_opened);
   // the springs of the nodes on the blade: cut towards one side only
   const Real xc = 7 * h;
   const auto kept = spring_pairs(through);
