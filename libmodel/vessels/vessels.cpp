@@ -1,5 +1,6 @@
 // extract_vessels: the stage, from the label volume to the VesselTree, and
 // its options and metrics.
+#include "libmodel/surface/surface.h"
 #include "libmodel/vessels/detail.h"
 
 #include <nlohmann/json.hpp>
@@ -196,7 +197,7 @@ VesselResult extract_vessels(const Volume& v, const std::string& tissue, const V
   M.tube_manifold = mc.manifold();
   M.tube_oriented = mc.oriented();
   M.tube_components = mc.components;
-  if (o.check_self_intersections) M.self_intersections = static_cast<int>(count_self_intersections(tube_triangles(res.tree)));
+  if (o.check_self_intersections) M.self_intersections = static_cast<int>(surface_self_intersections(tube_triangles(res.tree)));
   {
     std::vector<Eigen::Index> keep;
     for (Eigen::Index i = 0; i < res.tree.tube_vertices.rows(); ++i)

@@ -189,10 +189,6 @@ MeshCheck check_mesh(const MatX3d& vertices, const MatX4i& quads, const MatX3i& 
 // The tube mesh of a tree as triangles (each quad split along its shorter diagonal).
 Surface tube_triangles(const VesselTree& t);
 
-// Intersecting pairs of non-adjacent triangles (CGAL Polygon_mesh_processing).
-// 0 for a surface free of self-intersections.
-std::int64_t count_self_intersections(const Surface& s);
-
 // Distance (m) from each point to the voxel boundary of `label` in `v` (the
 // squares between a voxel of the label and a 6-neighbour of another label).
 // Points farther than max_m get max_m.

@@ -1,10 +1,10 @@
 // The only CGAL in libmodel/vessels: the mean-curvature-flow skeleton peer of
-// the benchmark and the self-intersection count of the tube mesh.
+// the benchmark (the tube mesh's self-intersection count is the surface
+// stage's surface_self_intersections).
 #include "libmodel/vessels/vessels.h"
 
 #include <CGAL/Exact_predicates_inexact_constructions_kernel.h>
 #include <CGAL/Mean_curvature_flow_skeletonization.h>
-#include <CGAL/Polygon_mesh_processing/self_intersections.h>
 #include <CGAL/Simple_cartesian.h>
 #include <CGAL/Surface_mesh.h>
 #include <CGAL/boost/graph/helpers.h>
@@ -32,15 +32,6 @@ Mesh to_mesh(const Surface& s, const char* what) {
 }
 
 }  // namespace
-
-std::int64_t count_self_intersections(const Surface& s) {
-  using K = CGAL::Exact_predicates_inexact_constructions_kernel;
-  using Mesh = CGAL::Surface_mesh<K::Point_3>;
-  const Mesh m = to_mesh<Mesh>(s, "self-intersection test");
-  std::vector<std::pair<Mesh::Face_index, Mesh::Face_index>> pairs;
-  CGAL::Polygon_mesh_processing::self_intersections(faces(m), m, std::back_inserter(pairs));
-  return static_cast<std::int64_t>(pairs.size());
-}
 
 SkeletonGraph cgal_mcf_skeleton(const Surface& s) {
   using K = CGAL::Simple_cartesian<double>;
