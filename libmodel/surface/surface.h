@@ -246,6 +246,7 @@ struct NestingResult {
   std::int64_t moved_again = 0;    // extra moves of vertices the first move carried through a shell thinner than the clearance
   std::int64_t still_outside = 0;  // vertices outside outer after (0 unless outer is very thin there)
   std::int64_t on_cap = 0;         // left on a border cap they share with outer (coplanar flat caps)
+  std::int64_t cap_lookups = 0;    // of the vertex tests (the untangling's included), those a cap face lookup settled
   std::int64_t folds = 0;          // intersecting face pairs after the moves (near moved vertices, and with cap_folds near inner's caps)
   int untangle_rounds = 0;         // rounds of relaxing them (each: relax, keep inside, test again)
   std::int64_t folds_left = 0;     // intersecting pairs near relaxed vertices after them (0 unless 20 rounds, or 3 without progress, did not do)
@@ -278,8 +279,14 @@ NestingResult enforce_nesting(Surface& inner, const Surface& outer, double clear
 // and the distance queries' search tree, its cap faces: most of the cost on
 // large surfaces) and shared by every tissue nested in it, read-only, from
 // several threads at once.
+// A vertex of inner lying exactly in one of outer's cap planes, on a face
+// of outer exactly in that plane, is found there by a lookup on a grid of
+// those faces instead of the queries (which fall back to exact arithmetic for
+// such points); the result is the same. cap_lookup = false: every vertex
+// takes the queries (the reference the lookup is tested against).
 struct NestingIndex;
-std::shared_ptr<const NestingIndex> make_nesting_index(const Surface& outer, const std::vector<CapPlane>& caps = {});
+std::shared_ptr<const NestingIndex> make_nesting_index(const Surface& outer, const std::vector<CapPlane>& caps = {},
+                                                       bool cap_lookup = true);
 NestingResult enforce_nesting(Surface& inner, const NestingIndex& outer, double clearance_m, bool cap_folds = true);
 
 // Untangles an outermost surface (one no nesting moves: the skin): the
