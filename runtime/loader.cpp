@@ -102,6 +102,12 @@ Model load_model(const ModelReader& r, const LoadRequest& req) {
         if (!loaded(l.lin_springs(s, k))) far_ends.insert(l.lin_springs(s, k));
     src.layers.emplace_back(name, std::move(l));
   }
+  // the layers' stacking (0 outermost): the wound's columns and the report follow it
+  for (std::size_t i = 0; i < src.layers.size(); ++i)
+    for (std::size_t j = i + 1; j < src.layers.size(); ++j)
+      if (src.layers[i].second.order == src.layers[j].second.order)
+        throw Error(path, "layers '" + src.layers[i].first + "' and '" + src.layers[j].first + "' have the same order " +
+                              std::to_string(src.layers[i].second.order));
 
   // springs of other layers that reach the loaded nodes
   if (req.couple_unloaded) {

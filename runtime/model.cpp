@@ -279,6 +279,9 @@ void append_springs(const Layer& l, const std::string& file, const std::string& 
       throw Error(file, what + ": linear spring " + std::to_string(s) + " has an invalid rest length (negative, non-finite or beyond 1e6 m)");
     if (!finite_nonneg(k)) throw Error(file, what + ": linear spring " + std::to_string(s) + " has a negative or non-finite stiffness");
     if (!finite_nonneg(c)) throw Error(file, what + ": linear spring " + std::to_string(s) + " has a negative or non-finite damping");
+    if (l.lin_slack[s] > 1)
+      throw Error(file, what + ": linear spring " + std::to_string(s) + " has lin_slack " + std::to_string(l.lin_slack[s]) +
+                            " (0: always acts, 1: acts when longer than its rest length)");
     m.spring_a.push_back(a);
     m.spring_b.push_back(b);
     m.spring_rest.push_back(rest);

@@ -231,7 +231,11 @@ namespace {
 void read_layer_attrs(const h5::File& f, const std::string& g, Layer& l) {
   l.tissue = f.attr_string(g, "tissue");
   l.kind = f.attr_string(g, "kind");
-  l.order = static_cast<int>(f.attr_int(g, "order"));
+  if (l.kind != "tetra" && l.kind != "lattice" && l.kind != "rigid")
+    throw Error(f.path(), g + ": attribute kind must be tetra, lattice or rigid, not '" + l.kind + "'");
+  const std::int64_t order = f.attr_int(g, "order");
+  if (order < 0 || order > 1000000) throw Error(f.path(), g + ": attribute order must be in 0..1000000, not " + std::to_string(order));
+  l.order = static_cast<int>(order);
   l.node_offset = f.attr_int(g, "node_offset");
   if (f.has_attr(g, "spring_law")) {
     l.spring_law = f.attr_doubles(g, "spring_law");

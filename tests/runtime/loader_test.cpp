@@ -268,6 +268,32 @@ TEST_F(LoaderTest, InvalidSpringDataIsRejected) {
   }
 }
 
+// Found by corrupting the demo's model one field at a time (2026-11-28):
+// these three loaded and ran, exit 0. A lin_slack of 7 acted as 1; a layer
+// kind no reader knows and two layers stacked at one order were taken as
+// they came (the wound's columns follow the order).
+TEST_F(LoaderTest, SlackKindAndOrderAreChecked) {
+  auto refused = [&](const char* name, auto&& spoil, const std::string& want) {
+    auto bad = block;
+    spoil(bad);
+    const std::string f2 = dir / name;
+    write_model_file(f2, bad);
+    expect_load_refused(f2, f2 + ": ");
+    expect_load_refused(f2, want);
+  };
+  const std::string g = "/layers/" + block.layers[1].first + ": ";
+  refused("slack.h5", [](auto& b) { b.layers[1].second.lin_slack[3] = 7; },
+          g + "linear spring 3 has lin_slack 7 (0: always acts, 1: acts when longer than its rest length)");
+  refused("kind.h5", [](auto& b) { b.layers[1].second.kind = "jelly"; },
+          g + "attribute kind must be tetra, lattice or rigid, not 'jelly'");
+  refused("order.h5", [](auto& b) { b.layers[2].second.order = b.layers[1].second.order; },
+          "have the same order");
+  refused("negative_order.h5", [](auto& b) { b.layers[2].second.order = -1; }, "attribute order must be in 0..1000000, not -1");
+  // the block as written loads (the spoils above are what is refused)
+  ModelReader r(file);
+  EXPECT_NO_THROW(load_model(r, LoadRequest{}));
+}
+
 // Finite but absurd: a node at 1e300 m or a rest length of 1e300 m (their
 // squares overflow) made every step non-finite and wrote inf strains into the
 // series; refused naming the file, the layer and the node or spring.
