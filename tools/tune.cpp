@@ -118,10 +118,14 @@ struct Job {
 // The tissue's built layer and the one below it (its bottom grid).
 void find_layer(const ModelReader& m, Job& job) {
   std::map<int, std::pair<std::string, Layer>> by_order;
+  std::int64_t n_global = 0;  // node ids are global: a layer's springs may end on its neighbours'
   for (const auto& name : m.names("/layers")) {
     if (!m.h5().is_group("/layers/" + name) || name == "sets") continue;
     Layer l = m.layer_fields(name, {"nodes"});
     const int order = l.order;
+    n_global = std::max(n_global, l.node_offset + static_cast<std::int64_t>(l.nodes.rows()));
+    if (const auto seen = by_order.find(order); seen != by_order.end())
+      throw Error(m.path(), "layers '" + seen->second.first + "' and '" + name + "' have the same order " + std::to_string(order));
     by_order[order] = {name, std::move(l)};
   }
   for (const auto& [order, named] : by_order) {
@@ -134,6 +138,10 @@ void find_layer(const ModelReader& m, Job& job) {
       throw Error(m.path(), "layer '" + named.first + "' has no layer below it to give its thickness");
     job.layer_name = named.first;
     job.layer = m.layer(named.first);
+    // tune rewrites these springs: a corrupt end would be written back as it came
+    const std::string g = "/layers/" + named.first;
+    check_index_range(job.layer.springs, n_global, m.path(), g + "/springs");
+    check_index_range(job.layer.lin_springs, n_global, m.path(), g + "/lin_springs");
     // the specimen's cells as the build made the layer's (a specimen without
     // the body diagonals measured another rule than the layer's)
     tune::ExperimentOptions defaults;

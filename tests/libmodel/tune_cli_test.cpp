@@ -13,6 +13,7 @@
 #include <cmath>
 #include <cstdlib>
 #include <filesystem>
+#include <functional>
 #include <map>
 
 using namespace orthosim;
@@ -532,6 +533,37 @@ TEST(TuneCli, ANonFiniteSpringIsRefused) {
     EXPECT_EQ(test::count_lines(r.err), 1) << r.err;
     EXPECT_NE(r.err.find(bad + ": layer 'skin': spring 5 has a non-finite " + field), std::string::npos) << r.err;
     EXPECT_EQ(test::read_file(bad), before) << field;
+  }
+}
+
+// Found by corrupting a model one field at a time (2026-11-28): a spring
+// ending on no node was tuned and written back as it came, exit 0; two layers
+// at one order left one of them out of the stack tune reads the layer below from.
+TEST(TuneCli, ASpringEndingOnNoNodeAndTwoLayersAtOneOrderAreRefused) {
+  test::TempDir d("tune-cli-ends");
+  const std::string model = cylinders(d, "m.h5", 15, 5);
+  ASSERT_EQ(test::run_cli("build --model " + model + " --tissues " + kTable + " --quiet").code, 0);
+  auto spoiled = [&](const std::string& name, const std::function<void(Layer&)>& spoil) {
+    const std::string bad = d / name;
+    fs::copy_file(model, bad, fs::copy_options::overwrite_existing);
+    ModelWriter w(bad, ModelWriter::Start::update);
+    Layer l = ModelReader(model).layer("fat");
+    spoil(l);
+    w.remove("/layers/fat");
+    w.write_layer("fat", l);
+    w.commit();
+    return bad;
+  };
+  const std::string far = spoiled("far.h5", [](Layer& l) { l.springs(5, 1) = 99999; });
+  const std::string twice = spoiled("twice.h5", [](Layer& l) { l.order = 0; });  // the skin's
+  for (const auto& [bad, needle] : {std::pair<std::string, std::string>{far, "/layers/fat/springs has index 99999 outside [0, "},
+                                    {twice, "layers 'fat' and 'skin' have the same order 0"}}) {
+    const std::string before = test::read_file(bad);
+    const auto r = test::run_cli("tune --tissues " + kTable + " --model " + bad + " --max-evaluations 20");
+    EXPECT_EQ(r.code, 2) << r.err;
+    EXPECT_EQ(test::count_lines(r.err), 1) << r.err;
+    EXPECT_NE(r.err.find(bad + ": " + needle), std::string::npos) << r.err;
+    EXPECT_EQ(test::read_file(bad), before);
   }
 }
 
