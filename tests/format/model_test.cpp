@@ -46,6 +46,13 @@ template <class S> S filled() {
   return s;
 }
 
+// a layer of random rows whose kind a reader knows
+Layer filled_layer() {
+  auto l = filled<Layer>();
+  l.kind = "lattice";
+  return l;
+}
+
 Volume small_volume() {
   Volume v;
   v.nx = 4;
@@ -69,6 +76,7 @@ TEST(ModelFile, EveryGroupRoundTrips) {
   auto quads = filled<QuadSurface>();
   quads.nu = 1;
   quads.nv = static_cast<int>(quads.vertices.rows());
+  quads.uv = quads.uv.cwiseMin(1.0);  // texture coordinates lie in [0, 1]
   auto layer = filled<Layer>();
   layer.tissue = "fat";
   layer.kind = "lattice";
@@ -142,7 +150,7 @@ TEST(ModelFile, LazyReadTouchesOnlyWhatIsAsked) {
   {
     ModelWriter w(p, ModelWriter::Start::fresh);
     w.write(small_volume());
-    w.write_layer("skin", filled<Layer>());
+    w.write_layer("skin", filled_layer());
     w.write("artery", filled<VesselTree>());
     w.commit();
   }
@@ -200,7 +208,7 @@ TEST(ModelFile, FailedWriteLeavesExistingFileUntouched) {
 
 TEST(ModelFile, CountMismatchIsRejectedOnWrite) {
   test::TempDir dir("model");
-  Layer l = filled<Layer>();
+  Layer l = filled_layer();
   l.masses.resize(l.nodes.rows() + 1);
   ModelWriter w(dir / "m.h5", ModelWriter::Start::fresh);
   try {
@@ -217,7 +225,7 @@ TEST(ModelFile, BadFilesFailWithClearMessages) {
   {
     ModelWriter w(good, ModelWriter::Start::fresh);
     w.write(small_volume());
-    w.write_layer("skin", filled<Layer>());
+    w.write_layer("skin", filled_layer());
     w.commit();
   }
   auto expect_error = [](const std::function<void()>& f, const std::string& needle) {
@@ -268,6 +276,23 @@ TEST(ModelFile, BadFilesFailWithClearMessages) {
   expect_error([&] { broken.layer("fat"); }, "missing group /layers/fat");
   ModelReader ok(good);
   expect_error([&] { ok.vessels("artery"); }, "missing group");
+  // values no writer makes (a corrupted model's, 2026-11-28): read as they came before
+  std::filesystem::copy_file(good, dir / "values.h5");
+  {
+    ModelWriter w(dir / "values.h5", ModelWriter::Start::update);
+    auto q = filled<QuadSurface>();
+    q.nu = 1, q.nv = static_cast<int>(q.vertices.rows());
+    q.uv = q.uv.cwiseMin(1.0);
+    q.uv(2, 1) = -0.5;
+    w.write("skin", q);
+    auto l = filled_layer();
+    l.kind = "jelly";
+    w.write_layer("fat", l);
+    w.commit();
+  }
+  ModelReader values(dir / "values.h5");
+  expect_error([&] { values.quads("skin"); }, "/quads/skin/uv: vertex 2 has a texture coordinate outside [0, 1] (-0.5");
+  expect_error([&] { values.layer("fat"); }, "/layers/fat: attribute kind must be tetra, lattice or rigid, not 'jelly'");
 }
 
 // Every label with voxels needs a name: surface crashed (SIGSEGV, after its
