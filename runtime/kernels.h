@@ -62,10 +62,6 @@ inline SpringForce spring_force_elastic(const Vec3& d, Real rest, Real k, bool t
   return spring_force(d, Vec3{}, rest, k, 0, tension_only);
 }
 
-inline Vec3 cross(const Vec3& a, const Vec3& b) {
-  return {a.y * b.z - a.z * b.y, a.z * b.x - a.x * b.z, a.x * b.y - a.y * b.x};
-}
-
 // A tetrahedron's signed volume V = det[b-a, c-a, d-a] / 6 and its gradient
 // dV/dx of corners a, b, c, d (m^2; they sum to zero).
 struct TetGradient {

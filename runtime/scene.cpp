@@ -2,6 +2,7 @@
 
 #include "libmodel/format/atomic.h"
 #include "libmodel/format/json.h"
+#include "libmodel/format/stl.h"
 #include "runtime/loader.h"
 #include "runtime/sph_surface.h"
 
@@ -173,6 +174,47 @@ std::array<Real, 3> unit_direction(std::array<Real, 3> d) {
   const Real n = std::sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]);
   for (auto& x : d) x /= n;
   return d;
+}
+
+ColliderDef parse_collider(const json& j, std::size_t index, const std::string& file, const std::string& base,
+                           const WallParams& wall) {
+  const std::string where = "fluid: colliders[" + std::to_string(index) + "]: ";
+  Obj o(j, where, file);
+  ColliderDef c;
+  c.name = o.string("name", "collider " + std::to_string(index));
+  const std::string type = o.string("type", "", true);
+  if (type == "plane") c.kind = ColliderDef::Kind::plane;
+  else if (type == "mesh") c.kind = ColliderDef::Kind::mesh;
+  else o.fail("type must be plane or mesh (got '" + type + "')");
+  auto only = [&](const char* key, const char* kind) {
+    if (o.has(key)) o.fail(std::string(key) + " is a " + kind + " collider's key (this one is a " + type + ")");
+  };
+  if (c.kind == ColliderDef::Kind::plane) {
+    for (const char* k : {"stl", "units", "two_sided"}) only(k, "mesh");
+    if (o.has("point") == o.has("point_in_box")) o.fail("a plane needs point or point_in_box (one of them)");
+    c.point_relative = o.has("point_in_box");
+    c.point = o.vec3(c.point_relative ? "point_in_box" : "point", {});
+    if (c.point_relative)
+      for (Real f : c.point)
+        if (f < 0 || f > 1) o.fail("point_in_box fractions must be in [0, 1]");
+    if (!o.has("normal")) o.fail("a plane needs a normal");
+    c.normal = unit_direction(o.vec3("normal", {}));
+    if (c.normal == std::array<Real, 3>{0, 0, 0}) o.fail("normal must not be zero");
+  } else {
+    for (const char* k : {"point", "point_in_box", "normal"}) only(k, "plane");
+    c.stl = resolve(base, o.string("stl", "", true));
+    const std::string units = o.string("units", "m");
+    if (units == "m") c.scale = 1;
+    else if (units == "mm") c.scale = 1e-3;
+    else o.fail("units must be m or mm (got '" + units + "')");
+    c.two_sided = o.boolean("two_sided", false);
+  }
+  c.wall = wall;  // the fluid's restitution and friction, unless the collider has its own
+  c.wall.restitution = o.number("restitution", c.wall.restitution, 0, 1);
+  c.wall.friction = o.number("friction", c.wall.friction, 0, 1e3);
+  c.wall.slip = o.boolean("slip", c.wall.slip);
+  o.finish();
+  return c;
 }
 
 ToolDef parse_tool(const json& j, std::size_t index, const std::string& file) {
@@ -365,6 +407,15 @@ SceneDef parse_scene(const std::string& text, const std::string& file) {
     fd.particles = f.boolean("particles", fd.particles);
     fd.surface_cell = f.number("surface_cell", fd.surface_cell, 0.1, 2);  // (sph_surface.h: no detail finer)
     fd.surface_volume_passes = static_cast<int>(f.integer("surface_volume_passes", fd.surface_volume_passes, 0, 64));
+    if (f.has("colliders")) {
+      const json& c = f.at("colliders");
+      if (!c.is_array()) f.fail("colliders must be a list");
+      for (std::size_t i = 0; i < c.size(); ++i) {
+        fd.colliders.push_back(parse_collider(c[i], i, file, base, fd.tissue_wall));
+        for (std::size_t k = 0; k < i; ++k)
+          if (fd.colliders[k].name == fd.colliders[i].name) f.fail("colliders: '" + fd.colliders[i].name + "' is named twice");
+      }
+    }
     f.finish();
   }
   d.fixed = o.strings("fixed");
@@ -718,13 +769,14 @@ void Scene::init(const std::string& model_file) {
     remove_series_frames(dir, name + "_", ".vtu", name + ".pvd");
     remove_series_frames(dir, name + "_blood_", ".vtp", name + "_blood.pvd");
     remove_series_frames(dir, name + "_particles_", ".vtp", name + "_particles.pvd");
-    for (const char* once : {"_vessels.vtp", "_centrelines.vtp"}) {
+    for (const char* once : {"_vessels.vtp", "_centrelines.vtp", "_colliders.vtp"}) {
       const fs::path p = fs::path(dir) / (name + once);
       if (fs::is_regular_file(p, ec) && !fs::remove(p, ec) && ec)
         throw Error(p.string(), "cannot remove a file of an earlier run: " + ec.message());
     }
     vtk_ = std::make_unique<VtkSeries>(m, def_.output.dir, def_.output.name, def_.output.vtk);
     write_vessels();
+    write_colliders();
   }
   user_force_.assign(3 * static_cast<std::size_t>(m.n_nodes), 0);
   arena_ = std::make_unique<Arena>(def_.threads);
@@ -820,6 +872,34 @@ void Scene::init_fluid() {
     for (int k = 1; k < 3; ++k)
       if (std::abs(p.gravity[k]) > std::abs(p.gravity[axis])) axis = k;
     if (p.gravity[axis] != 0) fr.bounds.faces[static_cast<std::size_t>(2 * axis + (p.gravity[axis] < 0 ? 1 : 0))] = Face::open;
+  }
+  // the scene's static walls
+  for (const ColliderDef& c : fd.colliders) {
+    const std::string what = "fluid: collider '" + c.name + "': ";
+    try {
+      if (c.kind == ColliderDef::Kind::plane) {
+        FluidPlane pl;
+        pl.point = c.point;
+        if (c.point_relative)
+          pl.point = {lo.x + c.point[0] * (hi.x - lo.x), lo.y + c.point[1] * (hi.y - lo.y), lo.z + c.point[2] * (hi.z - lo.z)};
+        pl.normal = c.normal;
+        pl.wall = c.wall;
+        add_plane(fr.bounds, pl);
+      } else {
+        const Surface s = read_stl(c.stl);  // its errors name the STL file
+        FluidMesh mesh;
+        mesh.vertices.resize(3 * static_cast<std::size_t>(s.vertices.rows()));
+        for (Eigen::Index i = 0; i < s.vertices.rows(); ++i)
+          for (int k = 0; k < 3; ++k) mesh.vertices[3 * static_cast<std::size_t>(i) + k] = c.scale * s.vertices(i, k);
+        mesh.triangles.assign(s.faces.data(), s.faces.data() + s.faces.size());  // (row-major n x 3)
+        mesh.wall = c.wall;
+        mesh.two_sided = c.two_sided;
+        add_mesh(fr.bounds, std::move(mesh), fr.fluid);
+      }
+    } catch (const Error& e) {
+      if (!e.file().empty()) throw;
+      throw Error(def_.file, what + e.message());
+    }
   }
   try {
     validate(fr.bounds, fr.fluid);
@@ -929,6 +1009,53 @@ void Scene::write_vessels() {
   }
   write_vtp(base + "_centrelines.vtp", pts, {}, {VtpArray{"radius", 1, radius}}, def_.output.vtk.binary);
   if (!tri.empty()) write_vtp(base + "_vessels.vtp", tube, tri, {}, def_.output.vtk.binary);
+}
+
+void Scene::write_colliders() {
+  if (!fluid_ || (fluid_->bounds.planes.empty() && fluid_->bounds.meshes.empty())) return;
+  const FluidBoundaries& b = fluid_->bounds;
+  std::vector<double> pts;
+  std::vector<std::int32_t> tri;
+  for (const FluidMesh& mesh : b.meshes) {
+    const auto off = static_cast<std::int32_t>(pts.size() / 3);
+    pts.insert(pts.end(), mesh.vertices.begin(), mesh.vertices.end());
+    for (auto i : mesh.triangles) tri.push_back(off + i);
+  }
+  // a plane, as the polygon it cuts from the domain box: the crossings of the
+  // box's 12 edges, in order around their centroid, as a triangle fan
+  for (const FluidPlane& pl : b.planes) {
+    const Vec3 n{pl.normal[0], pl.normal[1], pl.normal[2]}, p0{pl.point[0], pl.point[1], pl.point[2]};
+    auto corner = [&](int c) { return Vec3{c & 1 ? b.hi[0] : b.lo[0], c & 2 ? b.hi[1] : b.lo[1], c & 4 ? b.hi[2] : b.lo[2]}; };
+    std::vector<Vec3> poly;
+    for (int c = 0; c < 8; ++c)
+      for (int k = 0; k < 3; ++k) {
+        if (c & (1 << k)) continue;  // each edge once, from its low corner
+        const Vec3 a = corner(c), e = corner(c | (1 << k));
+        const Real da = dot(n, a - p0), de = dot(n, e - p0);
+        if ((da < 0) == (de < 0) && da != 0) continue;
+        if (da == de) continue;  // the edge lies in the plane: its ends are other edges' crossings
+        poly.push_back(a + (da / (da - de)) * (e - a));
+      }
+    // a plane through a corner crosses its three edges there: one point
+    const Real tiny = 1e-12 * (std::abs(b.hi[0] - b.lo[0]) + std::abs(b.hi[1] - b.lo[1]) + std::abs(b.hi[2] - b.lo[2]));
+    std::vector<Vec3> distinct;
+    for (const Vec3& q : poly)
+      if (std::none_of(distinct.begin(), distinct.end(), [&](const Vec3& d) { return norm(d - q) <= tiny; })) distinct.push_back(q);
+    poly = std::move(distinct);
+    if (poly.size() < 3) continue;  // the plane misses the domain (or touches it at an edge)
+    Vec3 c{0, 0, 0};
+    for (const Vec3& q : poly) c = c + q;
+    c = (1.0 / static_cast<Real>(poly.size())) * c;
+    const Vec3 u0 = poly[0] - c, v0 = cross(n, u0);
+    std::sort(poly.begin(), poly.end(), [&](const Vec3& a, const Vec3& q) {
+      return std::atan2(dot(a - c, v0), dot(a - c, u0)) < std::atan2(dot(q - c, v0), dot(q - c, u0));
+    });
+    const auto off = static_cast<std::int32_t>(pts.size() / 3);
+    for (const Vec3& q : poly) pts.insert(pts.end(), {q.x, q.y, q.z});
+    for (std::int32_t i = 1; i + 1 < static_cast<std::int32_t>(poly.size()); ++i) tri.insert(tri.end(), {off, off + i, off + i + 1});
+  }
+  if (!tri.empty())
+    write_vtp(def_.output.dir + "/" + def_.output.name + "_colliders.vtp", pts, tri, {}, def_.output.vtk.binary);
 }
 
 void Scene::write_fluid_frame() {

@@ -95,6 +95,31 @@ struct ToolDef {
 // the wound (against the blade direction) with the Poiseuille flow of the
 // vessel's radius (bleeding_flow_rate: Poiseuille, capped by the orifice) and
 // the exit profile of the limit that binds (bleeding_profile).
+// A static wall of the blood (issue 9's "static collision meshes"): an
+// operating table, a tray, a retractor blade, a bone taken as rigid. The blood
+// collides with it (the wall integrals, restitution and friction, as on the
+// tissue); it does not move, and nothing pushes back on it.
+struct ColliderDef {
+  enum class Kind { plane, mesh };
+  std::string name;
+  Kind kind = Kind::plane;
+  // plane: the half-space normal . (x - point) >= 0 holds the blood; with
+  // point_relative, point is fractions of the loaded nodes' rest bounding box
+  // (as a drain's center_in_box), so the scene fits other models
+  std::array<Real, 3> point{0, 0, 0};
+  bool point_relative = false;
+  std::array<Real, 3> normal{0, 1, 0};
+  // mesh: a binary or ASCII STL file (resolved against the scene file), its
+  // coordinates times `scale` metres in the model's frame (1: metres, as
+  // orthosim surface writes them; 1e-3: millimetres). One-sided meshes keep
+  // the blood on the side of the outward (counter-clockwise) normal,
+  // two-sided ones each particle on the side it came from.
+  std::string stl;
+  Real scale = 1;
+  bool two_sided = false;
+  WallParams wall{0.0, 0.2, false};
+};
+
 struct FluidDef {
   bool enabled = false;
   FluidParams params;                 // blood by default; gravity is the scene's
@@ -111,6 +136,7 @@ struct FluidDef {
   bool particles = false;             // write the particles per frame
   Real surface_cell = 0.5;            // blood surface grid cell / particle spacing
   int surface_volume_passes = 0;      // blood surface: FluidSurfaceOptions::volume_passes
+  std::vector<ColliderDef> colliders; // static walls inside the domain, besides its box and the tissue
 };
 
 // The flow out of a cut vessel of radius r (m) driven by `pressure` (Pa):
@@ -281,6 +307,7 @@ class Scene {
   void update_fluid_surface();
   void write_fluid_frame();
   void write_vessels();  // the loaded vessels' tubes and centrelines, once
+  void write_colliders();  // the fluid's static walls (planes clipped to the domain), once
 
   SceneDef def_;
   std::shared_ptr<const Model> model_;

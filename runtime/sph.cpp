@@ -44,7 +44,6 @@ std::string str(T v) {
 
 bool finite3(const std::array<Real, 3>& a) { return std::isfinite(a[0]) && std::isfinite(a[1]) && std::isfinite(a[2]); }
 Vec3 vec(const std::array<Real, 3>& a) { return {a[0], a[1], a[2]}; }
-Vec3 cross(const Vec3& a, const Vec3& b) { return {a.y * b.z - a.z * b.y, a.z * b.x - a.x * b.z, a.x * b.y - a.y * b.x}; }
 
 // Wall sums for a particle at distance d from a plane wall: the lattice
 // sites the wall takes away from a rest lattice of spacing dx around the

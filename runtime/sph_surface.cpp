@@ -82,7 +82,6 @@ struct Cloud {
 
 constexpr int kBrick = 8;  // cells per brick edge
 
-Vec3 cross(const Vec3& a, const Vec3& b) { return {a.y * b.z - a.z * b.y, a.z * b.x - a.x * b.z, a.x * b.y - a.y * b.x}; }
 
 }  // namespace
 

@@ -183,7 +183,7 @@ bool is_frame(const std::string& f, const std::string& prefix, const std::string
 }  // namespace
 
 bool is_series_file(const std::string& name, const std::string& file) {
-  if (file == name + "_vessels.vtp" || file == name + "_centrelines.vtp") return true;
+  if (file == name + "_vessels.vtp" || file == name + "_centrelines.vtp" || file == name + "_colliders.vtp") return true;
   for (const auto& [part, extension] : {std::pair<std::string, std::string>{"", ".vtu"}, {"_blood", ".vtp"}, {"_particles", ".vtp"}})
     if (file == name + part + ".pvd" || is_frame(file, name + part + "_", extension)) return true;
   return false;

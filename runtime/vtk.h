@@ -68,7 +68,8 @@ int remove_series_frames(const std::string& dir, const std::string& prefix, cons
 
 // Whether `file` (a file name) is one a scene's series named `name` writes:
 // <name>.pvd and <name>_NNNNNN.vtu, the same for <name>_blood and
-// <name>_particles (.vtp frames), <name>_vessels.vtp, <name>_centrelines.vtp.
+// <name>_particles (.vtp frames), <name>_vessels.vtp, <name>_centrelines.vtp,
+// <name>_colliders.vtp.
 // Other names that start with <name> (tissue_report.json) are not.
 bool is_series_file(const std::string& name, const std::string& file);
 

@@ -162,6 +162,46 @@ void add_run_command(CLI::App& app) {
                   << " m, more than the cut's depth (" << t.depth << " m); check its points (or \"snap\": false)\n";
       }
     }
+    // - a collider the blood's domain does not reach never acts; a plane with
+    //   the whole domain behind it pushes every particle out of the domain
+    if (fb) {
+      std::size_t plane = 0, mesh = 0;
+      for (const runtime::ColliderDef& c : def.fluid.colliders) {
+        if (c.kind == runtime::ColliderDef::Kind::plane) {
+          const runtime::FluidPlane& pl = fb->planes[plane++];
+          int ahead = 0;
+          for (int k = 0; k < 8; ++k) {
+            double d = 0;
+            for (std::size_t a = 0; a < 3; ++a) d += pl.normal[a] * ((k >> a & 1 ? fb->hi[a] : fb->lo[a]) - pl.point[a]);
+            ahead += d > 0;
+          }
+          if (ahead == 8)
+            std::cerr << "orthosim run: warning: " << scene_file << ": the collider" << quoted(c.name)
+                      << " (a plane) lies outside the blood's domain: it never acts\n";
+          else if (ahead == 0)
+            std::cerr << "orthosim run: warning: " << scene_file << ": the collider" << quoted(c.name)
+                      << " (a plane) has the blood's whole domain behind it: it pushes all the blood out (its normal?)\n";
+        } else {
+          const runtime::FluidMesh& m = fb->meshes[mesh++];
+          bool overlaps = false;  // a triangle's box meets the domain box
+          for (std::size_t t = 0; 3 * t < m.triangles.size() && !overlaps; ++t) {
+            bool meets = true;
+            for (std::size_t a = 0; a < 3; ++a) {
+              double lo = HUGE_VAL, hi = -HUGE_VAL;
+              for (std::size_t k = 0; k < 3; ++k) {
+                const double x = m.vertices[3 * static_cast<std::size_t>(m.triangles[3 * t + k]) + a];
+                lo = std::min(lo, x), hi = std::max(hi, x);
+              }
+              meets = meets && hi >= fb->lo[a] && lo <= fb->hi[a];
+            }
+            overlaps = meets;
+          }
+          if (!overlaps)
+            std::cerr << "orthosim run: warning: " << scene_file << ": the collider" << quoted(c.name) << " ("
+                      << c.stl << ") lies outside the blood's domain: it never acts (its units or frame?)\n";
+        }
+      }
+    }
     // - two tools that hold the same nodes at the same time do not add up: a hook
     //   fixes them, and a pull that moves them overrides another (a hook and a
     //   pull on one grip left it still; of two pulls only the later acted). Spring

@@ -14,6 +14,7 @@
 #pragma once
 
 #include "libmodel/format/model.h"
+#include "libmodel/format/stl.h"  // read_stl, write_stl (the stage's input)
 
 #include <Eigen/Core>
 
@@ -23,15 +24,6 @@
 #include <vector>
 
 namespace orthosim {
-
-// ---- STL input and output --------------------------------------------------
-// Reads a binary or ASCII STL file (detected from the content, not the name)
-// and welds vertices with bit-identical coordinates, so a closed surface
-// written by `orthosim surface` comes back closed. Coordinates are taken as
-// metres. Throws Error(path, ...) when the file is missing, truncated or not STL.
-Surface read_stl(const std::string& path);
-// Writes a binary STL (float32) atomically. Throws Error(path, ...).
-void write_stl(const std::string& path, const Surface& s);
 
 // ---- input checks ----------------------------------------------------------
 struct SurfaceCheck {

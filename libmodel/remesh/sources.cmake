@@ -6,7 +6,6 @@ add_library(orthosim_remesh STATIC
   ${CMAKE_CURRENT_LIST_DIR}/remesh.cpp
   ${CMAKE_CURRENT_LIST_DIR}/remesh_cgal.cpp
   ${CMAKE_CURRENT_LIST_DIR}/containment.cpp
-  ${CMAKE_CURRENT_LIST_DIR}/stl.cpp
   ${CMAKE_CURRENT_LIST_DIR}/texture.cpp
   ${CMAKE_CURRENT_LIST_DIR}/export.cpp)
 target_link_libraries(orthosim_remesh PUBLIC orthosim_core PRIVATE orthosim_segment CGAL::CGAL ${OpenCV_LIBS} assimp::assimp TBB::tbb)

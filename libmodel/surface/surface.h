@@ -39,8 +39,7 @@
 // origin_m + (i,j,k) * spacing_m. Deterministic: the same volume and options
 // give bit-identical surfaces whatever the thread count.
 //
-// STL files: read_stl / write_stl (binary, atomic) of libmodel/remesh/remesh.h,
-// which orthosim_surface links publicly.
+// STL files: read_stl / write_stl (binary, atomic) of libmodel/format/stl.h.
 #pragma once
 
 #include "libmodel/format/model.h"

@@ -3,6 +3,7 @@
 // particles are conserved (in the scene + drained + lost = emitted); a drain
 // tool removes blood; the blood pushes on the tissue (two-way coupling);
 // runs are deterministic; scene files with a fluid and drains are checked.
+#include "libmodel/format/stl.h"
 #include "runtime/cut.h"
 #include "runtime/scene.h"
 #include "runtime/sph.h"
@@ -12,6 +13,10 @@
 #include <gtest/gtest.h>
 
 #include <cmath>
+#include <filesystem>
+#include <string>
+
+#include <unistd.h>
 
 using namespace orthosim;
 using namespace orthosim::runtime;
@@ -228,6 +233,76 @@ TEST(Bleeding, WoundColumnsCloseTheTissue) {
   EXPECT_EQ(open_columns_at(w, x, {{0.010, 0.010, 0.006}}), 1);  // muscle layer, column (2, 1)
   EXPECT_TRUE(w.open[static_cast<std::size_t>(2 * w.n_quads + 14 + 2)]);
   EXPECT_EQ(open_columns_at(w, x, {{0.010, 0.010, 0.006}, {0.5, 0.5, 0.5}}), 0);  // open already; outside them all
+}
+
+// Static walls of the blood (the "static collision meshes"): a
+// table under the limb, as a plane and as an STL mesh (in millimetres), holds
+// the blood that runs off the wound; without it the blood falls on to the
+// domain's floor, 5 mm lower. The collider goes into the series once.
+TEST(Bleeding, AStaticColliderHoldsTheBlood) {
+  // (tests/test_util.h's TempDir would make "test::" ambiguous here)
+  namespace fs = std::filesystem;
+  const fs::path tmp = fs::temp_directory_path() / ("orthosim-colliders-" + std::to_string(::getpid()));
+  fs::remove_all(tmp);
+  fs::create_directories(tmp);
+  auto dir_of = [&](const std::string& name) { return (tmp / name).string(); };
+  // a square 20 cm a side at y = -5 mm, two triangles, counter-clockwise seen
+  // from +y, wider than the domain (x -10..66 mm, z -10..26 mm): blood that
+  // spreads past a table's edge falls off it
+  {
+    Surface table;
+    table.vertices.resize(4, 3);
+    table.vertices << -100, -5, -100, 100, -5, -100, 100, -5, 100, -100, -5, 100;  // mm
+    table.faces.resize(2, 3);
+    table.faces << 0, 2, 1, 0, 3, 2;
+    write_stl(dir_of("table.stl"), table);
+  }
+  const Real y_table = -5e-3;
+  auto lowest = [&](const std::vector<ColliderDef>& colliders, bool output) {
+    SceneDef def = bleeding_def(false);
+    def.fluid.colliders = colliders;
+    if (output) {
+      def.output.enabled = true;
+      def.output.dir = dir_of("series");
+      def.output.every = 100;
+    }
+    Scene scene(block_with_vessel(), def);
+    run_steps(scene, 40);
+    const FluidState& fs = *scene.fluid_state();
+    EXPECT_GT(fs.x[1].size(), 100u);
+    EXPECT_TRUE(fluid_finite(fs));
+    Real low = HUGE_VAL;
+    for (Real y : fs.x[1]) low = std::min(low, y);
+    return low;
+  };
+  ColliderDef plane;
+  plane.name = "table";
+  plane.point = {0, y_table, 0};
+  plane.normal = {0, 1, 0};
+  ColliderDef mesh;
+  mesh.name = "table";
+  mesh.kind = ColliderDef::Kind::mesh;
+  mesh.stl = dir_of("table.stl");
+  mesh.scale = 1e-3;
+  const Real none = lowest({}, false), on_plane = lowest({plane}, true), on_mesh = lowest({mesh}, false);
+  std::printf("  lowest particle: %.2f mm without a table, %.2f on the plane, %.2f on the mesh (table at %.1f mm)\n",
+              1e3 * none, 1e3 * on_plane, 1e3 * on_mesh, 1e3 * y_table);
+  EXPECT_LT(none, y_table - 2e-3) << "the blood should reach below the table's height without it";
+  EXPECT_GE(on_plane, y_table);
+  EXPECT_GE(on_mesh, y_table);
+  // the plane in the series: the square it cuts from the domain (x, z of the box at y = -5 mm)
+  ASSERT_TRUE(std::filesystem::exists(dir_of("series/tissue_colliders.vtp")));
+  // a missing STL is one line naming it, before any step
+  mesh.stl = dir_of("nope.stl");
+  SceneDef def = bleeding_def(false);
+  def.fluid.colliders = {mesh};
+  try {
+    Scene scene(block_with_vessel(), def);
+    ADD_FAILURE() << "a missing collider STL was accepted";
+  } catch (const Error& e) {
+    EXPECT_EQ(std::string(e.what()).rfind(dir_of("nope.stl"), 0), 0u) << e.what();
+  }
+  fs::remove_all(tmp);
 }
 
 // The wound's emitter moves with the tissue the cut went through: a grasper

@@ -233,6 +233,28 @@ TEST_F(RunCli, WhatTheRunWillNotDoIsAWarning) {
   // without output) they are not loaded, and the count is null, not 0
   EXPECT_GT(nlohmann::json::parse(test::read_file(dir / "dry.json"))["metrics"]["cuts"][0]["quads_removed"].get<int>(), 0);
   EXPECT_TRUE(nlohmann::json::parse(test::read_file(dir / "last.json"))["metrics"]["cuts"][0]["quads_removed"].is_null());
+  // a collider the blood never meets, and a plane turned away from the blood
+  auto collider = [&](const std::string& c) {
+    return scene(R"({
+      "model": "model.h5", "fixed": ["fixed"], "integrator": "implicit", "dt": 0.005, "duration": 0.01,
+      "fluid": {"spacing": 0.002, "sound_speed": 3, "margin": 0.01, "colliders": [)" + c + R"(]}})");
+  };
+  test::write_file(dir / "far.stl", "solid far\nfacet normal 0 1 0\nouter loop\nvertex 5 5 5\nvertex 5 5 6\n"
+                                    "vertex 6 5 5\nendloop\nendfacet\nendsolid far\n");
+  const auto far = collider(R"({"name": "tray", "type": "mesh", "stl": "far.stl"})");
+  expect_one_warning(run_cli("run " + far + " --no-output --quiet"),
+                     "orthosim run: warning: " + far + ": the collider 'tray' (" + (dir / "far.stl") +
+                         ") lies outside the blood's domain: it never acts (its units or frame?)");
+  const auto above = collider(R"({"name": "sky", "type": "plane", "point": [0, 9, 0], "normal": [0, -1, 0]})");
+  expect_one_warning(run_cli("run " + above + " --no-output --quiet"),
+                     "orthosim run: warning: " + above + ": the collider 'sky' (a plane) lies outside the blood's domain: "
+                                                         "it never acts");
+  const auto behind = collider(R"({"name": "table", "type": "plane", "point": [0, -9, 0], "normal": [0, -1, 0]})");
+  expect_one_warning(run_cli("run " + behind + " --no-output --quiet"),
+                     "orthosim run: warning: " + behind + ": the collider 'table' (a plane) has the blood's whole domain "
+                                                          "behind it: it pushes all the blood out (its normal?)");
+  expect_silent(run_cli("run " + collider(R"({"type": "plane", "point_in_box": [0.5, 0, 0.5], "normal": [0, 1, 0]})") +
+                        " --no-output --quiet"));
   // a duration under half a step
   const auto shortrun = with_start("0", "0.002");
   const auto r2 = run_cli("run " + shortrun + " --no-output --quiet");

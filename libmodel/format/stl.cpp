@@ -1,6 +1,7 @@
 // STL reading (binary and ASCII) with exact vertex welding, and binary writing.
+#include "libmodel/format/stl.h"
+
 #include "libmodel/format/atomic.h"
-#include "libmodel/remesh/remesh.h"
 
 #include <Eigen/Geometry>
 
