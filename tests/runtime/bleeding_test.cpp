@@ -14,6 +14,8 @@
 
 #include <cmath>
 #include <filesystem>
+#include <fstream>
+#include <sstream>
 #include <string>
 
 #include <unistd.h>
@@ -265,6 +267,7 @@ TEST(Bleeding, AStaticColliderHoldsTheBlood) {
       def.output.enabled = true;
       def.output.dir = dir_of("series");
       def.output.every = 100;
+      def.output.vtk.binary = false;
     }
     Scene scene(block_with_vessel(), def);
     run_steps(scene, 40);
@@ -291,7 +294,29 @@ TEST(Bleeding, AStaticColliderHoldsTheBlood) {
   EXPECT_GE(on_plane, y_table);
   EXPECT_GE(on_mesh, y_table);
   // the plane in the series: the square it cuts from the domain (x, z of the box at y = -5 mm)
-  ASSERT_TRUE(std::filesystem::exists(dir_of("series/tissue_colliders.vtp")));
+  {
+    std::ifstream in(dir_of("series/tissue_colliders.vtp"));
+    ASSERT_TRUE(in.good());
+    std::stringstream text;
+    text << in.rdbuf();
+    const std::string vtp = text.str();
+    const auto at = vtp.find("NumberOfComponents=\"3\" format=\"ascii\">");
+    ASSERT_NE(at, std::string::npos) << vtp.substr(0, 400);
+    std::istringstream pts(vtp.substr(vtp.find('>', at) + 1));
+    std::vector<std::array<Real, 3>> corners;
+    std::array<Real, 3> q{};
+    while (corners.size() < 4 && pts >> q[0] >> q[1] >> q[2]) corners.push_back(q);
+    ASSERT_EQ(corners.size(), 4u);
+    const Scene probe(block_with_vessel(), bleeding_def(false));
+    const FluidBoundaries& b = *probe.fluid_boundaries();
+    int on_box = 0;
+    for (const auto& c : corners) {
+      EXPECT_NEAR(c[1], y_table, 1e-12);
+      on_box += (std::abs(c[0] - b.lo[0]) < 1e-12 || std::abs(c[0] - b.hi[0]) < 1e-12) &&
+                (std::abs(c[2] - b.lo[2]) < 1e-12 || std::abs(c[2] - b.hi[2]) < 1e-12);
+    }
+    EXPECT_EQ(on_box, 4) << "the plane's polygon is the domain box's section at the table";
+  }
   // a missing STL is one line naming it, before any step
   mesh.stl = dir_of("nope.stl");
   SceneDef def = bleeding_def(false);
