@@ -17,6 +17,7 @@
 #include <filesystem>
 #include <iomanip>
 #include <iostream>
+#include <map>
 #include <memory>
 #include <mutex>
 #include <optional>
@@ -286,13 +287,18 @@ void add_surface_command(CLI::App& app) {
           nesting[i] = enforce_nesting(nested[i], *index, clearance);
         });
       });
+      // a changed parent's final surface, indexed once for all its children
+      std::map<std::size_t, std::shared_ptr<const NestingIndex>> final_index;
       try {
         for (std::size_t i : order) {
           if (outer[i] == none) continue;
-          if (nesting[outer[i]].moved > 0 || nesting[outer[i]].untangle_rounds > 0)  // the parent changed: nest against its final surface
-            nesting[i] = enforce_nesting(results[i].surface, results[outer[i]].surface, clearance, caps);
-          else
+          if (nesting[outer[i]].moved > 0 || nesting[outer[i]].untangle_rounds > 0) {  // the parent changed: nest against its final surface
+            auto& index = final_index[outer[i]];
+            if (!index) index = make_nesting_index(results[outer[i]].surface, caps);
+            nesting[i] = enforce_nesting(results[i].surface, *index, clearance);
+          } else {
             results[i].surface = std::move(nested[i]);
+          }
           if (nesting[i].still_outside > 0)
             throw Error(a.labels, names[i] + ": " + std::to_string(nesting[i].still_outside) +
                                       " vertices stay outside the surface of " + names[outer[i]] +
