@@ -224,8 +224,8 @@ QuadSurface ModelReader::quads(const std::string& tissue) const {
   if (static_cast<Eigen::Index>(q.nu) * q.nv != q.vertices.rows())
     throw Error(path(), g + ": nu*nv does not match the vertex count");
   check_index_range(q.quads, q.vertices.rows(), path(), g + "/quads");
-  // texture coordinates (remesh: the grid's arc and axis fractions): the
-  // viewers' exports and the runtime's series carry them as they are
+  // texture coordinates (remesh: the grid's arc and axis fractions): remesh's
+  // viewer exports (OBJ, glTF) carry them as they are
   for (Eigen::Index i = 0; i < q.uv.rows(); ++i)
     for (Eigen::Index k = 0; k < q.uv.cols(); ++k)
       if (!(q.uv(i, k) >= 0 && q.uv(i, k) <= 1))

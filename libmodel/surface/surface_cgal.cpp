@@ -386,8 +386,9 @@ CapGrid make_cap_grid(const Mesh& m, int axis, double at) {
   const double cell = std::sqrt(2 * area / static_cast<double>(in.size()));
   g.inv = 1 / cell;
   g.x0 = lo[0], g.y0 = lo[1];
-  g.nx = std::clamp(static_cast<int>((hi[0] - lo[0]) * g.inv) + 1, 1, 1 << 14);
-  g.ny = std::clamp(static_cast<int>((hi[1] - lo[1]) * g.inv) + 1, 1, 1 << 14);
+  // (clamped as doubles: a flat extent along one axis makes inv huge)
+  g.nx = static_cast<int>(std::min((hi[0] - lo[0]) * g.inv, double(1 << 14) - 1)) + 1;
+  g.ny = static_cast<int>(std::min((hi[1] - lo[1]) * g.inv, double(1 << 14) - 1)) + 1;
   auto cells = [&](Mesh::Face_index f, const auto& visit) {
     double flo[2] = {1e300, 1e300}, fhi[2] = {-1e300, -1e300};
     for (auto w : CGAL::vertices_around_face(m.halfedge(f), m))
@@ -395,10 +396,9 @@ CapGrid make_cap_grid(const Mesh& m, int axis, double at) {
         const double c = m.point(w)[k == 0 ? g.u : g.v];
         flo[k] = std::min(flo[k], c), fhi[k] = std::max(fhi[k], c);
       }
-    const int i0 = std::clamp(static_cast<int>((flo[0] - g.x0) * g.inv), 0, g.nx - 1);
-    const int i1 = std::clamp(static_cast<int>((fhi[0] - g.x0) * g.inv), 0, g.nx - 1);
-    const int j0 = std::clamp(static_cast<int>((flo[1] - g.y0) * g.inv), 0, g.ny - 1);
-    const int j1 = std::clamp(static_cast<int>((fhi[1] - g.y0) * g.inv), 0, g.ny - 1);
+    auto cell_of = [](double t, int n) { return static_cast<int>(std::clamp(t, 0.0, n - 1.0)); };
+    const int i0 = cell_of((flo[0] - g.x0) * g.inv, g.nx), i1 = cell_of((fhi[0] - g.x0) * g.inv, g.nx);
+    const int j0 = cell_of((flo[1] - g.y0) * g.inv, g.ny), j1 = cell_of((fhi[1] - g.y0) * g.inv, g.ny);
     // one cell more on each side: a point on a cell's edge is looked up in either
     for (int j = std::max(0, j0 - 1); j <= std::min(g.ny - 1, j1 + 1); ++j)
       for (int i = std::max(0, i0 - 1); i <= std::min(g.nx - 1, i1 + 1); ++i) visit(static_cast<std::size_t>(j) * g.nx + i);
