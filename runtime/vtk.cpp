@@ -56,6 +56,41 @@ void write_ascii_array(std::ostream& out, const Array& a) {
   out << "\n</DataArray>\n";
 }
 
+// The data arrays of one VTK XML file: inline as ascii, or (binary) as
+// references into the raw appended block that closes the file.
+class ArrayWriter {
+ public:
+  ArrayWriter(std::ostream& os, bool binary) : os_(os), binary_(binary) {}
+  void emit(const Array& a) {
+    if (!binary_) {
+      write_ascii_array(os_, a);
+      return;
+    }
+    os_ << "<DataArray type=\"" << a.type << "\"";
+    if (!a.name.empty()) os_ << " Name=\"" << a.name << "\"";
+    os_ << " NumberOfComponents=\"" << a.components << "\" format=\"appended\" offset=\"" << offset_ << "\"/>\n";
+    offset_ += sizeof(std::uint64_t) + a.bytes.size();
+    appended_.push_back(&a);
+  }
+  // after the dataset's closing tag: the appended block, each array's byte count first
+  void finish() {
+    if (!binary_) return;
+    os_ << "<AppendedData encoding=\"raw\">\n_";
+    for (const Array* a : appended_) {
+      const std::uint64_t nbytes = a->bytes.size();
+      os_.write(reinterpret_cast<const char*>(&nbytes), sizeof nbytes);
+      os_.write(a->bytes.data(), static_cast<std::streamsize>(a->bytes.size()));
+    }
+    os_ << "\n</AppendedData>\n";
+  }
+
+ private:
+  std::ostream& os_;
+  bool binary_;
+  std::uint64_t offset_ = 0;
+  std::vector<const Array*> appended_;
+};
+
 }  // namespace
 
 VtkSeries::VtkSeries(const Model& m, std::string dir, std::string name, VtkOptions o)
@@ -126,19 +161,8 @@ void VtkSeries::write(const Model& m, const State& s) {
        << "<DataArray type=\"Float64\" Name=\"TimeValue\" NumberOfTuples=\"1\" format=\"ascii\">" << s.time
        << "</DataArray>\n</FieldData>\n"
        << "<Piece NumberOfPoints=\"" << n << "\" NumberOfCells=\"" << types_.size() << "\">\n";
-    std::uint64_t offset = 0;
-    std::vector<const Array*> appended;
-    auto emit = [&](const Array& a) {
-      if (!opt_.binary) {
-        write_ascii_array(os, a);
-        return;
-      }
-      os << "<DataArray type=\"" << a.type << "\"";
-      if (!a.name.empty()) os << " Name=\"" << a.name << "\"";
-      os << " NumberOfComponents=\"" << a.components << "\" format=\"appended\" offset=\"" << offset << "\"/>\n";
-      offset += sizeof(std::uint64_t) + a.bytes.size();
-      appended.push_back(&a);
-    };
+    ArrayWriter arrays(os, opt_.binary);
+    auto emit = [&](const Array& a) { arrays.emit(a); };
     os << "<PointData Vectors=\"velocity\">\n";
     for (const auto& a : point_data) emit(a);
     os << "</PointData>\n<CellData Scalars=\"strain\">\n";
@@ -148,15 +172,7 @@ void VtkSeries::write(const Model& m, const State& s) {
     os << "</Points>\n<Cells>\n";
     for (const auto& a : cells) emit(a);
     os << "</Cells>\n</Piece>\n</UnstructuredGrid>\n";
-    if (opt_.binary) {
-      os << "<AppendedData encoding=\"raw\">\n_";
-      for (const Array* a : appended) {
-        const std::uint64_t nbytes = a->bytes.size();
-        os.write(reinterpret_cast<const char*>(&nbytes), sizeof nbytes);
-        os.write(a->bytes.data(), static_cast<std::streamsize>(a->bytes.size()));
-      }
-      os << "\n</AppendedData>\n";
-    }
+    arrays.finish();
     os << "</VTKFile>\n";
     os.flush();
     if (!os) throw Error(target, "write failed (disk full?)");
@@ -245,19 +261,8 @@ void write_vtp(const std::string& path, std::span<const double> points, std::spa
        << "</DataArray>\n</FieldData>\n"
        << "<Piece NumberOfPoints=\"" << n << "\" NumberOfVerts=\"" << (nt > 0 ? 0 : n)
        << "\" NumberOfLines=\"0\" NumberOfStrips=\"0\" NumberOfPolys=\"" << nt << "\">\n";
-    std::uint64_t offset = 0;
-    std::vector<const Array*> appended;
-    auto emit = [&](const Array& a) {
-      if (!binary) {
-        write_ascii_array(os, a);
-        return;
-      }
-      os << "<DataArray type=\"" << a.type << "\"";
-      if (!a.name.empty()) os << " Name=\"" << a.name << "\"";
-      os << " NumberOfComponents=\"" << a.components << "\" format=\"appended\" offset=\"" << offset << "\"/>\n";
-      offset += sizeof(std::uint64_t) + a.bytes.size();
-      appended.push_back(&a);
-    };
+    ArrayWriter arrays(os, binary);
+    auto emit = [&](const Array& a) { arrays.emit(a); };
     os << "<PointData>\n";
     for (const auto& a : pd) emit(a);
     os << "</PointData>\n<Points>\n";
@@ -265,15 +270,7 @@ void write_vtp(const std::string& path, std::span<const double> points, std::spa
     os << "</Points>\n" << (nt > 0 ? "<Polys>\n" : "<Verts>\n");
     for (const auto& a : cells) emit(a);
     os << (nt > 0 ? "</Polys>\n" : "</Verts>\n") << "</Piece>\n</PolyData>\n";
-    if (binary) {
-      os << "<AppendedData encoding=\"raw\">\n_";
-      for (const Array* a : appended) {
-        const std::uint64_t nbytes = a->bytes.size();
-        os.write(reinterpret_cast<const char*>(&nbytes), sizeof nbytes);
-        os.write(a->bytes.data(), static_cast<std::streamsize>(a->bytes.size()));
-      }
-      os << "\n</AppendedData>\n";
-    }
+    arrays.finish();
     os << "</VTKFile>\n";
     os.flush();
     if (!os) throw Error(path, "write failed (disk full?)");
