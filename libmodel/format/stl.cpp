@@ -150,14 +150,14 @@ Surface read_stl(const std::string& path) {
   return w.take();
 }
 
-void write_stl(const std::string& path, const Surface& s) {
+void write_stl(const std::string& path, const Surface& s, const std::string& header) {
   check_output_file(path);
   AtomicFile out(path);
   {
     std::ofstream f(out.temp(), std::ios::binary);
-    char header[80] = {0};
-    std::snprintf(header, sizeof header, "orthosim binary STL, metres");
-    f.write(header, 80);
+    char head[80] = {0};
+    std::snprintf(head, sizeof head, "%s", header.c_str());
+    f.write(head, 80);
     const std::uint32_t n = static_cast<std::uint32_t>(s.faces.rows());
     f.write(reinterpret_cast<const char*>(&n), 4);
     for (Eigen::Index t = 0; t < s.faces.rows(); ++t) {

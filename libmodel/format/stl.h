@@ -14,7 +14,8 @@ namespace orthosim {
 // written by `orthosim surface` comes back closed. Coordinates are taken as
 // metres. Throws Error(path, ...) when the file is missing, truncated or not STL.
 Surface read_stl(const std::string& path);
-// Writes a binary STL (float32) atomically. Throws Error(path, ...).
-void write_stl(const std::string& path, const Surface& s);
+// Writes a binary STL (float32) atomically, `header` (at most 79 characters
+// kept) in its 80-byte header. Throws Error(path, ...).
+void write_stl(const std::string& path, const Surface& s, const std::string& header = "orthosim binary STL, metres");
 
 }  // namespace orthosim

@@ -2,6 +2,7 @@
 // mesh topology, distance to the label's voxel boundary, the label's closed
 // surface (marching tetrahedra), centreline errors against a truth tree, and
 // the STL/OBJ writers.
+#include "libmodel/format/stl.h"
 #include "libmodel/vessels/detail.h"
 
 #include <Eigen/Dense>
@@ -412,30 +413,7 @@ CentrelineError compare_centrelines(const MatX3d& nodes, const MatX2i& edges, co
 // ---- files -------------------------------------------------------------------------------
 
 void write_tube_stl(const std::string& path, const VesselTree& t) {
-  const Surface s = tube_triangles(t);
-  check_output_file(path);
-  AtomicFile out(path);
-  {
-    std::ofstream f(out.temp(), std::ios::binary);
-    char header[80] = {0};
-    std::snprintf(header, sizeof header, "orthosim vessel tube, binary STL, metres");
-    f.write(header, 80);
-    const std::uint32_t n = static_cast<std::uint32_t>(s.faces.rows());
-    f.write(reinterpret_cast<const char*>(&n), 4);
-    for (Eigen::Index i = 0; i < s.faces.rows(); ++i) {
-      const Eigen::Vector3d a = s.vertices.row(s.faces(i, 0)), b = s.vertices.row(s.faces(i, 1)),
-                            c = s.vertices.row(s.faces(i, 2));
-      Eigen::Vector3d nn = (b - a).cross(c - a);
-      if (nn.norm() > 0) nn.normalize();
-      float buf[12];
-      for (int d = 0; d < 3; ++d) buf[d] = float(nn(d)), buf[3 + d] = float(a(d)), buf[6 + d] = float(b(d)), buf[9 + d] = float(c(d));
-      f.write(reinterpret_cast<const char*>(buf), 48);
-      const std::uint16_t attr = 0;
-      f.write(reinterpret_cast<const char*>(&attr), 2);
-    }
-    if (!f) throw Error(path, "write failed");
-  }
-  out.commit();
+  write_stl(path, tube_triangles(t), "orthosim vessel tube, binary STL, metres");
 }
 
 void write_tube_obj(const std::string& path, const VesselTree& t) {
