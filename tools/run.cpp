@@ -165,6 +165,7 @@ void add_run_command(CLI::App& app) {
     // - a collider the blood's domain does not reach never acts; a plane with
     //   the whole domain behind it pushes every particle out of the domain
     if (fb) {
+      // (the boundaries' planes and meshes are the colliders', in the scene's order)
       std::size_t plane = 0, mesh = 0;
       for (const runtime::ColliderDef& c : def.fluid.colliders) {
         if (c.kind == runtime::ColliderDef::Kind::plane) {
