@@ -538,6 +538,32 @@ TEST_F(SceneTest, SampleBleedingScenesParse) {
   EXPECT_DOUBLE_EQ(b.fluid.params.physx_stiffness, 0);
   EXPECT_DOUBLE_EQ(b.fluid.params.sound_speed, 3);
   EXPECT_NE(a.output.dir, b.output.dir);
+  // the same scenario over an operating table: the demo's scene and one static plane
+  const SceneDef t = parse_scene_file(dir_s + "bleeding_on_table.json");
+  ASSERT_EQ(t.fluid.colliders.size(), 1u);
+  const ColliderDef& table = t.fluid.colliders[0];
+  EXPECT_EQ(table.name, "table");
+  EXPECT_EQ(table.kind, ColliderDef::Kind::plane);
+  EXPECT_TRUE(table.point_relative);
+  EXPECT_EQ(table.point, (std::array<Real, 3>{0.5, 0.0, 0.5}));
+  EXPECT_EQ(table.normal, (std::array<Real, 3>{0, 1, 0}));
+  EXPECT_DOUBLE_EQ(table.wall.friction, 0.4);
+  EXPECT_EQ(t.tools.size(), a.tools.size());
+  EXPECT_DOUBLE_EQ(t.fluid.params.physx_stiffness, a.fluid.params.physx_stiffness);
+  EXPECT_NE(t.output.dir, a.output.dir);
+  // on a lattice model (a flat block: its tools are the limb's, and are left out) the
+  // table is a plane at the bottom of the loaded nodes' box
+  SceneDef d = t;
+  d.model = model;
+  d.output.enabled = false;
+  d.vessels.clear();
+  d.tools.clear();
+  Scene scene(d);
+  const FluidBoundaries* fb = scene.fluid_boundaries();
+  ASSERT_NE(fb, nullptr);
+  ASSERT_EQ(fb->planes.size(), 1u);
+  EXPECT_NEAR(fb->planes[0].point[1], fb->lo[1] + d.fluid.margin, 1e-12) << "at the loaded nodes' lowest y";
+  EXPECT_EQ(run(scene, 2).steps, 2);
 }
 
 // The sample scenes parse and run on a lattice model (the builder's model
