@@ -35,6 +35,24 @@ struct LoaderTest : ::testing::Test {
   std::string file = dir / "model.h5";
   testing::LayeredBlock block = make_layered_block(6, 4, 4);
   void SetUp() override { write_model_file(file, block, /*extras=*/true); }
+  // The block spoiled by `spoil`, written as `name`, is refused in one line
+  // that begins with the file and holds `want`.
+  template <class Spoil>
+  void expect_spoiled_refused(const char* name, Spoil&& spoil, const std::string& want) {
+    auto bad = block;
+    spoil(bad);
+    const std::string f2 = dir / name;
+    write_model_file(f2, bad);
+    ModelReader r(f2);
+    try {
+      load_model(r, LoadRequest{});
+      ADD_FAILURE() << want << ": accepted";
+    } catch (const Error& e) {
+      EXPECT_EQ(std::string(e.what()).rfind(f2 + ": ", 0), 0u) << e.what();
+      EXPECT_NE(std::string(e.what()).find(want), std::string::npos) << e.what();
+      EXPECT_EQ(std::string(e.what()).find('\n'), std::string::npos) << e.what();
+    }
+  }
 };
 
 TEST_F(LoaderTest, SceneWithoutVesselsNeverReadsThem) {
@@ -273,14 +291,7 @@ TEST_F(LoaderTest, InvalidSpringDataIsRejected) {
 // kind no reader knows and two layers stacked at one order were taken as
 // they came (the wound's columns follow the order).
 TEST_F(LoaderTest, SlackKindAndOrderAreChecked) {
-  auto refused = [&](const char* name, auto&& spoil, const std::string& want) {
-    auto bad = block;
-    spoil(bad);
-    const std::string f2 = dir / name;
-    write_model_file(f2, bad);
-    expect_load_refused(f2, f2 + ": ");
-    expect_load_refused(f2, want);
-  };
+  auto refused = [&](const char* name, auto&& spoil, const std::string& want) { expect_spoiled_refused(name, spoil, want); };
   const std::string g = "/layers/" + block.layers[1].first + ": ";
   refused("slack.h5", [](auto& b) { b.layers[1].second.lin_slack[3] = 7; },
           g + "linear spring 3 has lin_slack 7 (0: always acts, 1: acts when longer than its rest length)");
@@ -298,20 +309,7 @@ TEST_F(LoaderTest, SlackKindAndOrderAreChecked) {
 // squares overflow) made every step non-finite and wrote inf strains into the
 // series; refused naming the file, the layer and the node or spring.
 TEST_F(LoaderTest, CoordinatesAndLengthsBeyondAMillionMetresAreRejected) {
-  auto expect_refused = [&](const char* name, auto&& spoil, const std::string& what) {
-    auto bad = block;
-    spoil(bad);
-    const std::string f2 = dir / name;
-    write_model_file(f2, bad);
-    ModelReader r(f2);
-    try {
-      load_model(r, LoadRequest{});
-      FAIL() << what << ": accepted";
-    } catch (const Error& e) {
-      EXPECT_EQ(std::string(e.what()).rfind(f2 + ": ", 0), 0u) << e.what();
-      EXPECT_NE(std::string(e.what()).find(what), std::string::npos) << e.what();
-    }
-  };
+  auto expect_refused = [&](const char* name, auto&& spoil, const std::string& what) { expect_spoiled_refused(name, spoil, what); };
   expect_refused("far.h5", [](auto& b) { b.layers[1].second.nodes(5, 1) = 1e300; },
                  "has a non-finite position or one beyond 1e6 m");
   expect_refused("long.h5", [](auto& b) { b.layers[1].second.lin_rest_length[0] = 1e300; },
