@@ -176,12 +176,14 @@ std::array<Real, 3> unit_direction(std::array<Real, 3> d) {
   return d;
 }
 
+// A collider of the top-level list (targets: it may say "tissue" and "blood")
+// or of fluid.colliders (the blood's alone).
 ColliderDef parse_collider(const json& j, std::size_t index, const std::string& file, const std::string& base,
-                           const WallParams& wall) {
-  const std::string where = "fluid: colliders[" + std::to_string(index) + "]: ";
+                           const WallParams& wall, bool targets) {
+  const std::string where = std::string(targets ? "" : "fluid: ") + "colliders[" + std::to_string(index) + "]: ";
   Obj o(j, where, file);
   ColliderDef c;
-  c.name = o.string("name", "collider " + std::to_string(index));
+  c.name = o.string("name", std::string(targets ? "" : "fluid ") + "collider " + std::to_string(index));
   const std::string type = o.string("type", "", true);
   if (type == "plane") c.kind = ColliderDef::Kind::plane;
   else if (type == "mesh") c.kind = ColliderDef::Kind::mesh;
@@ -213,6 +215,13 @@ ColliderDef parse_collider(const json& j, std::size_t index, const std::string& 
   c.wall.restitution = o.number("restitution", c.wall.restitution, 0, 1);
   c.wall.friction = o.number("friction", c.wall.friction, 0, 1e3);
   c.wall.slip = o.boolean("slip", c.wall.slip);
+  if (targets) {
+    c.tissue = o.boolean("tissue", true);
+    c.blood = o.boolean("blood", true);
+    if (!c.tissue && !c.blood) o.fail("acts on nothing (\"tissue\": false and \"blood\": false)");
+  } else {
+    c.tissue = false;
+  }
   o.finish();
   return c;
 }
@@ -349,6 +358,7 @@ SceneDef parse_scene(const std::string& text, const std::string& file) {
       for (std::size_t k = 0; k < i; ++k)
         if ((*names)[i] == (*names)[k])
           o.fail(std::string(names == &d.layers ? "layers" : "vessels") + ": '" + (*names)[i] + "' is named twice");
+  std::vector<ColliderDef> fluid_colliders;
   if (o.has("fluid")) {
     Obj f(o.at("fluid"), "fluid: ", file);
     FluidDef& fd = d.fluid;
@@ -410,14 +420,21 @@ SceneDef parse_scene(const std::string& text, const std::string& file) {
     if (f.has("colliders")) {
       const json& c = f.at("colliders");
       if (!c.is_array()) f.fail("colliders must be a list");
-      for (std::size_t i = 0; i < c.size(); ++i) {
-        fd.colliders.push_back(parse_collider(c[i], i, file, base, fd.tissue_wall));
-        for (std::size_t k = 0; k < i; ++k)
-          if (fd.colliders[k].name == fd.colliders[i].name) f.fail("colliders: '" + fd.colliders[i].name + "' is named twice");
-      }
+      for (std::size_t i = 0; i < c.size(); ++i) fluid_colliders.push_back(parse_collider(c[i], i, file, base, fd.tissue_wall, false));
     }
     f.finish();
   }
+  // static colliders: the top-level list (tissue and blood; the fluid's
+  // restitution and friction unless their own), then the fluid's (blood only)
+  if (o.has("colliders")) {
+    const json& c = o.at("colliders");
+    if (!c.is_array()) o.fail("colliders must be a list");
+    for (std::size_t i = 0; i < c.size(); ++i) d.colliders.push_back(parse_collider(c[i], i, file, base, d.fluid.tissue_wall, true));
+  }
+  d.colliders.insert(d.colliders.end(), fluid_colliders.begin(), fluid_colliders.end());
+  for (std::size_t i = 0; i < d.colliders.size(); ++i)
+    for (std::size_t k = 0; k < i; ++k)
+      if (d.colliders[k].name == d.colliders[i].name) o.fail("colliders: '" + d.colliders[i].name + "' is named twice");
   d.fixed = o.strings("fixed");
   d.sets = o.strings("sets");
   for (const auto* names : {&d.fixed, &d.sets})  // (as layers and vessels above; these were accepted)
@@ -751,6 +768,7 @@ void Scene::init(const std::string& model_file) {
     tools_.push_back(std::move(run));
   }
 
+  init_obstacles();
   if (def_.fluid.enabled) init_fluid();
 
   // output directory, after everything else is known to be valid
@@ -810,6 +828,53 @@ EmitterProfile bleeding_profile(Real radius, Real pressure, const FluidParams& p
                                                         : HUGE_VAL;
   return viscous < capped_by_orifice(HUGE_VAL, radius, pressure, p.rest_density) ? EmitterProfile::parabolic
                                                                                   : EmitterProfile::plug;
+}
+
+namespace {
+// A plane collider's point (m): point_in_box resolved against the loaded
+// nodes' rest box [lo, hi].
+Vec3 collider_point(const ColliderDef& c, const Vec3& lo, const Vec3& hi) {
+  if (!c.point_relative) return {c.point[0], c.point[1], c.point[2]};
+  return {lo.x + c.point[0] * (hi.x - lo.x), lo.y + c.point[1] * (hi.y - lo.y), lo.z + c.point[2] * (hi.z - lo.z)};
+}
+// A mesh collider's STL in metres: vertices (n x 3) and triangles (n x 3).
+// Errors name the STL file.
+void read_collider_mesh(const ColliderDef& c, std::vector<Real>& vertices, std::vector<std::int32_t>& triangles) {
+  const Surface s = read_stl(c.stl);
+  vertices.resize(3 * static_cast<std::size_t>(s.vertices.rows()));
+  for (Eigen::Index i = 0; i < s.vertices.rows(); ++i)
+    for (int k = 0; k < 3; ++k) vertices[3 * static_cast<std::size_t>(i) + k] = c.scale * s.vertices(i, k);
+  triangles.assign(s.faces.data(), s.faces.data() + s.faces.size());  // (row-major n x 3)
+}
+}  // namespace
+
+void Scene::init_obstacles() {
+  const Model& m = *model_;
+  if (std::none_of(def_.colliders.begin(), def_.colliders.end(), [](const ColliderDef& c) { return c.tissue; })) return;
+  std::vector<std::int32_t> all(static_cast<std::size_t>(m.n_nodes));
+  for (std::int32_t i = 0; i < m.n_nodes; ++i) all[static_cast<std::size_t>(i)] = i;
+  const auto [lo, hi] = rest_box(m, all);
+  auto obstacles = std::make_shared<Obstacles>();
+  for (const ColliderDef& c : def_.colliders) {
+    if (!c.tissue) continue;
+    try {
+      if (c.kind == ColliderDef::Kind::plane) {
+        add_obstacle_plane(*obstacles, {collider_point(c, lo, hi), {c.normal[0], c.normal[1], c.normal[2]},
+                                        c.wall.restitution, c.wall.friction});
+      } else {
+        ObstacleMesh mesh;
+        read_collider_mesh(c, mesh.vertices, mesh.triangles);
+        mesh.two_sided = c.two_sided;
+        mesh.restitution = c.wall.restitution;
+        mesh.friction = c.wall.friction;
+        add_obstacle_mesh(*obstacles, std::move(mesh));
+      }
+    } catch (const Error& e) {
+      if (!e.file().empty()) throw;
+      throw Error(def_.file, "collider '" + c.name + "': " + e.message());
+    }
+  }
+  state_.obstacles = std::move(obstacles);
 }
 
 struct Scene::FluidRun {
@@ -874,24 +939,20 @@ void Scene::init_fluid() {
     if (p.gravity[axis] != 0) fr.bounds.faces[static_cast<std::size_t>(2 * axis + (p.gravity[axis] < 0 ? 1 : 0))] = Face::open;
   }
   // the scene's static walls
-  for (const ColliderDef& c : fd.colliders) {
+  for (const ColliderDef& c : def_.colliders) {
+    if (!c.blood) continue;
     const std::string what = "fluid: collider '" + c.name + "': ";
     try {
       if (c.kind == ColliderDef::Kind::plane) {
         FluidPlane pl;
-        pl.point = c.point;
-        if (c.point_relative)
-          pl.point = {lo.x + c.point[0] * (hi.x - lo.x), lo.y + c.point[1] * (hi.y - lo.y), lo.z + c.point[2] * (hi.z - lo.z)};
+        const Vec3 p = collider_point(c, lo, hi);
+        pl.point = {p.x, p.y, p.z};
         pl.normal = c.normal;
         pl.wall = c.wall;
         add_plane(fr.bounds, pl);
       } else {
-        const Surface s = read_stl(c.stl);  // its errors name the STL file
         FluidMesh mesh;
-        mesh.vertices.resize(3 * static_cast<std::size_t>(s.vertices.rows()));
-        for (Eigen::Index i = 0; i < s.vertices.rows(); ++i)
-          for (int k = 0; k < 3; ++k) mesh.vertices[3 * static_cast<std::size_t>(i) + k] = c.scale * s.vertices(i, k);
-        mesh.triangles.assign(s.faces.data(), s.faces.data() + s.faces.size());  // (row-major n x 3)
+        read_collider_mesh(c, mesh.vertices, mesh.triangles);
         mesh.wall = c.wall;
         mesh.two_sided = c.two_sided;
         add_mesh(fr.bounds, std::move(mesh), fr.fluid);
@@ -1012,19 +1073,64 @@ void Scene::write_vessels() {
 }
 
 void Scene::write_colliders() {
-  if (!fluid_ || (fluid_->bounds.planes.empty() && fluid_->bounds.meshes.empty())) return;
-  const FluidBoundaries& b = fluid_->bounds;
+  if (def_.colliders.empty()) return;
+  // the box the planes are drawn in: the blood's domain, or without blood the
+  // loaded nodes' rest box grown by the fluid's margin (FluidDef::margin)
+  std::array<Real, 3> box_lo{}, box_hi{};
+  if (fluid_) {
+    box_lo = fluid_->bounds.lo, box_hi = fluid_->bounds.hi;
+  } else {
+    std::vector<std::int32_t> all(static_cast<std::size_t>(model_->n_nodes));
+    for (std::int32_t i = 0; i < model_->n_nodes; ++i) all[static_cast<std::size_t>(i)] = i;
+    const auto [lo, hi] = rest_box(*model_, all);
+    const Real g = def_.fluid.margin;
+    box_lo = {lo.x - g, lo.y - g, lo.z - g}, box_hi = {hi.x + g, hi.y + g, hi.z + g};
+  }
+  // each collider from the structure that holds it (the tissue's obstacles or
+  // the blood's boundaries, whose planes and meshes are the colliders', in order)
+  std::vector<const std::vector<Real>*> mesh_vertices;
+  std::vector<const std::vector<std::int32_t>*> mesh_triangles;
+  std::vector<std::pair<Vec3, Vec3>> planes;  // point, normal
+  {
+    std::size_t op = 0, om = 0, fp = 0, fm = 0;
+    const Obstacles* ob = state_.obstacles.get();
+    for (const ColliderDef& c : def_.colliders) {
+      const bool from_tissue = c.tissue && ob;
+      if (!from_tissue && !(c.blood && fluid_)) continue;
+      if (c.kind == ColliderDef::Kind::plane) {
+        if (from_tissue) {
+          const ObstaclePlane& pl = ob->planes[op++];
+          planes.emplace_back(pl.point, pl.normal);
+          if (c.blood && fluid_) ++fp;
+        } else {
+          const FluidPlane& pl = fluid_->bounds.planes[fp++];
+          planes.emplace_back(Vec3{pl.point[0], pl.point[1], pl.point[2]}, Vec3{pl.normal[0], pl.normal[1], pl.normal[2]});
+        }
+      } else {
+        if (from_tissue) {
+          mesh_vertices.push_back(&ob->meshes[om].vertices);
+          mesh_triangles.push_back(&ob->meshes[om++].triangles);
+          if (c.blood && fluid_) ++fm;
+        } else {
+          mesh_vertices.push_back(&fluid_->bounds.meshes[fm].vertices);
+          mesh_triangles.push_back(&fluid_->bounds.meshes[fm++].triangles);
+        }
+      }
+    }
+  }
   std::vector<double> pts;
   std::vector<std::int32_t> tri;
-  for (const FluidMesh& mesh : b.meshes) {
+  for (std::size_t k = 0; k < mesh_vertices.size(); ++k) {
     const auto off = static_cast<std::int32_t>(pts.size() / 3);
-    pts.insert(pts.end(), mesh.vertices.begin(), mesh.vertices.end());
-    for (auto i : mesh.triangles) tri.push_back(off + i);
+    pts.insert(pts.end(), mesh_vertices[k]->begin(), mesh_vertices[k]->end());
+    for (auto i : *mesh_triangles[k]) tri.push_back(off + i);
   }
-  // a plane, as the polygon it cuts from the domain box: the crossings of the
+  // a plane, as the polygon it cuts from the box: the crossings of the
   // box's 12 edges, in order around their centroid, as a triangle fan
-  for (const FluidPlane& pl : b.planes) {
-    const Vec3 n{pl.normal[0], pl.normal[1], pl.normal[2]}, p0{pl.point[0], pl.point[1], pl.point[2]};
+  struct {
+    std::array<Real, 3> lo, hi;
+  } b{box_lo, box_hi};
+  for (const auto& [p0, n] : planes) {
     auto corner = [&](int c) { return Vec3{c & 1 ? b.hi[0] : b.lo[0], c & 2 ? b.hi[1] : b.lo[1], c & 4 ? b.hi[2] : b.lo[2]}; };
     std::vector<Vec3> poly;
     for (int c = 0; c < 8; ++c)

@@ -25,6 +25,7 @@
 #include "libmodel/format/h5file.h"
 #include "runtime/cut.h"
 #include "runtime/model.h"
+#include "runtime/obstacles.h"
 #include "runtime/solver.h"
 #include "runtime/sph.h"
 #include "runtime/state.h"
@@ -95,10 +96,14 @@ struct ToolDef {
 // the wound (against the blade direction) with the Poiseuille flow of the
 // vessel's radius (bleeding_flow_rate: Poiseuille, capped by the orifice) and
 // the exit profile of the limit that binds (bleeding_profile).
-// A static wall of the blood (issue 9's "static collision meshes"): an
-// operating table, a tray, a retractor blade, a bone taken as rigid. The blood
-// collides with it (the wall integrals, restitution and friction, as on the
-// tissue); it does not move, and nothing pushes back on it.
+// A static collider (issue 9's "static collision meshes"): an operating
+// table, a tray, a retractor blade, a bone taken as rigid. It does not move,
+// and nothing pushes back on it. The blood collides with it as with the
+// tissue (the wall integrals, restitution and friction); the tissue's free
+// nodes cannot pass it (runtime/obstacles.h: node contact with the same
+// restitution and friction). A scene's top-level "colliders" act on both by
+// default ("tissue": false or "blood": false leaves one out); the older
+// "fluid": {"colliders": ...} act on the blood alone.
 struct ColliderDef {
   enum class Kind { plane, mesh };
   std::string name;
@@ -118,6 +123,8 @@ struct ColliderDef {
   Real scale = 1;
   bool two_sided = false;
   WallParams wall{0.0, 0.2, false};
+  bool tissue = true;  // the tissue's free nodes collide with it
+  bool blood = true;   // the blood collides with it (when the scene has blood)
 };
 
 struct FluidDef {
@@ -136,7 +143,6 @@ struct FluidDef {
   bool particles = false;             // write the particles per frame
   Real surface_cell = 0.5;            // blood surface grid cell / particle spacing
   int surface_volume_passes = 0;      // blood surface: FluidSurfaceOptions::volume_passes
-  std::vector<ColliderDef> colliders; // static walls inside the domain, besides its box and the tissue
 };
 
 // The flow out of a cut vessel of radius r (m) driven by `pressure` (Pa):
@@ -190,6 +196,7 @@ struct SceneDef {
   Real duration = 1.0;                // s
   int threads = 0;                    // 0 = all cores
   std::vector<ToolDef> tools;
+  std::vector<ColliderDef> colliders; // static colliders: the top-level list, then fluid.colliders (blood only)
   FluidDef fluid;
   OutputDef output;
 };
@@ -275,6 +282,9 @@ class Scene {
   const Fluid* fluid() const;
   const FluidState* fluid_state() const;
   const FluidBoundaries* fluid_boundaries() const;
+  // ---- the tissue's static obstacles (null without a collider that acts on the tissue)
+  // Their planes and meshes are those of def().colliders with tissue set, in order.
+  const Obstacles* obstacles() const { return state_.obstacles.get(); }
   // What the fluid did over the run: particles emitted, drained, lost, paused emitter steps.
   struct FluidSummary {
     std::int64_t particles = 0, emitted = 0, drained = 0, left_domain = 0, nonfinite = 0, paused_steps = 0;
@@ -307,7 +317,8 @@ class Scene {
   void update_fluid_surface();
   void write_fluid_frame();
   void write_vessels();  // the loaded vessels' tubes and centrelines, once
-  void write_colliders();  // the fluid's static walls (planes clipped to the domain), once
+  void init_obstacles();   // the tissue's static obstacles (the colliders with tissue)
+  void write_colliders();  // the static colliders (planes clipped to the blood's domain or the tissue's box), once
 
   SceneDef def_;
   std::shared_ptr<const Model> model_;

@@ -1,6 +1,7 @@
 #include "runtime/solver.h"
 
 #include "runtime/kernels.h"
+#include "runtime/obstacles.h"
 
 #include <Eigen/Sparse>
 #include <Eigen/SparseCholesky>
@@ -143,6 +144,7 @@ struct Budget {
 
 struct Check {
   Real ke = 0, u = 0, vmax2 = 0;
+  Real contacts = 0;  // nodes that touched an obstacle in the substep
 };
 
 enum class Verdict { ok, nonfinite, blowup };
@@ -339,8 +341,9 @@ Check symplectic_substep(const Model& m, State& s, Real t, Real h, const SolverO
   const Vec3 g{o.gravity[0], o.gravity[1], o.gravity[2]};
   const Real alpha = o.mass_damping;
   const bool has_tets = m.n_tets > 0;
+  const Obstacles* obs = s.obstacles && !s.obstacles->empty() ? s.obstacles.get() : nullptr;
   for_chunks(m, [&](int ch) {
-    Real ke = 0, vmax2 = 0;
+    Real ke = 0, vmax2 = 0, contacts = 0;
     for (std::int32_t i = chunk_begin(m, ch), e = chunk_end(m, ch); i < e; ++i) {
       Vec3 fi = load3(f, i) + load3(fext, i);
       for (std::int32_t q = b_first[i], qe = b_first[i + 1]; q < qe; ++q) fi -= load3(fs, b_spring[q]);
@@ -350,8 +353,11 @@ Check symplectic_substep(const Model& m, State& s, Real t, Real h, const SolverO
       if (wi > 0) {
         Vec3 vi = load3(vw, i);
         vi += h * (wi * fi + g - alpha * vi);
+        const Vec3 x0i = load3(xw, i);
+        Vec3 xi = x0i + h * vi;
+        if (obs && resolve_obstacle_contact(*obs, x0i, xi, vi)) ++contacts;
         store3(vw, i, vi);
-        store3(xw, i, load3(xw, i) + h * vi);
+        store3(xw, i, xi);
         const Real v2 = dot(vi, vi);
         ke += mass[i] * v2;
         vmax2 = std::max(vmax2, v2);
@@ -359,9 +365,11 @@ Check symplectic_substep(const Model& m, State& s, Real t, Real h, const SolverO
     }
     partial[ch * kPad + 1] = Real(0.5) * ke;
     partial[ch * kPad + 2] = vmax2;
+    partial[ch * kPad + 4] = contacts;
   });
   *tool_work += move_kinematic(s, t + h, h);
-  return {partial_sum(m, sc, 1), energy ? partial_sum(m, sc, 0) + u_tets : Real(0), partial_max(m, sc, 2)};
+  return {partial_sum(m, sc, 1), energy ? partial_sum(m, sc, 0) + u_tets : Real(0), partial_max(m, sc, 2),
+          obs ? partial_sum(m, sc, 4) : Real(0)};
 }
 
 // ---- implicit Euler --------------------------------------------------------
@@ -867,22 +875,28 @@ Check implicit_substep(const Model& m, State& s, Real t, Real h, const SolverOpt
   Real* xw = s.x.data();
   Real* vw = s.v.data();
   Real* warmw = s.warm.data();
+  const Obstacles* obs = s.obstacles && !s.obstacles->empty() ? s.obstacles.get() : nullptr;
   for_chunks(m, [&](int ch) {
-    Real ke = 0, vmax2 = 0;
+    Real ke = 0, vmax2 = 0, contacts = 0;
     for (std::int32_t i = chunk_begin(m, ch), e = chunk_end(m, ch); i < e; ++i) {
       if (w[i] == 0) continue;
-      const Vec3 vi = load3(vnew, i);
-      store3(warmw, i, vi - load3(vw, i));
+      Vec3 vi = load3(vnew, i);
+      store3(warmw, i, vi - load3(vw, i));  // the solve's own change (the next solve's first guess)
+      const Vec3 x0i = load3(xw, i);
+      Vec3 xi = x0i + h * vi;
+      if (obs && resolve_obstacle_contact(*obs, x0i, xi, vi)) ++contacts;
       store3(vw, i, vi);
-      store3(xw, i, load3(xw, i) + h * vi);
+      store3(xw, i, xi);
       const Real v2 = dot(vi, vi);
       ke += mass[i] * v2;
       vmax2 = std::max(vmax2, v2);
     }
     partial[ch * kPad + 1] = Real(0.5) * ke;
     partial[ch * kPad + 2] = vmax2;
+    partial[ch * kPad + 4] = contacts;
   });
-  Check out{partial_sum(m, sc, 1), partial_sum(m, sc, 0) + u_tets, partial_max(m, sc, 2)};
+  Check out{partial_sum(m, sc, 1), partial_sum(m, sc, 0) + u_tets, partial_max(m, sc, 2),
+            obs ? partial_sum(m, sc, 4) : Real(0)};
   *tool_work += move_kinematic(s, t + h, h);
   return out;
 }
@@ -990,6 +1004,7 @@ StepInfo step(const Model& m, State& s, Real dt, const SolverOptions& o) {
     budget.w_tool = 0;
     int cg_its = 0;
     long done = 0, unconverged = 0;
+    Real contacts = 0;
     Verdict verdict = Verdict::ok;
     for (long k = 0; k < n_sub; ++k) {
       const Real t = t0 + h * static_cast<Real>(k);
@@ -999,6 +1014,7 @@ StepInfo step(const Model& m, State& s, Real dt, const SolverOptions& o) {
                       : symplectic_substep(m, s, t, h, o, &budget.w_tool, budget.u0 < 0 || k == n_sub - 1);
       cg_its += its;
       unconverged += !converged;
+      contacts += last.contacts;
       ++done;
       if (budget.u0 < 0) budget.u0 = std::isfinite(last.u) ? last.u : 0;
       verdict = judge(m, last, budget, h, o);
@@ -1019,6 +1035,7 @@ StepInfo step(const Model& m, State& s, Real dt, const SolverOptions& o) {
       info.cg_iterations = cg_its;
       s.counters.substeps += n_sub;
       s.counters.cg_unconverged += unconverged;
+      s.counters.obstacle_contacts += static_cast<std::int64_t>(contacts);
       break;
     }
     // detected: count, restore, refine

@@ -18,6 +18,12 @@
 //   Jacobi), warm-started from v + (last velocity change); pinned nodes are
 //   filtered out of the solve with their velocities prescribed.
 //
+// Obstacles: where the State has static obstacles (State::obstacles,
+// runtime/obstacles.h), each free node's update is checked against them in
+// the same pass: a motion that crossed one ends on its surface, sliding, with
+// restitution and Coulomb friction on the velocity. Nodes are independent
+// there, so the rule below holds.
+//
 // Stability: after every substep the kinetic energy, the largest speed and
 // finiteness are checked. A step is redone from its start with twice the
 // substeps when a value is NaN or Inf, when the kinetic energy exceeds

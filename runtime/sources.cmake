@@ -6,7 +6,8 @@ target_sources(orthosim_runtime PRIVATE
   ${CMAKE_CURRENT_LIST_DIR}/loader.cpp
   ${CMAKE_CURRENT_LIST_DIR}/scene.cpp
   ${CMAKE_CURRENT_LIST_DIR}/vtk.cpp
-  ${CMAKE_CURRENT_LIST_DIR}/cut.cpp)
+  ${CMAKE_CURRENT_LIST_DIR}/cut.cpp
+  ${CMAKE_CURRENT_LIST_DIR}/obstacles.cpp)
 # sqrt in the spring loops compiles to one instruction without an errno path
 target_compile_options(orthosim_runtime PRIVATE -fno-math-errno)
 

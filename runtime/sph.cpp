@@ -2111,6 +2111,19 @@ void add_mesh(FluidBoundaries& b, FluidMesh mesh, const Fluid& fluid) {
   b.meshes.push_back(std::move(mesh));
 }
 
+void build_static_triangle_grid(std::span<const Real> vertices, std::span<const std::int32_t> triangles, Real margin,
+                                TriangleGrid& g) {
+  const TriangleSource src{vertices.data(), nullptr, triangles.data(), static_cast<std::int32_t>(vertices.size() / 3),
+                           static_cast<std::int32_t>(triangles.size() / 3)};
+  build_triangle_grid(src, 0, margin, g);
+}
+
+std::pair<std::int32_t, std::int32_t> cell_candidates(const TriangleCells& g, const Vec3& p) { return grid_candidates(g, p); }
+
+Vec3 closest_point_on_triangle(const Vec3& p, const Vec3& a, const Vec3& b, const Vec3& c) {
+  return closest_on_triangle(p, a, b, c).p;
+}
+
 void validate(const FluidBoundaries& b, const Fluid& fluid) {
   auto fail = [](const std::string& what) { throw Error("", "fluid boundaries: " + what); };
   if (!finite3(b.lo) || !finite3(b.hi)) fail("the domain box must be finite");

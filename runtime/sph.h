@@ -45,6 +45,7 @@
 #include <limits>
 #include <span>
 #include <string>
+#include <utility>
 #include <vector>
 
 namespace orthosim::runtime {
@@ -367,6 +368,17 @@ void add_plane(FluidBoundaries& b, FluidPlane plane);  // normalises the normal;
 // Validates the mesh (indices, finite coordinates) and builds its grid for the
 // fluid's support radius. Throws Error("", "fluid mesh: ...").
 void add_mesh(FluidBoundaries& b, FluidMesh mesh, const Fluid& fluid);
+// The grid of a static triangle set, as add_mesh builds a FluidMesh's with
+// margin = the fluid's H: for other queries of the same kind of walls (the
+// tissue's obstacles, runtime/obstacles.h). Indices must be valid; degenerate
+// triangles are left out (TriangleGrid::listed).
+void build_static_triangle_grid(std::span<const Real> vertices, std::span<const std::int32_t> triangles, Real margin,
+                                TriangleGrid& g);
+// [begin, end) of g.items: the triangles listed in the cell of p (every
+// triangle within g.margin of p is among them); empty outside the grid.
+std::pair<std::int32_t, std::int32_t> cell_candidates(const TriangleCells& g, const Vec3& p);
+// The point of triangle abc closest to p (Ericson 2005, 5.1.5).
+Vec3 closest_point_on_triangle(const Vec3& p, const Vec3& a, const Vec3& b, const Vec3& c);
 // Throws Error("", "fluid boundaries: ...") for an empty box, periodic faces
 // not in pairs, or a periodic length below 3 H.
 void validate(const FluidBoundaries& b, const Fluid& fluid);

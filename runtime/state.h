@@ -57,6 +57,7 @@ struct Counters {
   std::int64_t cg_unconverged = 0;    // implicit: solves stopped at the iteration cap, in accepted attempts
   std::int64_t cg_redos = 0;          // implicit: attempts redone because a solve stopped at the cap
   std::int64_t factorizations = 0;    // implicit, cholesky preconditioner: sparse factors built
+  std::int64_t obstacle_contacts = 0; // node-substeps that touched an obstacle (State::obstacles), in accepted attempts
 };
 
 // Scratch the solver resizes on demand (never read across steps).
@@ -84,6 +85,9 @@ struct Scratch {
 // built, so copies of a State share it and step exactly as the original.
 struct SparseFactor;
 
+// Static obstacles of the free nodes (runtime/obstacles.h).
+struct Obstacles;
+
 struct State {
   Real time = 0;                   // s
   std::vector<Real> x;             // (n_nodes x 3) m, positions
@@ -94,6 +98,9 @@ struct State {
   std::vector<Real> inv_mass;      // (n_nodes) 1/kg, effective: 0 where pinned
   std::vector<Real> warm;          // (n_nodes x 3) m/s, implicit: last velocity change (PCG warm start)
   std::vector<Attachment> attachments;
+  // static obstacles the free nodes cannot pass (runtime/obstacles.h), or
+  // none; immutable and shared by copies of the State
+  std::shared_ptr<const Obstacles> obstacles;
 
   Real kinetic_energy = 0;  // J, after the last substep
   Real spring_energy = 0;   // J, at the start of the last substep

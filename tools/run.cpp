@@ -167,7 +167,8 @@ void add_run_command(CLI::App& app) {
     if (fb) {
       // (the boundaries' planes and meshes are the colliders', in the scene's order)
       std::size_t plane = 0, mesh = 0;
-      for (const runtime::ColliderDef& c : def.fluid.colliders) {
+      for (const runtime::ColliderDef& c : def.colliders) {
+        if (!c.blood) continue;
         if (c.kind == runtime::ColliderDef::Kind::plane) {
           const runtime::FluidPlane& pl = fb->planes[plane++];
           int ahead = 0;
@@ -201,6 +202,31 @@ void add_run_command(CLI::App& app) {
             std::cerr << "orthosim run: warning: " << scene_file << ": the collider" << quoted(c.name) << " ("
                       << c.stl << ") lies outside the blood's domain: it never acts (its units or frame?)\n";
         }
+      }
+    }
+    // - tissue behind a collider at rest: a plane pushes those nodes onto itself
+    //   in the first step (a jolt, when many); a one-sided mesh cannot tell
+    //   them from nodes inside it and leaves them there
+    if (const runtime::Obstacles* ob = scene->obstacles()) {
+      const runtime::Model& m = scene->model();
+      std::vector<std::int32_t> free_nodes;
+      for (std::int32_t i = 0; i < m.n_nodes; ++i)
+        if (scene->state().inv_mass[static_cast<std::size_t>(i)] > 0) free_nodes.push_back(i);
+      const std::vector<std::int64_t> behind = runtime::obstacle_nodes_behind(*ob, scene->positions(), free_nodes);
+      std::size_t plane = 0, mesh = 0;  // (behind: the planes' counts, then the meshes', in the scene's order)
+      for (const runtime::ColliderDef& c : def.colliders) {
+        if (!c.tissue) continue;
+        const std::int64_t n =
+            behind[c.kind == runtime::ColliderDef::Kind::plane ? plane++ : ob->planes.size() + mesh++];
+        if (n == 0) continue;
+        if (c.kind == runtime::ColliderDef::Kind::plane)
+          std::cerr << "orthosim run: warning: " << scene_file << ": the collider" << quoted(c.name) << " (a plane) has " << n
+                    << " of the tissue's " << free_nodes.size()
+                    << " free nodes behind it at rest: the first step puts them on it (its point or normal?)\n";
+        else
+          std::cerr << "orthosim run: warning: " << scene_file << ": the collider" << quoted(c.name) << " (" << c.stl << ") has "
+                    << n << " of the tissue's free nodes just behind its faces at rest: a one-sided mesh leaves them "
+                    << "there (its placement, units or orientation?)\n";
       }
     }
     // - two tools that hold the same nodes at the same time do not add up: a hook
@@ -293,6 +319,8 @@ void add_run_command(CLI::App& app) {
     met["substeps_per_step"] = r.steps > 0 ? static_cast<double>(c.substeps) / static_cast<double>(r.steps) : 0.0;
     met["substeps_per_second"] = r.step_wall_s > 0 ? static_cast<double>(c.substeps) / r.step_wall_s : 0.0;
     met["symplectic_step_limit_s"] = scene->step_limit();
+    // node-substeps in contact with the static colliders (null without a collider on the tissue)
+    met["obstacle_contacts"] = scene->obstacles() ? nlohmann::json(c.obstacle_contacts) : nlohmann::json(nullptr);
     met["inverted_columns"] = nlohmann::json::object();
     for (const auto& [layer, v] : inversion) {
       met["inverted_columns"][layer] = {{"columns", v.columns}, {"max", v.max}, {"end", v.end},

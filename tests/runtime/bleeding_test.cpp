@@ -262,7 +262,7 @@ TEST(Bleeding, AStaticColliderHoldsTheBlood) {
   const Real y_table = -5e-3;
   auto lowest = [&](const std::vector<ColliderDef>& colliders, bool output) {
     SceneDef def = bleeding_def(false);
-    def.fluid.colliders = colliders;
+    def.colliders = colliders;  // the blood's alone (the tissue's contact: Obstacles tests)
     if (output) {
       def.output.enabled = true;
       def.output.dir = dir_of("series");
@@ -279,10 +279,12 @@ TEST(Bleeding, AStaticColliderHoldsTheBlood) {
     return low;
   };
   ColliderDef plane;
+  plane.tissue = false;
   plane.name = "table";
   plane.point = {0, y_table, 0};
   plane.normal = {0, 1, 0};
   ColliderDef mesh;
+  mesh.tissue = false;
   mesh.name = "table";
   mesh.kind = ColliderDef::Kind::mesh;
   mesh.stl = dir_of("table.stl");
@@ -320,7 +322,7 @@ TEST(Bleeding, AStaticColliderHoldsTheBlood) {
   // a missing STL is one line naming it, before any step
   mesh.stl = dir_of("nope.stl");
   SceneDef def = bleeding_def(false);
-  def.fluid.colliders = {mesh};
+  def.colliders = {mesh};
   try {
     Scene scene(block_with_vessel(), def);
     ADD_FAILURE() << "a missing collider STL was accepted";

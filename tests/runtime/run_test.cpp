@@ -255,6 +255,31 @@ TEST_F(RunCli, WhatTheRunWillNotDoIsAWarning) {
                                                           "behind it: it pushes all the blood out (its normal?)");
   expect_silent(run_cli("run " + collider(R"({"type": "plane", "point_in_box": [0.5, 0, 0.5], "normal": [0, 1, 0]})") +
                         " --no-output --quiet"));
+  // tissue behind a collider at rest: a plane between the skin (y = 0) and the
+  // next sheet (y = 2 mm) has the skin's 351 nodes behind it; a one-sided mesh there, the same
+  const auto shelf = scene(R"({
+      "model": "model.h5", "fixed": ["fixed"], "integrator": "implicit", "dt": 0.005, "duration": 0.01,
+      "colliders": [{"name": "shelf", "type": "plane", "point": [0, 0.001, 0], "normal": [0, 1, 0]}]})");
+  expect_one_warning(run_cli("run " + shelf + " --no-output --quiet"),
+                     "orthosim run: warning: " + shelf + ": the collider 'shelf' (a plane) has 351 of the tissue's 1053 free "
+                                                         "nodes behind it at rest: the first step puts them on it (its point or normal?)");
+  test::write_file(dir / "shelf.stl", "solid shelf\nfacet normal 0 1 0\nouter loop\nvertex -10 1 -10\nvertex 200 1 200\n"
+                                      "vertex 200 1 -10\nendloop\nendfacet\nfacet normal 0 1 0\nouter loop\nvertex -10 1 -10\n"
+                                      "vertex -10 1 200\nvertex 200 1 200\nendloop\nendfacet\nendsolid shelf\n");  // mm
+  const auto shelf_mesh = scene(R"({
+      "model": "model.h5", "fixed": ["fixed"], "integrator": "implicit", "dt": 0.005, "duration": 0.01,
+      "colliders": [{"name": "shelf", "type": "mesh", "stl": "shelf.stl", "units": "mm"}]})");
+  expect_one_warning(run_cli("run " + shelf_mesh + " --no-output --quiet"),
+                     "orthosim run: warning: " + shelf_mesh + ": the collider 'shelf' (" + (dir / "shelf.stl") +
+                         ") has 351 of the tissue's free nodes just behind its faces at rest");
+  // under the tissue: silent, and the series has the collider though the scene has no blood
+  const auto floor = scene(R"({
+      "model": "model.h5", "fixed": ["fixed"], "integrator": "implicit", "dt": 0.005, "duration": 0.01,
+      "colliders": [{"name": "floor", "type": "plane", "point_in_box": [0.5, 0, 0.5], "normal": [0, 1, 0]}]})");
+  expect_silent(run_cli("run " + floor + " --out " + (dir / "floor") + " --quiet --report " + (dir / "floor.json")));
+  EXPECT_TRUE(std::filesystem::is_regular_file(dir / "floor/tissue_colliders.vtp"));
+  EXPECT_TRUE(nlohmann::json::parse(test::read_file(dir / "floor.json"))["metrics"]["obstacle_contacts"].is_number_integer());
+  EXPECT_TRUE(nlohmann::json::parse(test::read_file(dir / "dry.json"))["metrics"]["obstacle_contacts"].is_null());
   // a duration under half a step
   const auto shortrun = with_start("0", "0.002");
   const auto r2 = run_cli("run " + shortrun + " --no-output --quiet");

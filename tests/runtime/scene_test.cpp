@@ -173,7 +173,17 @@ TEST_F(SceneTest, BadScenesAreOneLineErrorsBeforeAnyStep) {
       {R"({"model": "model.h5", "output": {"dir": "o", "name": "../escape"}})", "name must be a file name without a folder"},
       {R"({"model": "model.h5", "output": {"every": 3}})", "output: dir is required (in the scene's output block, or orthosim run --out)"},
       {R"({"model": "model.h5",)", "invalid JSON"},
-      // static colliders of the blood (fluid.colliders)
+      // static colliders: the top-level list (tissue and blood) and fluid.colliders (blood only)
+      {R"({"model": "model.h5", "colliders": {"type": "plane"}})", "colliders must be a list"},
+      {R"({"model": "model.h5", "colliders": [{"type": "plane", "point": [0, 0, 0], "normal": [0, 1, 0], "tissue": false, "blood": false}]})",
+       "colliders[0]: acts on nothing (\"tissue\": false and \"blood\": false)"},
+      {R"({"model": "model.h5", "colliders": [{"name": "t", "type": "plane", "point": [0, 0, 0], "normal": [0, 1, 0]}],
+           "fluid": {"colliders": [{"name": "t", "type": "plane", "point": [0, 0, 0], "normal": [1, 0, 0]}]}})",
+       "colliders: 't' is named twice"},
+      {R"({"model": "model.h5", "fluid": {"colliders": [{"type": "plane", "point": [0, 0, 0], "normal": [0, 1, 0], "tissue": true}]}})",
+       "fluid: colliders[0]: unknown key 'tissue'"},
+      {R"({"model": "model.h5", "colliders": [{"type": "plane", "point": [0, 0, 0], "normal": [0, 1, 0], "tissue": 1}]})",
+       "colliders[0]: tissue must be"},
       {R"({"model": "model.h5", "fluid": {"colliders": {"type": "plane"}}})", "fluid: colliders must be a list"},
       {R"({"model": "model.h5", "fluid": {"colliders": [{"normal": [0, 1, 0], "point": [0, 0, 0]}]}})",
        "fluid: colliders[0]: missing type"},
@@ -198,7 +208,7 @@ TEST_F(SceneTest, BadScenesAreOneLineErrorsBeforeAnyStep) {
        "colliders[0]: unknown key 'colour'"},
       {R"({"model": "model.h5", "fluid": {"colliders": [{"name": "t", "type": "plane", "point": [0, 0, 0], "normal": [0, 1, 0]},
                                                          {"name": "t", "type": "plane", "point": [0, 0, 0], "normal": [1, 0, 0]}]}})",
-       "fluid: colliders: 't' is named twice"},
+       "colliders: 't' is named twice"},
   };
   for (const auto& c : cases) {
     const auto p = scene_file(c.json);
@@ -540,9 +550,10 @@ TEST_F(SceneTest, SampleBleedingScenesParse) {
   EXPECT_NE(a.output.dir, b.output.dir);
   // the same scenario over an operating table: the demo's scene and one static plane
   const SceneDef t = parse_scene_file(dir_s + "bleeding_on_table.json");
-  ASSERT_EQ(t.fluid.colliders.size(), 1u);
-  const ColliderDef& table = t.fluid.colliders[0];
+  ASSERT_EQ(t.colliders.size(), 1u);
+  const ColliderDef& table = t.colliders[0];
   EXPECT_EQ(table.name, "table");
+  EXPECT_TRUE(table.tissue && table.blood) << "the table holds the limb and the blood";
   EXPECT_EQ(table.kind, ColliderDef::Kind::plane);
   EXPECT_TRUE(table.point_relative);
   EXPECT_EQ(table.point, (std::array<Real, 3>{0.5, 0.0, 0.5}));
@@ -563,7 +574,25 @@ TEST_F(SceneTest, SampleBleedingScenesParse) {
   ASSERT_NE(fb, nullptr);
   ASSERT_EQ(fb->planes.size(), 1u);
   EXPECT_NEAR(fb->planes[0].point[1], fb->lo[1] + d.fluid.margin, 1e-12) << "at the loaded nodes' lowest y";
-  EXPECT_EQ(run(scene, 2).steps, 2);
+  // the same plane holds the tissue: the block sags on to it and no node passes it
+  ASSERT_NE(scene.obstacles(), nullptr);
+  ASSERT_EQ(scene.obstacles()->planes.size(), 1u);
+  const Real y_table = scene.obstacles()->planes[0].point.y;
+  EXPECT_EQ(y_table, fb->planes[0].point[1]);
+  EXPECT_EQ(run(scene, 30).steps, 30);
+  Real low = HUGE_VAL;
+  for (std::size_t i = 1; i < scene.positions().size(); i += 3) low = std::min(low, scene.positions()[i]);
+  EXPECT_GE(low, y_table);
+  EXPECT_LT(low - y_table, 1e-8) << "the skin rests on the table";
+  EXPECT_GT(scene.counters().obstacle_contacts, 0);
+  // a blood-only table (as fluid.colliders gives) lets the block sag through it
+  d.colliders[0].tissue = false;
+  Scene through(d);
+  EXPECT_EQ(through.obstacles(), nullptr);
+  run(through, 30);
+  Real low_through = HUGE_VAL;
+  for (std::size_t i = 1; i < through.positions().size(); i += 3) low_through = std::min(low_through, through.positions()[i]);
+  EXPECT_LT(low_through, y_table - 1e-5);
 }
 
 // The sample scenes parse and run on a lattice model (the builder's model

@@ -1,5 +1,6 @@
 // Accuracy, conservation and determinism of the mass-spring solver.
 #include "runtime/kernels.h"
+#include "runtime/obstacles.h"
 #include "runtime/solver.h"
 #include "runtime/testing/lattice.h"
 #include "runtime/testing/newton.h"
@@ -908,6 +909,213 @@ TEST(Solver, TheCholeskyPreconditionerSolvesStiffVolumeTerms) {
   }
   EXPECT_EQ(state_hash(a), state_hash(b));
   EXPECT_EQ(a.counters.factorizations, b.counters.factorizations);
+}
+
+
+// ---- static obstacles (runtime/obstacles.h) ------------------------------------
+
+// A square [-1, 1] m in x and z at height y, two triangles counter-clockwise
+// seen from +y (the front of a one-sided mesh).
+ObstacleMesh square_at(Real y, Real friction, Real restitution = 0, bool two_sided = false) {
+  ObstacleMesh m;
+  m.vertices = {-1, y, -1, 1, y, -1, 1, y, 1, -1, y, 1};
+  m.triangles = {0, 2, 1, 0, 3, 2};
+  m.friction = friction;
+  m.restitution = restitution;
+  m.two_sided = two_sided;
+  return m;
+}
+
+// A node sliding at v0 on a table under gravity stops after v0^2 / (2 mu g)
+// (Coulomb friction: the contact takes the substep's g h of normal velocity,
+// and at most mu g h of tangential), with the table as a plane or a mesh,
+// for both integrators; the discrete sum differs from the integral by less
+// than one substep's travel, v0 h.
+TEST(Obstacles, ASlidingNodeStopsWhereCoulombFrictionSays) {
+  const Real v0 = 0.5, mu = 0.4, g = 9.81, h = 1e-3;
+  const Real expected = v0 * v0 / (2 * mu * g);  // 31.9 mm, after v0 / (mu g) = 0.127 s
+  for (Integrator integ : {Integrator::symplectic_euler, Integrator::implicit_euler})
+    for (bool as_mesh : {false, true}) {
+      SCOPED_TRACE(std::string(to_string(integ)) + (as_mesh ? ", mesh" : ", plane"));
+      const Model m = make_model({0, 0, 0}, {0.01}, {});
+      State s = make_state(m);
+      s.v = {v0, 0, 0};
+      auto ob = std::make_shared<Obstacles>();
+      if (as_mesh) add_obstacle_mesh(*ob, square_at(0, mu));
+      else add_obstacle_plane(*ob, {{0, 0, 0}, {0, 2, 0}, 0, mu});  // (a normal of any length)
+      s.obstacles = ob;
+      SolverOptions o;
+      o.integrator = integ;
+      o.substeps = 1;
+      Real lowest = 0;
+      for (int k = 0; k < 300; ++k) {
+        step(m, s, h, o);
+        lowest = std::min(lowest, s.x[1]);
+      }
+      EXPECT_NEAR(s.x[0], expected, v0 * h) << "stopping distance";
+      EXPECT_EQ(s.v[0], 0) << "at rest: friction stops it, never reverses it";
+      EXPECT_GE(lowest, 0) << "never below the table";
+      EXPECT_LT(s.x[1], 1e-8) << "on it";
+      EXPECT_EQ(s.counters.obstacle_contacts, 300) << "in contact every substep";
+      EXPECT_EQ(s.counters.events, 0);
+    }
+}
+
+// A mesh stops a node however fast it comes (the crossing is found along its
+// motion, not at its end): 100 m/s at a zero-thickness square, 10 cm a
+// substep. It slides on (the tangential motion of the substep is kept
+// without friction), bounces with restitution, and a one-sided mesh lets a
+// node through from behind while a two-sided one does not.
+TEST(Obstacles, AFastNodeDoesNotTunnelThroughAThinMesh) {
+  const Real h = 1e-3;
+  SolverOptions o;
+  o.gravity = {0, 0, 0};
+  o.substeps = 1;
+  auto shoot = [&](ObstacleMesh mesh, Real y0, Real vy) {
+    const Model m = make_model({0, y0, 0}, {0.01}, {});
+    State s = make_state(m);
+    s.v = {0.3, vy, 0.2};
+    auto ob = std::make_shared<Obstacles>();
+    add_obstacle_mesh(*ob, std::move(mesh));
+    s.obstacles = ob;
+    step(m, s, h, o);
+    return s;
+  };
+  {  // from the front, no friction, no restitution: on the square, sliding
+    const State s = shoot(square_at(0, 0), 0.05, -100);
+    EXPECT_GT(s.x[1], 0);
+    EXPECT_LT(s.x[1], 1e-8);
+    EXPECT_DOUBLE_EQ(s.x[0], 0.3 * h);
+    EXPECT_DOUBLE_EQ(s.x[2], 0.2 * h);
+    EXPECT_EQ(s.v[1], 0);
+    EXPECT_DOUBLE_EQ(s.v[0], 0.3);
+    EXPECT_EQ(s.counters.obstacle_contacts, 1);
+  }
+  {  // restitution 0.5: it leaves at half the speed it came with
+    const State s = shoot(square_at(0, 0, 0.5), 0.05, -100);
+    EXPECT_DOUBLE_EQ(s.v[1], 50);
+  }
+  {  // from behind a one-sided square: through; a two-sided one stops it below
+    const State one = shoot(square_at(0, 0), -0.05, 100);
+    EXPECT_NEAR(one.x[1], 0.05, 1e-12);
+    EXPECT_EQ(one.counters.obstacle_contacts, 0);
+    const State two = shoot(square_at(0, 0, 0, true), -0.05, 100);
+    EXPECT_LT(two.x[1], 0);
+    EXPECT_GT(two.x[1], -1e-8);
+    EXPECT_EQ(two.v[1], 0);
+  }
+  {  // past the square's edge: nothing to cross
+    ObstacleMesh small = square_at(0, 0);
+    for (std::size_t k = 0; k < small.vertices.size(); k += 3) small.vertices[k] = 0.5 + 0.01 * small.vertices[k];
+    const State s = shoot(std::move(small), 0.05, -100);
+    EXPECT_NEAR(s.x[1], 0.05 - 100 * h, 1e-12);
+  }
+}
+
+// The paper's block (13 x 5 x 4, fixed at its top sheet) hangs under gravity;
+// a table under its skin, at a third of its sag without one, holds it: no node goes
+// below the table, the skin rests on it, and a plane and a mesh in the same
+// place give the same state (the mesh keeps nodes 1e-9 m in front of it), for
+// both integrators, without a stability event.
+TEST(Obstacles, ATableHoldsASaggingBlock) {
+  const auto b = make_layered_block(13, 5, 4);
+  const Model m = model_from_layers(b.layers, b.sets);
+  Real rest_low = HUGE_VAL;
+  for (std::int32_t i = 0; i < m.n_nodes; ++i) rest_low = std::min(rest_low, m.rest_x[3 * static_cast<std::size_t>(i) + 1]);
+  for (Integrator integ : {Integrator::implicit_euler, Integrator::symplectic_euler}) {
+    SCOPED_TRACE(to_string(integ));
+    SolverOptions o;
+    o.integrator = integ;
+    o.mass_damping = 20;
+    auto hang = [&](std::shared_ptr<const Obstacles> ob, Real* lowest) {
+      State s = make_state(m);
+      fix_nodes(m, s, m.set("fixed"));
+      s.obstacles = std::move(ob);
+      *lowest = HUGE_VAL;
+      for (int k = 0; k < 40; ++k) {
+        step(m, s, 1.0 / 60, o);
+        for (std::int32_t i = 0; i < m.n_nodes; ++i) *lowest = std::min(*lowest, s.x[3 * static_cast<std::size_t>(i) + 1]);
+      }
+      EXPECT_EQ(s.counters.events, 0);
+      EXPECT_TRUE(all_finite(s));
+      return s;
+    };
+    auto end_low = [&](const State& s) {
+      Real low = HUGE_VAL;
+      for (std::int32_t i = 0; i < m.n_nodes; ++i) low = std::min(low, s.x[3 * static_cast<std::size_t>(i) + 1]);
+      return low;
+    };
+    Real free_low = 0;
+    const Real sag = rest_low - end_low(hang(nullptr, &free_low));
+    ASSERT_GT(sag, 1e-4) << "the block should sag visibly";
+    const Real table = rest_low - sag / 3;
+    auto plane = std::make_shared<Obstacles>();
+    add_obstacle_plane(*plane, {{0, table, 0}, {0, 1, 0}, 0, 0.5});
+    auto mesh = std::make_shared<Obstacles>();
+    add_obstacle_mesh(*mesh, square_at(table, 0.5));
+    Real low_plane = 0, low_mesh = 0;
+    const State on_plane = hang(plane, &low_plane), on_mesh = hang(mesh, &low_mesh);
+    EXPECT_GE(low_plane, table) << "below the plane";
+    EXPECT_GE(low_mesh, table) << "below the mesh";
+    EXPECT_GT(on_plane.counters.obstacle_contacts, 0);
+    // the skin rests on the table: its lowest node is on it
+    EXPECT_LT(end_low(on_plane) - table, 1e-8);
+    EXPECT_LT(end_low(on_mesh) - table, 1e-8);
+    EXPECT_LT(max_node_distance(on_plane.x, on_mesh.x), 1e-6) << "plane and mesh in one place";
+  }
+}
+
+// Contact is resolved node by node, so the result is bitwise the same for
+// any thread count.
+TEST(Obstacles, DeterministicAcrossThreadCounts) {
+  const auto b = make_layered_block(13, 5, 4);
+  const Model m = model_from_layers(b.layers, b.sets);
+  auto ob = std::make_shared<Obstacles>();
+  add_obstacle_mesh(*ob, square_at(-2e-4, 0.5));
+  add_obstacle_plane(*ob, {{0.03, 0, 0}, {-1, 0, 0}, 0.2, 0.3});  // a wall the block's free end presses on
+  auto run = [&](Integrator integ, int threads) {
+    State s = make_state(m);
+    fix_nodes(m, s, m.set("fixed"));
+    s.obstacles = ob;
+    SolverOptions o;
+    o.integrator = integ;
+    o.mass_damping = 5;
+    o.gravity = {3, -9.81, 0};
+    tbb::task_arena arena(threads);
+    arena.execute([&] {
+      for (int k = 0; k < 20; ++k) step(m, s, 1.0 / 120, o);
+    });
+    EXPECT_GT(s.counters.obstacle_contacts, 0);
+    return state_hash(s);
+  };
+  for (Integrator integ : {Integrator::symplectic_euler, Integrator::implicit_euler}) {
+    SCOPED_TRACE(to_string(integ));
+    EXPECT_EQ(run(integ, 1), run(integ, 2));
+  }
+}
+
+// Bad obstacles are refused with one line.
+TEST(Obstacles, BadObstaclesAreRefused) {
+  Obstacles ob;
+  auto refused = [&](auto&& add, const std::string& what) {
+    try {
+      add();
+      ADD_FAILURE() << "accepted: " << what;
+    } catch (const Error& e) {
+      EXPECT_NE(std::string(e.what()).find(what), std::string::npos) << e.what();
+    }
+  };
+  refused([&] { add_obstacle_plane(ob, {{0, 0, 0}, {0, 0, 0}}); }, "normal must be non-zero");
+  refused([&] { add_obstacle_plane(ob, {{0, NAN, 0}, {0, 1, 0}}); }, "the point finite");
+  refused([&] { add_obstacle_plane(ob, {{0, 0, 0}, {0, 1, 0}, 1.5, 0}); }, "restitution must be in [0, 1]");
+  refused([&] { add_obstacle_mesh(ob, square_at(0, -1)); }, "friction must be finite and >= 0");
+  ObstacleMesh bad = square_at(0, 0);
+  bad.triangles[4] = 9;
+  refused([&] { add_obstacle_mesh(ob, bad); }, "triangle index 9 out of range (4 vertices)");
+  ObstacleMesh flat = square_at(0, 0);
+  flat.triangles = {0, 1, 1};
+  refused([&] { add_obstacle_mesh(ob, flat); }, "no triangle with an area");
+  EXPECT_TRUE(ob.empty());
 }
 
 }  // namespace

@@ -1,0 +1,180 @@
+#include "runtime/obstacles.h"
+
+#include "libmodel/format/types.h"
+
+#include <algorithm>
+#include <cmath>
+
+namespace orthosim::runtime {
+
+namespace {
+
+bool finite(const Vec3& a) { return std::isfinite(a.x) && std::isfinite(a.y) && std::isfinite(a.z); }
+
+void check_contact_law(const char* what, Real restitution, Real friction) {
+  if (!(restitution >= 0 && restitution <= 1)) throw Error("", std::string(what) + ": restitution must be in [0, 1]");
+  if (!(friction >= 0 && std::isfinite(friction))) throw Error("", std::string(what) + ": friction must be finite and >= 0");
+}
+
+// How far a node is put in front of a mesh's surface: enough that round-off
+// cannot leave it behind (so the next substep's motion starts in front), far
+// below any length of the model.
+Real standoff(const Vec3& p) { return 1e-9 * std::max({Real(1), std::abs(p.x), std::abs(p.y), std::abs(p.z)}); }
+
+// The contact law on the velocity for the unit normal n of the free side.
+void respond(Vec3& v, const Vec3& n, Real restitution, Real friction) {
+  const Real vn = dot(v, n);
+  if (!(vn < 0)) return;
+  const Real dvn = -(1 + restitution) * vn;
+  v += dvn * n;
+  const Vec3 vt = v - dot(v, n) * n;
+  const Real st = norm(vt);
+  if (st > 0) v -= std::min(Real(1), friction * dvn / st) * vt;
+}
+
+struct Hit {
+  Real t = 2;              // along the motion, [0, 1]
+  std::int32_t tri = -1;
+  Vec3 q, n;               // crossing point, unit normal of the side the motion came from
+};
+
+// The first crossing of segment p0 -> p1 with the mesh's triangles (the
+// lowest triangle id among equal t), if any.
+Hit first_crossing(const ObstacleMesh& m, const Vec3& p0, const Vec3& p1) {
+  Hit best;
+  const TriangleCells& g = m.grid.level[0];
+  const Vec3 d = p1 - p0;
+  const Real len = norm(d);
+  // candidates: the cells of points along the motion at most one margin
+  // apart; a triangle the motion crosses at c is within half a margin of one
+  // of them, so listed in its cell
+  const int samples = g.margin > 0 ? static_cast<int>(std::min<Real>(std::ceil(len / g.margin), 1 << 16)) : 1;
+  const Real* X = m.vertices.data();
+  const std::int32_t* T = m.triangles.data();
+  for (int k = 0; k <= samples; ++k) {
+    const Vec3 p = samples > 0 ? p0 + (static_cast<Real>(k) / samples) * d : p0;
+    const auto [b, e] = cell_candidates(g, p);
+    for (std::int32_t q = b; q < e; ++q) {
+      const std::int32_t t = g.items[q];
+      const Vec3 a = load3(X, T[3 * t]), bb = load3(X, T[3 * t + 1]), c = load3(X, T[3 * t + 2]);
+      const Vec3 nrm = cross(bb - a, c - a);
+      const Real s0 = dot(nrm, p0 - a), s1 = dot(nrm, p1 - a);
+      Real side;
+      if (s0 >= 0 && s1 < 0) side = 1;
+      else if (m.two_sided && s0 < 0 && s1 > 0) side = -1;
+      else continue;
+      const Real tt = s0 / (s0 - s1);
+      if (tt > best.t || (tt == best.t && t > best.tri)) continue;
+      const Vec3 x = p0 + tt * d;
+      const Real n2 = dot(nrm, nrm), tol = -1e-12 * n2;
+      if (dot(cross(bb - x, c - x), nrm) < tol || dot(cross(c - x, a - x), nrm) < tol || dot(cross(a - x, bb - x), nrm) < tol)
+        continue;
+      best.t = tt;
+      best.tri = t;
+      best.q = x;
+      best.n = (side / std::sqrt(n2)) * nrm;
+    }
+  }
+  return best;
+}
+
+}  // namespace
+
+void add_obstacle_plane(Obstacles& o, ObstaclePlane plane) {
+  const Real l = norm(plane.normal);
+  if (!(l > 0) || !std::isfinite(l) || !finite(plane.point))
+    throw Error("", "obstacle plane: normal must be non-zero and finite, and the point finite");
+  check_contact_law("obstacle plane", plane.restitution, plane.friction);
+  plane.normal = (1 / l) * plane.normal;
+  o.planes.push_back(plane);
+}
+
+void add_obstacle_mesh(Obstacles& o, ObstacleMesh mesh) {
+  if (mesh.vertices.size() % 3 != 0 || mesh.triangles.size() % 3 != 0)
+    throw Error("", "obstacle mesh: vertices and triangles must be (n x 3) arrays");
+  for (Real v : mesh.vertices)
+    if (!std::isfinite(v)) throw Error("", "obstacle mesh: vertex coordinates must be finite");
+  const auto nv = static_cast<std::int32_t>(mesh.vertices.size() / 3);
+  for (std::int32_t t : mesh.triangles)
+    if (t < 0 || t >= nv) throw Error("", "obstacle mesh: triangle index " + std::to_string(t) + " out of range (" + std::to_string(nv) + " vertices)");
+  check_contact_law("obstacle mesh", mesh.restitution, mesh.friction);
+  // the grid's margin: the mean edge length, so a cell lists a few triangles
+  // and a motion of a substep (far shorter, as a rule) samples one or two cells
+  Real sum = 0;
+  const std::size_t nt = mesh.triangles.size() / 3;
+  for (std::size_t t = 0; t < nt; ++t)
+    for (int k = 0; k < 3; ++k)
+      sum += norm(load3(mesh.vertices.data(), mesh.triangles[3 * t + k]) -
+                  load3(mesh.vertices.data(), mesh.triangles[3 * t + (k + 1) % 3]));
+  const Real margin = nt > 0 ? sum / static_cast<Real>(3 * nt) : 0;
+  build_static_triangle_grid(mesh.vertices, mesh.triangles, margin, mesh.grid);
+  if (std::find(mesh.grid.listed.begin(), mesh.grid.listed.end(), 1) == mesh.grid.listed.end())
+    throw Error("", "obstacle mesh: no triangle with an area (" + std::to_string(nt) + " triangles, all degenerate)");
+  o.meshes.push_back(std::move(mesh));
+}
+
+bool resolve_obstacle_contact(const Obstacles& o, Vec3 x0, Vec3& x, Vec3& v) {
+  bool touched = false;
+  for (const ObstacleMesh& m : o.meshes) {
+    // stop at the first crossing, then slide: the rest of the motion projected
+    // onto the crossed triangle's plane, itself checked again (a concave
+    // corner); after 4 crossings the node stays at the last one
+    int round = 0;
+    for (; round < 4; ++round) {
+      const Hit h = first_crossing(m, x0, x);
+      if (h.tri < 0) break;
+      touched = true;
+      const Real eps = standoff(h.q);
+      x0 = h.q + eps * h.n;
+      x = x - (dot(x - h.q, h.n) - eps) * h.n;
+      respond(v, h.n, m.restitution, m.friction);
+    }
+    if (round == 4) x = x0;
+  }
+  for (const ObstaclePlane& p : o.planes) {
+    const Real d = dot(p.normal, x - p.point);
+    if (!(d < 0)) continue;
+    touched = true;
+    x -= (d - standoff(x)) * p.normal;  // (in front, as on a mesh: round-off cannot leave it behind)
+    respond(v, p.normal, p.restitution, p.friction);
+  }
+  return touched;
+}
+
+std::vector<std::int64_t> obstacle_nodes_behind(const Obstacles& o, std::span<const Real> x,
+                                                std::span<const std::int32_t> nodes) {
+  std::vector<std::int64_t> out;
+  for (const ObstaclePlane& p : o.planes) {
+    std::int64_t n = 0;
+    for (const std::int32_t i : nodes) n += dot(p.normal, load3(x.data(), i) - p.point) < 0;
+    out.push_back(n);
+  }
+  for (const ObstacleMesh& m : o.meshes) {
+    std::int64_t n = 0;
+    const TriangleCells& g = m.grid.level[0];
+    const Real* X = m.vertices.data();
+    const std::int32_t* T = m.triangles.data();
+    if (!m.two_sided)
+      for (const std::int32_t i : nodes) {
+        const Vec3 p = load3(x.data(), i);
+        Real best = g.margin * g.margin;
+        std::int32_t best_t = -1;
+        Vec3 best_c;
+        const auto [b, e] = cell_candidates(g, p);
+        for (std::int32_t q = b; q < e; ++q) {
+          const std::int32_t t = g.items[q];
+          const Vec3 c = closest_point_on_triangle(p, load3(X, T[3 * t]), load3(X, T[3 * t + 1]), load3(X, T[3 * t + 2]));
+          const Real d2 = dot(p - c, p - c);
+          if (d2 < best || (d2 == best && t < best_t)) best = d2, best_t = t, best_c = c;
+        }
+        if (best_t < 0) continue;
+        const Vec3 a = load3(X, T[3 * best_t]);
+        const Vec3 nrm = cross(load3(X, T[3 * best_t + 1]) - a, load3(X, T[3 * best_t + 2]) - a);
+        n += dot(nrm, p - best_c) < 0;
+      }
+    out.push_back(n);
+  }
+  return out;
+}
+
+}  // namespace orthosim::runtime
