@@ -22,14 +22,18 @@ void check_contact_law(const char* what, Real restitution, Real friction) {
 Real standoff(const Vec3& p) { return 1e-9 * std::max({Real(1), std::abs(p.x), std::abs(p.y), std::abs(p.z)}); }
 
 // The contact law on the velocity for the unit normal n of the free side.
+void slow_down(Vec3& v, const Vec3& n, Real dvn, Real friction) {
+  const Vec3 vt = v - dot(v, n) * n;
+  const Real st = norm(vt);
+  if (st > 0 && dvn > 0) v -= std::min(Real(1), friction * dvn / st) * vt;
+}
+
 void respond(Vec3& v, const Vec3& n, Real restitution, Real friction) {
   const Real vn = dot(v, n);
   if (!(vn < 0)) return;
   const Real dvn = -(1 + restitution) * vn;
   v += dvn * n;
-  const Vec3 vt = v - dot(v, n) * n;
-  const Real st = norm(vt);
-  if (st > 0) v -= std::min(Real(1), friction * dvn / st) * vt;
+  slow_down(v, n, dvn, friction);
 }
 
 struct Hit {
@@ -113,30 +117,86 @@ void add_obstacle_mesh(Obstacles& o, ObstacleMesh mesh) {
   o.meshes.push_back(std::move(mesh));
 }
 
-bool resolve_obstacle_contact(const Obstacles& o, Vec3 x0, Vec3& x, Vec3& v) {
-  bool touched = false;
-  for (const ObstacleMesh& m : o.meshes) {
-    // stop at the first crossing, then slide: the rest of the motion projected
-    // onto the crossed triangle's plane, itself checked again (a concave
-    // corner); after 4 crossings the node stays at the last one
+Real obstacle_friction_coefficient(const Obstacles& o, std::int32_t k) {
+  const auto np = static_cast<std::int32_t>(o.planes.size());
+  if (k < 0 || k >= np + static_cast<std::int32_t>(o.meshes.size())) return 0;
+  return k < np ? o.planes[static_cast<std::size_t>(k)].friction : o.meshes[static_cast<std::size_t>(k - np)].friction;
+}
+
+void obstacle_friction(const Obstacles& o, std::int32_t k, const Vec3& n, Real dvn, Vec3& v) {
+  slow_down(v, n, dvn, obstacle_friction_coefficient(o, k));
+}
+
+Real obstacle_reach(const Vec3& x) { return 1e3 * standoff(x); }
+
+ObstacleContact rests_on(const Obstacles& o, std::int32_t k, const Vec3& x) {
+  const auto np = static_cast<std::int32_t>(o.planes.size());
+  if (k < 0 || k >= np + static_cast<std::int32_t>(o.meshes.size())) return {};
+  const Real reach = obstacle_reach(x);
+  if (k < np) {
+    const ObstaclePlane& p = o.planes[static_cast<std::size_t>(k)];
+    if (dot(p.normal, x - p.point) > reach) return {};
+    return {k, p.normal};
+  }
+  const ObstacleMesh& m = o.meshes[static_cast<std::size_t>(k - np)];
+  const TriangleCells& g = m.grid.level[0];
+  const Real* X = m.vertices.data();
+  const std::int32_t* T = m.triangles.data();
+  Real best = reach * reach;
+  std::int32_t best_t = -1;
+  Vec3 best_c;
+  const auto [b, e] = cell_candidates(g, x);
+  for (std::int32_t q = b; q < e; ++q) {
+    const std::int32_t t = g.items[q];
+    const Vec3 c = closest_point_on_triangle(x, load3(X, T[3 * t]), load3(X, T[3 * t + 1]), load3(X, T[3 * t + 2]));
+    const Real d2 = dot(x - c, x - c);
+    if (d2 < best || (d2 == best && t < best_t)) best = d2, best_t = t, best_c = c;
+  }
+  if (best_t < 0) return {};
+  const Vec3 a = load3(X, T[3 * best_t]);
+  Vec3 n = cross(load3(X, T[3 * best_t + 1]) - a, load3(X, T[3 * best_t + 2]) - a);
+  n = (1 / norm(n)) * n;
+  if (m.two_sided && dot(n, x - best_c) < 0) n = -n;
+  return {k, n};
+}
+
+ObstacleContact resolve_obstacle_contact(const Obstacles& o, Vec3 x0, Vec3& x, Vec3& v, Real h) {
+  ObstacleContact touched;
+  const auto np = static_cast<std::int32_t>(o.planes.size());
+  Real left = 1;  // the fraction of the substep still to move after the contacts so far
+  for (std::size_t mi = 0; mi < o.meshes.size(); ++mi) {
+    const ObstacleMesh& m = o.meshes[mi];
+    // stop at the first crossing, respond, and move on from there with the
+    // new velocity for the rest of the substep (sliding, or bouncing), that
+    // motion itself checked again (a concave corner); after 4 crossings the
+    // node stays at the last one
     int round = 0;
     for (; round < 4; ++round) {
-      const Hit h = first_crossing(m, x0, x);
-      if (h.tri < 0) break;
-      touched = true;
-      const Real eps = standoff(h.q);
-      x0 = h.q + eps * h.n;
-      x = x - (dot(x - h.q, h.n) - eps) * h.n;
-      respond(v, h.n, m.restitution, m.friction);
+      const Hit c = first_crossing(m, x0, x);
+      if (c.tri < 0) break;
+      touched = {np + static_cast<std::int32_t>(mi), c.n};
+      respond(v, c.n, m.restitution, m.friction);
+      left *= 1 - c.t;
+      x0 = c.q + standoff(c.q) * c.n;
+      x = x0 + (left * h) * v;
     }
     if (round == 4) x = x0;
   }
-  for (const ObstaclePlane& p : o.planes) {
-    const Real d = dot(p.normal, x - p.point);
-    if (!(d < 0)) continue;
-    touched = true;
-    x -= (d - standoff(x)) * p.normal;  // (in front, as on a mesh: round-off cannot leave it behind)
+  for (std::int32_t k = 0; k < np; ++k) {
+    const ObstaclePlane& p = o.planes[static_cast<std::size_t>(k)];
+    const Real d1 = dot(p.normal, x - p.point);
+    if (!(d1 < 0)) continue;
+    touched = {k, p.normal};
     respond(v, p.normal, p.restitution, p.friction);
+    // where the motion met the plane (its start, if that was behind it
+    // already), put on it
+    const Real d0 = dot(p.normal, x0 - p.point);
+    const Real t = d0 > 0 ? d0 / (d0 - d1) : 0;
+    left *= 1 - t;
+    Vec3 q = x0 + t * (x - x0);
+    q -= (dot(p.normal, q - p.point) - standoff(q)) * p.normal;  // (in front, as on a mesh: round-off cannot leave it behind)
+    x0 = q;
+    x = x0 + (left * h) * v;
   }
   return touched;
 }

@@ -5,19 +5,22 @@
 //
 // Contact is node-based and resolved after each substep's update (solver.h),
 // like a position-based collision step: a node whose motion over the substep
-// crossed an obstacle is put back on its surface, on the side it came from,
-// with its remaining motion along the surface (sliding); its velocity loses
-// its component into the obstacle (restitution e: v_n -> -e v_n) and, by
-// Coulomb friction, at most friction x (1 + e) |v_n| of its tangential part,
-// never reversing it (the fluid's walls follow the same law, sph.h,
-// WallParams). A plane is a half-space, so a node behind it however far is put
-// back on it. A mesh stops crossings of its triangles, swept along each
-// node's motion (continuous: a fast node cannot tunnel through a thin mesh):
-// one-sided meshes stop motion from the front (the counter-clockwise normal's
-// side) to the back, two-sided ones each way. A node that starts behind a
-// one-sided mesh is not pushed out (it is not known to be inside);
+// crossed an obstacle stops there, on the side it came from; its velocity
+// loses its component into the obstacle (restitution e: v_n -> -e v_n) and,
+// by Coulomb friction, at most friction x (1 + e) |v_n| of its tangential
+// part, never reversing it (the fluid's walls follow the same law, sph.h,
+// WallParams); and it moves on with that velocity for the rest of the
+// substep (sliding along the surface, or bouncing off). A plane is a
+// half-space, so a node behind it however far is put back on it. A mesh
+// stops crossings of its triangles, swept along each node's motion
+// (continuous: a fast node cannot tunnel through a thin mesh): one-sided
+// meshes stop motion from the front (the counter-clockwise normal's side) to
+// the back, two-sided ones each way. A node that starts behind a one-sided
+// mesh is not pushed out (it is not known to be inside);
 // obstacle_nodes_behind counts the nodes a scene starts with behind its
-// obstacles, for a warning.
+// obstacles, for a warning. The implicit integrator also holds a node that
+// rests on an obstacle on its surface within its solve, with the friction
+// as a damper in the solve (solver.cpp, docs/runtime.md).
 //
 // Edges and faces of the tissue between nodes are not tested: a coarse
 // skin quad may dip past a convex corner of a mesh between its nodes.
@@ -64,11 +67,37 @@ void add_obstacle_plane(Obstacles& o, ObstaclePlane plane);
 // mean edge length. Throws Error("", "obstacle mesh: ...").
 void add_obstacle_mesh(Obstacles& o, ObstacleMesh mesh);
 
-// One node's motion over a substep from x0 to x with velocity v: puts x back
-// on the free side of every obstacle it crossed (see above) and changes v by
-// the contact law. Returns true when the node touched an obstacle. Meshes
-// first, planes last (a half-space always holds).
-bool resolve_obstacle_contact(const Obstacles& o, Vec3 x0, Vec3& x, Vec3& v);
+// An obstacle a node touches: its index (the planes 0 .. P-1, then the
+// meshes P ..; -1: none) and the unit normal of the free side there.
+struct ObstacleContact {
+  std::int32_t obstacle = -1;
+  Vec3 n;
+};
+
+// One node's motion over a substep of h seconds from x0 to x = x0 + h v: where
+// it crosses an obstacle, v changes by the contact law and the node moves on
+// from the crossing with the new v for the rest of the substep (see above).
+// Returns the last obstacle it touched (-1: none). Meshes first, planes last
+// (a half-space always holds).
+ObstacleContact resolve_obstacle_contact(const Obstacles& o, Vec3 x0, Vec3& x, Vec3& v, Real h);
+
+// Coulomb friction on a node that an obstacle's contact (index k, unit normal
+// n) gave the normal velocity change dvn >= 0: its tangential velocity loses
+// at most friction x dvn, never reversed. (The implicit solve holds a resting
+// node on its obstacle; dvn is then the impulse of that hold over the mass.)
+void obstacle_friction(const Obstacles& o, std::int32_t k, const Vec3& n, Real dvn, Vec3& v);
+// Obstacle k's friction coefficient (0 for no obstacle).
+Real obstacle_friction_coefficient(const Obstacles& o, std::int32_t k);
+
+// How far from an obstacle's surface a node still rests on it: 10^-6 of the
+// coordinates' size, at least 1 micrometre (a node put on a surface stands
+// 10^-9 in front of it).
+Real obstacle_reach(const Vec3& x);
+
+// Whether a node at x rests on obstacle k: within obstacle_reach(x) in front
+// of it (a plane: or behind it). The normal there is that of the plane, or of
+// the mesh's closest triangle on the node's side (a one-sided mesh: its front).
+ObstacleContact rests_on(const Obstacles& o, std::int32_t k, const Vec3& x);
 
 // Of the given positions (n x 3), how many are behind plane k (for each
 // plane), and how many lie within one grid margin behind a triangle of

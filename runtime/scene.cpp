@@ -484,6 +484,7 @@ SceneDef parse_scene(const std::string& text, const std::string& file) {
     d.solver.refactor_after = static_cast<int>(s.integer("refactor_after", d.solver.refactor_after, 1, 100000));
     d.solver.warm_start = s.boolean("warm_start", true);
     d.solver.redo_unconverged = s.boolean("redo_unconverged", true);
+    d.solver.friction_creep_speed = s.number("friction_creep_speed", d.solver.friction_creep_speed, 0, 10, true);
     s.finish();
   }
   if (o.has("tools")) {

@@ -64,6 +64,8 @@ void validate(const SolverOptions& o) {
     throw Error("", "cg_tolerance must be in (0, 1)");
   if (o.cg_max_iterations < 1) throw Error("", "cg_max_iterations must be >= 1");
   if (o.refactor_after < 1) throw Error("", "refactor_after must be >= 1");
+  if (!(std::isfinite(o.friction_creep_speed) && o.friction_creep_speed > 0))
+    throw Error("", "friction_creep_speed must be finite and > 0");
 }
 
 namespace {
@@ -121,6 +123,12 @@ void ensure_scratch(const Model& m, State& s, bool implicit) {
   for (auto* v : {&sc.tet_p, &sc.tet_c, &sc.tet_s})
     if (v->size() != nt) v->assign(nt, 0);
   if (sc.tet_partial.size() != static_cast<std::size_t>(m.n_tet_chunks)) sc.tet_partial.assign(static_cast<std::size_t>(m.n_tet_chunks), 0);
+  if (s.obstacles) {
+    if (s.contact_obstacle.size() != n3 / 3) s.contact_obstacle.assign(n3 / 3, -1);
+    if (s.contact_force.size() != n3 / 3) s.contact_force.assign(n3 / 3, 0);
+    if (implicit && sc.constraint.size() != n3) sc.constraint.assign(n3, 0);
+  }
+  sc.constrained = false;
   if (implicit) {
     const auto ne = m.nbr.size();
     if (sc.offdiag.size() != 6 * ne) sc.offdiag.assign(6 * ne, 0);
@@ -355,7 +363,11 @@ Check symplectic_substep(const Model& m, State& s, Real t, Real h, const SolverO
         vi += h * (wi * fi + g - alpha * vi);
         const Vec3 x0i = load3(xw, i);
         Vec3 xi = x0i + h * vi;
-        if (obs && resolve_obstacle_contact(*obs, x0i, xi, vi)) ++contacts;
+        if (obs) {
+          const std::int32_t k = resolve_obstacle_contact(*obs, x0i, xi, vi, h).obstacle;
+          s.contact_obstacle[static_cast<std::size_t>(i)] = k;
+          contacts += k >= 0;
+        }
         store3(vw, i, vi);
         store3(xw, i, xi);
         const Real v2 = dot(vi, vi);
@@ -387,6 +399,11 @@ inline void sym_add(Real* a, std::int64_t k, const Sym3& s) {
   b[0] += s.xx, b[1] += s.yy, b[2] += s.zz, b[3] += s.xy, b[4] += s.xz, b[5] += s.yz;
 }
 
+// A contact constraint's filter I - n n^T (Baraff & Witkin 1998, 5.3): the
+// part of a node's vector along the obstacle's surface (n unit, or zero for
+// no constraint: a unchanged).
+inline Vec3 filter(const Vec3& a, const Vec3& n) { return a - dot(a, n) * n; }
+
 // How apply_matrix reads its vector: p itself, or the PCG direction update
 // p_next = z + beta p fused into the read (beta == 0: z alone).
 enum class Read { plain, fused_first, fused };
@@ -403,6 +420,8 @@ Real apply_matrix(const Model& m, State& s, const Real* p, const Real* z, Real b
   const std::int32_t* nbr = m.nbr.data();
   const Real* w = s.inv_mass.data();
   Real* partial = sc.partial.data();
+  const bool constrained = sc.constrained;
+  const Real* cn = sc.constraint.data();
   auto dir = [&](std::int32_t j) {
     if constexpr (kRead == Read::plain) return load3(p, j);
     else if constexpr (kRead == Read::fused_first) return load3(z, j);
@@ -446,6 +465,7 @@ Real apply_matrix(const Model& m, State& s, const Real* p, const Real* z, Real b
           const std::int32_t e = m.tet_corner[static_cast<std::size_t>(q)];
           yi += sc.tet_s[e >> 2] * load3(sc.tet_g.data(), e);
         }
+      if (constrained) yi = filter(yi, load3(cn, i));
       store3(y, i, yi);
       pq += dot(pi, yi);
     }
@@ -646,6 +666,8 @@ Check implicit_substep(const Model& m, State& s, Real t, Real h, const SolverOpt
   const Real damp = 1 + h * o.mass_damping;
   const bool block = o.preconditioner != Preconditioner::jacobi;  // (and the cholesky solves' fallback)
   const bool use_warm = o.warm_start;
+  const Obstacles* obs = s.obstacles && !s.obstacles->empty() ? s.obstacles.get() : nullptr;
+  Real* cn = sc.constraint.data();
   for_chunks(m, [&](int ch) {
     Real u = 0;
     for (std::int32_t i = chunk_begin(m, ch), e = chunk_end(m, ch); i < e; ++i) {
@@ -680,7 +702,7 @@ Check implicit_substep(const Model& m, State& s, Real t, Real h, const SolverOpt
   const Real u_tets = tet_pass(m, s, h * h);
   const bool has_tets = m.n_tets > 0;
   for_chunks(m, [&](int ch) {
-    Real b2 = 0, t2 = 0, tw = 0;
+    Real b2 = 0, t2 = 0, tw = 0, held = 0;
     for (std::int32_t i = chunk_begin(m, ch), e = chunk_end(m, ch); i < e; ++i) {
       Vec3 fi = load3(f, i);
       Real fs2 = fsq[i];
@@ -705,6 +727,7 @@ Check implicit_substep(const Model& m, State& s, Real t, Real h, const SolverOpt
       }
       fi += load3(fext, i);
       if (w[i] == 0) {
+        if (obs) store3(cn, i, Vec3{});
         store3(f, i, fi);
         store3(rhs, i, Vec3{});
         sym_store(P, i, Sym3{});
@@ -716,6 +739,36 @@ Check implicit_substep(const Model& m, State& s, Real t, Real h, const SolverOpt
       store3(f, i, fi);
       const Real md = damp * mass[i] + h * h * attach_k[i];
       Di.xx += md, Di.yy += md, Di.zz += md;
+      const Vec3 vi = load3(v, i);
+      Vec3 ni{};  // the hold's normal (zero: none)
+      if (obs) {
+        // a node resting on an obstacle (put on it by the last substep, or
+        // held there with the hold pushing: below) moves only along its
+        // surface in this solve: its normal velocity is held at zero (the
+        // constraint filters every PCG vector, Baraff & Witkin 1998, 5.3).
+        // Its friction is a tangential damper in the matrix, c = mu N /
+        // max(|v_t|, v_eps), N the hold's normal force of the last substep:
+        // Coulomb's mu N against a sliding node, and against a node at rest
+        // a damper that lets it creep at most v_eps (friction_creep_speed)
+        // under any force inside the friction cone (lagged, smoothed Coulomb
+        // friction, as IPC's eps_v: Li et al. 2020).
+        const std::int32_t k = s.contact_obstacle[static_cast<std::size_t>(i)];
+        if (k >= 0) {
+          const Vec3 xi = load3(x, i);
+          const ObstacleContact c = rests_on(*obs, k, xi);
+          if (c.obstacle >= 0) {
+            ni = c.n;
+            const Vec3 vt = filter(vi, ni);
+            const Real cf = obstacle_friction_coefficient(*obs, k) * s.contact_force[static_cast<std::size_t>(i)] /
+                            std::max(norm(vt), o.friction_creep_speed);
+            Sym3 t;  // h c (I - n n^T)
+            t.xx = h * cf * (1 - ni.x * ni.x), t.yy = h * cf * (1 - ni.y * ni.y), t.zz = h * cf * (1 - ni.z * ni.z);
+            t.xy = -h * cf * ni.x * ni.y, t.xz = -h * cf * ni.x * ni.z, t.yz = -h * cf * ni.y * ni.z;
+            Di += t;
+          }
+        }
+        store3(cn, i, ni);
+      }
       sym_store(D, i, Di);
       Di += Dt;  // the whole diagonal block from here on
       Sym3 inv;
@@ -725,7 +778,6 @@ Check implicit_substep(const Model& m, State& s, Real t, Real h, const SolverOpt
         inv.xx = 1 / Di.xx, inv.yy = 1 / Di.yy, inv.zz = 1 / Di.zz;
       }
       sym_store(P, i, inv);
-      const Vec3 vi = load3(v, i);
       const Vec3 bi = mass[i] * vi + h * fi;
       store3(rhs, i, bi);
       b2 += dot(bi, bi);
@@ -738,12 +790,20 @@ Check implicit_substep(const Model& m, State& s, Real t, Real h, const SolverOpt
       // (over its diagonal), in the mass norm: the scale of the energy test
       const Real pi = 3 / (Di.xx + Di.yy + Di.zz);
       tw += mass[i] * pi * pi * ti2;
-      store3(vnew, i, use_warm ? vi + load3(warm, i) : vi);
+      Vec3 guess = use_warm ? vi + load3(warm, i) : vi;
+      if (ni.x != 0 || ni.y != 0 || ni.z != 0) {
+        guess = filter(guess, ni);
+        held += 1;
+      }
+      store3(vnew, i, guess);
     }
     partial[ch * kPad + 1] = b2;
     partial[ch * kPad + 2] = t2;
     partial[ch * kPad + 3] = tw;
+    partial[ch * kPad + 4] = held;
   });
+  sc.constrained = obs && partial_sum(m, sc, 4) > 0;
+  const bool constrained = sc.constrained;
   const Real rhs2 = partial_sum(m, sc, 1);
   const Real terms2 = partial_sum(m, sc, 2);
   const Real termsw = partial_sum(m, sc, 3);
@@ -772,7 +832,11 @@ Check implicit_substep(const Model& m, State& s, Real t, Real h, const SolverOpt
       Real rz_c = 0, ez_c = 0;
       for (std::int32_t i = chunk_begin(m, ch), e = chunk_end(m, ch); i < e; ++i) {
         if (w[i] == 0) continue;
-        const Vec3 zi = load3(z, i);
+        Vec3 zi = load3(z, i);
+        if (constrained) {
+          zi = filter(zi, load3(cn, i));
+          store3(z, i, zi);
+        }
         rz_c += dot(load3(r, i), zi);
         ez_c += mass[i] * dot(zi, zi);
       }
@@ -788,11 +852,13 @@ Check implicit_substep(const Model& m, State& s, Real t, Real h, const SolverOpt
   for_chunks(m, [&](int ch) {
     Real rz = 0, rr = 0, ez = 0;
     for (std::int32_t i = chunk_begin(m, ch), e = chunk_end(m, ch); i < e; ++i) {
-      const Vec3 ri = w[i] == 0 ? Vec3{} : load3(rhs, i) - load3(q, i);
+      Vec3 ri = w[i] == 0 ? Vec3{} : load3(rhs, i) - load3(q, i);
+      if (constrained) ri = filter(ri, load3(cn, i));
       store3(r, i, ri);
       rr += dot(ri, ri);
       if (F) continue;
-      const Vec3 zi = apply_precond(P, i, ri);
+      Vec3 zi = apply_precond(P, i, ri);
+      if (constrained) zi = filter(zi, load3(cn, i));
       store3(z, i, zi);
       rz += dot(ri, zi);
       ez += mass[i] * dot(zi, zi);
@@ -841,7 +907,8 @@ Check implicit_substep(const Model& m, State& s, Real t, Real h, const SolverOpt
         store3(r, i, ri);
         rr_c += dot(ri, ri);
         if (F) continue;
-        const Vec3 zi = apply_precond(P, i, ri);
+        Vec3 zi = apply_precond(P, i, ri);
+        if (constrained) zi = filter(zi, load3(cn, i));
         store3(z, i, zi);
         rz_c += dot(ri, zi);
         ez_c += mass[i] * dot(zi, zi);
@@ -871,20 +938,53 @@ Check implicit_substep(const Model& m, State& s, Real t, Real h, const SolverOpt
   s.counters.cg_iterations += it;
   s.counters.cg_max_iterations = std::max<std::int64_t>(s.counters.cg_max_iterations, it);
 
+  // the holds' impulses: (A v' - b) . n at each held node, of the unfiltered
+  // product (one more product, only where a node is held), for their friction
+  if (constrained) {
+    sc.constrained = false;
+    apply_matrix<Read::plain>(m, s, vnew, nullptr, 0, nullptr, q);
+    sc.constrained = true;
+  }
+
   // update: v = v', x += h v' (kinematic nodes land exactly on their targets)
   Real* xw = s.x.data();
   Real* vw = s.v.data();
   Real* warmw = s.warm.data();
-  const Obstacles* obs = s.obstacles && !s.obstacles->empty() ? s.obstacles.get() : nullptr;
   for_chunks(m, [&](int ch) {
     Real ke = 0, vmax2 = 0, contacts = 0;
     for (std::int32_t i = chunk_begin(m, ch), e = chunk_end(m, ch); i < e; ++i) {
       if (w[i] == 0) continue;
       Vec3 vi = load3(vnew, i);
       store3(warmw, i, vi - load3(vw, i));  // the solve's own change (the next solve's first guess)
+      // a held node: the hold's impulse (A v' - b)_i . n over h is its normal
+      // force. Pushing (> 0), the hold stays and the force sets the next
+      // substep's friction; pulling, the node is let go.
+      bool keep = false;
+      Real normal_force = 0;
+      if (constrained) {
+        const Vec3 ni = load3(cn, i);
+        if (ni.x != 0 || ni.y != 0 || ni.z != 0) {
+          normal_force = dot(load3(q, i) - load3(rhs, i), ni) / h;
+          keep = normal_force > 0;
+        }
+      }
       const Vec3 x0i = load3(xw, i);
       Vec3 xi = x0i + h * vi;
-      if (obs && resolve_obstacle_contact(*obs, x0i, xi, vi)) ++contacts;
+      if (obs) {
+        const Vec3 v_before = vi;
+        const ObstacleContact c = resolve_obstacle_contact(*obs, x0i, xi, vi, h);
+        std::int32_t k = c.obstacle;
+        if (k >= 0) {
+          // put on an obstacle: the contact's normal velocity change is the
+          // impulse m dv_n of a force m dv_n / h over the substep
+          s.contact_force[static_cast<std::size_t>(i)] = mass[i] * dot(vi - v_before, c.n) / h;
+        } else if (keep) {
+          k = s.contact_obstacle[static_cast<std::size_t>(i)];  // held on it by the solve
+          s.contact_force[static_cast<std::size_t>(i)] = normal_force;
+        }
+        s.contact_obstacle[static_cast<std::size_t>(i)] = k;
+        contacts += k >= 0;
+      }
       store3(vw, i, vi);
       store3(xw, i, xi);
       const Real v2 = dot(vi, vi);
@@ -997,6 +1097,7 @@ StepInfo step(const Model& m, State& s, Real dt, const SolverOptions& o) {
   std::memcpy(sc.v0.data(), s.v.data(), s.v.size() * sizeof(Real));
   std::vector<Real> warm0;
   if (implicit) warm0 = s.warm;
+  if (!s.contact_obstacle.empty()) sc.contact0 = s.contact_obstacle, sc.force0 = s.contact_force;
   bool ok = false;
   Check last;
   for (int attempt = 0; attempt <= o.max_retries; ++attempt) {
@@ -1050,6 +1151,7 @@ StepInfo step(const Model& m, State& s, Real dt, const SolverOptions& o) {
     std::memcpy(s.x.data(), sc.x0.data(), s.x.size() * sizeof(Real));
     std::memcpy(s.v.data(), sc.v0.data(), s.v.size() * sizeof(Real));
     if (implicit) s.warm = warm0;
+    if (!s.contact_obstacle.empty()) s.contact_obstacle = sc.contact0, s.contact_force = sc.force0;
     info.retries = attempt + 1;
     if (n_sub >= o.max_substeps) break;
     n_sub = std::min<long>(2 * n_sub, o.max_substeps);
@@ -1062,6 +1164,7 @@ StepInfo step(const Model& m, State& s, Real dt, const SolverOptions& o) {
     info.failed = true;
     std::fill(s.v.begin(), s.v.end(), 0);
     std::fill(s.warm.begin(), s.warm.end(), 0);
+    if (!s.contact_obstacle.empty()) s.contact_obstacle = sc.contact0, s.contact_force = sc.force0;
     for (std::int32_t i = 0; i < m.n_nodes; ++i)
       if (!std::isfinite(s.f[3 * i]) || !std::isfinite(s.f[3 * i + 1]) || !std::isfinite(s.f[3 * i + 2]))
         store3(s.f.data(), i, Vec3{});

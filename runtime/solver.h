@@ -86,6 +86,12 @@ struct SolverOptions {
   int refactor_after = 8;   // implicit, cholesky: a solve of more iterations rebuilds the factor next substep, >= 1
   bool warm_start = true;  // implicit: start PCG from v + the last velocity change
   bool redo_unconverged = true;  // implicit: a step with a solve stopped at cg_max_iterations is redone with twice the substeps (up to max_retries)
+  // implicit, obstacles: the speed (m/s) below which a resting node's friction
+  // is a damper, mu N / creep_speed (smoothed Coulomb friction): a node at
+  // rest creeps at most this fast under a tangential force inside the
+  // friction cone. > 0. Smaller: less creep, a slower start when pushed past
+  // the cone (docs/runtime.md, Static colliders).
+  Real friction_creep_speed = 1e-4;
 };
 
 // Throws Error("", ...) naming the first invalid option.

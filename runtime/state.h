@@ -79,6 +79,12 @@ struct Scratch {
   std::vector<Real> tet_c;         // (n_tets) implicit: h^2 k / |V0|, the Gauss-Newton block h^2 (k/|V0|) g g^T
   std::vector<Real> tet_s;         // (n_tets) implicit: tet_c g.p of the PCG product
   std::vector<Real> tet_partial;   // (n_tet_chunks) per-chunk energy sums
+  // implicit, with obstacles: the unit normal of each node's hold in this
+  // substep's solve (zero: none), the filter I - n n^T
+  std::vector<Real> constraint;    // (n_nodes x 3)
+  bool constrained = false;        // some node is held
+  std::vector<std::int32_t> contact0;  // (n_nodes) State::contact_obstacle at the step's start, for redo
+  std::vector<Real> force0;            // (n_nodes) State::contact_force at the step's start, for redo
 };
 
 // The cholesky preconditioner's factor (runtime/solver.cpp): immutable once
@@ -101,6 +107,13 @@ struct State {
   // static obstacles the free nodes cannot pass (runtime/obstacles.h), or
   // none; immutable and shared by copies of the State
   std::shared_ptr<const Obstacles> obstacles;
+  // the obstacle each node rested on after the last substep (index as
+  // ObstacleContact::obstacle, -1: none); sized by the solver
+  std::vector<std::int32_t> contact_obstacle;
+  // N: the normal force of that contact in the last substep (the implicit
+  // solve's hold, or the contact's impulse over the substep): the next
+  // substep's Coulomb bound on its friction
+  std::vector<Real> contact_force;
 
   Real kinetic_energy = 0;  // J, after the last substep
   Real spring_energy = 0;   // J, at the start of the last substep

@@ -175,6 +175,8 @@ TEST_F(SceneTest, BadScenesAreOneLineErrorsBeforeAnyStep) {
       {R"({"model": "model.h5",)", "invalid JSON"},
       // static colliders: the top-level list (tissue and blood) and fluid.colliders (blood only)
       {R"({"model": "model.h5", "colliders": {"type": "plane"}})", "colliders must be a list"},
+      {R"({"model": "model.h5", "integrator": "implicit", "implicit": {"friction_creep_speed": 0}})",
+       "implicit: friction_creep_speed must be"},
       {R"({"model": "model.h5", "colliders": [{"type": "plane", "point": [0, 0, 0], "normal": [0, 1, 0], "tissue": false, "blood": false}]})",
        "colliders[0]: acts on nothing (\"tissue\": false and \"blood\": false)"},
       {R"({"model": "model.h5", "colliders": [{"name": "t", "type": "plane", "point": [0, 0, 0], "normal": [0, 1, 0]}],

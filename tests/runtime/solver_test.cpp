@@ -926,20 +926,26 @@ ObstacleMesh square_at(Real y, Real friction, Real restitution = 0, bool two_sid
   return m;
 }
 
+// One free node on a table (y = 0), with a fixed node 1 m away so that the
+// model has an extent (the stability check's energy budget scales with it).
+Model node_on_table() { return make_model({0, 0, 0, 1, 0, 0}, {0.01, 0}, {}); }
+
 // A node sliding at v0 on a table under gravity stops after v0^2 / (2 mu g)
-// (Coulomb friction: the contact takes the substep's g h of normal velocity,
-// and at most mu g h of tangential), with the table as a plane or a mesh,
-// for both integrators; the discrete sum differs from the integral by less
-// than one substep's travel, v0 h.
+// (Coulomb friction: mu g of deceleration), with the table as a plane or a
+// mesh, for both integrators; the discrete sum differs from the integral by
+// less than one substep's travel, v0 h. (Symplectic: each substep's contact
+// takes g h of normal velocity and at most mu g h of tangential. Implicit:
+// the node is held on the table and its friction is a damper mu N / |v_t|
+// in the solve, mu N / creep_speed below creep_speed, which stops it.)
 TEST(Obstacles, ASlidingNodeStopsWhereCoulombFrictionSays) {
   const Real v0 = 0.5, mu = 0.4, g = 9.81, h = 1e-3;
   const Real expected = v0 * v0 / (2 * mu * g);  // 31.9 mm, after v0 / (mu g) = 0.127 s
   for (Integrator integ : {Integrator::symplectic_euler, Integrator::implicit_euler})
     for (bool as_mesh : {false, true}) {
       SCOPED_TRACE(std::string(to_string(integ)) + (as_mesh ? ", mesh" : ", plane"));
-      const Model m = make_model({0, 0, 0}, {0.01}, {});
+      const Model m = node_on_table();
       State s = make_state(m);
-      s.v = {v0, 0, 0};
+      s.v = {v0, 0, 0, 0, 0, 0};
       auto ob = std::make_shared<Obstacles>();
       if (as_mesh) add_obstacle_mesh(*ob, square_at(0, mu));
       else add_obstacle_plane(*ob, {{0, 0, 0}, {0, 2, 0}, 0, mu});  // (a normal of any length)
@@ -953,12 +959,57 @@ TEST(Obstacles, ASlidingNodeStopsWhereCoulombFrictionSays) {
         lowest = std::min(lowest, s.x[1]);
       }
       EXPECT_NEAR(s.x[0], expected, v0 * h) << "stopping distance";
-      EXPECT_EQ(s.v[0], 0) << "at rest: friction stops it, never reverses it";
+      if (integ == Integrator::symplectic_euler) EXPECT_EQ(s.v[0], 0) << "at rest: friction stops it, never reverses it";
+      else EXPECT_LT(std::abs(s.v[0]), 1e-9 * v0) << "at rest: below creep_speed the damper takes the speed to zero";
+      EXPECT_GE(s.v[0], -o.cg_tolerance * g * h) << "never reversed (the implicit solve: within its tolerance)";
       EXPECT_GE(lowest, 0) << "never below the table";
       EXPECT_LT(s.x[1], 1e-8) << "on it";
       EXPECT_EQ(s.counters.obstacle_contacts, 300) << "in contact every substep";
       EXPECT_EQ(s.counters.events, 0);
     }
+}
+
+// Coulomb's law under a steady tangential pull F on a node resting on a
+// table: inside the friction cone (F = mu m g / 2) it stays (the implicit
+// solve's smoothed friction lets it creep at most creep_speed); outside (F =
+// 2 mu m g) it slides with acceleration (F - mu m g) / m = mu g. Both
+// integrators, a plane table.
+TEST(Obstacles, APulledNodeSticksInsideTheFrictionConeAndSlidesOutside) {
+  const Real mu = 0.4, g = 9.81, mass = 0.01, h = 1e-3;
+  for (Integrator integ : {Integrator::symplectic_euler, Integrator::implicit_euler}) {
+    SCOPED_TRACE(to_string(integ));
+    SolverOptions o;
+    o.integrator = integ;
+    o.substeps = 1;
+    auto pull = [&](Real F, int steps) {
+      const Model m = node_on_table();
+      State s = make_state(m);
+      auto ob = std::make_shared<Obstacles>();
+      add_obstacle_plane(*ob, {{0, 0, 0}, {0, 1, 0}, 0, mu});
+      s.obstacles = ob;
+      s.f_ext = {F, 0, 0, 0, 0, 0};
+      std::vector<Real> vx;
+      for (int k = 0; k < steps; ++k) {
+        step(m, s, h, o);
+        vx.push_back(s.v[0]);
+      }
+      EXPECT_EQ(s.counters.events, 0);
+      EXPECT_GE(s.x[1], 0);
+      return std::pair{s.x[0], vx};
+    };
+    // inside the cone, 1 s
+    const auto [x_in, v_in] = pull(0.5 * mu * mass * g, 1000);
+    // (symplectic: each substep meets the table 10^-9 m below its start, after
+    // a sliver of the substep's motion: 0.2 micrometres in 1 s)
+    if (integ == Integrator::symplectic_euler) EXPECT_LT(x_in, 1e-6) << "it sticks";
+    else EXPECT_LE(x_in, 0.5 * o.friction_creep_speed * 1.0) << "it creeps at most F / (mu N) creep_speed";
+    EXPECT_GE(x_in, 0);
+    // outside, 0.2 s: the acceleration over the last 0.1 s
+    const auto [x_out, v_out] = pull(2 * mu * mass * g, 200);
+    const Real a = (v_out[199] - v_out[99]) / (100 * h);
+    EXPECT_NEAR(a, mu * g, 0.01 * mu * g) << "kinetic friction mu m g";
+    EXPECT_GT(x_out, 0);
+  }
 }
 
 // A mesh stops a node however fast it comes (the crossing is found along its
