@@ -160,44 +160,70 @@ ObstacleContact rests_on(const Obstacles& o, std::int32_t k, const Vec3& x) {
   return {k, n};
 }
 
-ObstacleContact resolve_obstacle_contact(const Obstacles& o, Vec3 x0, Vec3& x, Vec3& v, Real h) {
-  ObstacleContact touched;
+namespace {
+
+// The earliest crossing of any obstacle along x0 -> x (k = -1: none): a plane
+// where the motion goes behind it (at once, if x0 is behind it already), a
+// mesh where the motion crosses a triangle from its free side(s); ties to the
+// lowest index. q is on the obstacle's surface, n its free side's normal.
+struct Crossing {
+  Real t = 2;
+  std::int32_t k = -1;
+  Vec3 q, n;
+};
+Crossing earliest_crossing(const Obstacles& o, const Vec3& x0, const Vec3& x) {
+  Crossing best;
   const auto np = static_cast<std::int32_t>(o.planes.size());
-  Real left = 1;  // the fraction of the substep still to move after the contacts so far
-  for (std::size_t mi = 0; mi < o.meshes.size(); ++mi) {
-    const ObstacleMesh& m = o.meshes[mi];
-    // stop at the first crossing, respond, and move on from there with the
-    // new velocity for the rest of the substep (sliding, or bouncing), that
-    // motion itself checked again (a concave corner); after 4 crossings the
-    // node stays at the last one
-    int round = 0;
-    for (; round < 4; ++round) {
-      const Hit c = first_crossing(m, x0, x);
-      if (c.tri < 0) break;
-      touched = {np + static_cast<std::int32_t>(mi), c.n};
-      respond(v, c.n, m.restitution, m.friction);
-      left *= 1 - c.t;
-      x0 = c.q + standoff(c.q) * c.n;
-      x = x0 + (left * h) * v;
-    }
-    if (round == 4) x = x0;
-  }
   for (std::int32_t k = 0; k < np; ++k) {
     const ObstaclePlane& p = o.planes[static_cast<std::size_t>(k)];
     const Real d1 = dot(p.normal, x - p.point);
     if (!(d1 < 0)) continue;
-    touched = {k, p.normal};
-    respond(v, p.normal, p.restitution, p.friction);
-    // where the motion met the plane (its start, if that was behind it
-    // already), put on it
     const Real d0 = dot(p.normal, x0 - p.point);
     const Real t = d0 > 0 ? d0 / (d0 - d1) : 0;
-    left *= 1 - t;
-    Vec3 q = x0 + t * (x - x0);
-    q -= (dot(p.normal, q - p.point) - standoff(q)) * p.normal;  // (in front, as on a mesh: round-off cannot leave it behind)
-    x0 = q;
+    if (t < best.t) {
+      best = {t, k, x0 + t * (x - x0), p.normal};
+      best.q -= dot(p.normal, best.q - p.point) * p.normal;  // on it (x0 may have been behind it)
+    }
+  }
+  for (std::size_t mi = 0; mi < o.meshes.size(); ++mi) {
+    const Hit c = first_crossing(o.meshes[mi], x0, x);
+    if (c.tri >= 0 && c.t < best.t) best = {c.t, np + static_cast<std::int32_t>(mi), c.q, c.n};
+  }
+  return best;
+}
+
+}  // namespace
+
+ObstacleContact resolve_obstacle_contact(const Obstacles& o, Vec3 x0, Vec3& x, Vec3& v, Real h) {
+  ObstacleContact touched;
+  const auto np = static_cast<std::int32_t>(o.planes.size());
+  Real left = 1;  // the fraction of the substep still to move after the contacts so far
+  // The earliest crossing of any obstacle along x0 -> x: respond there and
+  // move on from it with the new velocity for the rest of the substep, that
+  // motion itself checked again (a corner between obstacles, or of a mesh).
+  // After kRounds crossings the node stays where it is.
+  constexpr int kRounds = 8;
+  int round = 0;
+  for (; round < kRounds; ++round) {
+    const Crossing c = earliest_crossing(o, x0, x);
+    if (c.k < 0) break;
+    touched = {c.k, c.n};
+    if (c.k < np) {
+      const ObstaclePlane& p = o.planes[static_cast<std::size_t>(c.k)];
+      respond(v, c.n, p.restitution, p.friction);
+    } else {
+      const ObstacleMesh& m = o.meshes[static_cast<std::size_t>(c.k - np)];
+      respond(v, c.n, m.restitution, m.friction);
+    }
+    left *= 1 - c.t;
+    // on to the crossing, stood off in front of it (so that round-off cannot
+    // leave the node behind); in a corner that step off may cross the other
+    // obstacle, and the node then stays where the round began
+    const Vec3 q = c.q + standoff(c.q) * c.n;
+    if (earliest_crossing(o, x0, q).k < 0) x0 = q;
     x = x0 + (left * h) * v;
   }
+  if (round == kRounds) x = x0;
   return touched;
 }
 

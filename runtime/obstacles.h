@@ -77,8 +77,10 @@ struct ObstacleContact {
 // One node's motion over a substep of h seconds from x0 to x = x0 + h v: where
 // it crosses an obstacle, v changes by the contact law and the node moves on
 // from the crossing with the new v for the rest of the substep (see above).
-// Returns the last obstacle it touched (-1: none). Meshes first, planes last
-// (a half-space always holds).
+// The earliest crossing of any obstacle first, then the rest of the motion
+// again (a corner between two obstacles), up to 8 crossings, after which the
+// node stays at the last; a plane the node starts behind is crossed at once.
+// Returns the last obstacle it touched (-1: none).
 ObstacleContact resolve_obstacle_contact(const Obstacles& o, Vec3 x0, Vec3& x, Vec3& v, Real h);
 
 // Coulomb friction on a node that an obstacle's contact (index k, unit normal

@@ -2,12 +2,17 @@
 // degenerate springs, for each integrator mode. No NaN ever reaches the
 // state; implicit Euler stays bounded at dt = 1/30 s; automatic substeps
 // never fail. The large sweep and the docs table: tests/bench/runtime_bench.cpp.
+#include "runtime/obstacles.h"
+#include "runtime/solver.h"
+#include "runtime/testing/lattice.h"
 #include "runtime/testing/stress.h"
 
 #include <gtest/gtest.h>
 
+#include <cmath>
 #include <cstdio>
 #include <map>
+#include <random>
 
 namespace orthosim::runtime::testing {
 namespace {
@@ -45,6 +50,100 @@ TEST(Stress, SmallSweepNeverProducesNaN) {
     std::printf("\n");
   }
   std::printf("sweep wall time %.2f s\n", wall);
+}
+
+// Static colliders under stress: a hanging block (8 x 4 x 4) over a table,
+// with a two-sided square wall standing through it, and a grasper dragging
+// skin nodes down through the table and across the wall along a random path
+// (up to 0.5 m/s), for random table heights, wall angles and paths, both
+// integrators, dt 1/30 and 1/240 s. No NaN ever; no failed step; no free
+// node below the table after any step; no free node changes sides of the
+// wall (where it is inside the square's extent).
+TEST(Stress, CollidersNeverLetANodeThroughNorProduceNaN) {
+  std::mt19937_64 rng(20261128);
+  std::uniform_real_distribution<Real> u(0, 1);
+  int cases = 0;
+  long contacts = 0;
+  for (int trial = 0; trial < 12; ++trial)
+    for (Integrator integ : {Integrator::implicit_euler, Integrator::symplectic_euler}) {
+      const Real dt = trial % 2 ? 1.0 / 30 : 1.0 / 240;
+      const auto b = make_layered_block(8, 4, 4);
+      const Model m = model_from_layers(b.layers, b.sets);
+      State s = make_state(m);
+      fix_nodes(m, s, m.set("fixed"));
+      // the block spans x 0..28 mm, z 0..12 mm, y 0 (skin) .. 17 mm (fixed)
+      const Real table = -u(rng) * 2e-3;
+      const Real angle = (u(rng) - 0.5) * 0.6;  // the wall's tilt about z
+      const Vec3 wall_n{std::cos(angle), std::sin(angle), 0};
+      const Vec3 wall_p{0.010 + 0.008 * u(rng), 0, 0};
+      auto ob = std::make_shared<Obstacles>();
+      add_obstacle_plane(*ob, {{0, table, 0}, {0, 1, 0}, 0.3 * u(rng), 0.8 * u(rng)});
+      {
+        // a square 0.1 m a side in the wall's plane, about wall_p
+        const Vec3 t1{-wall_n.y, wall_n.x, 0}, t2{0, 0, 1};
+        ObstacleMesh wall;
+        for (Real a : {-0.05, 0.05})
+          for (Real c : {-0.05, 0.05}) {
+            const Vec3 q = wall_p + a * t1 + c * t2;
+            wall.vertices.insert(wall.vertices.end(), {q.x, q.y, q.z});
+          }
+        wall.triangles = {0, 1, 3, 0, 3, 2};
+        wall.two_sided = true;
+        wall.friction = 0.5 * u(rng);
+        add_obstacle_mesh(*ob, std::move(wall));
+      }
+      s.obstacles = ob;
+      // the grasper: the skin nodes within 4 mm of a skin point, dragged down and across
+      const auto& skin = m.set("skin");
+      const Vec3 c0{0.004 + 0.02 * u(rng), 0, 0.006};
+      Attachment a;
+      for (auto i : skin) {
+        const Vec3 r = load3(m.rest_x.data(), i);
+        if (norm(r - c0) > 4e-3) continue;
+        a.nodes.push_back(i);
+        a.offset.insert(a.offset.end(), {r.x - c0.x, r.y - c0.y, r.z - c0.z});
+      }
+      ASSERT_FALSE(a.nodes.empty());
+      const Vec3 c1 = c0 + Vec3{(u(rng) - 0.5) * 0.04, -0.004 - 0.006 * u(rng), (u(rng) - 0.5) * 0.01};
+      a.path.t = {0, 0.1};
+      a.path.p = {c0.x, c0.y, c0.z, c1.x, c1.y, c1.z};
+      attach(m, s, a);
+      auto side = [&](const State& st, std::int32_t i) {  // +1 / -1 of the wall, 0 outside its square
+        const Vec3 r = load3(st.x.data(), i) - wall_p;
+        const Vec3 t1{-wall_n.y, wall_n.x, 0};
+        if (std::abs(dot(r, t1)) > 0.05 || std::abs(r.z) > 0.05) return 0;
+        return dot(r, wall_n) >= 0 ? 1 : -1;
+      };
+      std::vector<int> side0(static_cast<std::size_t>(m.n_nodes));
+      for (std::int32_t i = 0; i < m.n_nodes; ++i) side0[static_cast<std::size_t>(i)] = side(s, i);
+      SolverOptions o;
+      o.integrator = integ;
+      o.mass_damping = 2;
+      o.max_substeps = 1 << 14;
+      SCOPED_TRACE("trial " + std::to_string(trial) + " " + to_string(integ) + " dt " + std::to_string(dt));
+      int through_table = 0, through_wall = 0;
+      bool finite = true;
+      for (Real t = 0; t < 0.2; t += dt) {
+        step(m, s, dt, o);
+        for (std::int32_t i = 0; i < m.n_nodes; ++i) {
+          if (s.pin[static_cast<std::size_t>(i)] != Pin::free) continue;
+          const Vec3 r = load3(s.x.data(), i);
+          finite = finite && std::isfinite(r.x) && std::isfinite(r.y) && std::isfinite(r.z);
+          through_table += r.y < table;
+          const int now = side(s, i), then = side0[static_cast<std::size_t>(i)];
+          through_wall += now != 0 && then != 0 && now != then;
+        }
+      }
+      EXPECT_TRUE(finite);
+      EXPECT_EQ(s.counters.nonfinite, 0);
+      EXPECT_EQ(s.counters.failed, 0);
+      EXPECT_EQ(through_table, 0) << "node-steps below the table";
+      EXPECT_EQ(through_wall, 0) << "node-steps on the other side of the wall";
+      contacts += s.counters.obstacle_contacts;
+      ++cases;
+    }
+  std::printf("%d cases, %ld node-substeps in contact\n", cases, contacts);
+  EXPECT_GT(contacts, 0);
 }
 
 }  // namespace
