@@ -36,6 +36,36 @@ void respond(Vec3& v, const Vec3& n, Real restitution, Real friction) {
   slow_down(v, n, dvn, friction);
 }
 
+// The mesh's triangle closest to p within `within` (by the grid cell of p,
+// which lists every triangle within the grid's margin of it: within must
+// not exceed it), ties to the lowest id: its id (-1: none), the closest point
+// and the unit normal of the side p is on (counter-clockwise: +; behind: -).
+struct Closest {
+  std::int32_t tri = -1;
+  Vec3 c, n;
+  bool behind = false;
+};
+Closest closest_triangle(const ObstacleMesh& m, const Vec3& p, Real within) {
+  const TriangleCells& g = m.grid.level[0];
+  const Real* X = m.vertices.data();
+  const std::int32_t* T = m.triangles.data();
+  Closest out;
+  Real best = within * within;
+  const auto [b, e] = cell_candidates(g, p);
+  for (std::int32_t q = b; q < e; ++q) {
+    const std::int32_t t = g.items[q];
+    const Vec3 c = closest_point_on_triangle(p, load3(X, T[3 * t]), load3(X, T[3 * t + 1]), load3(X, T[3 * t + 2]));
+    const Real d2 = dot(p - c, p - c);
+    if (d2 < best || (d2 == best && t < out.tri)) best = d2, out.tri = t, out.c = c;
+  }
+  if (out.tri < 0) return out;
+  const Vec3 a = load3(X, T[3 * out.tri]);
+  const Vec3 nrm = cross(load3(X, T[3 * out.tri + 1]) - a, load3(X, T[3 * out.tri + 2]) - a);
+  out.behind = dot(nrm, p - out.c) < 0;
+  out.n = ((out.behind ? -1 : 1) / norm(nrm)) * nrm;
+  return out;
+}
+
 struct Hit {
   Real t = 2;              // along the motion, [0, 1]
   std::int32_t tri = -1;
@@ -94,13 +124,7 @@ void add_obstacle_plane(Obstacles& o, ObstaclePlane plane) {
 }
 
 void add_obstacle_mesh(Obstacles& o, ObstacleMesh mesh) {
-  if (mesh.vertices.size() % 3 != 0 || mesh.triangles.size() % 3 != 0)
-    throw Error("", "obstacle mesh: vertices and triangles must be (n x 3) arrays");
-  for (Real v : mesh.vertices)
-    if (!std::isfinite(v)) throw Error("", "obstacle mesh: vertex coordinates must be finite");
-  const auto nv = static_cast<std::int32_t>(mesh.vertices.size() / 3);
-  for (std::int32_t t : mesh.triangles)
-    if (t < 0 || t >= nv) throw Error("", "obstacle mesh: triangle index " + std::to_string(t) + " out of range (" + std::to_string(nv) + " vertices)");
+  validate_triangle_mesh(mesh.vertices, mesh.triangles, "obstacle mesh");
   check_contact_law("obstacle mesh", mesh.restitution, mesh.friction);
   // the grid's margin: the mean edge length, so a cell lists a few triangles
   // and a motion of a substep (far shorter, as a rule) samples one or two cells
@@ -139,25 +163,9 @@ ObstacleContact rests_on(const Obstacles& o, std::int32_t k, const Vec3& x) {
     return {k, p.normal};
   }
   const ObstacleMesh& m = o.meshes[static_cast<std::size_t>(k - np)];
-  const TriangleCells& g = m.grid.level[0];
-  const Real* X = m.vertices.data();
-  const std::int32_t* T = m.triangles.data();
-  Real best = reach * reach;
-  std::int32_t best_t = -1;
-  Vec3 best_c;
-  const auto [b, e] = cell_candidates(g, x);
-  for (std::int32_t q = b; q < e; ++q) {
-    const std::int32_t t = g.items[q];
-    const Vec3 c = closest_point_on_triangle(x, load3(X, T[3 * t]), load3(X, T[3 * t + 1]), load3(X, T[3 * t + 2]));
-    const Real d2 = dot(x - c, x - c);
-    if (d2 < best || (d2 == best && t < best_t)) best = d2, best_t = t, best_c = c;
-  }
-  if (best_t < 0) return {};
-  const Vec3 a = load3(X, T[3 * best_t]);
-  Vec3 n = cross(load3(X, T[3 * best_t + 1]) - a, load3(X, T[3 * best_t + 2]) - a);
-  n = (1 / norm(n)) * n;
-  if (m.two_sided && dot(n, x - best_c) < 0) n = -n;
-  return {k, n};
+  const Closest c = closest_triangle(m, x, std::min(reach, m.grid.level[0].margin));
+  if (c.tri < 0) return {};
+  return {k, m.two_sided || !c.behind ? c.n : -c.n};
 }
 
 namespace {
@@ -237,27 +245,8 @@ std::vector<std::int64_t> obstacle_nodes_behind(const Obstacles& o, std::span<co
   }
   for (const ObstacleMesh& m : o.meshes) {
     std::int64_t n = 0;
-    const TriangleCells& g = m.grid.level[0];
-    const Real* X = m.vertices.data();
-    const std::int32_t* T = m.triangles.data();
     if (!m.two_sided)
-      for (const std::int32_t i : nodes) {
-        const Vec3 p = load3(x.data(), i);
-        Real best = g.margin * g.margin;
-        std::int32_t best_t = -1;
-        Vec3 best_c;
-        const auto [b, e] = cell_candidates(g, p);
-        for (std::int32_t q = b; q < e; ++q) {
-          const std::int32_t t = g.items[q];
-          const Vec3 c = closest_point_on_triangle(p, load3(X, T[3 * t]), load3(X, T[3 * t + 1]), load3(X, T[3 * t + 2]));
-          const Real d2 = dot(p - c, p - c);
-          if (d2 < best || (d2 == best && t < best_t)) best = d2, best_t = t, best_c = c;
-        }
-        if (best_t < 0) continue;
-        const Vec3 a = load3(X, T[3 * best_t]);
-        const Vec3 nrm = cross(load3(X, T[3 * best_t + 1]) - a, load3(X, T[3 * best_t + 2]) - a);
-        n += dot(nrm, p - best_c) < 0;
-      }
+      for (const std::int32_t i : nodes) n += closest_triangle(m, load3(x.data(), i), m.grid.level[0].margin).behind;
     out.push_back(n);
   }
   return out;

@@ -2095,14 +2095,20 @@ void add_plane(FluidBoundaries& b, FluidPlane plane) {
   b.planes.push_back(plane);
 }
 
+void validate_triangle_mesh(std::span<const Real> vertices, std::span<const std::int32_t> triangles, const char* what) {
+  if (vertices.size() % 3 != 0 || triangles.size() % 3 != 0)
+    throw Error("", std::string(what) + ": vertices and triangles must be (n x 3) arrays");
+  for (Real v : vertices)
+    if (!std::isfinite(v)) throw Error("", std::string(what) + ": vertex coordinates must be finite");
+  const auto nv = static_cast<std::int32_t>(vertices.size() / 3);
+  for (std::int32_t t : triangles)
+    if (t < 0 || t >= nv)
+      throw Error("", std::string(what) + ": triangle index " + str(t) + " out of range (" + str(nv) + " vertices)");
+}
+
 void add_mesh(FluidBoundaries& b, FluidMesh mesh, const Fluid& fluid) {
-  if (mesh.vertices.size() % 3 != 0 || mesh.triangles.size() % 3 != 0)
-    throw Error("", "fluid mesh: vertices and triangles must be (n x 3) arrays");
-  for (Real v : mesh.vertices)
-    if (!std::isfinite(v)) throw Error("", "fluid mesh: vertex coordinates must be finite");
+  validate_triangle_mesh(mesh.vertices, mesh.triangles, "fluid mesh");
   const auto nv = static_cast<std::int32_t>(mesh.vertices.size() / 3);
-  for (std::int32_t t : mesh.triangles)
-    if (t < 0 || t >= nv) throw Error("", "fluid mesh: triangle index " + str(t) + " out of range (" + str(nv) + " vertices)");
   if (!(mesh.wall.restitution >= 0 && mesh.wall.restitution <= 1) || !(mesh.wall.friction >= 0))
     throw Error("", "fluid mesh: restitution must be in [0, 1] and friction >= 0");
   TriangleSource src{mesh.vertices.data(), nullptr, mesh.triangles.data(), nv,

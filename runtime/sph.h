@@ -368,6 +368,9 @@ void add_plane(FluidBoundaries& b, FluidPlane plane);  // normalises the normal;
 // Validates the mesh (indices, finite coordinates) and builds its grid for the
 // fluid's support radius. Throws Error("", "fluid mesh: ...").
 void add_mesh(FluidBoundaries& b, FluidMesh mesh, const Fluid& fluid);
+// Throws Error("", "<what>: ...") unless vertices and triangles are (n x 3)
+// arrays, the coordinates finite and every index a vertex.
+void validate_triangle_mesh(std::span<const Real> vertices, std::span<const std::int32_t> triangles, const char* what);
 // The grid of a static triangle set, as add_mesh builds a FluidMesh's with
 // margin = the fluid's H: for other queries of the same kind of walls (the
 // tissue's obstacles, runtime/obstacles.h). Indices must be valid; degenerate
