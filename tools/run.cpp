@@ -213,9 +213,32 @@ void add_run_command(CLI::App& app) {
       for (std::int32_t i = 0; i < m.n_nodes; ++i)
         if (scene->state().inv_mass[static_cast<std::size_t>(i)] > 0) free_nodes.push_back(i);
       const std::vector<std::int64_t> behind = runtime::obstacle_nodes_behind(*ob, scene->positions(), free_nodes);
+      // the loaded nodes' rest box grown by its largest side: a mesh beyond it
+      // meets the tissue only if the tissue moves farther than its own size
+      double lo[3] = {HUGE_VAL, HUGE_VAL, HUGE_VAL}, hi[3] = {-HUGE_VAL, -HUGE_VAL, -HUGE_VAL};
+      for (std::int32_t i = 0; i < m.n_nodes; ++i)
+        for (int a = 0; a < 3; ++a) {
+          lo[a] = std::min(lo[a], m.rest_x[3 * static_cast<std::size_t>(i) + a]);
+          hi[a] = std::max(hi[a], m.rest_x[3 * static_cast<std::size_t>(i) + a]);
+        }
+      const double grow = std::max({hi[0] - lo[0], hi[1] - lo[1], hi[2] - lo[2]});
       std::size_t plane = 0, mesh = 0;  // (behind: the planes' counts, then the meshes', in the scene's order)
       for (const runtime::ColliderDef& c : def.colliders) {
         if (!c.tissue) continue;
+        if (c.kind == runtime::ColliderDef::Kind::mesh && !(c.blood && fb)) {  // (with blood: the domain's check above)
+          const runtime::ObstacleMesh& om = ob->meshes[mesh];
+          bool meets = true;
+          for (int a = 0; a < 3 && meets; ++a) {
+            double mlo = HUGE_VAL, mhi = -HUGE_VAL;
+            for (std::size_t v = 0; 3 * v < om.vertices.size(); ++v)
+              mlo = std::min(mlo, om.vertices[3 * v + a]), mhi = std::max(mhi, om.vertices[3 * v + a]);
+            meets = mhi >= lo[a] - grow && mlo <= hi[a] + grow;
+          }
+          if (!meets)
+            std::cerr << "orthosim run: warning: " << scene_file << ": the collider" << quoted(c.name) << " (" << c.stl
+                      << ") lies farther from the tissue than the tissue's own size (" << grow
+                      << " m): it never meets it (its units or frame?)\n";
+        }
         const std::int64_t n =
             behind[c.kind == runtime::ColliderDef::Kind::plane ? plane++ : ob->planes.size() + mesh++];
         if (n == 0) continue;

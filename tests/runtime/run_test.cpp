@@ -272,6 +272,14 @@ TEST_F(RunCli, WhatTheRunWillNotDoIsAWarning) {
   expect_one_warning(run_cli("run " + shelf_mesh + " --no-output --quiet"),
                      "orthosim run: warning: " + shelf_mesh + ": the collider 'shelf' (" + (dir / "shelf.stl") +
                          ") has 351 of the tissue's free nodes just behind its faces at rest");
+  // a mesh in millimetres read as metres lies far from the tissue (no blood: the tissue's check)
+  const auto far_mesh = scene(R"({
+      "model": "model.h5", "fixed": ["fixed"], "integrator": "implicit", "dt": 0.005, "duration": 0.01,
+      "colliders": [{"name": "tray", "type": "mesh", "stl": "far.stl"}]})");
+  expect_one_warning(run_cli("run " + far_mesh + " --no-output --quiet"),
+                     "orthosim run: warning: " + far_mesh + ": the collider 'tray' (" + (dir / "far.stl") +
+                         ") lies farther from the tissue than the tissue's own size (0.152 m): it never meets it "
+                         "(its units or frame?)");
   // under the tissue: silent, and the series has the collider though the scene has no blood
   const auto floor = scene(R"({
       "model": "model.h5", "fixed": ["fixed"], "integrator": "implicit", "dt": 0.005, "duration": 0.01,
