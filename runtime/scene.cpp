@@ -878,6 +878,23 @@ void Scene::init_obstacles() {
   state_.obstacles = std::move(obstacles);
 }
 
+std::vector<std::array<Real, 3>> Scene::collider_forces() const {
+  std::vector<std::array<Real, 3>> out(def_.colliders.size(), std::array<Real, 3>{0, 0, 0});
+  const Obstacles* ob = state_.obstacles.get();
+  if (!ob || state_.contact_obstacle.empty()) return out;
+  // the obstacles' order: the tissue's planes, then its meshes, each in the colliders' order
+  std::vector<std::size_t> of_obstacle;
+  for (int kind = 0; kind < 2; ++kind)
+    for (std::size_t c = 0; c < def_.colliders.size(); ++c)
+      if (def_.colliders[c].tissue && (def_.colliders[c].kind == ColliderDef::Kind::plane) == (kind == 0)) of_obstacle.push_back(c);
+  for (std::size_t i = 0; i < state_.contact_obstacle.size(); ++i) {
+    const std::int32_t k = state_.contact_obstacle[i];
+    if (k < 0 || static_cast<std::size_t>(k) >= of_obstacle.size()) continue;
+    for (int a = 0; a < 3; ++a) out[of_obstacle[static_cast<std::size_t>(k)]][static_cast<std::size_t>(a)] += state_.contact_force[3 * i + a];
+  }
+  return out;
+}
+
 struct Scene::FluidRun {
   Fluid fluid;
   FluidBoundaries bounds;

@@ -285,6 +285,10 @@ class Scene {
   // ---- the tissue's static obstacles (null without a collider that acts on the tissue)
   // Their planes and meshes are those of def().colliders with tissue set, in order.
   const Obstacles* obstacles() const { return state_.obstacles.get(); }
+  // N: the force each of def().colliders exerts on the tissue in the last
+  // substep (State::contact_force summed over the nodes in contact with it);
+  // zero for a collider that does not act on the tissue
+  std::vector<std::array<Real, 3>> collider_forces() const;
   // What the fluid did over the run: particles emitted, drained, lost, paused emitter steps.
   struct FluidSummary {
     std::int64_t particles = 0, emitted = 0, drained = 0, left_domain = 0, nonfinite = 0, paused_steps = 0;

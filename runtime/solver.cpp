@@ -125,7 +125,8 @@ void ensure_scratch(const Model& m, State& s, bool implicit) {
   if (sc.tet_partial.size() != static_cast<std::size_t>(m.n_tet_chunks)) sc.tet_partial.assign(static_cast<std::size_t>(m.n_tet_chunks), 0);
   if (s.obstacles) {
     if (s.contact_obstacle.size() != n3 / 3) s.contact_obstacle.assign(n3 / 3, -1);
-    if (s.contact_force.size() != n3 / 3) s.contact_force.assign(n3 / 3, 0);
+    if (s.contact_force.size() != n3) s.contact_force.assign(n3, 0);
+    if (implicit && sc.friction_c.size() != n3 / 3) sc.friction_c.assign(n3 / 3, 0);
     if (implicit && sc.constraint.size() != n3) sc.constraint.assign(n3, 0);
   }
   sc.constrained = false;
@@ -364,8 +365,10 @@ Check symplectic_substep(const Model& m, State& s, Real t, Real h, const SolverO
         const Vec3 x0i = load3(xw, i);
         Vec3 xi = x0i + h * vi;
         if (obs) {
+          const Vec3 v_before = vi;
           const std::int32_t k = resolve_obstacle_contact(*obs, x0i, xi, vi, h).obstacle;
           s.contact_obstacle[static_cast<std::size_t>(i)] = k;
+          store3(s.contact_force.data(), i, k >= 0 ? (mass[i] / h) * (vi - v_before) : Vec3{});
           contacts += k >= 0;
         }
         store3(vw, i, vi);
@@ -753,14 +756,15 @@ Check implicit_substep(const Model& m, State& s, Real t, Real h, const SolverOpt
         // under any force inside the friction cone (lagged, smoothed Coulomb
         // friction, as IPC's eps_v: Li et al. 2020).
         const std::int32_t k = s.contact_obstacle[static_cast<std::size_t>(i)];
+        Real cf = 0;
         if (k >= 0) {
           const Vec3 xi = load3(x, i);
           const ObstacleContact c = rests_on(*obs, k, xi);
           if (c.obstacle >= 0) {
             ni = c.n;
             const Vec3 vt = filter(vi, ni);
-            const Real cf = obstacle_friction_coefficient(*obs, k) * s.contact_force[static_cast<std::size_t>(i)] /
-                            std::max(norm(vt), o.friction_creep_speed);
+            const Real n_prev = std::max(Real(0), dot(load3(s.contact_force.data(), i), ni));  // N of the last substep
+            cf = obstacle_friction_coefficient(*obs, k) * n_prev / std::max(norm(vt), o.friction_creep_speed);
             Sym3 t;  // h c (I - n n^T)
             t.xx = h * cf * (1 - ni.x * ni.x), t.yy = h * cf * (1 - ni.y * ni.y), t.zz = h * cf * (1 - ni.z * ni.z);
             t.xy = -h * cf * ni.x * ni.y, t.xz = -h * cf * ni.x * ni.z, t.yz = -h * cf * ni.y * ni.z;
@@ -768,6 +772,7 @@ Check implicit_substep(const Model& m, State& s, Real t, Real h, const SolverOpt
           }
         }
         store3(cn, i, ni);
+        sc.friction_c[static_cast<std::size_t>(i)] = cf;
       }
       sym_store(D, i, Di);
       Di += Dt;  // the whole diagonal block from here on
@@ -958,14 +963,16 @@ Check implicit_substep(const Model& m, State& s, Real t, Real h, const SolverOpt
       store3(warmw, i, vi - load3(vw, i));  // the solve's own change (the next solve's first guess)
       // a held node: the hold's impulse (A v' - b)_i . n over h is its normal
       // force. Pushing (> 0), the hold stays and the force sets the next
-      // substep's friction; pulling, the node is let go.
+      // substep's friction; pulling, the node is let go. The obstacle's force
+      // on the node is that normal force and the damper's -c v'_t.
       bool keep = false;
-      Real normal_force = 0;
+      Vec3 hold_force{};
       if (constrained) {
         const Vec3 ni = load3(cn, i);
         if (ni.x != 0 || ni.y != 0 || ni.z != 0) {
-          normal_force = dot(load3(q, i) - load3(rhs, i), ni) / h;
+          const Real normal_force = dot(load3(q, i) - load3(rhs, i), ni) / h;
           keep = normal_force > 0;
+          hold_force = normal_force * ni - sc.friction_c[static_cast<std::size_t>(i)] * filter(vi, ni);
         }
       }
       const Vec3 x0i = load3(xw, i);
@@ -974,14 +981,16 @@ Check implicit_substep(const Model& m, State& s, Real t, Real h, const SolverOpt
         const Vec3 v_before = vi;
         const ObstacleContact c = resolve_obstacle_contact(*obs, x0i, xi, vi, h);
         std::int32_t k = c.obstacle;
+        Vec3 fc{};
         if (k >= 0) {
-          // put on an obstacle: the contact's normal velocity change is the
-          // impulse m dv_n of a force m dv_n / h over the substep
-          s.contact_force[static_cast<std::size_t>(i)] = mass[i] * dot(vi - v_before, c.n) / h;
+          // put on an obstacle: the contact's velocity change is the impulse
+          // m dv of a force m dv / h over the substep
+          fc = (mass[i] / h) * (vi - v_before);
         } else if (keep) {
           k = s.contact_obstacle[static_cast<std::size_t>(i)];  // held on it by the solve
-          s.contact_force[static_cast<std::size_t>(i)] = normal_force;
+          fc = hold_force;
         }
+        store3(s.contact_force.data(), i, fc);
         s.contact_obstacle[static_cast<std::size_t>(i)] = k;
         contacts += k >= 0;
       }

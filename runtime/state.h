@@ -84,7 +84,8 @@ struct Scratch {
   std::vector<Real> constraint;    // (n_nodes x 3)
   bool constrained = false;        // some node is held
   std::vector<std::int32_t> contact0;  // (n_nodes) State::contact_obstacle at the step's start, for redo
-  std::vector<Real> force0;            // (n_nodes) State::contact_force at the step's start, for redo
+  std::vector<Real> force0;            // (n_nodes x 3) State::contact_force at the step's start, for redo
+  std::vector<Real> friction_c;        // (n_nodes) N s/m: the friction damper of each held node in this substep
 };
 
 // The cholesky preconditioner's factor (runtime/solver.cpp): immutable once
@@ -110,9 +111,10 @@ struct State {
   // the obstacle each node rested on after the last substep (index as
   // ObstacleContact::obstacle, -1: none); sized by the solver
   std::vector<std::int32_t> contact_obstacle;
-  // N: the normal force of that contact in the last substep (the implicit
-  // solve's hold, or the contact's impulse over the substep): the next
-  // substep's Coulomb bound on its friction
+  // (n_nodes x 3) N: the force of that contact on the node in the last
+  // substep, normal and friction (the implicit solve's hold and friction
+  // damper, or the contact's impulse over the substep; zero: none). Its
+  // normal part bounds the next substep's friction.
   std::vector<Real> contact_force;
 
   Real kinetic_energy = 0;  // J, after the last substep

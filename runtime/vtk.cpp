@@ -141,6 +141,13 @@ void VtkSeries::write(const Model& m, const State& s) {
 
   std::vector<Array> point_data{make_array("Float64", "displacement", 3, disp), make_array("Float64", "velocity", 3, vel),
                                 make_array("Float64", "force", 3, force), make_array("UInt8", "pin", 1, pin)};
+  // with static colliders: each node's contact force (N, zero where none)
+  std::vector<double> contact;
+  if (s.obstacles) {
+    if (s.contact_force.size() == 3 * n) contact.assign(s.contact_force.begin(), s.contact_force.end());
+    else contact.assign(3 * n, 0);  // (before the first step)
+    point_data.push_back(make_array("Float64", "contact_force", 3, contact));
+  }
   std::vector<Array> cell_data{make_array("Float64", "strain", 1, strain)};
   Array pts = make_array("Float64", "", 3, points);
   std::vector<Array> cells{make_array("Int64", "connectivity", 1, connectivity_),

@@ -311,10 +311,22 @@ void add_run_command(CLI::App& app) {
         if (c.inverted > 0 && v.first_step < 0) v.first_step = step;
       }
     };
+    // the colliders' forces on the tissue: the largest over the steps
+    std::vector<double> max_force(def.colliders.size(), 0.0);
+    std::vector<long> max_force_step(def.colliders.size(), -1);
+    auto track_forces = [&](long step) {
+      if (!scene->obstacles()) return;
+      const auto f = scene->collider_forces();
+      for (std::size_t k = 0; k < f.size(); ++k) {
+        const double mag = std::sqrt(f[k][0] * f[k][0] + f[k][1] * f[k][1] + f[k][2] * f[k][2]);
+        if (mag > max_force[k]) max_force[k] = mag, max_force_step[k] = step;
+      }
+    };
     {
       Phase p(report, "simulate");
       r = runtime::run(*scene, n_steps, [&](long done) {
         check_inversion(done);
+        track_forces(done);
         progress.update(done);
       });
     }
@@ -344,6 +356,26 @@ void add_run_command(CLI::App& app) {
     met["symplectic_step_limit_s"] = scene->step_limit();
     // node-substeps in contact with the static colliders (null without a collider on the tissue)
     met["obstacle_contacts"] = scene->obstacles() ? nlohmann::json(c.obstacle_contacts) : nlohmann::json(nullptr);
+    // each collider's force on the tissue (N): at the end, and the largest
+    // over the steps with its time (null for a collider off the tissue)
+    met["colliders"] = nlohmann::json::array();
+    {
+      const auto f = scene->collider_forces();
+      for (std::size_t k = 0; k < def.colliders.size(); ++k) {
+        const auto& cd = def.colliders[k];
+        nlohmann::json e = {{"name", cd.name}, {"tissue", cd.tissue}, {"blood", cd.blood}};
+        if (cd.tissue && scene->obstacles()) {
+          e["tissue_force_n"] = {f[k][0], f[k][1], f[k][2]};
+          e["max_tissue_force_n"] = max_force[k];
+          e["max_tissue_force_t_s"] = max_force_step[k] < 0 ? nlohmann::json(nullptr) : nlohmann::json(max_force_step[k] * def.dt);
+        } else {
+          e["tissue_force_n"] = nullptr;
+          e["max_tissue_force_n"] = nullptr;
+          e["max_tissue_force_t_s"] = nullptr;
+        }
+        met["colliders"].push_back(e);
+      }
+    }
     met["inverted_columns"] = nlohmann::json::object();
     for (const auto& [layer, v] : inversion) {
       met["inverted_columns"][layer] = {{"columns", v.columns}, {"max", v.max}, {"end", v.end},

@@ -286,7 +286,16 @@ TEST_F(RunCli, WhatTheRunWillNotDoIsAWarning) {
       "colliders": [{"name": "floor", "type": "plane", "point_in_box": [0.5, 0, 0.5], "normal": [0, 1, 0]}]})");
   expect_silent(run_cli("run " + floor + " --out " + (dir / "floor") + " --quiet --report " + (dir / "floor.json")));
   EXPECT_TRUE(std::filesystem::is_regular_file(dir / "floor/tissue_colliders.vtp"));
-  EXPECT_TRUE(nlohmann::json::parse(test::read_file(dir / "floor.json"))["metrics"]["obstacle_contacts"].is_number_integer());
+  {
+    const auto fm = nlohmann::json::parse(test::read_file(dir / "floor.json"))["metrics"];
+    EXPECT_TRUE(fm["obstacle_contacts"].is_number_integer());
+    ASSERT_EQ(fm["colliders"].size(), 1u) << fm.dump();
+    const auto& fc = fm["colliders"][0];
+    EXPECT_EQ(fc["name"], "floor");
+    ASSERT_EQ(fc["tissue_force_n"].size(), 3u) << fc.dump();
+    EXPECT_GE(fc["max_tissue_force_n"].get<double>(), std::hypot(fc["tissue_force_n"][0].get<double>(), fc["tissue_force_n"][1].get<double>(),
+                                                                 fc["tissue_force_n"][2].get<double>()));
+  }
   EXPECT_TRUE(nlohmann::json::parse(test::read_file(dir / "dry.json"))["metrics"]["obstacle_contacts"].is_null());
   // a duration under half a step
   const auto shortrun = with_start("0", "0.002");

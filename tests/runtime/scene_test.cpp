@@ -597,6 +597,31 @@ TEST_F(SceneTest, SampleBleedingScenesParse) {
   EXPECT_LT(low_through, y_table - 1e-5);
 }
 
+// Each collider's force on the tissue, by name: the block, free (nothing
+// fixed), drops 1 mm on to a table and rests there; the table (the second
+// collider, a plane) carries its weight M g, the wall beside it (the first,
+// an STL mesh that nothing touches) nothing, and a blood-only collider has no
+// tissue force.
+TEST_F(SceneTest, CollidersReportTheirForceOnTheTissue) {
+  orthosim::test::write_file(dir / "wall.stl", "solid w\nfacet normal 1 0 0\nouter loop\nvertex -0.01 -1 -1\n"
+                                               "vertex -0.01 1 -1\nvertex -0.01 0 1\nendloop\nendfacet\nendsolid w\n");
+  const SceneDef d = parse_scene(R"({
+    "model": "model.h5", "integrator": "implicit", "damping": {"mass": 20}, "dt": 0.016666666666666666,
+    "colliders": [{"name": "wall", "type": "mesh", "stl": "wall.stl"},
+                  {"name": "table", "type": "plane", "point": [0, -0.001, 0], "normal": [0, 1, 0]},
+                  {"name": "tray", "type": "plane", "point": [0, -0.05, 0], "normal": [0, 1, 0], "tissue": false}]
+  })", dir / "scene.json");
+  Scene scene(d);
+  run(scene, 60);
+  const auto f = scene.collider_forces();
+  ASSERT_EQ(f.size(), 3u);
+  const Real weight = scene.model().total_mass * 9.81;
+  EXPECT_EQ(f[0], (std::array<Real, 3>{0, 0, 0})) << "the wall touches nothing";
+  EXPECT_NEAR(f[1][1], weight, 1e-4 * weight) << "the table carries the block";
+  EXPECT_EQ(f[2], (std::array<Real, 3>{0, 0, 0})) << "the tray acts on the blood alone";
+  EXPECT_EQ(scene.counters().events, 0);
+}
+
 // The sample scenes parse and run on a lattice model (the builder's model
 // replaces it in scripts/demo).
 TEST_F(SceneTest, SampleScenesRunOnALatticeModel) {

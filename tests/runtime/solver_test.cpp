@@ -1121,6 +1121,45 @@ TEST(Obstacles, ATableHoldsASaggingBlock) {
   }
 }
 
+// A free block (13 x 5 x 4, nothing fixed) dropped on a table comes to rest
+// there, and the table carries its weight: the contact forces on its nodes
+// (State::contact_force) add up to (0, M g, 0) within 0.01 %, with the table a
+// plane or a mesh, for both integrators. (Implicit: the holds' normal forces
+// and friction; symplectic: each substep's contact impulses over h.)
+TEST(Obstacles, TheTableCarriesTheWeightOfABlockAtRest) {
+  const auto b = make_layered_block(13, 5, 4);
+  const Model m = model_from_layers(b.layers, b.sets);
+  Real low = HUGE_VAL;
+  for (std::int32_t i = 0; i < m.n_nodes; ++i) low = std::min(low, m.rest_x[3 * static_cast<std::size_t>(i) + 1]);
+  const Real g = 9.81, weight = m.total_mass * g;
+  for (Integrator integ : {Integrator::implicit_euler, Integrator::symplectic_euler})
+    for (bool as_mesh : {false, true}) {
+      SCOPED_TRACE(std::string(to_string(integ)) + (as_mesh ? ", mesh" : ", plane"));
+      State s = make_state(m);
+      auto ob = std::make_shared<Obstacles>();
+      const Real table = low - 1e-3;  // it drops 1 mm
+      if (as_mesh) add_obstacle_mesh(*ob, square_at(table, 0.5));
+      else add_obstacle_plane(*ob, {{0, table, 0}, {0, 1, 0}, 0, 0.5});
+      s.obstacles = ob;
+      SolverOptions o;
+      o.integrator = integ;
+      o.mass_damping = 20;
+      for (int k = 0; k < 60; ++k) step(m, s, 1.0 / 60, o);
+      Real f[3] = {0, 0, 0};
+      for (std::int32_t i = 0; i < m.n_nodes; ++i)
+        for (int a = 0; a < 3; ++a) f[a] += s.contact_force[3 * static_cast<std::size_t>(i) + a];
+      std::printf("  %s, %s: the table carries %.6g N of the block's %.6g N (%+.3g %%), sideways %.3g N\n", to_string(integ),
+                  as_mesh ? "mesh" : "plane", f[1], weight, 100 * (f[1] / weight - 1), std::hypot(f[0], f[2]));
+      EXPECT_NEAR(f[1], weight, 1e-4 * weight) << "the table carries the block's weight, " << weight << " N";
+      EXPECT_LT(std::hypot(f[0], f[2]), 1e-4 * weight) << "and no sideways force";
+      EXPECT_EQ(s.counters.events, 0);
+      Real lowest = HUGE_VAL;
+      for (std::int32_t i = 0; i < m.n_nodes; ++i) lowest = std::min(lowest, s.x[3 * static_cast<std::size_t>(i) + 1]);
+      EXPECT_GE(lowest, table);
+      EXPECT_LT(lowest - table, 1e-8) << "it rests on the table";
+    }
+}
+
 // Contact is resolved node by node, so the result is bitwise the same for
 // any thread count.
 TEST(Obstacles, DeterministicAcrossThreadCounts) {
