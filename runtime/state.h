@@ -127,6 +127,7 @@ struct State {
   // whether the solves have switched to it
   std::shared_ptr<const SparseFactor> factor;
   bool refactor = true;
+  int factor_first_iterations = -1;  // PCG iterations of the first solve with the current factor (-1: none yet)
   bool cholesky_on = false;
 };
 

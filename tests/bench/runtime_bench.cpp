@@ -18,7 +18,10 @@
 //       cell: mass ratio x degenerate springs); error = runs with a non-finite state (goal 0)
 //     - static sag of the 39x9x4 lattice against Newton, ours (implicit, 1/60 s) and Bullet btSoftBody
 //       (10 iterations) timed in alternation; error = relative sag error (goal <= 1e-3 for ours)
+//     a free lattice resting on a table (a plane, a 2-triangle mesh): the table's force against the
+//       weight (goal <= 1e-4)
 // Timings are medians of repetitions when run with --benchmark_repetitions.
+#include "runtime/obstacles.h"
 #include "runtime/solver.h"
 #include "runtime/testing/lattice.h"
 #include "runtime/testing/newton.h"
@@ -684,11 +687,60 @@ void sag_rows(ob::Results& out, bool quick) {
   out.add(row);
 }
 
+// Static colliders on the tissue: the paper-sized lattice, free (nothing
+// fixed), dropped 1 mm on to a table and left to rest, 2 s of 1/60 s implicit
+// steps; error = the table's force on it (State::contact_force summed)
+// against its weight M g. The table as a plane and as a 2-triangle mesh.
+void contact_rows(ob::Results& out, bool quick) {
+  const Lattice& L = lattice(39, 9, 4);
+  Real low = HUGE_VAL;
+  for (std::int32_t i = 0; i < L.model.n_nodes; ++i) low = std::min(low, L.model.rest_x[3 * static_cast<std::size_t>(i) + 1]);
+  const Real table = low - 1e-3, weight = L.model.total_mass * 9.81;
+  for (bool as_mesh : {false, true}) {
+    auto ob = std::make_shared<rt::Obstacles>();
+    if (as_mesh) {
+      rt::ObstacleMesh m;
+      m.vertices = {-1, table, -1, 1, table, -1, 1, table, 1, -1, table, 1};
+      m.triangles = {0, 2, 1, 0, 3, 2};
+      m.friction = 0.5;
+      rt::add_obstacle_mesh(*ob, std::move(m));
+    } else {
+      rt::add_obstacle_plane(*ob, {{0, table, 0}, {0, 1, 0}, 0, 0.5});
+    }
+    Real fy = 0, fside = 0;
+    std::int64_t contacts = 0;
+    tbb::task_arena arena(2);
+    auto ours = [&] {
+      rt::State s = rt::make_state(L.model);
+      s.obstacles = ob;
+      rt::SolverOptions o;
+      o.integrator = rt::Integrator::implicit_euler;
+      o.mass_damping = 20;
+      arena.execute([&] {
+        for (int k = 0; k < 120; ++k) rt::step(L.model, s, 1.0 / 60, o);
+      });
+      Real f[3] = {0, 0, 0};
+      for (std::size_t i = 0; i < s.contact_force.size(); ++i) f[i % 3] += s.contact_force[i];
+      fy = f[1], fside = std::hypot(f[0], f[2]), contacts = s.counters.obstacle_contacts;
+    };
+    ob::Row row;
+    row.workload = std::string("a free 39x9x4 lattice resting on a table (") + (as_mesh ? "2-triangle STL" : "plane") +
+                   "), 2 s of 1/60 s steps: the table's force against the weight";
+    row.setting = "implicit, 120 steps, 2 threads";
+    row.x = L.model.n_nodes;
+    row.seconds = ob::time_runs(quick ? 1 : 3, ours);
+    row.error("relative weight error", std::abs(fy - weight) / weight, "<=", 1e-4);
+    row.extra = {{"weight_n", weight}, {"table_force_y_n", fy}, {"sideways_n", fside}, {"contacts", contacts}};
+    out.add(row);
+  }
+}
+
 void results(const std::string& path, bool quick) {
   ob::Results out("runtime", "runtime_bench", quick);
   integrator_rows(out, quick);
   grid_rows(out, quick);
   sag_rows(out, quick);
+  contact_rows(out, quick);
   stability_rows(out, quick);
   out.write(path);
 }
