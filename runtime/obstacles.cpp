@@ -79,6 +79,7 @@ Hit first_crossing(const ObstacleMesh& m, const Vec3& p0, const Vec3& p1) {
   const TriangleCells& g = m.grid.level[0];
   const Vec3 d = p1 - p0;
   const Real len = norm(d);
+  if (!std::isfinite(len)) return best;  // (a non-finite motion: the solver's check redoes the substep)
   // candidates: the cells of points along the motion at most one margin
   // apart; a triangle the motion crosses at c is within half a margin of one
   // of them, so listed in its cell

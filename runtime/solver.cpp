@@ -953,8 +953,9 @@ Check implicit_substep(const Model& m, State& s, Real t, Real h, const SolverOpt
   s.counters.cg_iterations += it;
   s.counters.cg_max_iterations = std::max<std::int64_t>(s.counters.cg_max_iterations, it);
 
-  // the holds' impulses: (A v' - b) . n at each held node, of the unfiltered
-  // product (one more product, only where a node is held), for their friction
+  // the holds' impulses: (A v' - b) at each held node, of the unfiltered
+  // product (one more product, only where a node is held), for their forces
+  // and their release
   if (constrained) {
     sc.constrained = false;
     apply_matrix<Read::plain>(m, s, vnew, nullptr, 0, nullptr, q);
