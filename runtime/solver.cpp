@@ -37,7 +37,8 @@ bool parse_preconditioner(std::string_view s, Preconditioner& p) {
 // The cholesky preconditioner: an LDL^T factor (Eigen's SimplicialLDLT, AMD
 // ordering) of the implicit matrix M + h C + h^2 K on the free nodes, the
 // volume term by its Gauss-Newton blocks, as assembled at the substep that
-// built it. Immutable: a State's copies share it.
+// built it, with the nodes then held on obstacles held (build_factor).
+// Immutable: a State's copies share it.
 struct SparseFactor {
   std::int32_t n_nodes = 0, n_springs = 0, n_tets = 0;
   std::size_t n_entries = 0;
@@ -558,6 +559,36 @@ std::shared_ptr<const SparseFactor> build_factor(const Model& m, const State& s,
             for (int pp = 0; pp < 3; ++pp) b[static_cast<std::size_t>(3 * qq + pp)] += sc.tet_c[t0] * gj3[qq] * gi3[pp];
         }
     }
+    // nodes held on obstacles (Scratch::constraint): the factor is of the
+    // held system, S A S + d n n^T at each held node (S = I - n n^T there, d
+    // its diagonal's mean), so that on the held subspace it inverts what the
+    // filtered PCG solves
+    if (sc.constrained) {
+      const Vec3 ni = load3(sc.constraint.data(), i);
+      for (std::size_t r = 0; r < row.size(); ++r) {
+        const Vec3 nj = load3(sc.constraint.data(), row[r]);
+        const bool hi = ni.x != 0 || ni.y != 0 || ni.z != 0, hj = nj.x != 0 || nj.y != 0 || nj.z != 0;
+        if (!hi && !hj) continue;
+        auto& bk = blk[r];  // B[q][p] = bk[3 q + p]: q the row node j's dof, p the column node i's
+        const double a[3] = {nj.x, nj.y, nj.z}, c[3] = {ni.x, ni.y, ni.z};
+        const double d = r == 0 ? (bk[0] + bk[4] + bk[8]) / 3 : 0;
+        if (hj)  // S_j B: B - n_j (n_j^T B)
+          for (int p = 0; p < 3; ++p) {
+            const double col = a[0] * bk[static_cast<std::size_t>(p)] + a[1] * bk[static_cast<std::size_t>(3 + p)] +
+                               a[2] * bk[static_cast<std::size_t>(6 + p)];
+            for (int q = 0; q < 3; ++q) bk[static_cast<std::size_t>(3 * q + p)] -= a[q] * col;
+          }
+        if (hi)  // (.) S_i: X - (X n_i) n_i^T
+          for (int q = 0; q < 3; ++q) {
+            const double rw = bk[static_cast<std::size_t>(3 * q)] * c[0] + bk[static_cast<std::size_t>(3 * q + 1)] * c[1] +
+                              bk[static_cast<std::size_t>(3 * q + 2)] * c[2];
+            for (int p = 0; p < 3; ++p) bk[static_cast<std::size_t>(3 * q + p)] -= rw * c[p];
+          }
+        if (r == 0 && hi)
+          for (int q = 0; q < 3; ++q)
+            for (int p = 0; p < 3; ++p) bk[static_cast<std::size_t>(3 * q + p)] += d * c[q] * c[p];
+      }
+    }
     for (int p = 0; p < 3; ++p) {
       for (std::size_t r = 0; r < row.size(); ++r) {
         const std::int32_t fj = f->free_of[static_cast<std::size_t>(row[r])];
@@ -933,11 +964,12 @@ Check implicit_substep(const Model& m, State& s, Real t, Real h, const SolverOpt
   }
   // a slow solve: the factor has drifted from the matrix (rebuild it next
   // substep), or (automatic) block Jacobi is not enough for this model
-  // (With nodes held on obstacles the factor, which does not know the holds,
-  // cannot bring a solve under refactor_after: a free block resting on a
-  // table took 22 iterations a solve and a new factor every substep, 60 ms a
-  // step. There a rebuild is due only when the solves have also doubled
-  // since the factor's first: the matrix has drifted.)
+  // (With nodes held on obstacles the factor is of the held system as it was
+  // when built; where the holds change every substep a fresh factor may not
+  // bring a solve under refactor_after, so there a rebuild is due only when
+  // the solves have also doubled since the factor's first. Before the factor
+  // knew the holds, a free block resting on a table took 22 iterations a
+  // solve and a new factor every substep.)
   if (F) {
     if (s.factor_first_iterations < 0) s.factor_first_iterations = it;
     const int limit = constrained ? std::max(o.refactor_after, 2 * s.factor_first_iterations) : o.refactor_after;

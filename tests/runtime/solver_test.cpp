@@ -1161,11 +1161,12 @@ TEST(Obstacles, TheTableCarriesTheWeightOfABlockAtRest) {
     }
 }
 
-// The sparse factor (the cholesky preconditioner) does not know the holds,
-// so with nodes held on a table its solves take more than refactor_after
-// iterations however fresh it is; it is rebuilt only when they have also
-// doubled since its first solve. (It was rebuilt every substep: a free
-// 39 x 9 x 4 lattice on a table ran 60 ms a step, now 29.)
+// The sparse factor (the cholesky preconditioner) of a system with nodes held
+// on a table is the held system's, so it solves it in a few iterations and is
+// not rebuilt every substep. (A factor of the unheld matrix took 22
+// iterations a solve however fresh, and was rebuilt every substep: a free
+// 39 x 9 x 4 lattice on a table ran 60 ms a step; 29 with a rebuild only when
+// the solves doubled; 5.7 with the held system's factor.)
 TEST(Obstacles, HeldNodesDoNotRebuildTheSparseFactorEverySubstep) {
   const auto b = make_layered_block(13, 5, 4);
   const Model m = model_from_layers(b.layers, b.sets);
@@ -1181,8 +1182,8 @@ TEST(Obstacles, HeldNodesDoNotRebuildTheSparseFactorEverySubstep) {
   o.mass_damping = 20;
   for (int k = 0; k < 60; ++k) step(m, s, 1.0 / 60, o);
   EXPECT_GT(s.counters.obstacle_contacts, 0);
-  EXPECT_GT(static_cast<double>(s.counters.cg_iterations) / static_cast<double>(s.counters.cg_solves), o.refactor_after)
-      << "the holds keep the solves above refactor_after";
+  EXPECT_LE(static_cast<double>(s.counters.cg_iterations) / static_cast<double>(s.counters.cg_solves), 3)
+      << "iterations a solve with the held system's factor";
   EXPECT_LE(s.counters.factorizations, 5) << "of 60 substeps";
   EXPECT_EQ(s.counters.events, 0);
 }
