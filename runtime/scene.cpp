@@ -160,6 +160,16 @@ std::pair<Vec3, Vec3> rest_box(const Model& m, const std::vector<std::int32_t>& 
   return {lo, hi};
 }
 
+}  // namespace
+
+std::pair<Vec3, Vec3> rest_box(const Model& m) {
+  std::vector<std::int32_t> all(static_cast<std::size_t>(m.n_nodes));
+  for (std::int32_t i = 0; i < m.n_nodes; ++i) all[static_cast<std::size_t>(i)] = i;
+  return rest_box(m, all);
+}
+
+namespace {
+
 std::string resolve(const std::string& base_dir, const std::string& p) {
   if (p.empty() || fs::path(p).is_absolute() || base_dir.empty()) return p;
   return (fs::path(base_dir) / p).lexically_normal().string();
@@ -852,9 +862,7 @@ void read_collider_mesh(const ColliderDef& c, std::vector<Real>& vertices, std::
 void Scene::init_obstacles() {
   const Model& m = *model_;
   if (std::none_of(def_.colliders.begin(), def_.colliders.end(), [](const ColliderDef& c) { return c.tissue; })) return;
-  std::vector<std::int32_t> all(static_cast<std::size_t>(m.n_nodes));
-  for (std::int32_t i = 0; i < m.n_nodes; ++i) all[static_cast<std::size_t>(i)] = i;
-  const auto [lo, hi] = rest_box(m, all);
+  const auto [lo, hi] = rest_box(m);
   auto obstacles = std::make_shared<Obstacles>();
   for (const ColliderDef& c : def_.colliders) {
     if (!c.tissue) continue;
@@ -943,9 +951,7 @@ void Scene::init_fluid() {
     throw Error(def_.file, fluid_message(e.message()));
   }
   // the domain: the loaded nodes' rest bounding box grown by the margin
-  std::vector<std::int32_t> all(static_cast<std::size_t>(m.n_nodes));
-  for (std::int32_t i = 0; i < m.n_nodes; ++i) all[static_cast<std::size_t>(i)] = i;
-  const auto [lo, hi] = rest_box(m, all);
+  const auto [lo, hi] = rest_box(m);
   fr.bounds = make_box_boundaries({lo.x - fd.margin, lo.y - fd.margin, lo.z - fd.margin},
                                   {hi.x + fd.margin, hi.y + fd.margin, hi.z + fd.margin});
   fr.bounds.box_wall = fd.box_wall;
@@ -1098,9 +1104,7 @@ void Scene::write_colliders() {
   if (fluid_) {
     box_lo = fluid_->bounds.lo, box_hi = fluid_->bounds.hi;
   } else {
-    std::vector<std::int32_t> all(static_cast<std::size_t>(model_->n_nodes));
-    for (std::int32_t i = 0; i < model_->n_nodes; ++i) all[static_cast<std::size_t>(i)] = i;
-    const auto [lo, hi] = rest_box(*model_, all);
+    const auto [lo, hi] = rest_box(*model_);
     const Real g = def_.fluid.margin;
     box_lo = {lo.x - g, lo.y - g, lo.z - g}, box_hi = {hi.x + g, hi.y + g, hi.z + g};
   }

@@ -224,6 +224,10 @@ struct RunSummary {
   double fluid_wall_s = 0;    // of step_wall_s, in the fluid step
 };
 
+// The rest bounding box (lo, hi) of all the loaded nodes of m, as the blood's
+// domain and point_in_box read it.
+std::pair<Vec3, Vec3> rest_box(const Model& m);
+
 class Scene;
 // Runs `steps` steps of def().dt, writing a frame before the first step,
 // every output.every steps and after the last (when output is enabled).

@@ -407,6 +407,8 @@ inline void sym_add(Real* a, std::int64_t k, const Sym3& s) {
 // part of a node's vector along the obstacle's surface (n unit, or zero for
 // no constraint: a unchanged).
 inline Vec3 filter(const Vec3& a, const Vec3& n) { return a - dot(a, n) * n; }
+// Whether a hold's normal n (Scratch::constraint) holds its node (zero: no hold).
+inline bool holds(const Vec3& n) { return n.x != 0 || n.y != 0 || n.z != 0; }
 
 // How apply_matrix reads its vector: p itself, or the PCG direction update
 // p_next = z + beta p fused into the read (beta == 0: z alone).
@@ -567,7 +569,7 @@ std::shared_ptr<const SparseFactor> build_factor(const Model& m, const State& s,
       const Vec3 ni = load3(sc.constraint.data(), i);
       for (std::size_t r = 0; r < row.size(); ++r) {
         const Vec3 nj = load3(sc.constraint.data(), row[r]);
-        const bool hi = ni.x != 0 || ni.y != 0 || ni.z != 0, hj = nj.x != 0 || nj.y != 0 || nj.z != 0;
+        const bool hi = holds(ni), hj = holds(nj);
         if (!hi && !hj) continue;
         auto& bk = blk[r];  // B[q][p] = bk[3 q + p]: q the row node j's dof, p the column node i's
         const double a[3] = {nj.x, nj.y, nj.z}, c[3] = {ni.x, ni.y, ni.z};
@@ -827,7 +829,7 @@ Check implicit_substep(const Model& m, State& s, Real t, Real h, const SolverOpt
       const Real pi = 3 / (Di.xx + Di.yy + Di.zz);
       tw += mass[i] * pi * pi * ti2;
       Vec3 guess = use_warm ? vi + load3(warm, i) : vi;
-      if (ni.x != 0 || ni.y != 0 || ni.z != 0) {
+      if (holds(ni)) {
         guess = filter(guess, ni);
         held += 1;
       }
@@ -968,8 +970,8 @@ Check implicit_substep(const Model& m, State& s, Real t, Real h, const SolverOpt
   // when built; where the holds change every substep a fresh factor may not
   // bring a solve under refactor_after, so there a rebuild is due only when
   // the solves have also doubled since the factor's first. Before the factor
-  // knew the holds, a free block resting on a table took 22 iterations a
-  // solve and a new factor every substep.)
+  // knew the holds, a free block resting on a table got a new factor every
+  // substep.)
   if (F) {
     if (s.factor_first_iterations < 0) s.factor_first_iterations = it;
     const int limit = constrained ? std::max(o.refactor_after, 2 * s.factor_first_iterations) : o.refactor_after;
@@ -1012,7 +1014,7 @@ Check implicit_substep(const Model& m, State& s, Real t, Real h, const SolverOpt
       Vec3 hold_force{};
       if (constrained) {
         const Vec3 ni = load3(cn, i);
-        if (ni.x != 0 || ni.y != 0 || ni.z != 0) {
+        if (holds(ni)) {
           const Real normal_force = dot(load3(q, i) - load3(rhs, i), ni) / h;
           keep = normal_force > 0;
           hold_force = normal_force * ni - sc.friction_c[static_cast<std::size_t>(i)] * filter(vi, ni);

@@ -215,12 +215,8 @@ void add_run_command(CLI::App& app) {
       const std::vector<std::int64_t> behind = runtime::obstacle_nodes_behind(*ob, scene->positions(), free_nodes);
       // the loaded nodes' rest box grown by its largest side: a mesh beyond it
       // meets the tissue only if the tissue moves farther than its own size
-      double lo[3] = {HUGE_VAL, HUGE_VAL, HUGE_VAL}, hi[3] = {-HUGE_VAL, -HUGE_VAL, -HUGE_VAL};
-      for (std::int32_t i = 0; i < m.n_nodes; ++i)
-        for (int a = 0; a < 3; ++a) {
-          lo[a] = std::min(lo[a], m.rest_x[3 * static_cast<std::size_t>(i) + a]);
-          hi[a] = std::max(hi[a], m.rest_x[3 * static_cast<std::size_t>(i) + a]);
-        }
+      const auto [rlo, rhi] = runtime::rest_box(m);
+      const double lo[3] = {rlo.x, rlo.y, rlo.z}, hi[3] = {rhi.x, rhi.y, rhi.z};
       const double grow = std::max({hi[0] - lo[0], hi[1] - lo[1], hi[2] - lo[2]});
       std::size_t plane = 0, mesh = 0;  // (behind: the planes' counts, then the meshes', in the scene's order)
       for (const runtime::ColliderDef& c : def.colliders) {

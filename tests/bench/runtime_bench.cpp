@@ -707,8 +707,8 @@ void contact_rows(ob::Results& out, bool quick) {
     } else {
       rt::add_obstacle_plane(*ob, {{0, table, 0}, {0, 1, 0}, 0, 0.5});
     }
-    Real fy = 0, fside = 0;
-    std::int64_t contacts = 0;
+    Real fy = 0, fside = 0, its = 0;
+    std::int64_t contacts = 0, factors = 0;
     tbb::task_arena arena(2);
     auto ours = [&] {
       rt::State s = rt::make_state(L.model);
@@ -722,6 +722,8 @@ void contact_rows(ob::Results& out, bool quick) {
       Real f[3] = {0, 0, 0};
       for (std::size_t i = 0; i < s.contact_force.size(); ++i) f[i % 3] += s.contact_force[i];
       fy = f[1], fside = std::hypot(f[0], f[2]), contacts = s.counters.obstacle_contacts;
+      its = static_cast<Real>(s.counters.cg_iterations) / static_cast<Real>(std::max<std::int64_t>(1, s.counters.cg_solves));
+      factors = s.counters.factorizations;
     };
     ob::Row row;
     row.workload = std::string("a free 39x9x4 lattice resting on a table (") + (as_mesh ? "2-triangle STL" : "plane") +
@@ -730,7 +732,8 @@ void contact_rows(ob::Results& out, bool quick) {
     row.x = L.model.n_nodes;
     row.seconds = ob::time_runs(quick ? 1 : 3, ours);
     row.error("relative weight error", std::abs(fy - weight) / weight, "<=", 1e-4);
-    row.extra = {{"weight_n", weight}, {"table_force_y_n", fy}, {"sideways_n", fside}, {"contacts", contacts}};
+    row.extra = {{"weight_n", weight}, {"table_force_y_n", fy}, {"sideways_n", fside}, {"contacts", contacts},
+                 {"pcg_iterations_per_solve", its}, {"sparse_factors", factors}};
     out.add(row);
   }
 }

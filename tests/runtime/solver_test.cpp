@@ -1163,10 +1163,9 @@ TEST(Obstacles, TheTableCarriesTheWeightOfABlockAtRest) {
 
 // The sparse factor (the cholesky preconditioner) of a system with nodes held
 // on a table is the held system's, so it solves it in a few iterations and is
-// not rebuilt every substep. (A factor of the unheld matrix took 22
-// iterations a solve however fresh, and was rebuilt every substep: a free
-// 39 x 9 x 4 lattice on a table ran 60 ms a step; 29 with a rebuild only when
-// the solves doubled; 5.7 with the held system's factor.)
+// not rebuilt every substep. (A factor of the unheld matrix stayed above
+// refactor_after however fresh, and was rebuilt every substep: 59 factors
+// here; the runtime benchmark's free-lattice rows, BENCHMARKS.md.)
 TEST(Obstacles, HeldNodesDoNotRebuildTheSparseFactorEverySubstep) {
   const auto b = make_layered_block(13, 5, 4);
   const Model m = model_from_layers(b.layers, b.sets);
