@@ -154,10 +154,11 @@ void obstacle_friction(const Obstacles& o, std::int32_t k, const Vec3& n, Real d
 
 Real obstacle_reach(const Vec3& x) { return 1e3 * standoff(x); }
 
-ObstacleContact rests_on(const Obstacles& o, std::int32_t k, const Vec3& x) {
+ObstacleContact rests_on(const Obstacles& o, std::int32_t k, const Vec3& x_world, const Vec3& offset) {
   const auto np = static_cast<std::int32_t>(o.planes.size());
   if (k < 0 || k >= np + static_cast<std::int32_t>(o.meshes.size())) return {};
-  const Real reach = obstacle_reach(x);
+  const Vec3 x = x_world - offset;  // in the obstacle's frame
+  const Real reach = obstacle_reach(x_world);
   if (k < np) {
     const ObstaclePlane& p = o.planes[static_cast<std::size_t>(k)];
     if (dot(p.normal, x - p.point) > reach) return {};
@@ -171,39 +172,55 @@ ObstacleContact rests_on(const Obstacles& o, std::int32_t k, const Vec3& x) {
 
 namespace {
 
-// The earliest crossing of any obstacle along x0 -> x (k = -1: none): a plane
-// where the motion goes behind it (at once, if x0 is behind it already), a
-// mesh where the motion crosses a triangle from its free side(s); ties to the
-// lowest index. q is on the obstacle's surface, n its free side's normal.
+// The earliest crossing of any obstacle along x0 -> x (k = -1: none), the
+// node moving over the fractions [s0, s1] of the substep and each obstacle as
+// `mo` says: a plane where the motion relative to it goes behind it (at once,
+// if x0 is behind it already), a mesh where the relative motion crosses a
+// triangle from its free side(s); ties to the lowest index. t is the fraction
+// of x0 -> x, q the crossing point (in space: on the obstacle's surface where
+// it is then), n its free side's normal.
 struct Crossing {
   Real t = 2;
   std::int32_t k = -1;
   Vec3 q, n;
 };
-Crossing earliest_crossing(const Obstacles& o, const Vec3& x0, const Vec3& x) {
+Crossing earliest_crossing(const Obstacles& o, const Vec3& x0, const Vec3& x, const ObstacleMotion& mo, Real s0,
+                           Real s1) {
   Crossing best;
   const auto np = static_cast<std::int32_t>(o.planes.size());
+  // obstacle k's displacements at s0 and s1 (zero for obstacles at rest, so
+  // that their results are bitwise those of the static query)
+  auto ends = [&](std::int32_t k) -> std::pair<Vec3, Vec3> {
+    if (!mo.moving()) return {};
+    return {mo.at(k, s0), mo.at(k, s1)};
+  };
   for (std::int32_t k = 0; k < np; ++k) {
     const ObstaclePlane& p = o.planes[static_cast<std::size_t>(k)];
-    const Real d1 = dot(p.normal, x - p.point);
+    const auto [a, b] = ends(k);
+    const Vec3 r0 = x0 - a, r1 = x - b;  // the motion in the plane's frame
+    const Real d1 = dot(p.normal, r1 - p.point);
     if (!(d1 < 0)) continue;
-    const Real d0 = dot(p.normal, x0 - p.point);
+    const Real d0 = dot(p.normal, r0 - p.point);
     const Real t = d0 > 0 ? d0 / (d0 - d1) : 0;
     if (t < best.t) {
-      best = {t, k, x0 + t * (x - x0), p.normal};
-      best.q -= dot(p.normal, best.q - p.point) * p.normal;  // on it (x0 may have been behind it)
+      Vec3 q = r0 + t * (r1 - r0);
+      q -= dot(p.normal, q - p.point) * p.normal;  // on it (x0 may have been behind it)
+      best = {t, k, q + a + t * (b - a), p.normal};
     }
   }
   for (std::size_t mi = 0; mi < o.meshes.size(); ++mi) {
-    const Hit c = first_crossing(o.meshes[mi], x0, x);
-    if (c.tri >= 0 && c.t < best.t) best = {c.t, np + static_cast<std::int32_t>(mi), c.q, c.n};
+    const auto k = np + static_cast<std::int32_t>(mi);
+    const auto [a, b] = ends(k);
+    const Hit c = first_crossing(o.meshes[mi], x0 - a, x - b);
+    if (c.tri >= 0 && c.t < best.t) best = {c.t, k, c.q + a + c.t * (b - a), c.n};
   }
   return best;
 }
 
 }  // namespace
 
-ObstacleContact resolve_obstacle_contact(const Obstacles& o, Vec3 x0, Vec3& x, Vec3& v, Real h) {
+ObstacleContact resolve_obstacle_contact(const Obstacles& o, Vec3 x0, Vec3& x, Vec3& v, Real h,
+                                         const ObstacleMotion& mo) {
   ObstacleContact touched;
   const auto np = static_cast<std::int32_t>(o.planes.size());
   Real left = 1;  // the fraction of the substep still to move after the contacts so far
@@ -214,22 +231,28 @@ ObstacleContact resolve_obstacle_contact(const Obstacles& o, Vec3 x0, Vec3& x, V
   constexpr int kRounds = 8;
   int round = 0;
   for (; round < kRounds; ++round) {
-    const Crossing c = earliest_crossing(o, x0, x);
+    const Real s0 = 1 - left;  // where in the substep x0 is
+    const Crossing c = earliest_crossing(o, x0, x, mo, s0, 1);
     if (c.k < 0) break;
     touched = {c.k, c.n};
+    // the contact law on the velocity relative to the obstacle
+    const Vec3 u = mo.velocity(c.k, h);
+    Vec3 vr = v - u;
     if (c.k < np) {
       const ObstaclePlane& p = o.planes[static_cast<std::size_t>(c.k)];
-      respond(v, c.n, p.restitution, p.friction);
+      respond(vr, c.n, p.restitution, p.friction);
     } else {
       const ObstacleMesh& m = o.meshes[static_cast<std::size_t>(c.k - np)];
-      respond(v, c.n, m.restitution, m.friction);
+      respond(vr, c.n, m.restitution, m.friction);
     }
+    v = vr + u;
+    const Real s_hit = s0 + c.t * left;
     left *= 1 - c.t;
     // on to the crossing, stood off in front of it (so that round-off cannot
     // leave the node behind); in a corner that step off may cross the other
     // obstacle, and the node then stays where the round began
     const Vec3 q = c.q + standoff(c.q) * c.n;
-    if (earliest_crossing(o, x0, q).k < 0) x0 = q;
+    if (earliest_crossing(o, x0, q, mo, s0, s_hit).k < 0) x0 = q;
     x = x0 + (left * h) * v;
   }
   if (round == kRounds) x = x0;
@@ -237,17 +260,20 @@ ObstacleContact resolve_obstacle_contact(const Obstacles& o, Vec3 x0, Vec3& x, V
 }
 
 std::vector<std::int64_t> obstacle_nodes_behind(const Obstacles& o, std::span<const Real> x,
-                                                std::span<const std::int32_t> nodes) {
+                                                std::span<const std::int32_t> nodes, std::span<const Vec3> offset) {
   std::vector<std::int64_t> out;
+  auto shift = [&](std::size_t k) { return k < offset.size() ? offset[k] : Vec3{}; };
   for (const ObstaclePlane& p : o.planes) {
     std::int64_t n = 0;
-    for (const std::int32_t i : nodes) n += dot(p.normal, load3(x.data(), i) - p.point) < 0;
+    const Vec3 d = shift(out.size());
+    for (const std::int32_t i : nodes) n += dot(p.normal, load3(x.data(), i) - d - p.point) < 0;
     out.push_back(n);
   }
   for (const ObstacleMesh& m : o.meshes) {
     std::int64_t n = 0;
+    const Vec3 d = shift(out.size());
     if (!m.two_sided)
-      for (const std::int32_t i : nodes) n += closest_triangle(m, load3(x.data(), i), m.grid.level[0].margin).behind;
+      for (const std::int32_t i : nodes) n += closest_triangle(m, load3(x.data(), i) - d, m.grid.level[0].margin).behind;
     out.push_back(n);
   }
   return out;

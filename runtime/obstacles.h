@@ -24,7 +24,15 @@
 //
 // Edges and faces of the tissue between nodes are not tested: a coarse
 // skin quad may dip past a convex corner of a mesh between its nodes.
-// Obstacles are static and do not feel the tissue.
+//
+// Moving obstacles (an instrument, a retractor blade pressed into the limb):
+// each obstacle may be displaced by a translation that the caller prescribes
+// over time (State::obstacle_paths); over a substep it moves from d0 to d1
+// at the constant velocity u = (d1 - d0) / h. Contact is then resolved in the
+// obstacle's frame: the node's motion relative to it is tested against its
+// geometry, the contact law acts on the relative velocity (v - u), and the
+// implicit hold keeps the node's normal velocity at u . n. Obstacles are
+// kinematic: they do not feel the tissue (their force on it is reported).
 #pragma once
 
 #include "runtime/sph.h"
@@ -74,14 +82,34 @@ struct ObstacleContact {
   Vec3 n;
 };
 
+// Where the obstacles are over a substep: obstacle k's displacement from its
+// geometry as given (m) at the substep's start, d0[k], and at its end, d1[k]
+// (both spans as long as the obstacles, or both empty: none displaced).
+struct ObstacleMotion {
+  std::span<const Vec3> d0, d1;
+  bool moving() const { return !d0.empty(); }
+  // obstacle k's displacement at the fraction s of the substep (zero: none)
+  Vec3 at(std::int32_t k, Real s) const {
+    if (d0.empty()) return {};
+    const Vec3 a = d0[static_cast<std::size_t>(k)], b = d1[static_cast<std::size_t>(k)];
+    return a + s * (b - a);
+  }
+  // obstacle k's velocity over a substep of h seconds (m/s)
+  Vec3 velocity(std::int32_t k, Real h) const {
+    if (d0.empty() || k < 0) return {};
+    return (1 / h) * (d1[static_cast<std::size_t>(k)] - d0[static_cast<std::size_t>(k)]);
+  }
+};
+
 // One node's motion over a substep of h seconds from x0 to x = x0 + h v: where
-// it crosses an obstacle, v changes by the contact law and the node moves on
+// it crosses an obstacle (moving as `motion` says; the default: at rest), v changes by the contact law and the node moves on
 // from the crossing with the new v for the rest of the substep (see above).
 // The earliest crossing of any obstacle first, then the rest of the motion
 // again (a corner between two obstacles), up to 8 crossings, after which the
 // node stays at the last; a plane the node starts behind is crossed at once.
 // Returns the last obstacle it touched (-1: none).
-ObstacleContact resolve_obstacle_contact(const Obstacles& o, Vec3 x0, Vec3& x, Vec3& v, Real h);
+ObstacleContact resolve_obstacle_contact(const Obstacles& o, Vec3 x0, Vec3& x, Vec3& v, Real h,
+                                         const ObstacleMotion& motion = {});
 
 // Coulomb friction on a node that an obstacle's contact (index k, unit normal
 // n) gave the normal velocity change dvn >= 0: its tangential velocity loses
@@ -96,16 +124,24 @@ Real obstacle_friction_coefficient(const Obstacles& o, std::int32_t k);
 // 10^-9 in front of it).
 Real obstacle_reach(const Vec3& x);
 
-// Whether a node at x rests on obstacle k: within obstacle_reach(x) in front
-// of it (a plane: or behind it). The normal there is that of the plane, or of
-// the mesh's closest triangle on the node's side (a one-sided mesh: its front).
-ObstacleContact rests_on(const Obstacles& o, std::int32_t k, const Vec3& x);
+// Whether a node at x rests on obstacle k, displaced by `offset`: within
+// obstacle_reach(x) in front of it (a plane: or behind it). The normal there
+// is that of the plane, or of the mesh's closest triangle on the node's side
+// (a one-sided mesh: its front).
+ObstacleContact rests_on(const Obstacles& o, std::int32_t k, const Vec3& x, const Vec3& offset = {});
 
 // Of the given positions (n x 3), how many are behind plane k (for each
 // plane), and how many lie within one grid margin behind a triangle of
 // one-sided mesh k, the closest triangle's back (for each mesh): planes
-// first, then meshes, in order.
+// first, then meshes, in order. offset: each obstacle's displacement (empty:
+// none).
 std::vector<std::int64_t> obstacle_nodes_behind(const Obstacles& o, std::span<const Real> x,
-                                                std::span<const std::int32_t> nodes);
+                                                std::span<const std::int32_t> nodes,
+                                                std::span<const Vec3> offset = {});
+
+// The number of obstacles (planes, then meshes).
+inline std::int32_t obstacle_count(const Obstacles& o) {
+  return static_cast<std::int32_t>(o.planes.size() + o.meshes.size());
+}
 
 }  // namespace orthosim::runtime

@@ -186,6 +186,26 @@ std::array<Real, 3> unit_direction(std::array<Real, 3> d) {
   return d;
 }
 
+// A "path": a list of [t, dx, dy, dz] (s, m), times >= 0 and increasing.
+Path parse_path(Obj& o) {
+  Path path;
+  const json& p = o.at("path");
+  if (!p.is_array() || p.empty()) o.fail("path must be a list of [t, dx, dy, dz]");
+  for (const auto& e : p) {
+    if (!e.is_array() || e.size() != 4) o.fail("path must be a list of [t, dx, dy, dz]");
+    for (const auto& x : e)
+      // within +-1e9 (s, m) like every other time and vector: a path of 1e155 m
+      // overflowed the implicit solve's tolerance and a spring grip did nothing, exit 0
+      if (!x.is_number() || !std::isfinite(x.get<Real>()) || std::abs(x.get<Real>()) > 1e9)
+        o.fail("path values must be finite numbers within +-1e9 (s, m)");
+    const Real tt = e[0].get<Real>();
+    if (tt < 0 || (!path.t.empty() && !(tt > path.t.back()))) o.fail("path times must be >= 0 and increasing");
+    path.t.push_back(tt);
+    for (int k = 1; k < 4; ++k) path.p.push_back(e[k].get<Real>());
+  }
+  return path;
+}
+
 // A collider of the top-level list (targets: it may say "tissue" and "blood")
 // or of fluid.colliders (the blood's alone).
 ColliderDef parse_collider(const json& j, std::size_t index, const std::string& file, const std::string& base,
@@ -231,6 +251,13 @@ ColliderDef parse_collider(const json& j, std::size_t index, const std::string& 
     if (!c.tissue && !c.blood) o.fail("acts on nothing (\"tissue\": false and \"blood\": false)");
   } else {
     c.tissue = false;
+  }
+  if (o.has("path")) {
+    c.path = parse_path(o);
+    // the blood's half-spaces are fixed walls (FluidBoundaries); a moving
+    // mesh is a moving wall to it (FluidSurface)
+    if (c.kind == ColliderDef::Kind::plane && c.blood)
+      o.fail("a moving plane acts on the tissue only: give it \"blood\": false, or make it a mesh");
   }
   o.finish();
   return c;
@@ -303,20 +330,7 @@ ToolDef parse_tool(const json& j, std::size_t index, const std::string& file) {
   if (t.type == ToolType::pull || t.type == ToolType::drain) {
     if (t.type == ToolType::pull) t.stiffness = o.number("stiffness", 0, 0, 1e12);
     if (o.has("path")) {
-      const json& p = o.at("path");
-      if (!p.is_array() || p.empty()) o.fail("path must be a list of [t, dx, dy, dz]");
-      for (const auto& e : p) {
-        if (!e.is_array() || e.size() != 4) o.fail("path must be a list of [t, dx, dy, dz]");
-        for (const auto& x : e)
-          // within +-1e9 (s, m) like every other time and vector: a path of 1e155 m
-          // overflowed the implicit solve's tolerance and a spring grip did nothing, exit 0
-          if (!x.is_number() || !std::isfinite(x.get<Real>()) || std::abs(x.get<Real>()) > 1e9)
-            o.fail("path values must be finite numbers within +-1e9 (s, m)");
-        const Real tt = e[0].get<Real>();
-        if (tt < 0 || (!t.path.t.empty() && !(tt > t.path.t.back()))) o.fail("path times must be >= 0 and increasing");
-        t.path.t.push_back(tt);
-        for (int k = 1; k < 4; ++k) t.path.p.push_back(e[k].get<Real>());
-      }
+      t.path = parse_path(o);
       // A pull grips its nodes where they are at its start and moves them by the
       // path's change since then: one waypoint moves nothing (it was run so,
       // the grip held at rest, without a word).
@@ -619,6 +633,11 @@ Scene::Scene(Model model, const SceneDef& def) : def_(def) {
   init("");
 }
 
+namespace {
+Vec3 collider_point(const ColliderDef& c, const Vec3& lo, const Vec3& hi);
+void read_collider_mesh(const ColliderDef& c, std::vector<Real>& vertices, std::vector<std::int32_t>& triangles);
+}  // namespace
+
 void Scene::init(const std::string& model_file) {
   const std::string& file = def_.file;
   if (!model_) {
@@ -779,6 +798,27 @@ void Scene::init(const std::string& model_file) {
     tools_.push_back(std::move(run));
   }
 
+  // the moving colliders' geometry (for the blood's moving walls and the output)
+  for (std::size_t c = 0; c < def_.colliders.size(); ++c) {
+    const ColliderDef& cd = def_.colliders[c];
+    if (cd.path.t.empty()) continue;
+    MovingCollider mc;
+    mc.def = c;
+    if (cd.kind == ColliderDef::Kind::plane) {
+      const auto [lo, hi] = rest_box(m);
+      mc.point = collider_point(cd, lo, hi);
+      mc.normal = {cd.normal[0], cd.normal[1], cd.normal[2]};
+    } else {
+      try {
+        read_collider_mesh(cd, mc.vertices, mc.triangles);
+        validate_triangle_mesh(mc.vertices, mc.triangles, "mesh");
+      } catch (const Error& e) {
+        if (!e.file().empty()) throw;
+        throw Error(def_.file, "collider '" + cd.name + "': " + e.message());
+      }
+    }
+    moving_.push_back(std::move(mc));
+  }
   init_obstacles();
   if (def_.fluid.enabled) init_fluid();
 
@@ -798,6 +838,7 @@ void Scene::init(const std::string& model_file) {
     remove_series_frames(dir, name + "_", ".vtu", name + ".pvd");
     remove_series_frames(dir, name + "_blood_", ".vtp", name + "_blood.pvd");
     remove_series_frames(dir, name + "_particles_", ".vtp", name + "_particles.pvd");
+    remove_series_frames(dir, name + "_moving_colliders_", ".vtp", name + "_moving_colliders.pvd");
     for (const char* once : {"_vessels.vtp", "_centrelines.vtp", "_colliders.vtp"}) {
       const fs::path p = fs::path(dir) / (name + once);
       if (fs::is_regular_file(p, ec) && !fs::remove(p, ec) && ec)
@@ -864,8 +905,10 @@ void Scene::init_obstacles() {
   if (std::none_of(def_.colliders.begin(), def_.colliders.end(), [](const ColliderDef& c) { return c.tissue; })) return;
   const auto [lo, hi] = rest_box(m);
   auto obstacles = std::make_shared<Obstacles>();
+  std::vector<Path> plane_paths, mesh_paths;  // the obstacles' order: planes, then meshes
   for (const ColliderDef& c : def_.colliders) {
     if (!c.tissue) continue;
+    (c.kind == ColliderDef::Kind::plane ? plane_paths : mesh_paths).push_back(c.path);
     try {
       if (c.kind == ColliderDef::Kind::plane) {
         add_obstacle_plane(*obstacles, {collider_point(c, lo, hi), {c.normal[0], c.normal[1], c.normal[2]},
@@ -884,6 +927,10 @@ void Scene::init_obstacles() {
     }
   }
   state_.obstacles = std::move(obstacles);
+  if (std::any_of(def_.colliders.begin(), def_.colliders.end(), [](const ColliderDef& c) { return c.tissue && !c.path.t.empty(); })) {
+    state_.obstacle_paths = std::move(plane_paths);
+    state_.obstacle_paths.insert(state_.obstacle_paths.end(), mesh_paths.begin(), mesh_paths.end());
+  }
 }
 
 std::vector<std::array<Real, 3>> Scene::collider_forces() const {
@@ -913,6 +960,7 @@ struct Scene::FluidRun {
   std::vector<std::pair<Real, std::string>> frames;  // blood surface series
   WoundColumns wound;  // the tissue's columns the cuts open (cut.h); not valid: the quads as they are
   Carried emitter_carry;  // the emitters' centres, carried by the tissue (one point per emitter)
+  std::vector<std::pair<std::size_t, std::size_t>> moving_walls;  // (index into moving_, into state.surfaces)
 };
 
 Scene::~Scene() = default;
@@ -964,7 +1012,7 @@ void Scene::init_fluid() {
   }
   // the scene's static walls
   for (const ColliderDef& c : def_.colliders) {
-    if (!c.blood) continue;
+    if (!c.blood || !c.path.t.empty()) continue;  // (a moving one: a moving wall, below)
     const std::string what = "fluid: collider '" + c.name + "': ";
     try {
       if (c.kind == ColliderDef::Kind::plane) {
@@ -1001,6 +1049,18 @@ void Scene::init_fluid() {
   surf.x = state_.x;
   fr.state.surfaces.push_back(std::move(surf));
   update_fluid_surface();
+  // the moving colliders: walls moved with them (set each step, fluid_step_now)
+  for (std::size_t k = 0; k < moving_.size(); ++k) {
+    const ColliderDef& c = def_.colliders[moving_[k].def];
+    if (!c.blood) continue;  // (a plane with blood and a path is refused by the parser)
+    FluidSurface w;
+    w.triangles = moving_[k].triangles;
+    w.wall = c.wall;
+    w.two_sided = c.two_sided;
+    w.x = moving_[k].vertices;
+    fr.moving_walls.emplace_back(k, fr.state.surfaces.size());
+    fr.state.surfaces.push_back(std::move(w));
+  }
   fr.force.assign(3 * static_cast<std::size_t>(m.n_nodes), 0);
   // drains, one per drain tool, enabled while the tool is active
   fr.drain_of_tool.assign(tools_.size(), -1);
@@ -1040,6 +1100,19 @@ void Scene::fluid_step_now(Real dt, std::span<const Real> x_start) {
   surf.x.assign(x_start.begin(), x_start.end());
   surf.v.resize(surf.x.size());
   for (std::size_t i = 0; i < surf.v.size(); ++i) surf.v[i] = (state_.x[i] - x_start[i]) / dt;
+  // the moving colliders through the step: from where they are at its start at their mean velocity
+  for (const auto& [k, si] : fr.moving_walls) {
+    const Path& path = def_.colliders[moving_[k].def].path;
+    const Vec3 d0 = path.at(state_.time - dt), u = (1 / dt) * (path.at(state_.time) - d0);
+    FluidSurface& w = fr.state.surfaces[si];
+    const std::vector<Real>& rest = moving_[k].vertices;
+    w.x.resize(rest.size());
+    w.v.resize(rest.size());
+    for (std::size_t i = 0; i + 2 < rest.size(); i += 3) {
+      w.x[i] = rest[i] + d0.x, w.x[i + 1] = rest[i + 1] + d0.y, w.x[i + 2] = rest[i + 2] + d0.z;
+      w.v[i] = u.x, w.v[i + 1] = u.y, w.v[i + 2] = u.z;
+    }
+  }
   // drains follow their tools
   for (std::size_t i = 0; i < tools_.size(); ++i) {
     const int di = fr.drain_of_tool[i];
@@ -1096,18 +1169,63 @@ void Scene::write_vessels() {
   if (!tri.empty()) write_vtp(base + "_vessels.vtp", tube, tri, {}, def_.output.vtk.binary);
 }
 
+namespace {
+// A plane (point p0, unit normal n) as the polygon it cuts from the box
+// [lo, hi], appended to pts / tri: the crossings of the box's 12 edges, in
+// order around their centroid, as a triangle fan. Nothing where the plane
+// misses the box (or touches it at an edge).
+void append_plane_polygon(const std::array<Real, 3>& lo, const std::array<Real, 3>& hi, const Vec3& p0, const Vec3& n,
+                          std::vector<double>& pts, std::vector<std::int32_t>& tri) {
+  struct {
+    std::array<Real, 3> lo, hi;
+  } b{lo, hi};
+  auto corner = [&](int c) { return Vec3{c & 1 ? b.hi[0] : b.lo[0], c & 2 ? b.hi[1] : b.lo[1], c & 4 ? b.hi[2] : b.lo[2]}; };
+  std::vector<Vec3> poly;
+  for (int c = 0; c < 8; ++c)
+    for (int k = 0; k < 3; ++k) {
+      if (c & (1 << k)) continue;  // each edge once, from its low corner
+      const Vec3 a = corner(c), e = corner(c | (1 << k));
+      const Real da = dot(n, a - p0), de = dot(n, e - p0);
+      if ((da < 0) == (de < 0) && da != 0) continue;
+      if (da == de) continue;  // the edge lies in the plane: its ends are other edges' crossings
+      poly.push_back(a + (da / (da - de)) * (e - a));
+    }
+  // a plane through a corner crosses its three edges there: one point
+  const Real tiny = 1e-12 * (std::abs(b.hi[0] - b.lo[0]) + std::abs(b.hi[1] - b.lo[1]) + std::abs(b.hi[2] - b.lo[2]));
+  std::vector<Vec3> distinct;
+  for (const Vec3& q : poly)
+    if (std::none_of(distinct.begin(), distinct.end(), [&](const Vec3& d) { return norm(d - q) <= tiny; })) distinct.push_back(q);
+  poly = std::move(distinct);
+  if (poly.size() < 3) return;
+  Vec3 c{0, 0, 0};
+  for (const Vec3& q : poly) c = c + q;
+  c = (1.0 / static_cast<Real>(poly.size())) * c;
+  const Vec3 u0 = poly[0] - c, v0 = cross(n, u0);
+  std::sort(poly.begin(), poly.end(), [&](const Vec3& a, const Vec3& q) {
+    return std::atan2(dot(a - c, v0), dot(a - c, u0)) < std::atan2(dot(q - c, v0), dot(q - c, u0));
+  });
+  const auto off = static_cast<std::int32_t>(pts.size() / 3);
+  for (const Vec3& q : poly) pts.insert(pts.end(), {q.x, q.y, q.z});
+  for (std::int32_t i = 1; i + 1 < static_cast<std::int32_t>(poly.size()); ++i) tri.insert(tri.end(), {off, off + i, off + i + 1});
+}
+}  // namespace
+
+std::array<Vec3, 2> Scene::collider_box() const {
+  // the blood's domain, or without blood the loaded nodes' rest box grown by
+  // the fluid's margin (FluidDef::margin)
+  if (fluid_) {
+    const auto& b = fluid_->bounds;
+    return {Vec3{b.lo[0], b.lo[1], b.lo[2]}, Vec3{b.hi[0], b.hi[1], b.hi[2]}};
+  }
+  const auto [lo, hi] = rest_box(*model_);
+  const Real g = def_.fluid.margin;
+  return {Vec3{lo.x - g, lo.y - g, lo.z - g}, Vec3{hi.x + g, hi.y + g, hi.z + g}};
+}
+
 void Scene::write_colliders() {
   if (def_.colliders.empty()) return;
-  // the box the planes are drawn in: the blood's domain, or without blood the
-  // loaded nodes' rest box grown by the fluid's margin (FluidDef::margin)
-  std::array<Real, 3> box_lo{}, box_hi{};
-  if (fluid_) {
-    box_lo = fluid_->bounds.lo, box_hi = fluid_->bounds.hi;
-  } else {
-    const auto [lo, hi] = rest_box(*model_);
-    const Real g = def_.fluid.margin;
-    box_lo = {lo.x - g, lo.y - g, lo.z - g}, box_hi = {hi.x + g, hi.y + g, hi.z + g};
-  }
+  const auto [blo, bhi] = collider_box();
+  const std::array<Real, 3> box_lo{blo.x, blo.y, blo.z}, box_hi{bhi.x, bhi.y, bhi.z};
   // each collider from the structure that holds it (the tissue's obstacles or
   // the blood's boundaries, whose planes and meshes are the colliders', in order)
   std::vector<const std::vector<Real>*> mesh_vertices;
@@ -1119,6 +1237,10 @@ void Scene::write_colliders() {
     for (const ColliderDef& c : def_.colliders) {
       const bool from_tissue = c.tissue && ob;
       if (!from_tissue && !(c.blood && fluid_)) continue;
+      if (!c.path.t.empty()) {  // a moving one: its own series (write_moving_colliders); not in the blood's boundaries
+        if (from_tissue) ++(c.kind == ColliderDef::Kind::plane ? op : om);
+        continue;
+      }
       if (c.kind == ColliderDef::Kind::plane) {
         if (from_tissue) {
           const ObstaclePlane& pl = ob->planes[op++];
@@ -1147,43 +1269,36 @@ void Scene::write_colliders() {
     pts.insert(pts.end(), mesh_vertices[k]->begin(), mesh_vertices[k]->end());
     for (auto i : *mesh_triangles[k]) tri.push_back(off + i);
   }
-  // a plane, as the polygon it cuts from the box: the crossings of the
-  // box's 12 edges, in order around their centroid, as a triangle fan
-  struct {
-    std::array<Real, 3> lo, hi;
-  } b{box_lo, box_hi};
-  for (const auto& [p0, n] : planes) {
-    auto corner = [&](int c) { return Vec3{c & 1 ? b.hi[0] : b.lo[0], c & 2 ? b.hi[1] : b.lo[1], c & 4 ? b.hi[2] : b.lo[2]}; };
-    std::vector<Vec3> poly;
-    for (int c = 0; c < 8; ++c)
-      for (int k = 0; k < 3; ++k) {
-        if (c & (1 << k)) continue;  // each edge once, from its low corner
-        const Vec3 a = corner(c), e = corner(c | (1 << k));
-        const Real da = dot(n, a - p0), de = dot(n, e - p0);
-        if ((da < 0) == (de < 0) && da != 0) continue;
-        if (da == de) continue;  // the edge lies in the plane: its ends are other edges' crossings
-        poly.push_back(a + (da / (da - de)) * (e - a));
-      }
-    // a plane through a corner crosses its three edges there: one point
-    const Real tiny = 1e-12 * (std::abs(b.hi[0] - b.lo[0]) + std::abs(b.hi[1] - b.lo[1]) + std::abs(b.hi[2] - b.lo[2]));
-    std::vector<Vec3> distinct;
-    for (const Vec3& q : poly)
-      if (std::none_of(distinct.begin(), distinct.end(), [&](const Vec3& d) { return norm(d - q) <= tiny; })) distinct.push_back(q);
-    poly = std::move(distinct);
-    if (poly.size() < 3) continue;  // the plane misses the domain (or touches it at an edge)
-    Vec3 c{0, 0, 0};
-    for (const Vec3& q : poly) c = c + q;
-    c = (1.0 / static_cast<Real>(poly.size())) * c;
-    const Vec3 u0 = poly[0] - c, v0 = cross(n, u0);
-    std::sort(poly.begin(), poly.end(), [&](const Vec3& a, const Vec3& q) {
-      return std::atan2(dot(a - c, v0), dot(a - c, u0)) < std::atan2(dot(q - c, v0), dot(q - c, u0));
-    });
-    const auto off = static_cast<std::int32_t>(pts.size() / 3);
-    for (const Vec3& q : poly) pts.insert(pts.end(), {q.x, q.y, q.z});
-    for (std::int32_t i = 1; i + 1 < static_cast<std::int32_t>(poly.size()); ++i) tri.insert(tri.end(), {off, off + i, off + i + 1});
-  }
+  for (const auto& [p0, n] : planes) append_plane_polygon(box_lo, box_hi, p0, n, pts, tri);
   if (!tri.empty())
     write_vtp(def_.output.dir + "/" + def_.output.name + "_colliders.vtp", pts, tri, {}, def_.output.vtk.binary);
+}
+
+void Scene::write_moving_colliders() {
+  if (moving_.empty()) return;
+  const auto [blo, bhi] = collider_box();
+  const std::array<Real, 3> box_lo{blo.x, blo.y, blo.z}, box_hi{bhi.x, bhi.y, bhi.z};
+  std::vector<double> pts;
+  std::vector<std::int32_t> tri;
+  for (const MovingCollider& mc : moving_) {
+    const Vec3 d = def_.colliders[mc.def].path.at(state_.time);
+    if (mc.vertices.empty()) {
+      append_plane_polygon(box_lo, box_hi, mc.point + d, mc.normal, pts, tri);
+      continue;
+    }
+    const auto off = static_cast<std::int32_t>(pts.size() / 3);
+    for (std::size_t i = 0; i + 2 < mc.vertices.size(); i += 3)
+      pts.insert(pts.end(), {mc.vertices[i] + d.x, mc.vertices[i + 1] + d.y, mc.vertices[i + 2] + d.z});
+    for (auto i : mc.triangles) tri.push_back(off + i);
+  }
+  const std::string& dir = def_.output.dir;
+  const std::string& name = def_.output.name;
+  char tag[16];
+  std::snprintf(tag, sizeof tag, "%06d", static_cast<int>(moving_frames_.size()));
+  const std::string file = name + "_moving_colliders_" + tag + ".vtp";
+  write_vtp(dir + "/" + file, pts, tri, {}, def_.output.vtk.binary);
+  moving_frames_.emplace_back(state_.time, file);
+  write_pvd(dir + "/" + name + "_moving_colliders.pvd", moving_frames_);
 }
 
 void Scene::write_fluid_frame() {
@@ -1448,6 +1563,7 @@ void Scene::release(std::span<const std::int32_t> nodes) {
 void Scene::write_frame() {
   if (vtk_) vtk_->write(*model_, state_);
   if (vtk_ && fluid_) write_fluid_frame();
+  if (vtk_) write_moving_colliders();
 }
 
 RunSummary run(Scene& scene, long steps, const std::function<void(long)>& progress) {

@@ -96,9 +96,9 @@ struct ToolDef {
 // the wound (against the blade direction) with the Poiseuille flow of the
 // vessel's radius (bleeding_flow_rate: Poiseuille, capped by the orifice) and
 // the exit profile of the limit that binds (bleeding_profile).
-// A static collider (issue 9's "static collision meshes"): an operating
-// table, a tray, a retractor blade, a bone taken as rigid. It does not move,
-// and nothing pushes back on it. The blood collides with it as with the
+// A collider (issue 9's "static collision meshes"): an operating table, a
+// tray, a retractor blade, a bone taken as rigid; or, with a path, an
+// instrument moved through the scene. Nothing pushes back on it. The blood collides with it as with the
 // tissue (the wall integrals, restitution and friction); the tissue's free
 // nodes cannot pass it (runtime/obstacles.h: node contact with the same
 // restitution and friction). A scene's top-level "colliders" act on both by
@@ -125,6 +125,11 @@ struct ColliderDef {
   WallParams wall{0.0, 0.2, false};
   bool tissue = true;  // the tissue's free nodes collide with it
   bool blood = true;   // the blood collides with it (when the scene has blood)
+  // a moving collider (an instrument, a retractor blade): its displacement
+  // (m) from the geometry above at time t, a list of [t, dx, dy, dz], linear
+  // in between, held before the first and after the last waypoint; empty: it
+  // does not move. A moving plane acts on the tissue alone.
+  Path path;
 };
 
 struct FluidDef {
@@ -327,6 +332,8 @@ class Scene {
   void write_vessels();  // the loaded vessels' tubes and centrelines, once
   void init_obstacles();   // the tissue's static obstacles (the colliders with tissue)
   void write_colliders();  // the static colliders (planes clipped to the blood's domain or the tissue's box), once
+  void write_moving_colliders();  // the moving colliders where they are now, a frame of their series
+  std::array<Vec3, 2> collider_box() const;  // the box planes are drawn in
 
   SceneDef def_;
   std::shared_ptr<const Model> model_;
@@ -351,6 +358,16 @@ class Scene {
   std::unique_ptr<VtkSeries> vtk_;
   struct FluidRun;
   std::unique_ptr<FluidRun> fluid_;
+  // the colliders with a path, their geometry as given (m), for the blood's
+  // moving walls and the output series <name>_moving_colliders
+  struct MovingCollider {
+    std::size_t def = 0;  // index into def_.colliders
+    Vec3 point, normal;   // a plane
+    std::vector<Real> vertices;
+    std::vector<std::int32_t> triangles;  // a mesh
+  };
+  std::vector<MovingCollider> moving_;
+  std::vector<std::pair<Real, std::string>> moving_frames_;
 };
 
 }  // namespace orthosim::runtime

@@ -86,6 +86,8 @@ struct Scratch {
   std::vector<std::int32_t> contact0;  // (n_nodes) State::contact_obstacle at the step's start, for redo
   std::vector<Real> force0;            // (n_nodes x 3) State::contact_force at the step's start, for redo
   std::vector<Real> friction_c;        // (n_nodes) N s/m: the friction damper of each held node in this substep
+  std::vector<Real> friction_f;        // (n_nodes x 3) N: the Coulomb force of each held node sliding in this substep (else zero)
+  std::vector<Vec3> obstacle_d0, obstacle_d1;  // each obstacle's displacement at the substep's start and end (moving obstacles)
 };
 
 // The cholesky preconditioner's factor (runtime/solver.cpp): immutable once
@@ -108,6 +110,12 @@ struct State {
   // static obstacles the free nodes cannot pass (runtime/obstacles.h), or
   // none; immutable and shared by copies of the State
   std::shared_ptr<const Obstacles> obstacles;
+  // moving obstacles (an instrument): obstacle k (index as
+  // ObstacleContact::obstacle) is displaced from its geometry by
+  // obstacle_paths[k].at(t) at time t (m); an obstacle without a path, or
+  // with an empty one, stays where it is. An input like the attachments'
+  // paths: a caller may change it between steps.
+  std::vector<Path> obstacle_paths;
   // the obstacle each node rested on after the last substep (index as
   // ObstacleContact::obstacle, -1: none); sized by the solver
   std::vector<std::int32_t> contact_obstacle;

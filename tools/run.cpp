@@ -168,7 +168,7 @@ void add_run_command(CLI::App& app) {
       // (the boundaries' planes and meshes are the colliders', in the scene's order)
       std::size_t plane = 0, mesh = 0;
       for (const runtime::ColliderDef& c : def.colliders) {
-        if (!c.blood) continue;
+        if (!c.blood || !c.path.t.empty()) continue;  // (a moving one is a moving wall, not in the boundaries)
         if (c.kind == runtime::ColliderDef::Kind::plane) {
           const runtime::FluidPlane& pl = fb->planes[plane++];
           int ahead = 0;
@@ -212,7 +212,10 @@ void add_run_command(CLI::App& app) {
       std::vector<std::int32_t> free_nodes;
       for (std::int32_t i = 0; i < m.n_nodes; ++i)
         if (scene->state().inv_mass[static_cast<std::size_t>(i)] > 0) free_nodes.push_back(i);
-      const std::vector<std::int64_t> behind = runtime::obstacle_nodes_behind(*ob, scene->positions(), free_nodes);
+      // (the moving colliders where they are at the start)
+      std::vector<runtime::Vec3> offset;
+      for (const runtime::Path& p : scene->state().obstacle_paths) offset.push_back(p.at(scene->time()));
+      const std::vector<std::int64_t> behind = runtime::obstacle_nodes_behind(*ob, scene->positions(), free_nodes, offset);
       // the loaded nodes' rest box grown by its largest side: a mesh beyond it
       // meets the tissue only if the tissue moves farther than its own size
       const auto [rlo, rhi] = runtime::rest_box(m);
@@ -221,14 +224,19 @@ void add_run_command(CLI::App& app) {
       std::size_t plane = 0, mesh = 0;  // (behind: the planes' counts, then the meshes', in the scene's order)
       for (const runtime::ColliderDef& c : def.colliders) {
         if (!c.tissue) continue;
-        if (c.kind == runtime::ColliderDef::Kind::mesh && !(c.blood && fb)) {  // (with blood: the domain's check above)
+        if (c.kind == runtime::ColliderDef::Kind::mesh && (!(c.blood && fb) || !c.path.t.empty())) {  // (with blood: the domain's check above)
           const runtime::ObstacleMesh& om = ob->meshes[mesh];
           bool meets = true;
           for (int a = 0; a < 3 && meets; ++a) {
             double mlo = HUGE_VAL, mhi = -HUGE_VAL;
             for (std::size_t v = 0; 3 * v < om.vertices.size(); ++v)
               mlo = std::min(mlo, om.vertices[3 * v + a]), mhi = std::max(mhi, om.vertices[3 * v + a]);
-            meets = mhi >= lo[a] - grow && mlo <= hi[a] + grow;
+            // a moving one: the box it sweeps along its path
+            double dlo = 0, dhi = 0;
+            for (std::size_t w = 0; w < c.path.t.size(); ++w)
+              dlo = std::min(dlo, c.path.p[3 * w + a]), dhi = std::max(dhi, c.path.p[3 * w + a]);
+            if (c.path.t.empty()) dlo = dhi = 0;
+            meets = mhi + dhi >= lo[a] - grow && mlo + dlo <= hi[a] + grow;
           }
           if (!meets)
             std::cerr << "orthosim run: warning: " << scene_file << ": the collider" << quoted(c.name) << " (" << c.stl

@@ -9,6 +9,8 @@
 
 #include <filesystem>
 #include <cstring>
+#include <iterator>
+#include <sstream>
 
 namespace orthosim::runtime {
 namespace {
@@ -104,6 +106,10 @@ TEST_F(SceneTest, BadScenesAreOneLineErrorsBeforeAnyStep) {
       {R"({"model": "model.h5", "gravity": [0, "down", 0]})", "gravity must be three finite numbers"},
       {R"({"model": "model.h5", "integrator": "rk4"})", "integrator must be symplectic or implicit"},
       {R"({"model": "model.h5", "dtt": 0.01})", "unknown key 'dtt'"},
+      {R"({"model": "model.h5", "colliders": [{"type": "plane", "point": [0, 0, 0], "normal": [0, 1, 0], "path": [[0, 0, 0, 0], [1, 0, 1, 0]]}]})",
+       "colliders[0]: a moving plane acts on the tissue only"},
+      {R"({"model": "model.h5", "colliders": [{"type": "plane", "point": [0, 0, 0], "normal": [0, 1, 0], "blood": false, "path": [[1, 0, 0, 0], [1, 0, 1, 0]]}]})",
+       "colliders[0]: path times must be >= 0 and increasing"},
       {R"({"model": "model.h5", "fluid": {"particles": 5000}})", "particles must be true or false"},
       {R"({"model": "model.h5", "fluid": {"rheology": "casson"}})", "rheology must be newtonian or carreau"},
       {R"({"model": "model.h5", "fluid": {"carreau": {"mu0": 0.05}}})", "carreau parameters given with rheology 'newtonian'"},
@@ -620,6 +626,94 @@ TEST_F(SceneTest, CollidersReportTheirForceOnTheTissue) {
   EXPECT_NEAR(f[1][1], weight, 1e-4 * weight) << "the table carries the block";
   EXPECT_EQ(f[2], (std::array<Real, 3>{0, 0, 0})) << "the tray acts on the blood alone";
   EXPECT_EQ(scene.counters().events, 0);
+}
+
+// An ASCII STL of the box [lo, hi], its faces' normals outward.
+std::string box_stl(const std::array<Real, 3>& lo, const std::array<Real, 3>& hi) {
+  auto corner = [&](int c) { return std::array<Real, 3>{c & 1 ? hi[0] : lo[0], c & 2 ? hi[1] : lo[1], c & 4 ? hi[2] : lo[2]}; };
+  std::string out = "solid box\n";
+  for (int axis = 0; axis < 3; ++axis)
+    for (int side = 0; side < 2; ++side) {
+      // the face's four corners in order around it
+      const int a = (axis + 1) % 3, b = (axis + 2) % 3;
+      const int base = side << axis;
+      const int q[4] = {base, base | 1 << a, base | 1 << a | 1 << b, base | 1 << b};
+      const bool flip = side == 0;  // (a, b, axis) is right-handed: counter-clockwise seen from +axis
+      for (const auto& t : {std::array<int, 3>{q[0], q[1], q[2]}, std::array<int, 3>{q[0], q[2], q[3]}}) {
+        out += "facet normal 0 0 0\nouter loop\n";
+        for (int k = 0; k < 3; ++k) {
+          const auto v = corner(t[flip ? 2 - k : k]);
+          out += "vertex " + std::to_string(v[0]) + " " + std::to_string(v[1]) + " " + std::to_string(v[2]) + "\n";
+        }
+        out += "endloop\nendfacet\n";
+      }
+    }
+  return out + "endsolid box\n";
+}
+
+// A moving collider (a box-shaped probe pushed 4 mm up into the skin, from
+// 2 mm below it, over 0.5 s): no skin node inside the probe's footprint is
+// left behind its top face, the probe's force on the tissue points into it,
+// the blood's moving wall follows the probe, and the output has the probe's
+// series (<name>_moving_colliders), each frame where the path puts it.
+TEST_F(SceneTest, AMovingColliderPressesTheSkinAndIsWrittenAsASeries) {
+  const auto c = skin_point();
+  const std::array<Real, 3> lo{c[0] - 5e-3, -6e-3, c[2] - 5e-3}, hi{c[0] + 5e-3, -2e-3, c[2] + 5e-3};
+  orthosim::test::write_file(dir / "probe.stl", box_stl(lo, hi));
+  const SceneDef d = parse_scene(R"({
+    "model": "model.h5", "fixed": ["fixed"], "integrator": "implicit", "damping": {"mass": 20}, "dt": 0.01,
+    "fluid": {"spacing": 0.002},
+    "colliders": [{"name": "probe", "type": "mesh", "stl": "probe.stl", "path": [[0, 0, 0, 0], [0.5, 0, 0.004, 0]]}],
+    "output": {"dir": "out", "every": 10, "format": "ascii"}
+  })", dir / "scene.json");
+  ASSERT_EQ(d.colliders.size(), 1u);
+  ASSERT_EQ(d.colliders[0].path.t.size(), 2u);
+  Scene scene(d);
+  ASSERT_NE(scene.fluid_state(), nullptr);
+  ASSERT_EQ(scene.fluid_state()->surfaces.size(), 2u) << "the tissue's surface and the probe's wall";
+  const Model& m = scene.model();
+  Real worst = HUGE_VAL;  // the lowest skin node in the footprint, over the probe's top
+  run(scene, 60, [&](long) {
+    const Real top = hi[1] + d.colliders[0].path.at(scene.time()).y;
+    for (std::int32_t i = 0; i < m.n_nodes; ++i) {
+      const Real* x = scene.positions().data() + 3 * static_cast<std::size_t>(i);
+      if (x[0] > lo[0] && x[0] < hi[0] && x[2] > lo[2] && x[2] < hi[2] && m.rest_x[3 * static_cast<std::size_t>(i) + 1] == 0) worst = std::min(worst, x[1] - top);
+    }
+  });
+  EXPECT_GE(worst, -1e-9) << "a skin node behind the probe's top face";
+  const auto f = scene.collider_forces();
+  ASSERT_EQ(f.size(), 1u);
+  EXPECT_GT(f[0][1], 0.01) << "the probe pushes the skin up (N)";
+  EXPECT_LT(std::hypot(f[0][0], f[0][2]), 0.1 * f[0][1]) << "mostly along its motion";
+  EXPECT_EQ(scene.counters().events, 0);
+  // the blood's wall: the probe's vertices where it was at the last step's start, moving at its speed (held: 0)
+  const FluidSurface& w = scene.fluid_state()->surfaces[1];
+  const Vec3 d0 = d.colliders[0].path.at(scene.time() - d.dt);
+  Real ymin = HUGE_VAL;
+  for (std::size_t i = 1; i < w.x.size(); i += 3) ymin = std::min(ymin, w.x[i]);
+  EXPECT_NEAR(ymin, lo[1] + d0.y, 1e-9);
+  // the series: the first and the last frame
+  const std::string out = dir / "out";
+  const std::string pvd = orthosim::test::read_file(out + "/tissue_moving_colliders.pvd");
+  EXPECT_NE(pvd.find("tissue_moving_colliders_000006.vtp"), std::string::npos) << pvd;
+  EXPECT_FALSE(fs::exists(out + "/tissue_colliders.vtp")) << "no static collider to draw";
+  for (const auto& [frame, dy] : {std::pair{"000000", 0.0}, std::pair{"000006", 0.004}}) {
+    SCOPED_TRACE(frame);
+    const std::string vtp = orthosim::test::read_file(out + "/tissue_moving_colliders_" + frame + ".vtp");
+    const auto n_at = vtp.find("NumberOfPoints=\"");
+    ASSERT_NE(n_at, std::string::npos);
+    const long n = std::stol(vtp.substr(n_at + 16));
+    EXPECT_GE(n, 8) << "the box's corners";
+    // the points (ascii): the lowest y is the box's bottom where the path puts it
+    const auto p0 = vtp.find('>', vtp.find("<DataArray", vtp.find("<Points>"))) + 1;
+    std::istringstream in(vtp.substr(p0, vtp.find("</DataArray>", p0) - p0));
+    std::vector<Real> xyz{std::istream_iterator<Real>(in), std::istream_iterator<Real>()};
+    ASSERT_EQ(static_cast<long>(xyz.size()), 3 * n);
+    Real ymin = HUGE_VAL, ymax = -HUGE_VAL;
+    for (std::size_t i = 1; i < xyz.size(); i += 3) ymin = std::min(ymin, xyz[i]), ymax = std::max(ymax, xyz[i]);
+    EXPECT_NEAR(ymin, lo[1] + dy, 1e-9);
+    EXPECT_NEAR(ymax, hi[1] + dy, 1e-9);
+  }
 }
 
 // The sample scenes parse and run on a lattice model (the builder's model

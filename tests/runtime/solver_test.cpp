@@ -1240,5 +1240,210 @@ TEST(Obstacles, BadObstaclesAreRefused) {
   EXPECT_TRUE(ob.empty());
 }
 
+
+// ---- moving obstacles (State::obstacle_paths) -------------------------------------
+
+// A path of displacements: {t, dx, dy, dz} waypoints.
+Path displacement_path(std::initializer_list<std::array<Real, 4>> w) {
+  Path p;
+  for (const auto& e : w) {
+    p.t.push_back(e[0]);
+    p.p.insert(p.p.end(), {e[1], e[2], e[3]});
+  }
+  return p;
+}
+
+// The square_at(y) turned over: its front (one-sided) faces -y.
+ObstacleMesh square_facing_down(Real y, Real friction) {
+  ObstacleMesh m = square_at(y, friction);
+  m.triangles = {0, 1, 2, 0, 2, 3};
+  return m;
+}
+
+// A table rising at u under a node lifts it at u: the node never goes below
+// the table where it is at that time, rests on it, moves up at u, and the
+// table carries its weight m g (no acceleration), with the table a plane or a
+// mesh, for both integrators.
+TEST(MovingObstacles, ARisingTableLiftsANodeAtItsSpeed) {
+  const Real u = 0.1, g = 9.81, mass = 0.01, h = 1e-3;
+  for (Integrator integ : {Integrator::symplectic_euler, Integrator::implicit_euler})
+    for (bool as_mesh : {false, true}) {
+      SCOPED_TRACE(std::string(to_string(integ)) + (as_mesh ? ", mesh" : ", plane"));
+      const Model m = node_on_table();
+      State s = make_state(m);
+      auto ob = std::make_shared<Obstacles>();
+      if (as_mesh) add_obstacle_mesh(*ob, square_at(0, 0.5));
+      else add_obstacle_plane(*ob, {{0, 0, 0}, {0, 1, 0}, 0, 0.5});
+      s.obstacles = ob;
+      s.obstacle_paths = {displacement_path({{0, 0, 0, 0}, {1, 0, u, 0}})};
+      SolverOptions o;
+      o.integrator = integ;
+      o.substeps = 1;
+      Real worst = HUGE_VAL;  // the node's height over the table, the least over the steps
+      for (int k = 0; k < 500; ++k) {
+        step(m, s, h, o);
+        worst = std::min(worst, s.x[1] - u * s.time);
+      }
+      EXPECT_GE(worst, -1e-12) << "never below the table where it is";
+      EXPECT_LT(s.x[1] - u * s.time, 1e-8) << "on it";
+      EXPECT_NEAR(s.v[1], u, 1e-9) << "lifted at the table's speed";
+      EXPECT_NEAR(s.contact_force[1], mass * g, 1e-6 * mass * g) << "the table carries the node's weight";
+      EXPECT_EQ(s.counters.obstacle_contacts, 500);
+      EXPECT_EQ(s.counters.events, 0);
+    }
+}
+
+// A table that starts sliding at u under a node drags it by friction: the
+// node accelerates at mu g (kinetic friction on the relative velocity) until
+// it moves with the table at u after u / (mu g), then sticks (the implicit
+// solve: within the creep speed). Both integrators, a plane table.
+TEST(MovingObstacles, ASlidingTableDragsANodeByFriction) {
+  const Real u = 0.2, mu = 0.4, g = 9.81, h = 1e-3;
+  for (Integrator integ : {Integrator::symplectic_euler, Integrator::implicit_euler}) {
+    SCOPED_TRACE(to_string(integ));
+    const Model m = node_on_table();
+    State s = make_state(m);
+    auto ob = std::make_shared<Obstacles>();
+    add_obstacle_plane(*ob, {{0, 0, 0}, {0, 1, 0}, 0, mu});
+    s.obstacles = ob;
+    s.obstacle_paths = {displacement_path({{0, 0, 0, 0}, {10, 10 * u, 0, 0}})};
+    SolverOptions o;
+    o.integrator = integ;
+    o.substeps = 1;
+    std::vector<Real> vx;
+    for (int k = 0; k < 300; ++k) {
+      step(m, s, h, o);
+      vx.push_back(s.v[0]);
+      EXPECT_GE(s.x[1], 0) << "at step " << k;
+    }
+    // while it slides (t < u / (mu g) = 51 ms): the acceleration over 10 .. 40 ms
+    const Real a = (vx[39] - vx[9]) / (30 * h);
+    EXPECT_NEAR(a, mu * g, 0.01 * mu * g) << "kinetic friction mu g";
+    EXPECT_NEAR(vx.back(), u, o.friction_creep_speed) << "it moves with the table";
+    // (the implicit solve: within its tolerance, as in ASlidingNodeStopsWhereCoulombFrictionSays)
+    const Real over = integ == Integrator::implicit_euler ? o.cg_tolerance * g * h : 1e-12;
+    EXPECT_LE(vx.back(), u + over) << "friction never drives it past the table, by " << vx.back() - u;
+    EXPECT_EQ(s.counters.events, 0);
+  }
+}
+
+// A probe pressed into a node held by a spring (k, rest 0.1 m, fixed at the
+// origin) to a depth d stops there, and the contact force on the node is the
+// spring's, k d; withdrawn, it lets go of the node, which springs back to
+// rest with no force left. Both integrators, the probe a one-sided mesh
+// facing the node.
+TEST(MovingObstacles, AProbePressedIntoASpringMeetsItsStiffness) {
+  const Real k = 100, d = 0.01, h = 1e-3;
+  for (Integrator integ : {Integrator::symplectic_euler, Integrator::implicit_euler}) {
+    SCOPED_TRACE(to_string(integ));
+    const Model m = make_model({0, 0, 0, 0, 0.1, 0}, {0, 0.01}, {{0, 1, 0.1, k, 0}});
+    State s = make_state(m);
+    auto ob = std::make_shared<Obstacles>();
+    add_obstacle_mesh(*ob, square_facing_down(0.12, 0.3));
+    s.obstacles = ob;
+    // down 2 cm + d in 0.5 s, held 1 s, back up in 0.5 s
+    s.obstacle_paths = {displacement_path({{0, 0, 0, 0}, {0.5, 0, -0.02 - d, 0}, {1.5, 0, -0.02 - d, 0}, {2, 0, 0, 0}})};
+    SolverOptions o;
+    o.integrator = integ;
+    o.substeps = 1;
+    o.gravity = {0, 0, 0};
+    o.mass_damping = 20;
+    Real worst = -HUGE_VAL;  // the node's height over the probe's face, the most over the steps
+    int k_step = 0;
+    for (; k_step < 1500; ++k_step) {
+      step(m, s, h, o);
+      worst = std::max(worst, s.x[4] - (0.12 + s.obstacle_paths[0].at(s.time).y));
+    }
+    EXPECT_LE(worst, 1e-12) << "never past the probe's face";
+    EXPECT_NEAR(s.x[4], 0.1 - d, 1e-8) << "pressed to the depth";
+    EXPECT_NEAR(s.contact_force[4], -k * d, 1e-4 * k * d) << "the spring's force k d";
+    EXPECT_EQ(s.contact_obstacle[1], 0);
+    for (; k_step < 3000; ++k_step) step(m, s, h, o);
+    EXPECT_NEAR(s.x[4], 0.1, 1e-6) << "back at rest";
+    EXPECT_EQ(s.contact_obstacle[1], -1) << "let go";
+    EXPECT_EQ(s.contact_force[4], 0);
+    EXPECT_EQ(s.counters.events, 0);
+  }
+}
+
+// A probe moving at 50 m/s (5 cm a substep) through a free node does not pass
+// it: the node is caught on its face and carried at its speed. A two-sided
+// square, no gravity, both integrators.
+TEST(MovingObstacles, AFastProbeDoesNotPassThroughANode) {
+  const Real h = 1e-3;
+  for (Integrator integ : {Integrator::symplectic_euler, Integrator::implicit_euler}) {
+    SCOPED_TRACE(to_string(integ));
+    const Model m = make_model({0, 0, 0}, {0.01}, {});
+    State s = make_state(m);
+    auto ob = std::make_shared<Obstacles>();
+    add_obstacle_mesh(*ob, square_at(0, 0, 0, true));
+    s.obstacles = ob;
+    s.obstacle_paths = {displacement_path({{0, 0, 0.03, 0}, {0.002, 0, -0.07, 0}})};
+    SolverOptions o;
+    o.integrator = integ;
+    o.substeps = 1;
+    o.gravity = {0, 0, 0};
+    step(m, s, h, o);
+    EXPECT_LT(s.x[1], -0.02) << "caught and carried";
+    EXPECT_GT(s.x[1], -0.02 - 1e-8);
+    step(m, s, h, o);
+    EXPECT_LT(s.x[1], -0.07);
+    EXPECT_GT(s.x[1], -0.07 - 1e-8) << "on the probe's face where it stops";
+    EXPECT_NEAR(s.v[1], -50, 1e-9);
+    EXPECT_EQ(s.counters.events, 0);
+  }
+}
+
+// The free block (13 x 5 x 4, nothing fixed) on a table, pushed along it by a
+// wall moving at 0.3 m/s: no stability event (the wall's work is in the
+// step's energy budget), no node behind the wall or below the table, the
+// block carried along with the wall, and the same state bit for bit on one
+// thread and two.
+TEST(MovingObstacles, PushingABlockIsStableAndDeterministic) {
+  const auto b = make_layered_block(13, 5, 4);
+  const Model m = model_from_layers(b.layers, b.sets);
+  Real right = -HUGE_VAL, low = HUGE_VAL;
+  for (std::int32_t i = 0; i < m.n_nodes; ++i) {
+    right = std::max(right, m.rest_x[3 * static_cast<std::size_t>(i)]);
+    low = std::min(low, m.rest_x[3 * static_cast<std::size_t>(i) + 1]);
+  }
+  auto ob = std::make_shared<Obstacles>();
+  add_obstacle_plane(*ob, {{0, low, 0}, {0, 1, 0}, 0, 0.3});            // the table, at rest
+  add_obstacle_plane(*ob, {{right + 1e-3, 0, 0}, {-1, 0, 0}, 0, 0.3});  // the wall
+  const Real u = 0.3;
+  auto run = [&](Integrator integ, int threads) {
+    State s = make_state(m);
+    s.obstacles = ob;
+    s.obstacle_paths = {Path{}, displacement_path({{0, 0, 0, 0}, {1, -u, 0, 0}})};
+    SolverOptions o;
+    o.integrator = integ;
+    o.mass_damping = 5;
+    Real past = -HUGE_VAL, below = HUGE_VAL;
+    tbb::task_arena arena(threads);
+    arena.execute([&] {
+      for (int k = 0; k < 30; ++k) {
+        step(m, s, 1.0 / 120, o);
+        const Real wall = right + 1e-3 - u * s.time;
+        for (std::int32_t i = 0; i < m.n_nodes; ++i) {
+          past = std::max(past, s.x[3 * static_cast<std::size_t>(i)] - wall);
+          below = std::min(below, s.x[3 * static_cast<std::size_t>(i) + 1] - low);
+        }
+      }
+    });
+    EXPECT_LE(past, 1e-12) << "no node behind the wall";
+    EXPECT_GE(below, -1e-12) << "no node below the table";
+    Real rightmost = -HUGE_VAL;
+    for (std::int32_t i = 0; i < m.n_nodes; ++i) rightmost = std::max(rightmost, s.x[3 * static_cast<std::size_t>(i)]);
+    EXPECT_LT(right + 1e-3 - u * s.time - rightmost, 1e-8) << "the block is carried along with the wall";
+    EXPECT_EQ(s.counters.events, 0);
+    EXPECT_TRUE(all_finite(s));
+    return state_hash(s);
+  };
+  for (Integrator integ : {Integrator::symplectic_euler, Integrator::implicit_euler}) {
+    SCOPED_TRACE(to_string(integ));
+    EXPECT_EQ(run(integ, 1), run(integ, 2));
+  }
+}
+
 }  // namespace
 }  // namespace orthosim::runtime
