@@ -222,7 +222,7 @@ ColliderDef parse_collider(const json& j, std::size_t index, const std::string& 
     if (o.has(key)) o.fail(std::string(key) + " is a " + kind + " collider's key (this one is a " + type + ")");
   };
   if (c.kind == ColliderDef::Kind::plane) {
-    for (const char* k : {"stl", "units", "two_sided"}) only(k, "mesh");
+    for (const char* k : {"stl", "units", "two_sided", "place_in_box"}) only(k, "mesh");
     if (o.has("point") == o.has("point_in_box")) o.fail("a plane needs point or point_in_box (one of them)");
     c.point_relative = o.has("point_in_box");
     c.point = o.vec3(c.point_relative ? "point_in_box" : "point", {});
@@ -240,6 +240,12 @@ ColliderDef parse_collider(const json& j, std::size_t index, const std::string& 
     else if (units == "mm") c.scale = 1e-3;
     else o.fail("units must be m or mm (got '" + units + "')");
     c.two_sided = o.boolean("two_sided", false);
+    if (o.has("place_in_box")) {
+      c.place_relative = true;
+      c.place = o.vec3("place_in_box", {});
+      for (Real f : c.place)
+        if (f < 0 || f > 1) o.fail("place_in_box fractions must be in [0, 1]");
+    }
   }
   c.wall = wall;  // the fluid's restitution and friction, unless the collider has its own
   c.wall.restitution = o.number("restitution", c.wall.restitution, 0, 1);
@@ -635,7 +641,8 @@ Scene::Scene(Model model, const SceneDef& def) : def_(def) {
 
 namespace {
 Vec3 collider_point(const ColliderDef& c, const Vec3& lo, const Vec3& hi);
-void read_collider_mesh(const ColliderDef& c, std::vector<Real>& vertices, std::vector<std::int32_t>& triangles);
+void read_collider_mesh(const ColliderDef& c, const Vec3& lo, const Vec3& hi, std::vector<Real>& vertices,
+                        std::vector<std::int32_t>& triangles);
 }  // namespace
 
 void Scene::init(const std::string& model_file) {
@@ -804,13 +811,13 @@ void Scene::init(const std::string& model_file) {
     if (cd.path.t.empty()) continue;
     MovingCollider mc;
     mc.def = c;
+    const auto [lo, hi] = rest_box(m);
     if (cd.kind == ColliderDef::Kind::plane) {
-      const auto [lo, hi] = rest_box(m);
       mc.point = collider_point(cd, lo, hi);
       mc.normal = {cd.normal[0], cd.normal[1], cd.normal[2]};
     } else {
       try {
-        read_collider_mesh(cd, mc.vertices, mc.triangles);
+        read_collider_mesh(cd, lo, hi, mc.vertices, mc.triangles);
         validate_triangle_mesh(mc.vertices, mc.triangles, "mesh");
       } catch (const Error& e) {
         if (!e.file().empty()) throw;
@@ -889,16 +896,22 @@ Vec3 collider_point(const ColliderDef& c, const Vec3& lo, const Vec3& hi) {
   if (!c.point_relative) return {c.point[0], c.point[1], c.point[2]};
   return {lo.x + c.point[0] * (hi.x - lo.x), lo.y + c.point[1] * (hi.y - lo.y), lo.z + c.point[2] * (hi.z - lo.z)};
 }
-// A mesh collider's STL in metres: vertices (n x 3) and triangles (n x 3).
-// Errors name the STL file.
-void read_collider_mesh(const ColliderDef& c, std::vector<Real>& vertices, std::vector<std::int32_t>& triangles) {
+// A mesh collider's STL in metres: vertices (n x 3) and triangles (n x 3),
+// with place_in_box its origin moved to that point of the loaded nodes' rest
+// box [lo, hi]. Errors name the STL file.
+void read_collider_mesh(const ColliderDef& c, const Vec3& lo, const Vec3& hi, std::vector<Real>& vertices,
+                        std::vector<std::int32_t>& triangles) {
   const Surface s = read_stl(c.stl);
+  Vec3 shift{};
+  if (c.place_relative) {
+    shift = {lo.x + c.place[0] * (hi.x - lo.x), lo.y + c.place[1] * (hi.y - lo.y), lo.z + c.place[2] * (hi.z - lo.z)};
+  }
+  const Real d[3] = {shift.x, shift.y, shift.z};
   vertices.resize(3 * static_cast<std::size_t>(s.vertices.rows()));
   for (Eigen::Index i = 0; i < s.vertices.rows(); ++i)
-    for (int k = 0; k < 3; ++k) vertices[3 * static_cast<std::size_t>(i) + k] = c.scale * s.vertices(i, k);
+    for (int k = 0; k < 3; ++k) vertices[3 * static_cast<std::size_t>(i) + k] = c.scale * s.vertices(i, k) + d[k];
   triangles.assign(s.faces.data(), s.faces.data() + s.faces.size());  // (row-major n x 3)
-}
-}  // namespace
+}}  // namespace
 
 void Scene::init_obstacles() {
   const Model& m = *model_;
@@ -915,7 +928,7 @@ void Scene::init_obstacles() {
                                         c.wall.restitution, c.wall.friction});
       } else {
         ObstacleMesh mesh;
-        read_collider_mesh(c, mesh.vertices, mesh.triangles);
+        read_collider_mesh(c, lo, hi, mesh.vertices, mesh.triangles);
         mesh.two_sided = c.two_sided;
         mesh.restitution = c.wall.restitution;
         mesh.friction = c.wall.friction;
@@ -1024,7 +1037,7 @@ void Scene::init_fluid() {
         add_plane(fr.bounds, pl);
       } else {
         FluidMesh mesh;
-        read_collider_mesh(c, mesh.vertices, mesh.triangles);
+        read_collider_mesh(c, lo, hi, mesh.vertices, mesh.triangles);
         mesh.wall = c.wall;
         mesh.two_sided = c.two_sided;
         add_mesh(fr.bounds, std::move(mesh), fr.fluid);

@@ -122,6 +122,11 @@ struct ColliderDef {
   std::string stl;
   Real scale = 1;
   bool two_sided = false;
+  // with place_relative, the STL's origin goes to `place`, fractions of the
+  // loaded nodes' rest bounding box (an instrument modelled about its tip,
+  // placed on any model)
+  std::array<Real, 3> place{0, 0, 0};
+  bool place_relative = false;
   WallParams wall{0.0, 0.2, false};
   bool tissue = true;  // the tissue's free nodes collide with it
   bool blood = true;   // the blood collides with it (when the scene has blood)

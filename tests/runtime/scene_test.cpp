@@ -110,6 +110,10 @@ TEST_F(SceneTest, BadScenesAreOneLineErrorsBeforeAnyStep) {
        "colliders[0]: a moving plane acts on the tissue only"},
       {R"({"model": "model.h5", "colliders": [{"type": "plane", "point": [0, 0, 0], "normal": [0, 1, 0], "blood": false, "path": [[1, 0, 0, 0], [1, 0, 1, 0]]}]})",
        "colliders[0]: path times must be >= 0 and increasing"},
+      {R"({"model": "model.h5", "colliders": [{"type": "plane", "point": [0, 0, 0], "normal": [0, 1, 0], "place_in_box": [0.5, 0.5, 0.5]}]})",
+       "place_in_box is a mesh collider's key"},
+      {R"({"model": "model.h5", "colliders": [{"type": "mesh", "stl": "x.stl", "place_in_box": [0.5, 1.5, 0.5]}]})",
+       "place_in_box fractions must be in [0, 1]"},
       {R"({"model": "model.h5", "fluid": {"particles": 5000}})", "particles must be true or false"},
       {R"({"model": "model.h5", "fluid": {"rheology": "casson"}})", "rheology must be newtonian or carreau"},
       {R"({"model": "model.h5", "fluid": {"carreau": {"mu0": 0.05}}})", "carreau parameters given with rheology 'newtonian'"},
@@ -714,6 +718,33 @@ TEST_F(SceneTest, AMovingColliderPressesTheSkinAndIsWrittenAsASeries) {
     EXPECT_NEAR(ymin, lo[1] + dy, 1e-9);
     EXPECT_NEAR(ymax, hi[1] + dy, 1e-9);
   }
+}
+
+// The sample probe scene parses and runs on a lattice model; place_in_box puts
+// the spatula's origin (the centre of its pressing face) at the top centre of
+// the loaded nodes' rest box, and the path then moves it.
+TEST_F(SceneTest, SampleProbeScenePlacesItsSpatulaOnTheBox) {
+  SceneDef d = parse_scene_file(std::string(ORTHOSIM_SOURCE_DIR) + "/data-samples/scenes/probe.json");
+  d.model = model;
+  d.output.dir = dir / "probe";
+  ASSERT_EQ(d.colliders.size(), 1u);
+  EXPECT_TRUE(d.colliders[0].place_relative);
+  Scene s(d);
+  ASSERT_NE(s.obstacles(), nullptr);
+  ASSERT_EQ(s.obstacles()->meshes.size(), 1u);
+  const auto [lo, hi] = rest_box(s.model());
+  const auto& v = s.obstacles()->meshes[0].vertices;
+  Real mn[3] = {HUGE_VAL, HUGE_VAL, HUGE_VAL}, mx[3] = {-HUGE_VAL, -HUGE_VAL, -HUGE_VAL};
+  for (std::size_t i = 0; i < v.size(); ++i) mn[i % 3] = std::min(mn[i % 3], v[i]), mx[i % 3] = std::max(mx[i % 3], v[i]);
+  EXPECT_NEAR(mn[1], hi.y, 1e-12) << "the pressing face on the box's top";
+  EXPECT_NEAR(mx[1] - mn[1], 0.003, 1e-12) << "3 mm thick (the STL in millimetres)";
+  EXPECT_NEAR(0.5 * (mn[0] + mx[0]), 0.5 * (lo.x + hi.x), 1e-12);
+  EXPECT_NEAR(0.5 * (mn[2] + mx[2]), 0.5 * (lo.z + hi.z), 1e-12);
+  EXPECT_NEAR(mx[0] - mn[0], 0.024, 1e-12);
+  const auto r = run(s, 6);
+  EXPECT_EQ(r.steps, 6);
+  EXPECT_EQ(s.counters().failed, 0);
+  EXPECT_TRUE(fs::exists(d.output.dir + "/tissue_moving_colliders.pvd"));
 }
 
 // The sample scenes parse and run on a lattice model (the builder's model
