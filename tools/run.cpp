@@ -222,8 +222,32 @@ void add_run_command(CLI::App& app) {
       const double lo[3] = {rlo.x, rlo.y, rlo.z}, hi[3] = {rhi.x, rhi.y, rhi.z};
       const double grow = std::max({hi[0] - lo[0], hi[1] - lo[1], hi[2] - lo[2]});
       std::size_t plane = 0, mesh = 0;  // (behind: the planes' counts, then the meshes', in the scene's order)
+      // the tissue's node spacing: the median spring rest length
+      double spacing = 0;
+      if (m.n_springs > 0) {
+        std::vector<double> rest(m.spring_rest.begin(), m.spring_rest.end());
+        std::nth_element(rest.begin(), rest.begin() + static_cast<std::ptrdiff_t>(rest.size() / 2), rest.end());
+        spacing = rest[rest.size() / 2];
+      }
       for (const runtime::ColliderDef& c : def.colliders) {
         if (!c.tissue) continue;
+        // - a moving mesh narrower than the tissue's node spacing: only nodes
+        //   collide, so it can pass between them (a probe through the skin)
+        if (c.kind == runtime::ColliderDef::Kind::mesh && !c.path.t.empty()) {
+          const runtime::ObstacleMesh& om = ob->meshes[mesh];
+          double ext[3];
+          for (int a = 0; a < 3; ++a) {
+            double mlo = HUGE_VAL, mhi = -HUGE_VAL;
+            for (std::size_t v = 0; 3 * v < om.vertices.size(); ++v)
+              mlo = std::min(mlo, om.vertices[3 * v + a]), mhi = std::max(mhi, om.vertices[3 * v + a]);
+            ext[a] = mhi - mlo;
+          }
+          std::sort(ext, ext + 3);
+          if (ext[1] < spacing)
+            std::cerr << "orthosim run: warning: " << scene_file << ": the moving collider" << quoted(c.name) << " (" << c.stl
+                      << ") is " << ext[1] << " m across, less than the tissue's node spacing (" << spacing
+                      << " m, the median spring): only nodes collide, so it can pass between them\n";
+        }
         if (c.kind == runtime::ColliderDef::Kind::mesh && (!(c.blood && fb) || !c.path.t.empty())) {  // (with blood: the domain's check above)
           const runtime::ObstacleMesh& om = ob->meshes[mesh];
           bool meets = true;

@@ -3,6 +3,8 @@
 #include "tests/test_util.h"
 
 #include <gtest/gtest.h>
+
+#include <array>
 #include <nlohmann/json.hpp>
 
 #include <cstdio>
@@ -297,6 +299,39 @@ TEST_F(RunCli, WhatTheRunWillNotDoIsAWarning) {
                                                                  fc["tissue_force_n"][2].get<double>()));
   }
   EXPECT_TRUE(nlohmann::json::parse(test::read_file(dir / "dry.json"))["metrics"]["obstacle_contacts"].is_null());
+  // a moving mesh narrower than the tissue's node spacing can pass between the
+  // nodes: a 1 mm rod pushed up into the skin is a warning, a 20 mm plate is not
+  auto box = [&](const std::string& file, double w, double h) {  // w x h x w m, its top face at y = -0.002
+    std::string out = "solid box\n";
+    const double lo[3] = {0.02 - w / 2, -0.002 - h, 0.008 - w / 2}, hi[3] = {0.02 + w / 2, -0.002, 0.008 + w / 2};
+    auto corner = [&](int c, int k) { return (c >> k & 1) ? hi[k] : lo[k]; };
+    for (int axis = 0; axis < 3; ++axis)
+      for (int side = 0; side < 2; ++side) {
+        const int a = (axis + 1) % 3, b = (axis + 2) % 3, base = side << axis;
+        const int q[4] = {base, base | 1 << a, base | 1 << a | 1 << b, base | 1 << b};
+        for (const auto& t : {std::array<int, 3>{q[0], q[1], q[2]}, std::array<int, 3>{q[0], q[2], q[3]}}) {
+          out += "facet normal 0 0 0\nouter loop\n";
+          for (int k = 0; k < 3; ++k) {
+            const int c = t[side == 0 ? 2 - k : k];
+            out += "vertex " + std::to_string(corner(c, 0)) + " " + std::to_string(corner(c, 1)) + " " + std::to_string(corner(c, 2)) + "\n";
+          }
+          out += "endloop\nendfacet\n";
+        }
+      }
+    test::write_file(dir / file, out + "endsolid box\n");
+  };
+  box("rod.stl", 0.001, 0.02);
+  box("plate.stl", 0.02, 0.001);
+  auto pushed = [&](const std::string& stl) {
+    return scene(R"({
+      "model": "model.h5", "fixed": ["fixed"], "integrator": "implicit", "dt": 0.005, "duration": 0.01,
+      "colliders": [{"name": "probe", "type": "mesh", "stl": ")" + stl + R"(", "path": [[0, 0, 0, 0], [1, 0, 0.01, 0]]}]})");
+  };
+  const auto rod = pushed("rod.stl");
+  const auto rod_run = run_cli("run " + rod + " --no-output --quiet");
+  expect_one_warning(rod_run, "orthosim run: warning: " + rod + ": the moving collider 'probe' (" + (dir / "rod.stl") + ") is 0.001 m across");
+  EXPECT_NE(rod_run.err.find("only nodes collide, so it can pass between them"), std::string::npos) << rod_run.err;
+  expect_silent(run_cli("run " + pushed("plate.stl") + " --no-output --quiet"));
   // a duration under half a step
   const auto shortrun = with_start("0", "0.002");
   const auto r2 = run_cli("run " + shortrun + " --no-output --quiet");
