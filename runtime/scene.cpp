@@ -1563,6 +1563,41 @@ void Scene::move_tool(int tool, const std::array<Real, 3>& p) {
   }
 }
 
+int Scene::collider(const std::string& name) const {
+  for (std::size_t i = 0; i < def_.colliders.size(); ++i)
+    if (def_.colliders[i].name == name) return static_cast<int>(i);
+  return -1;
+}
+
+void Scene::move_collider(int collider, const std::array<Real, 3>& d) {
+  check_mutable("move_collider()");
+  if (collider < 0 || collider >= static_cast<int>(def_.colliders.size()))
+    throw Error(def_.file, "move_collider(): no collider " + std::to_string(collider));
+  ColliderDef& c = def_.colliders[static_cast<std::size_t>(collider)];
+  if (c.path.t.empty())
+    throw Error(def_.file, "move_collider(): the collider '" + c.name +
+                               "' has no path (give it one, [[0, 0, 0, 0]] to start where it is given, to move it)");
+  for (Real x : d)
+    if (!std::isfinite(x) || std::abs(x) > 1e9) throw Error(def_.file, "move_collider(): displacement must be finite, within +-1e9 m");
+  const Real t = state_.time;
+  const Vec3 now = c.path.at(t);
+  Path path;
+  path.t = {t, t + def_.dt};
+  path.p = {now.x, now.y, now.z, d[0], d[1], d[2]};
+  c.path = path;
+  if (c.tissue && state_.obstacles) {
+    // its obstacle: the tissue's planes, then its meshes, each in the colliders' order
+    std::size_t k = 0;
+    for (int kind = 0; kind < 2; ++kind)
+      for (std::size_t i = 0; i < def_.colliders.size(); ++i) {
+        const ColliderDef& e = def_.colliders[i];
+        if (!e.tissue || (e.kind == ColliderDef::Kind::plane) != (kind == 0)) continue;
+        if (i == static_cast<std::size_t>(collider)) state_.obstacle_paths.at(k) = path;
+        ++k;
+      }
+  }
+}
+
 void Scene::fix(std::span<const std::int32_t> nodes) {
   check_mutable("fix()");
   fix_nodes(*model_, state_, nodes);

@@ -278,6 +278,13 @@ class Scene {
   int tool(const std::string& name) const;                            // index, -1 if absent
   // The tool point moves in a straight line to p over the next step, then stays.
   void move_tool(int tool, const std::array<Real, 3>& p);
+  int collider(const std::string& name) const;  // index into def().colliders, -1 if absent
+  // A moving collider (one with a path; [[0, 0, 0, 0]] holds it where it is
+  // given) moves in a straight line from its displacement now to
+  // `displacement` (m) over the next step, then stays: an instrument driven
+  // from a haptic device step by step. Throws Error for a collider without a
+  // path, an index out of range or a non-finite displacement.
+  void move_collider(int collider, const std::array<Real, 3>& displacement);
   void fix(std::span<const std::int32_t> nodes);
   void release(std::span<const std::int32_t> nodes);
   // the nodes a tool holds or pushes; of a snapped cut, the node of each polyline point, in order

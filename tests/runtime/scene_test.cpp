@@ -720,6 +720,42 @@ TEST_F(SceneTest, AMovingColliderPressesTheSkinAndIsWrittenAsASeries) {
   }
 }
 
+// move_collider drives a moving collider step by step (a haptic device): the
+// probe pushed 1 mm a step for 5 steps from code gives the state of the same
+// motion given as a path, and a collider without a path cannot be moved.
+TEST_F(SceneTest, MoveColliderDrivesAnInstrumentFromCode) {
+  const auto c = skin_point();
+  orthosim::test::write_file(dir / "probe.stl", box_stl({c[0] - 5e-3, -6e-3, c[2] - 5e-3}, {c[0] + 5e-3, -2e-3, c[2] + 5e-3}));
+  auto scene_with = [&](const std::string& path) {
+    return parse_scene(R"({
+      "model": "model.h5", "fixed": ["fixed"], "integrator": "implicit", "damping": {"mass": 20}, "dt": 0.01,
+      "colliders": [{"name": "table", "type": "plane", "point": [0, -0.05, 0], "normal": [0, 1, 0]},
+                    {"name": "probe", "type": "mesh", "stl": "probe.stl", "path": )" + path + R"(}]
+    })", dir / "scene.json");
+  };
+  Scene by_path(scene_with("[[0, 0, 0, 0], [0.05, 0, 0.005, 0]]"));
+  Scene by_code(scene_with("[[0, 0, 0, 0]]"));
+  const int probe = by_code.collider("probe");
+  ASSERT_EQ(probe, 1);
+  EXPECT_EQ(by_code.collider("retractor"), -1);
+  for (int k = 1; k <= 10; ++k) {
+    if (k <= 5) by_code.move_collider(probe, {0, 1e-3 * k, 0});
+    by_code.simulate(0.01);
+    by_code.fetch_results();
+    by_path.simulate(0.01);
+    by_path.fetch_results();
+  }
+  Real worst = 0;
+  for (std::size_t i = 0; i < by_path.positions().size(); ++i)
+    worst = std::max(worst, std::abs(by_path.positions()[i] - by_code.positions()[i]));
+  EXPECT_LT(worst, 1e-9) << "the same motion";
+  EXPECT_GT(by_code.collider_forces()[1][1], 0) << "it presses the skin";
+  const std::string no_path = error_of([&] { by_code.move_collider(0, {0, 0, 0}); });
+  EXPECT_NE(no_path.find("move_collider(): the collider 'table' has no path"), std::string::npos) << no_path;
+  EXPECT_NE(error_of([&] { by_code.move_collider(2, {0, 0, 0}); }).find("no collider 2"), std::string::npos);
+  EXPECT_NE(error_of([&] { by_code.move_collider(1, {0, NAN, 0}); }).find("must be finite"), std::string::npos);
+}
+
 // The sample probe scene parses and runs on a lattice model; place_in_box puts
 // the spatula's origin (the centre of its pressing face) at the top centre of
 // the loaded nodes' rest box, and the path then moves it.
