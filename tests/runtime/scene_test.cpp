@@ -677,7 +677,9 @@ TEST_F(SceneTest, AMovingColliderPressesTheSkinAndIsWrittenAsASeries) {
   ASSERT_EQ(scene.fluid_state()->surfaces.size(), 2u) << "the tissue's surface and the probe's wall";
   const Model& m = scene.model();
   Real worst = HUGE_VAL;  // the lowest skin node in the footprint, over the probe's top
-  run(scene, 60, [&](long) {
+  Real mid_speed = -1;  // the blood's wall's vertical speed through step 30 (the probe moves at 8 mm/s then)
+  run(scene, 60, [&](long done) {
+    if (done == 30) mid_speed = scene.fluid_state()->surfaces[1].v[1];
     const Real top = hi[1] + d.colliders[0].path.at(scene.time()).y;
     for (std::int32_t i = 0; i < m.n_nodes; ++i) {
       const Real* x = scene.positions().data() + 3 * static_cast<std::size_t>(i);
@@ -685,6 +687,7 @@ TEST_F(SceneTest, AMovingColliderPressesTheSkinAndIsWrittenAsASeries) {
     }
   });
   EXPECT_GE(worst, -1e-9) << "a skin node behind the probe's top face";
+  EXPECT_NEAR(mid_speed, 0.008, 1e-12) << "the blood's wall moves with the probe";
   const auto f = scene.collider_forces();
   ASSERT_EQ(f.size(), 1u);
   EXPECT_GT(f[0][1], 0.01) << "the probe pushes the skin up (N)";
