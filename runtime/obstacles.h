@@ -36,6 +36,7 @@
 #pragma once
 
 #include "runtime/sph.h"
+#include "runtime/state.h"
 #include "runtime/types.h"
 
 #include <cstdint>
@@ -50,6 +51,7 @@ struct ObstaclePlane {
   Vec3 normal;  // unit (add_obstacle_plane normalises it): the free side is normal . (x - point) >= 0
   Real restitution = 0;  // [0, 1]
   Real friction = 0.2;   // >= 0
+  Vec3 pivot{};          // m: the centre its path's rotations turn it about
 };
 
 struct ObstacleMesh {
@@ -59,6 +61,7 @@ struct ObstacleMesh {
   Real restitution = 0;
   Real friction = 0.2;
   TriangleGrid grid;                    // built by add_obstacle_mesh; level 0's margin is the sampling step along a motion
+  Vec3 pivot{};                         // m: the centre its path's rotations turn it about
 };
 
 struct Obstacles {
@@ -82,24 +85,62 @@ struct ObstacleContact {
   Vec3 n;
 };
 
-// Where the obstacles are over a substep: obstacle k's displacement from its
-// geometry as given (m) at the substep's start, d0[k], and at its end, d1[k]
-// (both spans as long as the obstacles, or both empty: none displaced).
+Rot3 operator*(const Rot3& a, const Rot3& b);
+// The rotation by |r| radians about r (Rodrigues).
+Rot3 rotation_from_vector(const Vec3& r);
+
+// Where the obstacles are over a substep: one frame per obstacle, or none (all
+// at rest as given).
 struct ObstacleMotion {
-  std::span<const Vec3> d0, d1;
-  bool moving() const { return !d0.empty(); }
-  // obstacle k's displacement at the fraction s of the substep (zero: none)
-  Vec3 at(std::int32_t k, Real s) const {
-    if (d0.empty()) return {};
-    const Vec3 a = d0[static_cast<std::size_t>(k)], b = d1[static_cast<std::size_t>(k)];
-    return a + s * (b - a);
+  std::span<const ObstacleFrame> f;
+  bool moving() const { return !f.empty(); }
+  const ObstacleFrame& frame(std::int32_t k) const { return f[static_cast<std::size_t>(k)]; }
+  Vec3 displacement(std::int32_t k, Real s) const {
+    const ObstacleFrame& a = frame(k);
+    return a.d0 + s * (a.d1 - a.d0);
   }
-  // obstacle k's velocity over a substep of h seconds (m/s)
-  Vec3 velocity(std::int32_t k, Real h) const {
-    if (d0.empty() || k < 0) return {};
-    return (1 / h) * (d1[static_cast<std::size_t>(k)] - d0[static_cast<std::size_t>(k)]);
+  Rot3 rotation(std::int32_t k, Real s) const {
+    const ObstacleFrame& a = frame(k);
+    return a.r0 * rotation_from_vector(s * a.w);
+  }
+  // a point in space at the fraction s, in obstacle k's own coordinates, and back
+  Vec3 to_body(std::int32_t k, const Vec3& x, Real s) const {
+    if (!moving()) return x;
+    const ObstacleFrame& a = frame(k);
+    if (!a.rotates) return x - displacement(k, s);
+    return rotation(k, s).inverse(x - a.pivot - displacement(k, s)) + a.pivot;
+  }
+  Vec3 to_world(std::int32_t k, const Vec3& q, Real s) const {
+    if (!moving()) return q;
+    const ObstacleFrame& a = frame(k);
+    if (!a.rotates) return q + displacement(k, s);
+    return rotation(k, s)(q - a.pivot) + a.pivot + displacement(k, s);
+  }
+  Vec3 normal_to_world(std::int32_t k, const Vec3& n, Real s) const {
+    if (!moving() || !frame(k).rotates) return n;
+    return rotation(k, s)(n);
+  }
+  // the velocity (m/s) of obstacle k's material point at x at the fraction s
+  // of a substep of h seconds (zero: none, or k < 0)
+  Vec3 velocity(std::int32_t k, const Vec3& x, Real s, Real h) const {
+    if (!moving() || k < 0) return {};
+    const ObstacleFrame& a = frame(k);
+    const Vec3 u = (1 / h) * (a.d1 - a.d0);
+    if (!a.rotates) return u;
+    const Vec3 omega = (1 / h) * rotation(k, s)(a.w);
+    return u + cross(omega, x - a.pivot - displacement(k, s));
   }
 };
+
+// The obstacles' frames over the substep [t, t + h] from their paths
+// (State::obstacle_paths: the displacement path(t), and its rotation
+// path_rotation(t) about the obstacle's pivot); `out` is left empty when no
+// obstacle has a path. h = 0: where they are at t.
+void obstacle_frames(const Obstacles& o, std::span<const Path> paths, Real t, Real h, std::vector<ObstacleFrame>& out);
+// A path's rotation at time t: the waypoints' rotation vectors (Path::r)
+// interpolated by slerp, held before the first and after the last (I
+// without any).
+Rot3 path_rotation(const Path& p, Real t);
 
 // One node's motion over a substep of h seconds from x0 to x = x0 + h v: where
 // it crosses an obstacle (moving as `motion` says; the default: at rest), v changes by the contact law and the node moves on
@@ -124,20 +165,19 @@ Real obstacle_friction_coefficient(const Obstacles& o, std::int32_t k);
 // 10^-9 in front of it).
 Real obstacle_reach(const Vec3& x);
 
-// Whether a node at x rests on obstacle k, displaced by `offset`: within
-// obstacle_reach(x) in front of it (a plane: or behind it). The normal there
-// is that of the plane, or of the mesh's closest triangle on the node's side
-// (a one-sided mesh: its front).
-ObstacleContact rests_on(const Obstacles& o, std::int32_t k, const Vec3& x, const Vec3& offset = {});
+// Whether a node at x rests on obstacle k (where `motion` puts it at the
+// substep's start): within obstacle_reach(x) in front of it (a plane: or
+// behind it). The normal there is that of the plane, or of the mesh's
+// closest triangle on the node's side (a one-sided mesh: its front).
+ObstacleContact rests_on(const Obstacles& o, std::int32_t k, const Vec3& x, const ObstacleMotion& motion = {});
 
 // Of the given positions (n x 3), how many are behind plane k (for each
 // plane), and how many lie within one grid margin behind a triangle of
 // one-sided mesh k, the closest triangle's back (for each mesh): planes
-// first, then meshes, in order. offset: each obstacle's displacement (empty:
-// none).
+// first, then meshes, in order; the obstacles where `motion` puts them at
+// its start.
 std::vector<std::int64_t> obstacle_nodes_behind(const Obstacles& o, std::span<const Real> x,
-                                                std::span<const std::int32_t> nodes,
-                                                std::span<const Vec3> offset = {});
+                                                std::span<const std::int32_t> nodes, const ObstacleMotion& motion = {});
 
 // The number of obstacles (planes, then meshes).
 inline std::int32_t obstacle_count(const Obstacles& o) {

@@ -186,22 +186,30 @@ std::array<Real, 3> unit_direction(std::array<Real, 3> d) {
   return d;
 }
 
-// A "path": a list of [t, dx, dy, dz] (s, m), times >= 0 and increasing.
-Path parse_path(Obj& o) {
+// A "path": a list of [t, dx, dy, dz] (s, m), times >= 0 and increasing; with
+// `rotations`, also [t, dx, dy, dz, rx, ry, rz] (a rotation vector, rad), every
+// waypoint the one or the other.
+Path parse_path(Obj& o, bool rotations = false) {
   Path path;
   const json& p = o.at("path");
-  if (!p.is_array() || p.empty()) o.fail("path must be a list of [t, dx, dy, dz]");
+  const char* form = rotations ? "path must be a list of [t, dx, dy, dz] or of [t, dx, dy, dz, rx, ry, rz]"
+                               : "path must be a list of [t, dx, dy, dz]";
+  if (!p.is_array() || p.empty()) o.fail(form);
+  const std::size_t n = p[0].is_array() ? p[0].size() : 0;
+  if (n != 4 && !(rotations && n == 7)) o.fail(form);
   for (const auto& e : p) {
-    if (!e.is_array() || e.size() != 4) o.fail("path must be a list of [t, dx, dy, dz]");
+    if (!e.is_array() || e.size() != n) o.fail(rotations ? "path waypoints must all be [t, dx, dy, dz] or all [t, dx, dy, dz, rx, ry, rz]" : form);
     for (const auto& x : e)
       // within +-1e9 (s, m) like every other time and vector: a path of 1e155 m
       // overflowed the implicit solve's tolerance and a spring grip did nothing, exit 0
       if (!x.is_number() || !std::isfinite(x.get<Real>()) || std::abs(x.get<Real>()) > 1e9)
-        o.fail("path values must be finite numbers within +-1e9 (s, m)");
+        o.fail(rotations ? "path values must be finite numbers within +-1e9 (s, m, rad)"
+                         : "path values must be finite numbers within +-1e9 (s, m)");
     const Real tt = e[0].get<Real>();
     if (tt < 0 || (!path.t.empty() && !(tt > path.t.back()))) o.fail("path times must be >= 0 and increasing");
     path.t.push_back(tt);
     for (int k = 1; k < 4; ++k) path.p.push_back(e[k].get<Real>());
+    for (std::size_t k = 4; k < n; ++k) path.r.push_back(e[k].get<Real>());
   }
   return path;
 }
@@ -258,13 +266,19 @@ ColliderDef parse_collider(const json& j, std::size_t index, const std::string& 
   } else {
     c.tissue = false;
   }
+  if (o.has("pivot")) {
+    c.pivot = o.vec3("pivot", {});
+    c.has_pivot = true;
+  }
   if (o.has("path")) {
-    c.path = parse_path(o);
+    c.path = parse_path(o, true);
+    if (c.has_pivot && c.path.r.empty()) o.fail("pivot is the centre of a path's rotations, and this path has none");
     // the blood's half-spaces are fixed walls (FluidBoundaries); a moving
     // mesh is a moving wall to it (FluidSurface)
     if (c.kind == ColliderDef::Kind::plane && c.blood)
       o.fail("a moving plane acts on the tissue only: give it \"blood\": false, or make it a mesh");
   }
+  if (c.has_pivot && c.path.t.empty()) o.fail("pivot is the centre of a path's rotations, and there is no path");
   o.finish();
   return c;
 }
@@ -641,6 +655,7 @@ Scene::Scene(Model model, const SceneDef& def) : def_(def) {
 
 namespace {
 Vec3 collider_point(const ColliderDef& c, const Vec3& lo, const Vec3& hi);
+Vec3 collider_pivot(const ColliderDef& c, const Vec3& lo, const Vec3& hi);
 void read_collider_mesh(const ColliderDef& c, const Vec3& lo, const Vec3& hi, std::vector<Real>& vertices,
                         std::vector<std::int32_t>& triangles);
 }  // namespace
@@ -812,6 +827,7 @@ void Scene::init(const std::string& model_file) {
     MovingCollider mc;
     mc.def = c;
     const auto [lo, hi] = rest_box(m);
+    mc.pivot = collider_pivot(cd, lo, hi);
     if (cd.kind == ColliderDef::Kind::plane) {
       mc.point = collider_point(cd, lo, hi);
       mc.normal = {cd.normal[0], cd.normal[1], cd.normal[2]};
@@ -896,6 +912,20 @@ Vec3 collider_point(const ColliderDef& c, const Vec3& lo, const Vec3& hi) {
   if (!c.point_relative) return {c.point[0], c.point[1], c.point[2]};
   return {lo.x + c.point[0] * (hi.x - lo.x), lo.y + c.point[1] * (hi.y - lo.y), lo.z + c.point[2] * (hi.z - lo.z)};
 }
+// The centre a collider's rotations turn it about: its pivot, or a plane's
+// point, or a mesh's origin (placed by place_in_box).
+Vec3 collider_pivot(const ColliderDef& c, const Vec3& lo, const Vec3& hi) {
+  if (c.has_pivot) return {c.pivot[0], c.pivot[1], c.pivot[2]};
+  if (c.kind == ColliderDef::Kind::plane) return collider_point(c, lo, hi);
+  if (!c.place_relative) return {};
+  return {lo.x + c.place[0] * (hi.x - lo.x), lo.y + c.place[1] * (hi.y - lo.y), lo.z + c.place[2] * (hi.z - lo.z)};
+}
+// A point of a moving collider's geometry where its path puts it at time t.
+Vec3 moved(const Path& path, const Vec3& pivot, const Vec3& x, Real t) {
+  if (path.r.empty()) return x + path.at(t);
+  return path_rotation(path, t)(x - pivot) + pivot + path.at(t);
+}
+
 // A mesh collider's STL in metres: vertices (n x 3) and triangles (n x 3),
 // with place_in_box its origin moved to that point of the loaded nodes' rest
 // box [lo, hi]. Errors name the STL file.
@@ -925,13 +955,14 @@ void Scene::init_obstacles() {
     try {
       if (c.kind == ColliderDef::Kind::plane) {
         add_obstacle_plane(*obstacles, {collider_point(c, lo, hi), {c.normal[0], c.normal[1], c.normal[2]},
-                                        c.wall.restitution, c.wall.friction});
+                                        c.wall.restitution, c.wall.friction, collider_pivot(c, lo, hi)});
       } else {
         ObstacleMesh mesh;
         read_collider_mesh(c, lo, hi, mesh.vertices, mesh.triangles);
         mesh.two_sided = c.two_sided;
         mesh.restitution = c.wall.restitution;
         mesh.friction = c.wall.friction;
+        mesh.pivot = collider_pivot(c, lo, hi);
         add_obstacle_mesh(*obstacles, std::move(mesh));
       }
     } catch (const Error& e) {
@@ -1116,13 +1147,15 @@ void Scene::fluid_step_now(Real dt, std::span<const Real> x_start) {
   // the moving colliders through the step: from where they are at its start at their mean velocity
   for (const auto& [k, si] : fr.moving_walls) {
     const Path& path = def_.colliders[moving_[k].def].path;
-    const Vec3 d0 = path.at(state_.time - dt), u = (1 / dt) * (path.at(state_.time) - d0);
     FluidSurface& w = fr.state.surfaces[si];
     const std::vector<Real>& rest = moving_[k].vertices;
     w.x.resize(rest.size());
     w.v.resize(rest.size());
     for (std::size_t i = 0; i + 2 < rest.size(); i += 3) {
-      w.x[i] = rest[i] + d0.x, w.x[i + 1] = rest[i + 1] + d0.y, w.x[i + 2] = rest[i + 2] + d0.z;
+      const Vec3 p = load3(rest.data(), static_cast<std::int64_t>(i / 3));
+      const Vec3 a = moved(path, moving_[k].pivot, p, state_.time - dt), b = moved(path, moving_[k].pivot, p, state_.time);
+      const Vec3 u = (1 / dt) * (b - a);
+      w.x[i] = a.x, w.x[i + 1] = a.y, w.x[i + 2] = a.z;
       w.v[i] = u.x, w.v[i + 1] = u.y, w.v[i + 2] = u.z;
     }
   }
@@ -1294,14 +1327,17 @@ void Scene::write_moving_colliders() {
   std::vector<double> pts;
   std::vector<std::int32_t> tri;
   for (const MovingCollider& mc : moving_) {
-    const Vec3 d = def_.colliders[mc.def].path.at(state_.time);
+    const Path& path = def_.colliders[mc.def].path;
     if (mc.vertices.empty()) {
-      append_plane_polygon(box_lo, box_hi, mc.point + d, mc.normal, pts, tri);
+      const Vec3 n = path.r.empty() ? mc.normal : path_rotation(path, state_.time)(mc.normal);
+      append_plane_polygon(box_lo, box_hi, moved(path, mc.pivot, mc.point, state_.time), n, pts, tri);
       continue;
     }
     const auto off = static_cast<std::int32_t>(pts.size() / 3);
-    for (std::size_t i = 0; i + 2 < mc.vertices.size(); i += 3)
-      pts.insert(pts.end(), {mc.vertices[i] + d.x, mc.vertices[i + 1] + d.y, mc.vertices[i + 2] + d.z});
+    for (std::size_t i = 0; i + 2 < mc.vertices.size(); i += 3) {
+      const Vec3 q = moved(path, mc.pivot, load3(mc.vertices.data(), static_cast<std::int64_t>(i / 3)), state_.time);
+      pts.insert(pts.end(), {q.x, q.y, q.z});
+    }
     for (auto i : mc.triangles) tri.push_back(off + i);
   }
   const std::string& dir = def_.output.dir;

@@ -135,6 +135,11 @@ struct ColliderDef {
   // in between, held before the first and after the last waypoint; empty: it
   // does not move. A moving plane acts on the tissue alone.
   Path path;
+  // with a path of rotations ([t, dx, dy, dz, rx, ry, rz], rx..rz a rotation
+  // vector in radians), the centre it turns about (m; has_pivot false: a
+  // plane's point, a mesh's origin, placed by place_in_box)
+  std::array<Real, 3> pivot{0, 0, 0};
+  bool has_pivot = false;
 };
 
 struct FluidDef {
@@ -375,6 +380,7 @@ class Scene {
   struct MovingCollider {
     std::size_t def = 0;  // index into def_.colliders
     Vec3 point, normal;   // a plane
+    Vec3 pivot;           // the centre of its rotations
     std::vector<Real> vertices;
     std::vector<std::int32_t> triangles;  // a mesh
   };

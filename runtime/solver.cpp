@@ -207,18 +207,9 @@ Real move_kinematic(State& s, Real t1, Real h) {
 // The obstacles' motion over the substep [t, t + h] (State::obstacle_paths),
 // held in the scratch; empty (at rest) when no obstacle has a path.
 ObstacleMotion obstacle_motion(State& s, Real t, Real h) {
-  if (!s.obstacles || std::none_of(s.obstacle_paths.begin(), s.obstacle_paths.end(),
-                                   [](const Path& p) { return !p.t.empty(); }))
-    return {};
-  Scratch& sc = s.scratch;
-  const auto n = static_cast<std::size_t>(obstacle_count(*s.obstacles));
-  sc.obstacle_d0.assign(n, Vec3{});
-  sc.obstacle_d1.assign(n, Vec3{});
-  for (std::size_t k = 0; k < std::min(n, s.obstacle_paths.size()); ++k) {
-    sc.obstacle_d0[k] = s.obstacle_paths[k].at(t);
-    sc.obstacle_d1[k] = s.obstacle_paths[k].at(t + h);
-  }
-  return {sc.obstacle_d0, sc.obstacle_d1};
+  if (!s.obstacles) return {};
+  obstacle_frames(*s.obstacles, s.obstacle_paths, t, h, s.scratch.obstacle_frames);
+  return {s.scratch.obstacle_frames};
 }
 
 // ---- the volume term ------------------------------------------------------
@@ -391,7 +382,7 @@ Check symplectic_substep(const Model& m, State& s, Real t, Real h, const SolverO
           const Vec3 fc = k >= 0 ? (mass[i] / h) * (vi - v_before) : Vec3{};
           store3(s.contact_force.data(), i, fc);
           contacts += k >= 0;
-          if (mo.moving()) work += h * dot(fc, mo.velocity(k, h));  // a moving obstacle's work on the node
+          if (mo.moving()) work += h * dot(fc, mo.velocity(k, xi, 1, h));  // a moving obstacle's work on the node
         }
         store3(vw, i, vi);
         store3(xw, i, xi);
@@ -826,10 +817,10 @@ Check implicit_substep(const Model& m, State& s, Real t, Real h, const SolverOpt
         Real cf = 0;
         if (k >= 0) {
           const Vec3 xi = load3(x, i);
-          const ObstacleContact c = rests_on(*obs, k, xi, mo.at(k, 0));
+          const ObstacleContact c = rests_on(*obs, k, xi, mo);
           if (c.obstacle >= 0) {
             ni = c.n;
-            ui = mo.velocity(k, h);
+            ui = mo.velocity(k, xi, 0, h);
             const Vec3 vt = filter(vi - ui, ni);
             const Real n_prev = std::max(Real(0), dot(load3(s.contact_force.data(), i), ni));  // N of the last substep
             const Real mu_n = obstacle_friction_coefficient(*obs, k) * n_prev, st = norm(vt);
@@ -1060,7 +1051,7 @@ Check implicit_substep(const Model& m, State& s, Real t, Real h, const SolverOpt
         if (holds(ni)) {
           const Real normal_force = dot(load3(q, i) - load3(rhs, i), ni) / h;
           keep = normal_force > 0;
-          const Vec3 ui = mo.velocity(s.contact_obstacle[static_cast<std::size_t>(i)], h);
+          const Vec3 ui = mo.velocity(s.contact_obstacle[static_cast<std::size_t>(i)], load3(xw, i), 0, h);
           hold_force = normal_force * ni - sc.friction_c[static_cast<std::size_t>(i)] * filter(vi - ui, ni) +
                        load3(sc.friction_f.data(), i);
         }
@@ -1083,7 +1074,7 @@ Check implicit_substep(const Model& m, State& s, Real t, Real h, const SolverOpt
         store3(s.contact_force.data(), i, fc);
         s.contact_obstacle[static_cast<std::size_t>(i)] = k;
         contacts += k >= 0;
-        if (mo.moving()) work += h * dot(fc, mo.velocity(k, h));  // a moving obstacle's work on the node
+        if (mo.moving()) work += h * dot(fc, mo.velocity(k, xi, 1, h));  // a moving obstacle's work on the node
       }
       store3(vw, i, vi);
       store3(xw, i, xi);

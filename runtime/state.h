@@ -23,8 +23,23 @@ namespace orthosim::runtime {
 struct Path {
   std::vector<Real> t;  // (n) s
   std::vector<Real> p;  // (n x 3) m
+  std::vector<Real> r{};  // (n x 3) rad, rotation vectors (axis x angle) at the waypoints, or empty: none
+                        // (moving colliders turn about their pivot; runtime/obstacles.h, path_rotation)
   Vec3 at(Real time) const;
   Real max_speed() const;  // m/s, largest segment speed
+};
+
+// Where obstacle k is over a substep (a moving collider): its rigid motion
+// from its geometry as given, x -> R (x - pivot) + pivot + d, with d going
+// from d0 to d1 linearly and R(s) = r0 exp(s [w]) over the fraction s of the
+// substep (w a rotation vector in the obstacle's own frame; rotates false:
+// R = I throughout).
+struct ObstacleFrame {
+  Vec3 d0, d1;  // m
+  bool rotates = false;
+  Vec3 pivot;   // m, in the obstacle's own coordinates
+  Rot3 r0;
+  Vec3 w;       // rad over the substep
 };
 
 // Nodes attached to a moving point: node j follows path(t) + offset_j.
@@ -87,7 +102,7 @@ struct Scratch {
   std::vector<Real> force0;            // (n_nodes x 3) State::contact_force at the step's start, for redo
   std::vector<Real> friction_c;        // (n_nodes) N s/m: the friction damper of each held node in this substep
   std::vector<Real> friction_f;        // (n_nodes x 3) N: the Coulomb force of each held node sliding in this substep (else zero)
-  std::vector<Vec3> obstacle_d0, obstacle_d1;  // each obstacle's displacement at the substep's start and end (moving obstacles)
+  std::vector<ObstacleFrame> obstacle_frames;  // where each moving obstacle is over the substep (runtime/obstacles.h)
 };
 
 // The cholesky preconditioner's factor (runtime/solver.cpp): immutable once

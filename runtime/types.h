@@ -44,4 +44,14 @@ inline Vec3 cross(const Vec3& a, const Vec3& b) {
   return {a.y * b.z - a.z * b.y, a.z * b.x - a.x * b.z, a.x * b.y - a.y * b.x};
 }
 
+// A rotation, row-major 3 x 3.
+struct Rot3 {
+  Real m[9] = {1, 0, 0, 0, 1, 0, 0, 0, 1};
+  Vec3 operator()(const Vec3& a) const {
+    return {m[0] * a.x + m[1] * a.y + m[2] * a.z, m[3] * a.x + m[4] * a.y + m[5] * a.z, m[6] * a.x + m[7] * a.y + m[8] * a.z};
+  }
+  Vec3 inverse(const Vec3& a) const {  // the transpose
+    return {m[0] * a.x + m[3] * a.y + m[6] * a.z, m[1] * a.x + m[4] * a.y + m[7] * a.z, m[2] * a.x + m[5] * a.y + m[8] * a.z};
+  }
+};
 }  // namespace orthosim::runtime

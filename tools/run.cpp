@@ -213,9 +213,10 @@ void add_run_command(CLI::App& app) {
       for (std::int32_t i = 0; i < m.n_nodes; ++i)
         if (scene->state().inv_mass[static_cast<std::size_t>(i)] > 0) free_nodes.push_back(i);
       // (the moving colliders where they are at the start)
-      std::vector<runtime::Vec3> offset;
-      for (const runtime::Path& p : scene->state().obstacle_paths) offset.push_back(p.at(scene->time()));
-      const std::vector<std::int64_t> behind = runtime::obstacle_nodes_behind(*ob, scene->positions(), free_nodes, offset);
+      std::vector<runtime::ObstacleFrame> frames;
+      runtime::obstacle_frames(*ob, scene->state().obstacle_paths, scene->time(), 0, frames);
+      const std::vector<std::int64_t> behind =
+          runtime::obstacle_nodes_behind(*ob, scene->positions(), free_nodes, runtime::ObstacleMotion{frames});
       // the loaded nodes' rest box grown by its largest side: a mesh beyond it
       // meets the tissue only if the tissue moves farther than its own size
       const auto [rlo, rhi] = runtime::rest_box(m);
@@ -255,7 +256,17 @@ void add_run_command(CLI::App& app) {
             double mlo = HUGE_VAL, mhi = -HUGE_VAL;
             for (std::size_t v = 0; 3 * v < om.vertices.size(); ++v)
               mlo = std::min(mlo, om.vertices[3 * v + a]), mhi = std::max(mhi, om.vertices[3 * v + a]);
-            // a moving one: the box it sweeps along its path
+            // a moving one: the box it sweeps along its path (turning, the
+            // ball about its pivot that holds it)
+            if (!c.path.r.empty()) {
+              double r2 = 0;
+              for (std::size_t v = 0; 3 * v < om.vertices.size(); ++v) {
+                const runtime::Vec3 d = runtime::load3(om.vertices.data(), static_cast<std::int64_t>(v)) - om.pivot;
+                r2 = std::max(r2, runtime::dot(d, d));
+              }
+              const double piv[3] = {om.pivot.x, om.pivot.y, om.pivot.z};
+              mlo = piv[a] - std::sqrt(r2), mhi = piv[a] + std::sqrt(r2);
+            }
             double dlo = 0, dhi = 0;
             for (std::size_t w = 0; w < c.path.t.size(); ++w)
               dlo = std::min(dlo, c.path.p[3 * w + a]), dhi = std::max(dhi, c.path.p[3 * w + a]);

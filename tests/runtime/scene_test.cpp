@@ -723,6 +723,64 @@ TEST_F(SceneTest, AMovingColliderPressesTheSkinAndIsWrittenAsASeries) {
   }
 }
 
+// A path with rotations turns a collider about its pivot: the series' frame
+// at 0.2 s has the probe's box turned 0.1 rad about y through the pivot, and
+// the blood's wall moves each vertex at the chord of its arc over the step.
+// Bad rotation paths are refused.
+TEST_F(SceneTest, ARotatingColliderTurnsAboutItsPivot) {
+  const auto c = skin_point();
+  const std::array<Real, 3> lo{c[0] - 5e-3, -6e-3, c[2] - 5e-3}, hi{c[0] + 5e-3, -2e-3, c[2] + 5e-3};
+  orthosim::test::write_file(dir / "probe.stl", box_stl(lo, hi));
+  const Vec3 pivot{0.02, -0.004, 0.008};  // under the probe's centre (skin_point())
+  const SceneDef d = parse_scene(R"({
+    "model": "model.h5", "fixed": ["fixed"], "integrator": "implicit", "dt": 0.01, "fluid": {"spacing": 0.002},
+    "colliders": [{"name": "probe", "type": "mesh", "stl": "probe.stl", "pivot": [0.02, -0.004, 0.008],
+                   "path": [[0, 0, 0, 0, 0, 0, 0], [1, 0, 0, 0, 0, 0.5, 0]]}],
+    "output": {"dir": "out", "every": 10, "format": "ascii"}
+  })", dir / "scene.json");
+  ASSERT_EQ(d.colliders[0].path.r.size(), 6u);
+  Scene scene(d);
+  run(scene, 20);
+  // the expected box: the corners turned by 0.1 rad about y through the pivot
+  const Real a = 0.1;
+  Real emin[3] = {HUGE_VAL, HUGE_VAL, HUGE_VAL}, emax[3] = {-HUGE_VAL, -HUGE_VAL, -HUGE_VAL};
+  for (int k = 0; k < 8; ++k) {
+    const Vec3 p{k & 1 ? hi[0] : lo[0], k & 2 ? hi[1] : lo[1], k & 4 ? hi[2] : lo[2]};
+    const Vec3 r = p - pivot;
+    const Vec3 q{std::cos(a) * r.x + std::sin(a) * r.z, r.y, -std::sin(a) * r.x + std::cos(a) * r.z};
+    const Real e[3] = {q.x + pivot.x, q.y + pivot.y, q.z + pivot.z};
+    for (int i = 0; i < 3; ++i) emin[i] = std::min(emin[i], e[i]), emax[i] = std::max(emax[i], e[i]);
+  }
+  const std::string vtp = orthosim::test::read_file(dir / "out/tissue_moving_colliders_000002.vtp");
+  const auto p0 = vtp.find('>', vtp.find("<DataArray", vtp.find("<Points>"))) + 1;
+  std::istringstream in(vtp.substr(p0, vtp.find("</DataArray>", p0) - p0));
+  std::vector<Real> xyz{std::istream_iterator<Real>(in), std::istream_iterator<Real>()};
+  ASSERT_FALSE(xyz.empty());
+  Real gmin[3] = {HUGE_VAL, HUGE_VAL, HUGE_VAL}, gmax[3] = {-HUGE_VAL, -HUGE_VAL, -HUGE_VAL};
+  for (std::size_t i = 0; i < xyz.size(); ++i) gmin[i % 3] = std::min(gmin[i % 3], xyz[i]), gmax[i % 3] = std::max(gmax[i % 3], xyz[i]);
+  for (int i = 0; i < 3; ++i) {
+    EXPECT_NEAR(gmin[i], emin[i], 1e-9) << "axis " << i;
+    EXPECT_NEAR(gmax[i], emax[i], 1e-9) << "axis " << i;
+  }
+  // the blood's wall: vertex 0 moves at the chord of its arc over the last step, about w x r
+  const FluidSurface& w = scene.fluid_state()->surfaces[1];
+  const Vec3 x0{w.x[0], w.x[1], w.x[2]}, v0{w.v[0], w.v[1], w.v[2]};
+  const Vec3 expect = cross(Vec3{0, 0.5, 0}, x0 - pivot);
+  EXPECT_LT(norm(v0 - expect), 0.01 * norm(expect)) << "turning at 0.5 rad/s";
+  // bad rotation paths
+  auto bad = [&](const std::string& collider) {
+    return error_of([&] { parse_scene(R"({"model": "model.h5", "colliders": [)" + collider + "]}", dir / "scene.json"); });
+  };
+  EXPECT_NE(bad(R"({"type": "mesh", "stl": "probe.stl", "path": [[0, 0, 0, 0], [1, 0, 0, 0, 0, 1, 0]]})")
+                .find("path waypoints must all be [t, dx, dy, dz] or all [t, dx, dy, dz, rx, ry, rz]"),
+            std::string::npos);
+  EXPECT_NE(bad(R"({"type": "mesh", "stl": "probe.stl", "pivot": [0, 0, 0], "path": [[0, 0, 0, 0], [1, 0, 1, 0]]})")
+                .find("pivot is the centre of a path's rotations, and this path has none"),
+            std::string::npos);
+  EXPECT_NE(bad(R"({"type": "mesh", "stl": "probe.stl", "path": [[0, 0, 0, 0, 0]]})").find("path must be a list of [t, dx, dy, dz] or of"),
+            std::string::npos);
+}
+
 // move_collider drives a moving collider step by step (a haptic device): the
 // probe pushed 1 mm a step for 5 steps from code gives the state of the same
 // motion given as a path, and a collider without a path cannot be moved.

@@ -1445,5 +1445,85 @@ TEST(MovingObstacles, PushingABlockIsStableAndDeterministic) {
   }
 }
 
+// A table tilting about its pivot (0.4 rad about z in 1 s, friction 2 >
+// tan 0.4) carries a node resting on it round the pivot: the node stays
+// where it sat on the table, never goes behind it, and the table carries its
+// weight (and the small centripetal force). The implicit solve lets the node
+// creep at most creep_speed along the table. Both integrators.
+TEST(MovingObstacles, ATiltingTableCarriesAStuckNodeRoundItsPivot) {
+  const Real h = 1e-3, theta = 0.4, mass = 0.01, g = 9.81;
+  for (Integrator integ : {Integrator::symplectic_euler, Integrator::implicit_euler}) {
+    SCOPED_TRACE(to_string(integ));
+    const Model m = make_model({0.1, 0, 0, 1, 0, 0}, {mass, 0}, {});
+    State s = make_state(m);
+    auto ob = std::make_shared<Obstacles>();
+    add_obstacle_plane(*ob, {{0, 0, 0}, {0, 1, 0}, 0, 2.0, {0, 0, 0}});
+    s.obstacles = ob;
+    Path path = displacement_path({{0, 0, 0, 0}, {1, 0, 0, 0}});
+    path.r = {0, 0, 0, 0, 0, theta};
+    s.obstacle_paths = {path};
+    SolverOptions o;
+    o.integrator = integ;
+    o.substeps = 1;
+    Real behind = 0;
+    for (int k = 0; k < 1000; ++k) {
+      step(m, s, h, o);
+      const Real a = theta * s.time;  // the table's angle now: its normal (-sin a, cos a, 0)
+      behind = std::min(behind, -std::sin(a) * s.x[0] + std::cos(a) * s.x[1]);
+    }
+    EXPECT_GE(behind, -1e-12) << "never behind the table";
+    const Real dx = s.x[0] - 0.1 * std::cos(theta), dy = s.x[1] - 0.1 * std::sin(theta);
+    const Real off = std::hypot(dx, dy);
+    // (symplectic: a stuck node moves on a straight line at the table's
+    // velocity through each substep, so it drifts outward by the chord,
+    // r (w h)^2 / 2 a substep: r w^2 h T / 2 = 8 um in all, an O(h) error)
+    const Real w = theta / 1.0;
+    if (integ == Integrator::implicit_euler) EXPECT_LT(off, o.friction_creep_speed * 1.0) << "creeps at most v_eps T";
+    else EXPECT_LT(off, 0.1 * w * w * h * 1.0) << "where it sat, but for the chords";
+    // the table's force: the weight, and the centripetal m w^2 r (1.6e-3 of it) toward the pivot
+    EXPECT_NEAR(s.contact_force[0], -mass * w * w * 0.1 * std::cos(theta), 2e-3 * mass * g);
+    EXPECT_NEAR(s.contact_force[1], mass * g - mass * w * w * 0.1 * std::sin(theta), 2e-3 * mass * g);
+    EXPECT_EQ(s.counters.events, 0);
+  }
+}
+
+// A door (a two-sided square hinged on the y axis) swung at 50 rad/s, its
+// edge at 5 m/s, 5 mm a substep, through a free node: the node is caught on
+// the face it meets and carried, never passing to the other side. Both
+// integrators, no gravity, no friction.
+TEST(MovingObstacles, ASwingingDoorDoesNotPassANode) {
+  const Real h = 1e-3;
+  for (Integrator integ : {Integrator::symplectic_euler, Integrator::implicit_euler}) {
+    SCOPED_TRACE(to_string(integ));
+    const Model m = make_model({0.1 * std::cos(0.5), 0, -0.1 * std::sin(0.5)}, {0.01}, {});
+    State s = make_state(m);
+    auto ob = std::make_shared<Obstacles>();
+    ObstacleMesh door;
+    door.vertices = {0, -0.1, 0, 0.2, -0.1, 0, 0.2, 0.1, 0, 0, 0.1, 0};
+    door.triangles = {0, 1, 2, 0, 2, 3};
+    door.two_sided = true;
+    door.friction = 0;
+    add_obstacle_mesh(*ob, std::move(door));
+    s.obstacles = ob;
+    Path path = displacement_path({{0, 0, 0, 0}, {0.02, 0, 0, 0}});
+    path.r = {0, 0, 0, 0, 1.0, 0};  // about +y: the door's +x edge swings toward -z
+    s.obstacle_paths = {path};
+    SolverOptions o;
+    o.integrator = integ;
+    o.substeps = 1;
+    o.gravity = {0, 0, 0};
+    Real worst = -HUGE_VAL;  // the node's side of the door, in the door's frame (negative: the side it came from)
+    for (int k = 0; k < 20; ++k) {
+      step(m, s, h, o);
+      const Real a = 50 * s.time;
+      worst = std::max(worst, std::sin(a) * s.x[0] + std::cos(a) * s.x[2]);  // z in the door's frame
+    }
+    EXPECT_LE(worst, 1e-12) << "it never passes the door";
+    EXPECT_GT(worst, -1e-8) << "it is on the door's face";
+    EXPECT_GT(std::hypot(s.x[0], s.x[2]), 0.1 - 1e-9) << "swept round (it slides outward, frictionless)";
+    EXPECT_EQ(s.counters.events, 0);
+  }
+}
+
 }  // namespace
 }  // namespace orthosim::runtime

@@ -150,7 +150,8 @@ TEST(Stress, CollidersNeverLetANodeThroughNorProduceNaN) {
 // square 0.1 m a side, wider than the block and its drag, so that no node can
 // go around it; tilted by up to 0.3 rad) is driven into the skin along its
 // normal from 2 mm below it to 1-5 mm into it at 0.05-1.4 m/s, dragged
-// sideways by up to 10 mm and withdrawn, for random tilts, depths, speeds,
+// sideways by up to 10 mm while turned about its centre by up to 0.15 rad,
+// and withdrawn, for random tilts, depths, speeds,
 // drags, frictions and restitutions, both integrators, dt 1/30 and 1/240 s.
 // No NaN ever; no failed step; no free node behind the plate where it is
 // after any step.
@@ -183,6 +184,7 @@ TEST(Stress, MovingCollidersNeverLetANodeThroughNorProduceNaN) {
         plate.two_sided = true;
         plate.friction = 0.8 * u(rng);
         plate.restitution = 0.3 * u(rng);
+        plate.pivot = c;
         add_obstacle_mesh(*ob, std::move(plate));
       }
       s.obstacles = ob;
@@ -192,9 +194,12 @@ TEST(Stress, MovingCollidersNeverLetANodeThroughNorProduceNaN) {
       const Real rise = gap + 0.001 + 0.004 * u(rng);       // 1-5 mm into the skin
       const Real t_up = rise / (0.05 + 1.35 * u(rng));       // at 0.05 .. 1.4 m/s
       const Vec3 up = rise * n, dragged = up + ((u(rng) - 0.5) * 0.02) * t1;
+      // and turned about its centre by up to 0.15 rad each way while pressed
+      const Real turn = (u(rng) - 0.5) * 0.3;
       Path path;
       path.t = {0, t_up, t_up + 0.1, t_up + 0.15};
       path.p = {0, 0, 0, up.x, up.y, up.z, dragged.x, dragged.y, dragged.z, 0, 0, 0};
+      path.r = {0, 0, 0, 0, 0, 0, 0, 0, turn, 0, 0, 0};
       s.obstacle_paths = {path};
       SolverOptions o;
       o.integrator = integ;
@@ -206,12 +211,12 @@ TEST(Stress, MovingCollidersNeverLetANodeThroughNorProduceNaN) {
       Real deepest = 0;
       for (Real t = 0; t < t_up + 0.2; t += dt) {
         step(m, s, dt, o);
-        const Vec3 d = path.at(s.time);
+        const Vec3 d = path.at(s.time), nt = path_rotation(path, s.time)(n);
         for (std::int32_t i = 0; i < m.n_nodes; ++i) {
           if (s.pin[static_cast<std::size_t>(i)] != Pin::free) continue;
           const Vec3 r = load3(s.x.data(), i);
           finite = finite && std::isfinite(r.x) && std::isfinite(r.y) && std::isfinite(r.z);
-          const Real ahead = dot(n, r - c - d);
+          const Real ahead = dot(nt, r - c - d);
           through += ahead < -1e-9;
           deepest = std::min(deepest, ahead);
         }
