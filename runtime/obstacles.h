@@ -26,12 +26,13 @@
 // skin quad may dip past a convex corner of a mesh between its nodes.
 //
 // Moving obstacles (an instrument, a retractor blade pressed into the limb):
-// each obstacle may be displaced by a translation that the caller prescribes
-// over time (State::obstacle_paths); over a substep it moves from d0 to d1
-// at the constant velocity u = (d1 - d0) / h. Contact is then resolved in the
-// obstacle's frame: the node's motion relative to it is tested against its
-// geometry, the contact law acts on the relative velocity (v - u), and the
-// implicit hold keeps the node's normal velocity at u . n. Obstacles are
+// each obstacle may be moved rigidly as the caller prescribes over time
+// (State::obstacle_paths: a displacement and a rotation about its pivot);
+// over a substep it moves as an ObstacleFrame says, its surface at the
+// velocity u + w x r. Contact is then resolved in the obstacle's frame: the
+// node's motion relative to it is tested against its geometry, the contact
+// law acts on the velocity relative to its surface, and the implicit hold
+// keeps the node's normal velocity at the surface's. Obstacles are
 // kinematic: they do not feel the tissue (their force on it is reported).
 #pragma once
 
