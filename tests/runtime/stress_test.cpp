@@ -52,6 +52,25 @@ TEST(Stress, SmallSweepNeverProducesNaN) {
   std::printf("sweep wall time %.2f s\n", wall);
 }
 
+// The colliders' stress trials: 12 random trials on both integrators, dt
+// 1/240 and 1/30 s in turn, each on the 8 x 4 x 4 block hanging from its
+// bone sheet (x 0..28 mm, z 0..12 mm, y 0 (skin) .. 17 mm (fixed));
+// trial(rng, integrator, dt, model, state) sets the colliders and runs it.
+template <class Trial>
+void collider_trials(std::uint64_t seed, Trial&& trial) {
+  std::mt19937_64 rng(seed);
+  for (int k = 0; k < 12; ++k)
+    for (Integrator integ : {Integrator::implicit_euler, Integrator::symplectic_euler}) {
+      const Real dt = k % 2 ? 1.0 / 30 : 1.0 / 240;
+      const auto b = make_layered_block(8, 4, 4);
+      const Model m = model_from_layers(b.layers, b.sets);
+      State s = make_state(m);
+      fix_nodes(m, s, m.set("fixed"));
+      SCOPED_TRACE("trial " + std::to_string(k) + " " + to_string(integ) + " dt " + std::to_string(dt));
+      trial(rng, integ, dt, m, s);
+    }
+}
+
 // Static colliders under stress: a hanging block (8 x 4 x 4) over a table,
 // with a two-sided square wall standing through it, and a grasper dragging
 // skin nodes down through the table and across the wall along a random path
@@ -60,18 +79,10 @@ TEST(Stress, SmallSweepNeverProducesNaN) {
 // node below the table after any step; no free node changes sides of the
 // wall (where it is inside the square's extent).
 TEST(Stress, CollidersNeverLetANodeThroughNorProduceNaN) {
-  std::mt19937_64 rng(20261128);
   std::uniform_real_distribution<Real> u(0, 1);
   int cases = 0;
   long contacts = 0;
-  for (int trial = 0; trial < 12; ++trial)
-    for (Integrator integ : {Integrator::implicit_euler, Integrator::symplectic_euler}) {
-      const Real dt = trial % 2 ? 1.0 / 30 : 1.0 / 240;
-      const auto b = make_layered_block(8, 4, 4);
-      const Model m = model_from_layers(b.layers, b.sets);
-      State s = make_state(m);
-      fix_nodes(m, s, m.set("fixed"));
-      // the block spans x 0..28 mm, z 0..12 mm, y 0 (skin) .. 17 mm (fixed)
+  collider_trials(20261128, [&](std::mt19937_64& rng, Integrator integ, Real dt, const Model& m, State& s) {
       const Real table = -u(rng) * 2e-3;
       const Real angle = (u(rng) - 0.5) * 0.6;  // the wall's tilt about z
       const Vec3 wall_n{std::cos(angle), std::sin(angle), 0};
@@ -120,7 +131,6 @@ TEST(Stress, CollidersNeverLetANodeThroughNorProduceNaN) {
       o.integrator = integ;
       o.mass_damping = 2;
       o.max_substeps = 1 << 14;
-      SCOPED_TRACE("trial " + std::to_string(trial) + " " + to_string(integ) + " dt " + std::to_string(dt));
       int through_table = 0, through_wall = 0;
       bool finite = true;
       for (Real t = 0; t < 0.2; t += dt) {
@@ -141,7 +151,7 @@ TEST(Stress, CollidersNeverLetANodeThroughNorProduceNaN) {
       EXPECT_EQ(through_wall, 0) << "node-steps on the other side of the wall";
       contacts += s.counters.obstacle_contacts;
       ++cases;
-    }
+  });
   std::printf("%d cases, %ld node-substeps in contact\n", cases, contacts);
   EXPECT_GT(contacts, 0);
 }
@@ -156,18 +166,10 @@ TEST(Stress, CollidersNeverLetANodeThroughNorProduceNaN) {
 // No NaN ever; no failed step; no free node behind the plate where it is
 // after any step.
 TEST(Stress, MovingCollidersNeverLetANodeThroughNorProduceNaN) {
-  std::mt19937_64 rng(20261129);
   std::uniform_real_distribution<Real> u(0, 1);
   int cases = 0;
   long contacts = 0;
-  for (int trial = 0; trial < 12; ++trial)
-    for (Integrator integ : {Integrator::implicit_euler, Integrator::symplectic_euler}) {
-      const Real dt = trial % 2 ? 1.0 / 30 : 1.0 / 240;
-      const auto b = make_layered_block(8, 4, 4);
-      const Model m = model_from_layers(b.layers, b.sets);
-      State s = make_state(m);
-      fix_nodes(m, s, m.set("fixed"));
-      // the block spans x 0..28 mm, z 0..12 mm, y 0 (skin) .. 17 mm (fixed)
+  collider_trials(20261129, [&](std::mt19937_64& rng, Integrator integ, Real dt, const Model& m, State& s) {
       const Real tilt = (u(rng) - 0.5) * 0.6;
       const Vec3 n{-std::sin(tilt), std::cos(tilt), 0}, t1{std::cos(tilt), std::sin(tilt), 0}, t2{0, 0, 1};
       const Real cx = 0.014;
@@ -205,7 +207,6 @@ TEST(Stress, MovingCollidersNeverLetANodeThroughNorProduceNaN) {
       o.integrator = integ;
       o.mass_damping = 2;
       o.max_substeps = 1 << 14;
-      SCOPED_TRACE("trial " + std::to_string(trial) + " " + to_string(integ) + " dt " + std::to_string(dt));
       int through = 0;
       bool finite = true;
       Real deepest = 0;
@@ -228,7 +229,7 @@ TEST(Stress, MovingCollidersNeverLetANodeThroughNorProduceNaN) {
       EXPECT_GT(s.counters.obstacle_contacts, 0) << "the plate met the skin";
       contacts += s.counters.obstacle_contacts;
       ++cases;
-    }
+  });
   std::printf("%d cases, %ld node-substeps in contact\n", cases, contacts);
 }
 }  // namespace
