@@ -52,6 +52,19 @@ TEST(Stress, SmallSweepNeverProducesNaN) {
   std::printf("sweep wall time %.2f s\n", wall);
 }
 
+// A two-sided square 0.1 m a side about c, spanned by the unit vectors t1, t2.
+ObstacleMesh two_sided_square(const Vec3& c, const Vec3& t1, const Vec3& t2) {
+  ObstacleMesh m;
+  for (Real a : {-0.05, 0.05})
+    for (Real b : {-0.05, 0.05}) {
+      const Vec3 q = c + a * t1 + b * t2;
+      m.vertices.insert(m.vertices.end(), {q.x, q.y, q.z});
+    }
+  m.triangles = {0, 1, 3, 0, 3, 2};
+  m.two_sided = true;
+  return m;
+}
+
 // The colliders' stress trials: 12 random trials on both integrators, dt
 // 1/240 and 1/30 s in turn, each on the 8 x 4 x 4 block hanging from its
 // bone sheet (x 0..28 mm, z 0..12 mm, y 0 (skin) .. 17 mm (fixed));
@@ -91,15 +104,7 @@ TEST(Stress, CollidersNeverLetANodeThroughNorProduceNaN) {
       add_obstacle_plane(*ob, {{0, table, 0}, {0, 1, 0}, 0.3 * u(rng), 0.8 * u(rng)});
       {
         // a square 0.1 m a side in the wall's plane, about wall_p
-        const Vec3 t1{-wall_n.y, wall_n.x, 0}, t2{0, 0, 1};
-        ObstacleMesh wall;
-        for (Real a : {-0.05, 0.05})
-          for (Real c : {-0.05, 0.05}) {
-            const Vec3 q = wall_p + a * t1 + c * t2;
-            wall.vertices.insert(wall.vertices.end(), {q.x, q.y, q.z});
-          }
-        wall.triangles = {0, 1, 3, 0, 3, 2};
-        wall.two_sided = true;
+        ObstacleMesh wall = two_sided_square(wall_p, {-wall_n.y, wall_n.x, 0}, {0, 0, 1});
         wall.friction = 0.5 * u(rng);
         add_obstacle_mesh(*ob, std::move(wall));
       }
@@ -176,14 +181,7 @@ TEST(Stress, MovingCollidersNeverLetANodeThroughNorProduceNaN) {
       const Vec3 c{cx, -(0.002 + std::abs(std::sin(tilt)) * 0.014) / std::cos(tilt), 0.006};  // 2 mm below the skin at least
       auto ob = std::make_shared<Obstacles>();
       {
-        ObstacleMesh plate;
-        for (Real a : {-0.05, 0.05})
-          for (Real d : {-0.05, 0.05}) {
-            const Vec3 q = c + a * t1 + d * t2;
-            plate.vertices.insert(plate.vertices.end(), {q.x, q.y, q.z});
-          }
-        plate.triangles = {0, 1, 3, 0, 3, 2};
-        plate.two_sided = true;
+        ObstacleMesh plate = two_sided_square(c, t1, t2);
         plate.friction = 0.8 * u(rng);
         plate.restitution = 0.3 * u(rng);
         plate.pivot = c;
