@@ -334,6 +334,18 @@ Rot3 rotation_from_vector(const Vec3& r) {
 
 Rot3 path_rotation(const Path& p, Real t) { return from_quaternion(path_quaternion(p, t)); }
 
+Real path_max_angular_speed(const Path& p) {
+  Real w = 0;
+  if (p.r.size() != 3 * p.t.size()) return 0;
+  for (std::size_t j = 1; j < p.t.size(); ++j) {
+    const Real dt = p.t[j] - p.t[j - 1];
+    const Eigen::AngleAxisd rel(quaternion_from_vector(load3(p.r.data(), static_cast<std::int64_t>(j - 1))).conjugate() *
+                                quaternion_from_vector(load3(p.r.data(), static_cast<std::int64_t>(j))));
+    if (dt > 0) w = std::max(w, std::abs(rel.angle()) / dt);
+  }
+  return w;
+}
+
 void obstacle_frames(const Obstacles& o, std::span<const Path> paths, Real t, Real h, std::vector<ObstacleFrame>& out) {
   out.clear();
   if (std::none_of(paths.begin(), paths.end(), [](const Path& p) { return !p.t.empty(); })) return;

@@ -140,16 +140,20 @@ struct ObstacleMotion {
 void obstacle_frames(const Obstacles& o, std::span<const Path> paths, Real t, Real h, std::vector<ObstacleFrame>& out);
 // A path's rotation at time t: the waypoints' rotation vectors (Path::r)
 // interpolated by slerp, held before the first and after the last (I
-// without any).
+// without any, or with r not 3 x the waypoints).
 Rot3 path_rotation(const Path& p, Real t);
+// A path's largest angular speed (rad/s) between two waypoints (0 without rotations).
+Real path_max_angular_speed(const Path& p);
 
 // One node's motion over a substep of h seconds from x0 to x = x0 + h v: where
-// it crosses an obstacle (moving as `motion` says; the default: at rest), v changes by the contact law and the node moves on
-// from the crossing with the new v for the rest of the substep (see above).
-// The earliest crossing of any obstacle first, then the rest of the motion
-// again (a corner between two obstacles), up to 8 crossings, after which the
-// node stays at the last; a plane the node starts behind is crossed at once.
-// Returns the last obstacle it touched (-1: none).
+// it crosses an obstacle (moving as `motion` says; the default: at rest), v
+// changes by the contact law and the node moves on from the crossing with
+// the new v for the rest of the substep (see above). The earliest crossing
+// of any obstacle first, then the rest of the motion again (a corner between
+// two obstacles), up to 8 crossings, after which the node stays where it is
+// on the last obstacle it touched, carried with it to the substep's end; a
+// plane the node starts behind is crossed at once. Returns the last obstacle
+// it touched (-1: none).
 ObstacleContact resolve_obstacle_contact(const Obstacles& o, Vec3 x0, Vec3& x, Vec3& v, Real h,
                                          const ObstacleMotion& motion = {});
 

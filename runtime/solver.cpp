@@ -1160,8 +1160,21 @@ StepInfo step(const Model& m, State& s, Real dt, const SolverOptions& o) {
     for (std::int32_t i = 0; i < m.n_nodes; ++i)
       if (s.inv_mass[i] > 0) fext += norm(load3(s.f_ext.data(), i));
     Real v_tool = 0, e_tool = 0;
+    // moving obstacles: their speed, and a turning one's at the farthest node
     if (s.obstacles)
-      for (const Path& p : s.obstacle_paths) v_tool = std::max(v_tool, p.max_speed());  // moving obstacles
+      for (std::size_t k = 0; k < s.obstacle_paths.size() && k < static_cast<std::size_t>(obstacle_count(*s.obstacles)); ++k) {
+        const Path& p = s.obstacle_paths[k];
+        Real speed = p.max_speed();
+        if (const Real w = path_max_angular_speed(p); w > 0) {
+          const std::size_t np = s.obstacles->planes.size();
+          const Vec3 c = (k < np ? s.obstacles->planes[k].pivot : s.obstacles->meshes[k - np].pivot) + p.at(s.time);
+          Real r2 = 0;
+          for (std::int32_t i = 0; i < m.n_nodes; ++i)
+            if (s.inv_mass[i] > 0) r2 = std::max(r2, dot(load3(s.x.data(), i) - c, load3(s.x.data(), i) - c));
+          speed += w * std::sqrt(r2);
+        }
+        v_tool = std::max(v_tool, speed);
+      }
     for (const auto& a : s.attachments) {
       if (a.nodes.empty()) continue;
       const Real speed = a.path.max_speed();

@@ -24,7 +24,7 @@ struct Path {
   std::vector<Real> t;  // (n) s
   std::vector<Real> p;  // (n x 3) m
   std::vector<Real> r{};  // (n x 3) rad, rotation vectors (axis x angle) at the waypoints, or empty: none
-                        // (moving colliders turn about their pivot; runtime/obstacles.h, path_rotation)
+                          // (moving colliders turn about their pivot; runtime/obstacles.h, path_rotation)
   Vec3 at(Real time) const;
   Real max_speed() const;  // m/s, largest segment speed
 };
