@@ -912,13 +912,18 @@ Vec3 collider_point(const ColliderDef& c, const Vec3& lo, const Vec3& hi) {
   if (!c.point_relative) return {c.point[0], c.point[1], c.point[2]};
   return {lo.x + c.point[0] * (hi.x - lo.x), lo.y + c.point[1] * (hi.y - lo.y), lo.z + c.point[2] * (hi.z - lo.z)};
 }
+// Where a mesh collider's origin goes: place_in_box's point of the rest box
+// [lo, hi], or the origin itself.
+Vec3 mesh_origin(const ColliderDef& c, const Vec3& lo, const Vec3& hi) {
+  if (!c.place_relative) return {};
+  return {lo.x + c.place[0] * (hi.x - lo.x), lo.y + c.place[1] * (hi.y - lo.y), lo.z + c.place[2] * (hi.z - lo.z)};
+}
 // The centre a collider's rotations turn it about: its pivot, or a plane's
 // point, or a mesh's origin (placed by place_in_box).
 Vec3 collider_pivot(const ColliderDef& c, const Vec3& lo, const Vec3& hi) {
   if (c.has_pivot) return {c.pivot[0], c.pivot[1], c.pivot[2]};
   if (c.kind == ColliderDef::Kind::plane) return collider_point(c, lo, hi);
-  if (!c.place_relative) return {};
-  return {lo.x + c.place[0] * (hi.x - lo.x), lo.y + c.place[1] * (hi.y - lo.y), lo.z + c.place[2] * (hi.z - lo.z)};
+  return mesh_origin(c, lo, hi);
 }
 // A point of a moving collider's geometry where its path puts it at time t.
 Vec3 moved(const Path& path, const Vec3& pivot, const Vec3& x, Real t) {
@@ -932,16 +937,14 @@ Vec3 moved(const Path& path, const Vec3& pivot, const Vec3& x, Real t) {
 void read_collider_mesh(const ColliderDef& c, const Vec3& lo, const Vec3& hi, std::vector<Real>& vertices,
                         std::vector<std::int32_t>& triangles) {
   const Surface s = read_stl(c.stl);
-  Vec3 shift{};
-  if (c.place_relative) {
-    shift = {lo.x + c.place[0] * (hi.x - lo.x), lo.y + c.place[1] * (hi.y - lo.y), lo.z + c.place[2] * (hi.z - lo.z)};
-  }
+  const Vec3 shift = mesh_origin(c, lo, hi);
   const Real d[3] = {shift.x, shift.y, shift.z};
   vertices.resize(3 * static_cast<std::size_t>(s.vertices.rows()));
   for (Eigen::Index i = 0; i < s.vertices.rows(); ++i)
     for (int k = 0; k < 3; ++k) vertices[3 * static_cast<std::size_t>(i) + k] = c.scale * s.vertices(i, k) + d[k];
   triangles.assign(s.faces.data(), s.faces.data() + s.faces.size());  // (row-major n x 3)
-}}  // namespace
+}
+}  // namespace
 
 void Scene::init_obstacles() {
   const Model& m = *model_;

@@ -232,51 +232,41 @@ void add_run_command(CLI::App& app) {
       }
       for (const runtime::ColliderDef& c : def.colliders) {
         if (!c.tissue) continue;
-        // - a moving mesh narrower than the tissue's node spacing: only nodes
-        //   collide, so it can pass between them (a probe through the skin)
-        if (c.kind == runtime::ColliderDef::Kind::mesh && !c.path.t.empty()) {
+        if (c.kind == runtime::ColliderDef::Kind::mesh) {
+          // its bounding box, and (turning) its radius about its pivot
           const runtime::ObstacleMesh& om = ob->meshes[mesh];
-          double ext[3];
-          for (int a = 0; a < 3; ++a) {
-            double mlo = HUGE_VAL, mhi = -HUGE_VAL;
-            for (std::size_t v = 0; 3 * v < om.vertices.size(); ++v)
-              mlo = std::min(mlo, om.vertices[3 * v + a]), mhi = std::max(mhi, om.vertices[3 * v + a]);
-            ext[a] = mhi - mlo;
+          double mlo[3] = {HUGE_VAL, HUGE_VAL, HUGE_VAL}, mhi[3] = {-HUGE_VAL, -HUGE_VAL, -HUGE_VAL}, r2 = 0;
+          for (std::size_t v = 0; 3 * v < om.vertices.size(); ++v) {
+            for (int a = 0; a < 3; ++a) mlo[a] = std::min(mlo[a], om.vertices[3 * v + a]), mhi[a] = std::max(mhi[a], om.vertices[3 * v + a]);
+            const runtime::Vec3 d = runtime::load3(om.vertices.data(), static_cast<std::int64_t>(v)) - om.pivot;
+            r2 = std::max(r2, runtime::dot(d, d));
           }
+          // - a moving mesh narrower than the tissue's node spacing: only nodes
+          //   collide, so it can pass between them (a probe through the skin)
+          double ext[3] = {mhi[0] - mlo[0], mhi[1] - mlo[1], mhi[2] - mlo[2]};
           std::sort(ext, ext + 3);
-          if (ext[1] < spacing)
+          if (!c.path.t.empty() && ext[1] < spacing)
             std::cerr << "orthosim run: warning: " << scene_file << ": the moving collider" << quoted(c.name) << " (" << c.stl
                       << ") is " << ext[1] << " m across, less than the tissue's node spacing (" << spacing
                       << " m, the median spring): only nodes collide, so it can pass between them\n";
-        }
-        if (c.kind == runtime::ColliderDef::Kind::mesh && (!(c.blood && fb) || !c.path.t.empty())) {  // (with blood: the domain's check above)
-          const runtime::ObstacleMesh& om = ob->meshes[mesh];
-          bool meets = true;
-          for (int a = 0; a < 3 && meets; ++a) {
-            double mlo = HUGE_VAL, mhi = -HUGE_VAL;
-            for (std::size_t v = 0; 3 * v < om.vertices.size(); ++v)
-              mlo = std::min(mlo, om.vertices[3 * v + a]), mhi = std::max(mhi, om.vertices[3 * v + a]);
-            // a moving one: the box it sweeps along its path (turning, the
-            // ball about its pivot that holds it)
-            if (!c.path.r.empty()) {
-              double r2 = 0;
-              for (std::size_t v = 0; 3 * v < om.vertices.size(); ++v) {
-                const runtime::Vec3 d = runtime::load3(om.vertices.data(), static_cast<std::int64_t>(v)) - om.pivot;
-                r2 = std::max(r2, runtime::dot(d, d));
-              }
-              const double piv[3] = {om.pivot.x, om.pivot.y, om.pivot.z};
-              mlo = piv[a] - std::sqrt(r2), mhi = piv[a] + std::sqrt(r2);
+          // - a mesh farther from the tissue than the tissue's size (with blood
+          //   and static: the domain's check above); a moving one: the box it
+          //   sweeps along its path (turning, of the ball about its pivot that holds it)
+          if (!(c.blood && fb) || !c.path.t.empty()) {
+            bool meets = true;
+            const double piv[3] = {om.pivot.x, om.pivot.y, om.pivot.z};
+            for (int a = 0; a < 3 && meets; ++a) {
+              double blo = mlo[a], bhi = mhi[a], dlo = 0, dhi = 0;
+              if (!c.path.r.empty()) blo = piv[a] - std::sqrt(r2), bhi = piv[a] + std::sqrt(r2);
+              for (std::size_t w = 0; w < c.path.t.size(); ++w)
+                dlo = std::min(dlo, c.path.p[3 * w + a]), dhi = std::max(dhi, c.path.p[3 * w + a]);
+              meets = bhi + dhi >= lo[a] - grow && blo + dlo <= hi[a] + grow;
             }
-            double dlo = 0, dhi = 0;
-            for (std::size_t w = 0; w < c.path.t.size(); ++w)
-              dlo = std::min(dlo, c.path.p[3 * w + a]), dhi = std::max(dhi, c.path.p[3 * w + a]);
-            if (c.path.t.empty()) dlo = dhi = 0;
-            meets = mhi + dhi >= lo[a] - grow && mlo + dlo <= hi[a] + grow;
+            if (!meets)
+              std::cerr << "orthosim run: warning: " << scene_file << ": the collider" << quoted(c.name) << " (" << c.stl
+                        << ") lies farther from the tissue than the tissue's own size (" << grow
+                        << " m): it never meets it (its units or frame?)\n";
           }
-          if (!meets)
-            std::cerr << "orthosim run: warning: " << scene_file << ": the collider" << quoted(c.name) << " (" << c.stl
-                      << ") lies farther from the tissue than the tissue's own size (" << grow
-                      << " m): it never meets it (its units or frame?)\n";
         }
         const std::int64_t n =
             behind[c.kind == runtime::ColliderDef::Kind::plane ? plane++ : ob->planes.size() + mesh++];
