@@ -332,6 +332,12 @@ TEST_F(RunCli, WhatTheRunWillNotDoIsAWarning) {
   expect_one_warning(rod_run, "orthosim run: warning: " + rod + ": the moving collider 'probe' (" + (dir / "rod.stl") + ") is 0.001 m across");
   EXPECT_NE(rod_run.err.find("only nodes collide, so it can pass between them"), std::string::npos) << rod_run.err;
   expect_silent(run_cli("run " + pushed("plate.stl") + " --no-output --quiet"));
+  // the far mesh brought to the tissue by its path is not far: the box it sweeps meets the tissue
+  const auto brought = scene(R"({
+      "model": "model.h5", "fixed": ["fixed"], "integrator": "implicit", "dt": 0.005, "duration": 0.01,
+      "colliders": [{"name": "tray", "type": "mesh", "stl": "far.stl", "path": [[0, 0, 0, 0], [10, -5, -5, -5]]}]})");
+  const auto brought_run = run_cli("run " + brought + " --no-output --quiet");
+  EXPECT_EQ(brought_run.err.find("lies farther from the tissue"), std::string::npos) << brought_run.err;
   // a duration under half a step
   const auto shortrun = with_start("0", "0.002");
   const auto r2 = run_cli("run " + shortrun + " --no-output --quiet");
