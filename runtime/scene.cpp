@@ -1012,6 +1012,18 @@ struct Scene::FluidRun {
 
 Scene::~Scene() = default;
 
+std::vector<std::optional<std::array<Real, 3>>> Scene::collider_blood_forces() const {
+  std::vector<std::optional<std::array<Real, 3>>> out(def_.colliders.size());
+  if (!fluid_) return out;
+  for (const auto& [k, si] : fluid_->moving_walls) {
+    const FluidSurface& w = fluid_->state.surfaces[si];
+    std::array<Real, 3> f{0, 0, 0};
+    for (std::size_t i = 0; i < w.force.size(); ++i) f[i % 3] += w.force[i];
+    out[moving_[k].def] = f;
+  }
+  return out;
+}
+
 const Fluid* Scene::fluid() const { return fluid_ ? &fluid_->fluid : nullptr; }
 const FluidState* Scene::fluid_state() const { return fluid_ ? &fluid_->state : nullptr; }
 const FluidBoundaries* Scene::fluid_boundaries() const { return fluid_ ? &fluid_->bounds : nullptr; }

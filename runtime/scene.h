@@ -33,6 +33,7 @@
 
 #include <array>
 #include <functional>
+#include <optional>
 #include <limits>
 #include <memory>
 #include <span>
@@ -315,6 +316,11 @@ class Scene {
   // substep (State::contact_force summed over the nodes in contact with it);
   // zero for a collider that does not act on the tissue
   std::vector<std::array<Real, 3>> collider_forces() const;
+  // N: the force the blood exerted on each moving collider that acts on it
+  // over the last step (its moving wall's reaction, FluidSurface::force
+  // summed); nullopt for the others (the blood's static walls do not record
+  // their reaction) and without blood
+  std::vector<std::optional<std::array<Real, 3>>> collider_blood_forces() const;
   // What the fluid did over the run: particles emitted, drained, lost, paused emitter steps.
   struct FluidSummary {
     std::int64_t particles = 0, emitted = 0, drained = 0, left_domain = 0, nonfinite = 0, paused_steps = 0;

@@ -390,9 +390,13 @@ void add_run_command(CLI::App& app) {
     met["colliders"] = nlohmann::json::array();
     {
       const auto f = scene->collider_forces();
+      const auto blood = scene->collider_blood_forces();
       for (std::size_t k = 0; k < def.colliders.size(); ++k) {
         const auto& cd = def.colliders[k];
         nlohmann::json e = {{"name", cd.name}, {"tissue", cd.tissue}, {"blood", cd.blood}};
+        // a moving collider's force from the blood (its moving wall's reaction), at the end
+        if (const auto& fb = blood[k]) e["blood_force_n"] = {(*fb)[0], (*fb)[1], (*fb)[2]};
+        else e["blood_force_n"] = nullptr;
         if (cd.tissue && scene->obstacles()) {
           e["tissue_force_n"] = {f[k][0], f[k][1], f[k][2]};
           e["max_tissue_force_n"] = max_force[k];

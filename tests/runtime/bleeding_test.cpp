@@ -332,6 +332,69 @@ TEST(Bleeding, AStaticColliderHoldsTheBlood) {
   fs::remove_all(tmp);
 }
 
+// A moving collider meets the blood as a moving wall: a tray (a square STL,
+// the blood's alone) rising from 15 mm to 6 mm under the skin over 0.3 s,
+// then held, catches the blood that falls from the wound. No particle is ever
+// below it where it is, and the blood's force on it (the run's
+// collider_blood_forces) pushes it down with about the weight of the blood
+// resting on it once the pool has settled.
+TEST(Bleeding, AMovingTrayCatchesTheBlood) {
+  namespace fs = std::filesystem;
+  const fs::path tmp = fs::temp_directory_path() / ("orthosim-tray-" + std::to_string(::getpid()));
+  fs::remove_all(tmp);
+  fs::create_directories(tmp);
+  {
+    Surface tray;
+    tray.vertices.resize(4, 3);
+    tray.vertices << -100, -15, -100, 100, -15, -100, 100, -15, 100, -100, -15, 100;  // mm
+    tray.faces.resize(2, 3);
+    tray.faces << 0, 2, 1, 0, 3, 2;
+    write_stl((tmp / "tray.stl").string(), tray);
+  }
+  SceneDef def = bleeding_def(false);
+  def.fluid.margin = 0.02;  // (the domain reaches 20 mm below the skin)
+  ColliderDef tray;
+  tray.name = "tray";
+  tray.tissue = false;
+  tray.kind = ColliderDef::Kind::mesh;
+  tray.stl = (tmp / "tray.stl").string();
+  tray.scale = 1e-3;
+  tray.path.t = {0, 0.3};
+  tray.path.p = {0, 0, 0, 0, 9e-3, 0};
+  def.colliders = {tray};
+  Scene scene(block_with_vessel(), def);
+  ASSERT_EQ(scene.fluid_state()->surfaces.size(), 2u);
+  Real below = HUGE_VAL;  // the lowest particle over the tray where it is, over the steps
+  for (int k = 0; k < 90; ++k) {
+    run_steps(scene, 1);
+    const Real y_tray = -15e-3 + tray.path.at(scene.time()).y;
+    for (Real y : scene.fluid_state()->x[1]) below = std::min(below, y - y_tray);
+  }
+  const FluidState& st = *scene.fluid_state();
+  EXPECT_TRUE(fluid_finite(st));
+  EXPECT_GE(below, 0) << "a particle below the moving tray";
+  // the pool on the tray: the particles within 4 mm of it, their weight
+  std::int64_t pooled = 0;
+  for (Real y : st.x[1]) pooled += y < -6e-3 + 4e-3;
+  const Real weight = static_cast<Real>(pooled) * scene.fluid()->mass * 9.81;
+  const auto f = scene.collider_blood_forces();
+  ASSERT_EQ(f.size(), 1u);
+  ASSERT_TRUE(f[0].has_value());
+  std::printf("  the tray: %lld particles pooled on it, weight %.4g N; the blood's force on it (%.4g, %.4g, %.4g) N\n",
+              static_cast<long long>(pooled), weight, (*f[0])[0], (*f[0])[1], (*f[0])[2]);
+  // the jet still lands on the pool: its momentum flux, at most rho Q v_max, comes on top
+  Real v_max = 0;
+  for (std::size_t i = 0; i < st.x[0].size(); ++i)
+    v_max = std::max(v_max, std::sqrt(st.v[0][i] * st.v[0][i] + st.v[1][i] * st.v[1][i] + st.v[2][i] * st.v[2][i]));
+  const Real jet = scene.fluid()->params.rest_density * scene.fluid_summary().flow_rate * v_max;
+  std::printf("  the jet's momentum flux at most %.4g N (Q %.3g m^3/s, v_max %.3g m/s)\n", jet, scene.fluid_summary().flow_rate, v_max);
+  EXPECT_GT(pooled, 50);
+  EXPECT_LT((*f[0])[1], 0) << "the blood pushes the tray down";
+  EXPECT_GT(-(*f[0])[1], 0.98 * weight) << "it carries the pool";
+  EXPECT_LT(-(*f[0])[1], weight + jet) << "and at most the jet's momentum besides";
+  fs::remove_all(tmp);
+}
+
 // The wound's emitter moves with the tissue the cut went through: a grasper
 // drags the skin beside the cut 3 mm along the vessel's cross direction (z)
 // after the cut, and the emitter follows (it stayed where the cut was).
