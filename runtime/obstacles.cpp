@@ -367,6 +367,7 @@ void obstacle_frames(const Obstacles& o, std::span<const Path> paths, Real t, Re
     Eigen::Vector3d axis = rel.axis();
     if (angle > M_PI) angle -= 2 * M_PI;  // the short way
     f.w = {angle * axis.x(), angle * axis.y(), angle * axis.z()};
+    f.r1 = f.r0 * rotation_from_vector(f.w);
   }
 }
 

@@ -102,6 +102,8 @@ struct ObstacleMotion {
   }
   Rot3 rotation(std::int32_t k, Real s) const {
     const ObstacleFrame& a = frame(k);
+    if (s == 0) return a.r0;  // (the ends, which most queries ask for, without the trigonometry)
+    if (s == 1) return a.r1;
     return a.r0 * rotation_from_vector(s * a.w);
   }
   // a point in space at the fraction s, in obstacle k's own coordinates, and back

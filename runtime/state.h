@@ -38,7 +38,7 @@ struct ObstacleFrame {
   Vec3 d0, d1;  // m
   bool rotates = false;
   Vec3 pivot;   // m, in the obstacle's own coordinates
-  Rot3 r0;
+  Rot3 r0, r1;  // the rotation at the substep's start and end (r1 = r0 exp([w]))
   Vec3 w;       // rad over the substep
 };
 

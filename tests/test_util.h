@@ -1,6 +1,7 @@
 // Small helpers shared by the tests: scratch directories and running the CLI.
 #pragma once
 
+#include <array>
 #include <cstdlib>
 #include <filesystem>
 #include <fstream>
@@ -71,6 +72,29 @@ inline int count_lines(const std::string& s) {
   int n = 0;
   for (char c : s) n += c == '\n';
   return n;
+}
+
+// An ASCII STL of the box [lo, hi], its faces' normals outward.
+inline std::string box_stl(const std::array<double, 3>& lo, const std::array<double, 3>& hi) {
+  auto corner = [&](int c) { return std::array<double, 3>{c & 1 ? hi[0] : lo[0], c & 2 ? hi[1] : lo[1], c & 4 ? hi[2] : lo[2]}; };
+  std::string out = "solid box\n";
+  for (int axis = 0; axis < 3; ++axis)
+    for (int side = 0; side < 2; ++side) {
+      // the face's four corners in order around it
+      const int a = (axis + 1) % 3, b = (axis + 2) % 3;
+      const int base = side << axis;
+      const int q[4] = {base, base | 1 << a, base | 1 << a | 1 << b, base | 1 << b};
+      const bool flip = side == 0;  // (a, b, axis) is right-handed: counter-clockwise seen from +axis
+      for (const auto& t : {std::array<int, 3>{q[0], q[1], q[2]}, std::array<int, 3>{q[0], q[2], q[3]}}) {
+        out += "facet normal 0 0 0\nouter loop\n";
+        for (int k = 0; k < 3; ++k) {
+          const auto v = corner(t[flip ? 2 - k : k]);
+          out += "vertex " + std::to_string(v[0]) + " " + std::to_string(v[1]) + " " + std::to_string(v[2]) + "\n";
+        }
+        out += "endloop\nendfacet\n";
+      }
+    }
+  return out + "endsolid box\n";
 }
 
 }  // namespace orthosim::test

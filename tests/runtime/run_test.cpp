@@ -302,23 +302,7 @@ TEST_F(RunCli, WhatTheRunWillNotDoIsAWarning) {
   // a moving mesh narrower than the tissue's node spacing can pass between the
   // nodes: a 1 mm rod pushed up into the skin is a warning, a 20 mm plate is not
   auto box = [&](const std::string& file, double w, double h) {  // w x h x w m, its top face at y = -0.002
-    std::string out = "solid box\n";
-    const double lo[3] = {0.02 - w / 2, -0.002 - h, 0.008 - w / 2}, hi[3] = {0.02 + w / 2, -0.002, 0.008 + w / 2};
-    auto corner = [&](int c, int k) { return (c >> k & 1) ? hi[k] : lo[k]; };
-    for (int axis = 0; axis < 3; ++axis)
-      for (int side = 0; side < 2; ++side) {
-        const int a = (axis + 1) % 3, b = (axis + 2) % 3, base = side << axis;
-        const int q[4] = {base, base | 1 << a, base | 1 << a | 1 << b, base | 1 << b};
-        for (const auto& t : {std::array<int, 3>{q[0], q[1], q[2]}, std::array<int, 3>{q[0], q[2], q[3]}}) {
-          out += "facet normal 0 0 0\nouter loop\n";
-          for (int k = 0; k < 3; ++k) {
-            const int c = t[side == 0 ? 2 - k : k];
-            out += "vertex " + std::to_string(corner(c, 0)) + " " + std::to_string(corner(c, 1)) + " " + std::to_string(corner(c, 2)) + "\n";
-          }
-          out += "endloop\nendfacet\n";
-        }
-      }
-    test::write_file(dir / file, out + "endsolid box\n");
+    test::write_file(dir / file, test::box_stl({0.02 - w / 2, -0.002 - h, 0.008 - w / 2}, {0.02 + w / 2, -0.002, 0.008 + w / 2}));
   };
   box("rod.stl", 0.001, 0.02);
   box("plate.stl", 0.02, 0.001);

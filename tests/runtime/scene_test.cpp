@@ -632,29 +632,6 @@ TEST_F(SceneTest, CollidersReportTheirForceOnTheTissue) {
   EXPECT_EQ(scene.counters().events, 0);
 }
 
-// An ASCII STL of the box [lo, hi], its faces' normals outward.
-std::string box_stl(const std::array<Real, 3>& lo, const std::array<Real, 3>& hi) {
-  auto corner = [&](int c) { return std::array<Real, 3>{c & 1 ? hi[0] : lo[0], c & 2 ? hi[1] : lo[1], c & 4 ? hi[2] : lo[2]}; };
-  std::string out = "solid box\n";
-  for (int axis = 0; axis < 3; ++axis)
-    for (int side = 0; side < 2; ++side) {
-      // the face's four corners in order around it
-      const int a = (axis + 1) % 3, b = (axis + 2) % 3;
-      const int base = side << axis;
-      const int q[4] = {base, base | 1 << a, base | 1 << a | 1 << b, base | 1 << b};
-      const bool flip = side == 0;  // (a, b, axis) is right-handed: counter-clockwise seen from +axis
-      for (const auto& t : {std::array<int, 3>{q[0], q[1], q[2]}, std::array<int, 3>{q[0], q[2], q[3]}}) {
-        out += "facet normal 0 0 0\nouter loop\n";
-        for (int k = 0; k < 3; ++k) {
-          const auto v = corner(t[flip ? 2 - k : k]);
-          out += "vertex " + std::to_string(v[0]) + " " + std::to_string(v[1]) + " " + std::to_string(v[2]) + "\n";
-        }
-        out += "endloop\nendfacet\n";
-      }
-    }
-  return out + "endsolid box\n";
-}
-
 // A moving collider (a box-shaped probe pushed 4 mm up into the skin, from
 // 2 mm below it, over 0.5 s): no skin node inside the probe's footprint is
 // left behind its top face, the probe's force on the tissue points into it,
@@ -663,7 +640,7 @@ std::string box_stl(const std::array<Real, 3>& lo, const std::array<Real, 3>& hi
 TEST_F(SceneTest, AMovingColliderPressesTheSkinAndIsWrittenAsASeries) {
   const auto c = skin_point();
   const std::array<Real, 3> lo{c[0] - 5e-3, -6e-3, c[2] - 5e-3}, hi{c[0] + 5e-3, -2e-3, c[2] + 5e-3};
-  orthosim::test::write_file(dir / "probe.stl", box_stl(lo, hi));
+  orthosim::test::write_file(dir / "probe.stl", orthosim::test::box_stl(lo, hi));
   const SceneDef d = parse_scene(R"({
     "model": "model.h5", "fixed": ["fixed"], "integrator": "implicit", "damping": {"mass": 20}, "dt": 0.01,
     "fluid": {"spacing": 0.002},
@@ -730,7 +707,7 @@ TEST_F(SceneTest, AMovingColliderPressesTheSkinAndIsWrittenAsASeries) {
 TEST_F(SceneTest, ARotatingColliderTurnsAboutItsPivot) {
   const auto c = skin_point();
   const std::array<Real, 3> lo{c[0] - 5e-3, -6e-3, c[2] - 5e-3}, hi{c[0] + 5e-3, -2e-3, c[2] + 5e-3};
-  orthosim::test::write_file(dir / "probe.stl", box_stl(lo, hi));
+  orthosim::test::write_file(dir / "probe.stl", orthosim::test::box_stl(lo, hi));
   const Vec3 pivot{0.02, -0.004, 0.008};  // under the probe's centre (skin_point())
   const SceneDef d = parse_scene(R"({
     "model": "model.h5", "fixed": ["fixed"], "integrator": "implicit", "dt": 0.01, "fluid": {"spacing": 0.002},
@@ -786,7 +763,7 @@ TEST_F(SceneTest, ARotatingColliderTurnsAboutItsPivot) {
 // motion given as a path, and a collider without a path cannot be moved.
 TEST_F(SceneTest, MoveColliderDrivesAnInstrumentFromCode) {
   const auto c = skin_point();
-  orthosim::test::write_file(dir / "probe.stl", box_stl({c[0] - 5e-3, -6e-3, c[2] - 5e-3}, {c[0] + 5e-3, -2e-3, c[2] + 5e-3}));
+  orthosim::test::write_file(dir / "probe.stl", orthosim::test::box_stl({c[0] - 5e-3, -6e-3, c[2] - 5e-3}, {c[0] + 5e-3, -2e-3, c[2] + 5e-3}));
   auto scene_with = [&](const std::string& path) {
     return parse_scene(R"({
       "model": "model.h5", "fixed": ["fixed"], "integrator": "implicit", "damping": {"mass": 20}, "dt": 0.01,
