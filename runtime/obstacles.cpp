@@ -5,7 +5,9 @@
 #include <Eigen/Geometry>
 
 #include <algorithm>
+#include <array>
 #include <cmath>
+#include <utility>
 
 namespace orthosim::runtime {
 
@@ -369,6 +371,323 @@ void obstacle_frames(const Obstacles& o, std::span<const Path> paths, Real t, Re
     f.w = {angle * axis.x(), angle * axis.y(), angle * axis.z()};
     f.r1 = f.r0 * rotation_from_vector(f.w);
   }
+}
+
+// ---- the meshes' edges against the tissue's faces ---------------------------
+
+namespace {
+
+void build_sample_cells(const std::vector<Real>& p, Real spacing, SampleCells& g) {
+  const auto n = static_cast<std::int64_t>(p.size() / 3);
+  g = SampleCells{};
+  if (n == 0) return;
+  Vec3 lo = load3(p.data(), 0), hi = lo;
+  for (std::int64_t i = 1; i < n; ++i) {
+    const Vec3 a = load3(p.data(), i);
+    lo = {std::min(lo.x, a.x), std::min(lo.y, a.y), std::min(lo.z, a.z)};
+    hi = {std::max(hi.x, a.x), std::max(hi.y, a.y), std::max(hi.z, a.z)};
+  }
+  g.lo = lo, g.hi = hi, g.origin = lo;
+  // cells of about two spacings, widened until there are at most 4 per point (and 64^3)
+  const Real ext[3] = {hi.x - lo.x, hi.y - lo.y, hi.z - lo.z};
+  g.cell = 2 * spacing;
+  auto cells = [&](Real c) {
+    std::int64_t total = 1;
+    for (int a = 0; a < 3; ++a) total *= static_cast<std::int64_t>(std::floor(ext[a] / c)) + 1;
+    return total;
+  };
+  while (cells(g.cell) > std::max<std::int64_t>(4 * n, 64 * 64 * 64)) g.cell *= 2;
+  for (int a = 0; a < 3; ++a) g.dims[a] = static_cast<std::int32_t>(std::floor(ext[a] / g.cell)) + 1;
+  const std::int64_t nc = static_cast<std::int64_t>(g.dims[0]) * g.dims[1] * g.dims[2];
+  auto cell_of = [&](const Vec3& a) {
+    const Real r[3] = {a.x - lo.x, a.y - lo.y, a.z - lo.z};
+    std::int64_t c[3];
+    for (int k = 0; k < 3; ++k) c[k] = std::clamp<std::int64_t>(static_cast<std::int64_t>(std::floor(r[k] / g.cell)), 0, g.dims[k] - 1);
+    return (c[2] * g.dims[1] + c[1]) * g.dims[0] + c[0];
+  };
+  g.start.assign(static_cast<std::size_t>(nc + 1), 0);
+  for (std::int64_t i = 0; i < n; ++i) ++g.start[static_cast<std::size_t>(cell_of(load3(p.data(), i)) + 1)];
+  for (std::int64_t c = 0; c < nc; ++c) g.start[static_cast<std::size_t>(c + 1)] += g.start[static_cast<std::size_t>(c)];
+  g.items.assign(static_cast<std::size_t>(n), 0);
+  std::vector<std::int32_t> fill(g.start.begin(), g.start.end() - 1);
+  for (std::int64_t i = 0; i < n; ++i) g.items[static_cast<std::size_t>(fill[static_cast<std::size_t>(cell_of(load3(p.data(), i)))]++)] = static_cast<std::int32_t>(i);
+}
+
+// The barycentric weights of p's projection on the plane of triangle abc (n
+// its unnormalised normal, n2 = |n|^2), and whether the projection lies in the
+// triangle (edges included, to round-off).
+struct Projection {
+  Real w[3];
+  bool inside;
+};
+Projection project(const Vec3& p, const Vec3& a, const Vec3& b, const Vec3& c, const Vec3& n, Real n2) {
+  const Real wa = dot(cross(b - p, c - p), n), wb = dot(cross(c - p, a - p), n), wc = dot(cross(a - p, b - p), n);
+  const Real tol = -1e-12 * n2;
+  return {{wa / n2, wb / n2, wc / n2}, wa >= tol && wb >= tol && wc >= tol};
+}
+
+// Whether p, d (< 0) behind the plane of triangle abc, lies beyond its
+// extent by no more than that: |p - closest point|^2 <= 2 d^2.
+bool near_edge(const Vec3& p, const Vec3& a, const Vec3& b, const Vec3& c, Real d) {
+  const Vec3 e = p - closest_point_on_triangle(p, a, b, c);
+  return dot(e, e) <= 2 * d * d;
+}
+
+}  // namespace
+
+Real default_edge_spacing(std::span<const std::int32_t> quads, std::span<const Real> x) {
+  std::vector<Real> len;
+  len.reserve(quads.size());
+  for (std::size_t q = 0; q + 3 < quads.size(); q += 4)
+    for (int k = 0; k < 4; ++k) len.push_back(norm(load3(x.data(), quads[q + static_cast<std::size_t>(k)]) - load3(x.data(), quads[q + static_cast<std::size_t>((k + 1) % 4)])));
+  if (len.empty()) return 0;
+  std::nth_element(len.begin(), len.begin() + static_cast<std::ptrdiff_t>(len.size() / 2), len.end());
+  return Real(0.5) * len[len.size() / 2];
+}
+
+void sample_obstacle_edges(ObstacleMesh& m, Real spacing) {
+  if (std::isnan(spacing) || std::isinf(spacing)) throw Error("", "obstacle mesh: the edge sample spacing must be finite");
+  {
+    m.samples.clear();
+    m.sample_cells = SampleCells{};
+    if (!(spacing > 0)) return;
+    const std::size_t nt = m.triangles.size() / 3;
+    std::vector<std::pair<std::int32_t, std::int32_t>> edges;
+    std::vector<std::int32_t> used;
+    edges.reserve(3 * nt);
+    for (std::size_t t = 0; t < nt; ++t)
+      for (int k = 0; k < 3; ++k) {
+        const std::int32_t a = m.triangles[3 * t + k], b = m.triangles[3 * t + (k + 1) % 3];
+        edges.emplace_back(std::min(a, b), std::max(a, b));
+        used.push_back(a);
+      }
+    std::sort(edges.begin(), edges.end());
+    edges.erase(std::unique(edges.begin(), edges.end()), edges.end());
+    std::sort(used.begin(), used.end());
+    used.erase(std::unique(used.begin(), used.end()), used.end());
+    std::int64_t total = static_cast<std::int64_t>(used.size());
+    for (const auto& [a, b] : edges) {
+      const Real len = norm(load3(m.vertices.data(), b) - load3(m.vertices.data(), a));
+      total += static_cast<std::int64_t>(std::min<Real>(std::ceil(len / spacing), 1e8)) - 1;
+      if (total > 10'000'000)
+        throw Error("", "obstacle mesh: edge samples " + std::to_string(spacing) + " m apart would be more than 10^7 points");
+    }
+    m.samples.reserve(3 * static_cast<std::size_t>(total));
+    for (const std::int32_t v : used) m.samples.insert(m.samples.end(), &m.vertices[3 * static_cast<std::size_t>(v)], &m.vertices[3 * static_cast<std::size_t>(v)] + 3);
+    for (const auto& [a, b] : edges) {
+      const Vec3 pa = load3(m.vertices.data(), a), pb = load3(m.vertices.data(), b);
+      const auto pieces = static_cast<int>(std::ceil(norm(pb - pa) / spacing));
+      for (int j = 1; j < pieces; ++j) {
+        const Vec3 q = pa + (static_cast<Real>(j) / pieces) * (pb - pa);
+        m.samples.insert(m.samples.end(), {q.x, q.y, q.z});
+      }
+    }
+    build_sample_cells(m.samples, spacing, m.sample_cells);
+  }
+}
+
+bool has_edge_samples(const Obstacles& o) {
+  return std::any_of(o.meshes.begin(), o.meshes.end(), [](const ObstacleMesh& m) { return !m.samples.empty(); });
+}
+
+FaceContacts resolve_face_contacts(const Obstacles& o, const ObstacleMotion& mo, std::span<const std::int32_t> quads,
+                                   std::span<const Real> x, std::span<Real> v, std::span<const Real> inv_mass, Real h,
+                                   std::span<Real> impulse, FaceScratch& sc, FaceHolds* holds,
+                                   std::span<std::uint8_t> met) {
+  FaceContacts out;
+  const auto n = static_cast<std::int64_t>(x.size() / 3);
+  const std::size_t nq = quads.size() / 4;
+  if (nq == 0 || !(h > 0)) return out;
+  const auto np = static_cast<std::int32_t>(o.planes.size());
+  const std::int32_t* Q = quads.data();
+  // triangle t of quad t / 2: (q0, q1, q2) or (q0, q2, q3)
+  auto corners = [&](std::size_t t, std::int32_t c[3]) {
+    const std::int32_t* q = Q + 4 * (t / 2);
+    c[0] = q[0], c[1] = q[1 + (t & 1)], c[2] = q[2 + (t & 1)];
+  };
+  std::size_t met_first = 0;  // the mesh's first sample in `met`
+  for (std::size_t mi = 0; mi < o.meshes.size(); ++mi) {
+    const ObstacleMesh& mesh = o.meshes[mi];
+    if (mesh.samples.empty()) continue;
+    const auto k = np + static_cast<std::int32_t>(mi);
+    const SampleCells& g = mesh.sample_cells;
+    const bool with_holds = holds && holds->obstacle.size() == static_cast<std::size_t>(n);
+    // the samples that met the faces in the last substep (in), and in this one (out)
+    const std::size_t ns = mesh.samples.size() / 3;
+    std::uint8_t* met_now = nullptr;
+    const std::uint8_t* was_met = nullptr;
+    if (met.size() >= met_first + ns) {
+      met_now = met.data() + met_first;
+      sc.met.assign(met_now, met_now + ns);
+      std::fill(met_now, met_now + ns, 0);
+      was_met = sc.met.data();
+    }
+    met_first += ns;
+    Vec3 total_impulse{};
+    // Rounds of finding the meetings and resolving them: a round's
+    // corrections may bring a sample behind a triangle it did not meet (a
+    // neighbour of one it met), which the next round finds; at most kRounds.
+    constexpr int kRounds = 4;
+    for (int round = 0; round < kRounds; ++round) {
+    // the nodes in the mesh's frame at the substep's start and (tentative) end
+    sc.body0.resize(3 * static_cast<std::size_t>(n));
+    sc.body1.resize(3 * static_cast<std::size_t>(n));
+    for (std::int64_t i = 0; i < n; ++i) {
+      const Vec3 xi = load3(x.data(), i);
+      store3(sc.body0.data(), i, mo.to_body(k, xi, 0));
+      store3(sc.body1.data(), i, mo.to_body(k, xi + h * load3(v.data(), i), 1));
+    }
+    const Real* B0 = sc.body0.data();
+    const Real* B1 = sc.body1.data();
+    // the meetings: each triangle against the samples of the cells its box (grown by its depth) covers;
+    // with holds, the samples that touch a triangle too
+    sc.hits.clear();
+    for (std::size_t t = 0; t < 2 * nq; ++t) {
+      std::int32_t c[3];
+      corners(t, c);
+      const Vec3 a = load3(B1, c[0]), b = load3(B1, c[1]), cc = load3(B1, c[2]);
+      const Vec3 a0 = load3(B0, c[0]), b0 = load3(B0, c[1]), c0 = load3(B0, c[2]);
+      // how deep a sample meets it: within its thickness (half its shortest
+      // edge), or, having crossed it over the substep, as deep as the
+      // triangle moved relative to the mesh
+      const Real motion = std::max({norm(a - a0), norm(b - b0), norm(cc - c0)}) + obstacle_reach(a);
+      const Real thick = Real(0.5) * std::sqrt(std::min({dot(b - a, b - a), dot(cc - b, cc - b), dot(a - cc, a - cc)}));
+      const Real depth = std::max(motion, thick);
+      // the box of the triangle over the substep, grown by that depth
+      const Vec3 lo{std::min({a.x, b.x, cc.x, a0.x, b0.x, c0.x}) - depth, std::min({a.y, b.y, cc.y, a0.y, b0.y, c0.y}) - depth,
+                    std::min({a.z, b.z, cc.z, a0.z, b0.z, c0.z}) - depth};
+      const Vec3 hi{std::max({a.x, b.x, cc.x, a0.x, b0.x, c0.x}) + depth, std::max({a.y, b.y, cc.y, a0.y, b0.y, c0.y}) + depth,
+                    std::max({a.z, b.z, cc.z, a0.z, b0.z, c0.z}) + depth};
+      if (lo.x > g.hi.x || lo.y > g.hi.y || lo.z > g.hi.z || hi.x < g.lo.x || hi.y < g.lo.y || hi.z < g.lo.z) continue;
+      if (!(depth > 0)) continue;  // (a non-finite triangle)
+      const Vec3 nrm = cross(b - a, cc - a);
+      const Real n2 = dot(nrm, nrm);
+      if (!(n2 > 0)) continue;
+      const Vec3 nh = (1 / std::sqrt(n2)) * nrm;
+      const Real touch = obstacle_reach(a);
+      const Vec3 nrm0 = cross(b0 - a0, c0 - a0);
+      const Real n20 = dot(nrm0, nrm0);
+      std::int32_t r0[3], r1[3];
+      const Real blo[3] = {lo.x - g.origin.x, lo.y - g.origin.y, lo.z - g.origin.z}, bhi[3] = {hi.x - g.origin.x, hi.y - g.origin.y, hi.z - g.origin.z};
+      for (int d = 0; d < 3; ++d) {
+        r0[d] = static_cast<std::int32_t>(std::clamp<Real>(std::floor(blo[d] / g.cell), 0, g.dims[d] - 1));
+        r1[d] = static_cast<std::int32_t>(std::clamp<Real>(std::floor(bhi[d] / g.cell), 0, g.dims[d] - 1));
+      }
+      for (std::int32_t cz = r0[2]; cz <= r1[2]; ++cz)
+        for (std::int32_t cy = r0[1]; cy <= r1[1]; ++cy)
+          for (std::int32_t cx = r0[0]; cx <= r1[0]; ++cx) {
+            const std::int64_t cell = (static_cast<std::int64_t>(cz) * g.dims[1] + cy) * g.dims[0] + cx;
+            for (std::int32_t s = g.start[static_cast<std::size_t>(cell)], e = g.start[static_cast<std::size_t>(cell + 1)]; s < e; ++s) {
+              const std::int32_t id = g.items[static_cast<std::size_t>(s)];
+              const Vec3 p = load3(mesh.samples.data(), id);
+              const Real d1 = dot(nh, p - a);
+              if (!(d1 <= touch && d1 >= -depth)) continue;
+              // within it, or behind its edge: beyond its extent by no more
+              // than it is behind its plane (the wedge behind a convex crease
+              // of the surface, where no face's extent holds it)
+              const bool within = project(p, a, b, cc, nrm, n2).inside;
+              if (!within && !(d1 < 0 && near_edge(p, a, b, cc, d1))) continue;
+              // behind it (or touching it) at the end: a sample that met the
+              // tissue's faces in the last substep (on its surface) meets it
+              // within its thickness, if within it; another, or one behind an
+              // edge, no deeper than the triangle moved, unless it was behind
+              // it (or its edge) at the start too (inside the tissue, not
+              // entering it)
+              const bool on_surface = was_met && was_met[id] && within;
+              if (!on_surface || d1 < -thick) {
+                if (!(d1 >= -motion)) continue;
+                const Real d0 = n20 > 0 ? dot(nrm0, p - a0) / std::sqrt(n20) : 0;
+                const bool front0 = n20 > 0 && d0 >= -obstacle_reach(p);
+                const bool in0 = n20 > 0 && (project(p, a0, b0, c0, nrm0, n20).inside || (d0 < 0 && near_edge(p, a0, b0, c0, d0)));
+                if (in0 && !front0) continue;
+              }
+              sc.hits.insert(sc.hits.end(), {id, static_cast<std::int32_t>(t)});
+            }
+          }
+    }
+    if (sc.hits.empty()) break;
+    // in turn, by sample, then triangle
+    std::vector<std::array<std::int32_t, 2>> order(sc.hits.size() / 2);
+    for (std::size_t j = 0; j < order.size(); ++j) order[j] = {sc.hits[2 * j], sc.hits[2 * j + 1]};
+    std::sort(order.begin(), order.end());
+    // Gauss-Seidel sweeps until none moves a face (a meeting moves nodes that
+    // other meetings' triangles share), at most kSweeps; the first marks the
+    // holds, and the first round's first counts the meetings
+    constexpr int kSweeps = 8;
+    bool round_moved = false;
+    for (int sweep = 0; sweep < kSweeps; ++sweep) {
+    bool moved = false;
+    for (const auto& [id, t] : order) {
+      std::int32_t c[3];
+      corners(static_cast<std::size_t>(t), c);
+      Vec3 y[3];
+      for (int j = 0; j < 3; ++j) y[j] = mo.to_body(k, load3(x.data(), c[j]) + h * load3(v.data(), c[j]), 1);
+      const Vec3 p = load3(mesh.samples.data(), id);
+      const Vec3 nrm = cross(y[1] - y[0], y[2] - y[0]);
+      const Real n2 = dot(nrm, nrm);
+      if (!(n2 > 0)) continue;
+      const Vec3 nh = (1 / std::sqrt(n2)) * nrm;
+      const Real d = dot(nh, p - y[0]);
+      if (!(d < 0) && sweep > 0) continue;  // an earlier meeting has moved it
+      if (!(d <= obstacle_reach(p))) continue;  // (a touch: on the surface, and with holds, holding the face)
+      Projection w = project(p, y[0], y[1], y[2], nrm, n2);
+      Real ws = 0;
+      for (Real& wj : w.w) ws += (wj = std::max<Real>(wj, 0));
+      if (!(ws > 0)) continue;
+      Real W = 0, free_w = 0;
+      for (int j = 0; j < 3; ++j) {
+        w.w[j] /= ws;
+        const Real im = inv_mass[static_cast<std::size_t>(c[j])];
+        W += w.w[j] * w.w[j] * im;
+        free_w += im > 0 ? w.w[j] : 0;
+      }
+      if (!(W > 0)) continue;  // all its nodes fixed
+      const Vec3 nw = mo.normal_to_world(k, nh, 1);
+      if (with_holds && sweep == 0)
+        for (int j = 0; j < 3; ++j)
+          if (w.w[j] > 0 && inv_mass[static_cast<std::size_t>(c[j])] > 0) {
+            holds->obstacle[static_cast<std::size_t>(c[j])] = k;
+            store3(holds->normal.data(), c[j], -nw);
+          }
+      if (met_now && sweep == 0) met_now[id] = 1;
+      if (round == 0 && sweep == 0 && (d < 0 || with_holds)) ++out.contacts;
+      if (!(d < 0)) continue;  // touching: held, not moved
+      moved = round_moved = true;
+      // the normal change: the point moves behind the sample by a standoff, over the substep
+      const Real need = standoff(p) - d;
+      Vec3 dv = (-need / h) * nw;
+      auto apply = [&](const Vec3& change) {
+        for (int j = 0; j < 3; ++j) {
+          const Real im = inv_mass[static_cast<std::size_t>(c[j])];
+          if (im > 0) store3(v.data(), c[j], load3(v.data(), c[j]) + (w.w[j] * im / W) * change);
+        }
+      };
+      apply(dv);
+      // friction on the point's velocity relative to the mesh's surface there
+      const Vec3 pw = mo.to_world(k, p, 1);
+      const Vec3 u = mo.velocity(k, pw, 1, h);
+      Vec3 vp{};
+      for (int j = 0; j < 3; ++j) vp += w.w[j] * load3(v.data(), c[j]);
+      const Vec3 vr = vp - u;
+      const Vec3 vt = vr - dot(vr, nw) * nw;
+      const Real st = norm(vt);
+      if (st > 0) {
+        const Vec3 dvt = (-std::min(Real(1), mesh.friction * (need / h) / st)) * vt;
+        apply(dvt);
+        dv += dvt;
+      }
+      // the tissue's momentum change: sum m_j dv_j = (free weights / W) dv
+      const Vec3 imp = (free_w / W) * dv;
+      total_impulse += imp;
+      out.work += dot(imp, u);
+    }
+    if (!moved) break;
+    }
+    if (!round_moved) break;
+    }
+    if (impulse.size() >= 3 * static_cast<std::size_t>(k + 1)) store3(impulse.data(), k, load3(impulse.data(), k) + total_impulse);
+  }
+  return out;
 }
 
 }  // namespace orthosim::runtime

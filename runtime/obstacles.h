@@ -22,8 +22,12 @@
 // rests on an obstacle on its surface within its solve, with the friction
 // as a damper in the solve (solver.cpp, docs/runtime.md).
 //
-// Edges and faces of the tissue between nodes are not tested: a coarse
-// skin quad may dip past a convex corner of a mesh between its nodes.
+// Edges and faces of the tissue between nodes meet a mesh through its edges
+// (resolve_face_contacts): points sampled along them (its vertices, and
+// points at most a spacing apart between) are kept in front of the tissue's
+// surface faces (Model::quads, counter-clockwise seen from outside, each as
+// two triangles), so a probe narrower than the skin's node spacing presses
+// the skin between its nodes instead of passing through it.
 //
 // Moving obstacles (an instrument, a retractor blade pressed into the limb):
 // each obstacle may be moved rigidly as the caller prescribes over time
@@ -55,6 +59,16 @@ struct ObstaclePlane {
   Vec3 pivot{};          // m: the centre its path's rotations turn it about
 };
 
+// A uniform grid of points, built once in O(n) by counting sort: cell c
+// lists items [start[c], start[c + 1]).
+struct SampleCells {
+  Vec3 origin, lo, hi;              // m: the grid's corner, the points' bounding box
+  Real cell = 1;                    // m
+  std::int32_t dims[3] = {0, 0, 0};
+  std::vector<std::int32_t> start;  // (n_cells + 1)
+  std::vector<std::int32_t> items;  // point ids
+};
+
 struct ObstacleMesh {
   std::vector<Real> vertices;           // (n_vertices x 3) m
   std::vector<std::int32_t> triangles;  // (n_triangles x 3), counter-clockwise seen from the free side
@@ -63,6 +77,10 @@ struct ObstacleMesh {
   Real friction = 0.2;
   TriangleGrid grid;                    // built by add_obstacle_mesh; level 0's margin is the sampling step along a motion
   Vec3 pivot{};                         // m: the centre its path's rotations turn it about
+  // the points of its edges that the tissue's faces meet (sample_obstacle_edges;
+  // empty: none), in its own coordinates, and their grid
+  std::vector<Real> samples;            // (n_samples x 3) m
+  SampleCells sample_cells;
 };
 
 struct Obstacles {
@@ -185,6 +203,54 @@ ObstacleContact rests_on(const Obstacles& o, std::int32_t k, const Vec3& x, cons
 // its start.
 std::vector<std::int64_t> obstacle_nodes_behind(const Obstacles& o, std::span<const Real> x,
                                                 std::span<const std::int32_t> nodes, const ObstacleMotion& motion = {});
+
+// Samples a mesh's edges for resolve_face_contacts: its vertices (those of
+// its triangles) and points along each edge, evenly, at most `spacing` apart.
+// spacing <= 0 clears them (only nodes meet the mesh then). Throws
+// Error("", "obstacle mesh: ...") for a spacing that is not finite, or one
+// that gives the mesh more than 10^7 points.
+void sample_obstacle_edges(ObstacleMesh& m, Real spacing);
+// The spacing a scene samples colliders' edges at unless told: half the
+// median edge length of the quads (n x 4 node ids) at positions x (0: no quads).
+Real default_edge_spacing(std::span<const std::int32_t> quads, std::span<const Real> x);
+// Whether some mesh has edge samples.
+bool has_edge_samples(const Obstacles& o);
+
+// The tissue's surface faces against the meshes' edge samples, over one
+// substep of h seconds from positions x with the (tentative) velocities v:
+// the faces are the quads (n x 4 node ids, counter-clockwise seen from
+// outside) split into two triangles each, (q0, q1, q2) and (q0, q2, q3), where
+// x + h v puts them at the substep's end. A sample behind a triangle at the
+// end, within its extent and less than half its shortest edge deep, meets it,
+// unless it was already behind it at the start (more than obstacle_reach deep,
+// within its extent then: inside the tissue, not entering it). Each meeting
+// in turn (by sample, then triangle; Gauss-Seidel) moves the triangle's
+// point under the sample behind it by a standoff, its nodes' share w_j
+// m_j^-1 / sum w^2 m^-1 each (w the point's barycentric weights; fixed nodes
+// do not move), as a change of their velocity (x + h v moves by it); then
+// Coulomb friction takes at most friction x that normal velocity change off
+// the point's tangential velocity relative to the mesh's surface there. The
+// meshes where `motion` puts them at the substep's end. Adds each mesh's
+// impulse on the tissue (N s) to impulse (obstacles x 3, indexed as
+// ObstacleContact::obstacle). With `holds` sized (n_nodes), each node of a
+// triangle a sample meets, or touches (in front of it by at most
+// obstacle_reach, within its extent), with a weight > 0 gets the mesh's index
+// and the unit normal the sample pushes it along (into the tissue); others
+// are left as they are. With `met` sized (all meshes' samples, in order), it
+// says which samples met or touched a face in the last substep, and is set
+// to those of this one: such a sample is on the tissue's surface, and meets
+// a triangle within its thickness (half its shortest edge) whatever it did
+// at the start (sliding from one face on to the next across a ridge, it
+// starts behind the next one's plane); another meets one no deeper than the
+// triangle moved over the substep.
+struct FaceContacts {
+  std::int64_t contacts = 0;  // sample-triangle meetings (with holds: and touches)
+  Real work = 0;              // J, the moving meshes' work on the tissue (impulse . their surface's velocity)
+};
+FaceContacts resolve_face_contacts(const Obstacles& o, const ObstacleMotion& motion, std::span<const std::int32_t> quads,
+                                   std::span<const Real> x, std::span<Real> v, std::span<const Real> inv_mass, Real h,
+                                   std::span<Real> impulse, FaceScratch& scratch, FaceHolds* holds = nullptr,
+                                   std::span<std::uint8_t> met = {});
 
 // The number of obstacles (planes, then meshes).
 inline std::int32_t obstacle_count(const Obstacles& o) {

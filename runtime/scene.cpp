@@ -230,7 +230,7 @@ ColliderDef parse_collider(const json& j, std::size_t index, const std::string& 
     if (o.has(key)) o.fail(std::string(key) + " is a " + kind + " collider's key (this one is a " + type + ")");
   };
   if (c.kind == ColliderDef::Kind::plane) {
-    for (const char* k : {"stl", "units", "two_sided", "place_in_box"}) only(k, "mesh");
+    for (const char* k : {"stl", "units", "two_sided", "place_in_box", "edge_spacing"}) only(k, "mesh");
     if (o.has("point") == o.has("point_in_box")) o.fail("a plane needs point or point_in_box (one of them)");
     c.point_relative = o.has("point_in_box");
     c.point = o.vec3(c.point_relative ? "point_in_box" : "point", {});
@@ -254,6 +254,7 @@ ColliderDef parse_collider(const json& j, std::size_t index, const std::string& 
       for (Real f : c.place)
         if (f < 0 || f > 1) o.fail("place_in_box fractions must be in [0, 1]");
     }
+    if (o.has("edge_spacing")) c.edge_spacing = o.number("edge_spacing", 0, 0, kMaxLength);
   }
   c.wall = wall;  // the fluid's restitution and friction, unless the collider has its own
   c.wall.restitution = o.number("restitution", c.wall.restitution, 0, 1);
@@ -266,6 +267,7 @@ ColliderDef parse_collider(const json& j, std::size_t index, const std::string& 
   } else {
     c.tissue = false;
   }
+  if (o.has("edge_spacing") && !c.tissue) o.fail("edge_spacing is how the tissue meets the mesh, and it does not act on the tissue");
   if (o.has("pivot")) {
     c.pivot = o.vec3("pivot", {});
     c.has_pivot = true;
@@ -671,7 +673,11 @@ void Scene::init(const std::string& model_file) {
     bool aimed_by_quads = false;
     for (const auto& t : def_.tools)
       aimed_by_quads = aimed_by_quads || (t.type == ToolType::cut && t.direction == std::array<Real, 3>{0, 0, 0});
-    req.surface = (def_.output.enabled && def_.output.vtk.surface) || def_.fluid.enabled || aimed_by_quads;
+    // and a mesh collider's edges meet the tissue's faces
+    const bool faced = std::any_of(def_.colliders.begin(), def_.colliders.end(), [](const ColliderDef& c) {
+      return c.tissue && c.kind == ColliderDef::Kind::mesh && c.edge_spacing != 0;
+    });
+    req.surface = (def_.output.enabled && def_.output.vtk.surface) || def_.fluid.enabled || aimed_by_quads || faced;
     req.vessel_tubes = def_.output.enabled;  // drawn in the output, not simulated
     req.couple_unloaded = def_.couple_unloaded;
     std::set<std::string> sets(def_.fixed.begin(), def_.fixed.end());
@@ -967,6 +973,8 @@ void Scene::init_obstacles() {
         mesh.friction = c.wall.friction;
         mesh.pivot = collider_pivot(c, lo, hi);
         add_obstacle_mesh(*obstacles, std::move(mesh));
+        // its edges against the tissue's faces
+        sample_obstacle_edges(obstacles->meshes.back(), c.edge_spacing >= 0 ? c.edge_spacing : default_edge_spacing(m.quads, m.rest_x));
       }
     } catch (const Error& e) {
       if (!e.file().empty()) throw;
@@ -994,6 +1002,9 @@ std::vector<std::array<Real, 3>> Scene::collider_forces() const {
     if (k < 0 || static_cast<std::size_t>(k) >= of_obstacle.size()) continue;
     for (int a = 0; a < 3; ++a) out[of_obstacle[static_cast<std::size_t>(k)]][static_cast<std::size_t>(a)] += state_.contact_force[3 * i + a];
   }
+  // and through its edges on the faces between the nodes
+  for (std::size_t k = 0; k < of_obstacle.size() && 3 * k + 2 < state_.face_force.size(); ++k)
+    for (std::size_t a = 0; a < 3; ++a) out[of_obstacle[k]][a] += state_.face_force[3 * k + a];
   return out;
 }
 

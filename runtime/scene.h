@@ -128,6 +128,11 @@ struct ColliderDef {
   // placed on any model)
   std::array<Real, 3> place{0, 0, 0};
   bool place_relative = false;
+  // mesh, on the tissue: its edges meet the tissue's surface faces through
+  // points at most this far apart along them (m; obstacles.h,
+  // resolve_face_contacts); -1: half the median edge of the loaded quads at
+  // rest; 0: none, only the tissue's nodes meet it
+  Real edge_spacing = -1;
   WallParams wall{0.0, 0.2, false};
   bool tissue = true;  // the tissue's free nodes collide with it
   bool blood = true;   // the blood collides with it (when the scene has blood)

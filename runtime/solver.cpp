@@ -127,6 +127,17 @@ void ensure_scratch(const Model& m, State& s, bool implicit) {
   if (s.obstacles) {
     if (s.contact_obstacle.size() != n3 / 3) s.contact_obstacle.assign(n3 / 3, -1);
     if (s.contact_force.size() != n3) s.contact_force.assign(n3, 0);
+    const auto nf = 3 * static_cast<std::size_t>(obstacle_count(*s.obstacles));
+    if (s.face_force.size() != nf) s.face_force.assign(nf, 0);
+    std::size_t samples = 0;
+    for (const ObstacleMesh& om : s.obstacles->meshes) samples += om.samples.size() / 3;
+    if (s.face_met.size() != samples) s.face_met.assign(samples, 0);
+    if (implicit && m.n_quads > 0 && has_edge_samples(*s.obstacles)) {
+      FaceHolds& fh = s.face_holds;
+      if (fh.obstacle.size() != n3 / 3) fh.obstacle.assign(n3 / 3, -1), fh.normal.assign(n3, 0), fh.force.assign(n3, 0);
+      if (sc.face_v.size() != n3) sc.face_v.assign(n3, 0);
+      if (sc.face_held.size() != n3 / 3) sc.face_held.assign(n3 / 3, -1);
+    }
     if (implicit && sc.friction_c.size() != n3 / 3) sc.friction_c.assign(n3 / 3, 0);
     if (implicit && sc.friction_f.size() != n3) sc.friction_f.assign(n3, 0);
     if (implicit && sc.constraint.size() != n3) sc.constraint.assign(n3, 0);
@@ -156,6 +167,7 @@ struct Budget {
 struct Check {
   Real ke = 0, u = 0, vmax2 = 0;
   Real contacts = 0;  // nodes that touched an obstacle in the substep
+  Real faces = 0;     // mesh edge samples that met a tissue face in the substep
 };
 
 enum class Verdict { ok, nonfinite, blowup };
@@ -210,6 +222,33 @@ ObstacleMotion obstacle_motion(State& s, Real t, Real h) {
   if (!s.obstacles) return {};
   obstacle_frames(*s.obstacles, s.obstacle_paths, t, h, s.scratch.obstacle_frames);
   return {s.scratch.obstacle_frames};
+}
+
+// The meshes' edges against the tissue's faces (resolve_face_contacts) over
+// the substep: changes v (the substep's velocities, x + h v its end), sets
+// State::face_force and adds the moving meshes' work to *tool_work. Returns
+// the meetings (0 without edge samples or quads).
+// With holds (the implicit solve's), it marks State::face_holds for the next
+// substep's solve and sets their forces to the contacts' impulses over h.
+Real face_pass(const Model& m, State& s, const ObstacleMotion& mo, std::span<Real> v, Real h, Real* tool_work,
+               bool holds = false) {
+  if (!s.obstacles || m.n_quads == 0 || !has_edge_samples(*s.obstacles)) return 0;
+  std::fill(s.face_force.begin(), s.face_force.end(), 0);
+  FaceHolds* fh = nullptr;
+  if (holds) {
+    fh = &s.face_holds;
+    std::fill(fh->obstacle.begin(), fh->obstacle.end(), -1);
+    std::copy(v.begin(), v.end(), s.scratch.face_v.begin());
+  }
+  const FaceContacts c =
+      resolve_face_contacts(*s.obstacles, mo, m.quads, s.x, v, s.inv_mass, h, s.face_force, s.scratch.faces, fh, s.face_met);
+  for (Real& f : s.face_force) f /= h;  // the impulses over the substep: forces
+  if (fh)
+    for (std::size_t i = 0; i < fh->obstacle.size(); ++i)
+      store3(fh->force.data(), static_cast<std::int64_t>(i),
+             (m.mass[i] / h) * (load3(v.data(), static_cast<std::int64_t>(i)) - load3(s.scratch.face_v.data(), static_cast<std::int64_t>(i))));
+  *tool_work += c.work;
+  return static_cast<Real>(c.contacts);
 }
 
 // ---- the volume term ------------------------------------------------------
@@ -362,8 +401,39 @@ Check symplectic_substep(const Model& m, State& s, Real t, Real h, const SolverO
   const bool has_tets = m.n_tets > 0;
   const Obstacles* obs = s.obstacles && !s.obstacles->empty() ? s.obstacles.get() : nullptr;
   const ObstacleMotion mo = obs ? obstacle_motion(s, t, h) : ObstacleMotion{};
-  for_chunks(m, [&](int ch) {
+  // the meshes' edges against the tissue's faces: after every node's new
+  // velocity and before the nodes' contacts, in a second pass
+  const bool faces = obs && m.n_quads > 0 && has_edge_samples(*obs);
+  struct Sums {
     Real ke = 0, vmax2 = 0, contacts = 0, work = 0;
+  };
+  // a free node's move with its new velocity: its contacts, and the sums
+  auto finish = [&](std::int32_t i, Vec3 vi, Sums& sum) {
+    const Vec3 x0i = load3(xw, i);
+    Vec3 xi = x0i + h * vi;
+    if (obs) {
+      const Vec3 v_before = vi;
+      const std::int32_t k = resolve_obstacle_contact(*obs, x0i, xi, vi, h, mo).obstacle;
+      s.contact_obstacle[static_cast<std::size_t>(i)] = k;
+      const Vec3 fc = k >= 0 ? (mass[i] / h) * (vi - v_before) : Vec3{};
+      store3(s.contact_force.data(), i, fc);
+      sum.contacts += k >= 0;
+      if (mo.moving()) sum.work += h * dot(fc, mo.velocity(k, xi, 1, h));  // a moving obstacle's work on the node
+    }
+    store3(vw, i, vi);
+    store3(xw, i, xi);
+    const Real v2 = dot(vi, vi);
+    sum.ke += mass[i] * v2;
+    sum.vmax2 = std::max(sum.vmax2, v2);
+  };
+  auto store_sums = [&](int ch, const Sums& sum) {
+    partial[ch * kPad + 1] = Real(0.5) * sum.ke;
+    partial[ch * kPad + 2] = sum.vmax2;
+    partial[ch * kPad + 4] = sum.contacts;
+    partial[ch * kPad + 5] = sum.work;
+  };
+  for_chunks(m, [&](int ch) {
+    Sums sum;
     for (std::int32_t i = chunk_begin(m, ch), e = chunk_end(m, ch); i < e; ++i) {
       Vec3 fi = load3(f, i) + load3(fext, i);
       for (std::int32_t q = b_first[i], qe = b_first[i + 1]; q < qe; ++q) fi -= load3(fs, b_spring[q]);
@@ -373,33 +443,26 @@ Check symplectic_substep(const Model& m, State& s, Real t, Real h, const SolverO
       if (wi > 0) {
         Vec3 vi = load3(vw, i);
         vi += h * (wi * fi + g - alpha * vi);
-        const Vec3 x0i = load3(xw, i);
-        Vec3 xi = x0i + h * vi;
-        if (obs) {
-          const Vec3 v_before = vi;
-          const std::int32_t k = resolve_obstacle_contact(*obs, x0i, xi, vi, h, mo).obstacle;
-          s.contact_obstacle[static_cast<std::size_t>(i)] = k;
-          const Vec3 fc = k >= 0 ? (mass[i] / h) * (vi - v_before) : Vec3{};
-          store3(s.contact_force.data(), i, fc);
-          contacts += k >= 0;
-          if (mo.moving()) work += h * dot(fc, mo.velocity(k, xi, 1, h));  // a moving obstacle's work on the node
-        }
-        store3(vw, i, vi);
-        store3(xw, i, xi);
-        const Real v2 = dot(vi, vi);
-        ke += mass[i] * v2;
-        vmax2 = std::max(vmax2, v2);
+        if (faces) store3(vw, i, vi);
+        else finish(i, vi, sum);
       }
     }
-    partial[ch * kPad + 1] = Real(0.5) * ke;
-    partial[ch * kPad + 2] = vmax2;
-    partial[ch * kPad + 4] = contacts;
-    partial[ch * kPad + 5] = work;
+    store_sums(ch, sum);
   });
+  Real face_meetings = 0;
+  if (faces) {
+    face_meetings = face_pass(m, s, mo, s.v, h, tool_work);
+    for_chunks(m, [&](int ch) {
+      Sums sum;
+      for (std::int32_t i = chunk_begin(m, ch), e = chunk_end(m, ch); i < e; ++i)
+        if (w[i] > 0) finish(i, load3(vw, i), sum);
+      store_sums(ch, sum);
+    });
+  }
   if (mo.moving()) *tool_work += partial_sum(m, sc, 5);
   *tool_work += move_kinematic(s, t + h, h);
   return {partial_sum(m, sc, 1), energy ? partial_sum(m, sc, 0) + u_tets : Real(0), partial_max(m, sc, 2),
-          obs ? partial_sum(m, sc, 4) : Real(0)};
+          obs ? partial_sum(m, sc, 4) : Real(0), face_meetings};
 }
 
 // ---- implicit Euler --------------------------------------------------------
@@ -718,6 +781,8 @@ Check implicit_substep(const Model& m, State& s, Real t, Real h, const SolverOpt
   const bool use_warm = o.warm_start;
   const Obstacles* obs = s.obstacles && !s.obstacles->empty() ? s.obstacles.get() : nullptr;
   const ObstacleMotion mo = obs ? obstacle_motion(s, t, h) : ObstacleMotion{};
+  // the tissue's faces meet the meshes' edges (and are held by them)
+  const bool faced = obs && m.n_quads > 0 && !s.face_holds.obstacle.empty() && has_edge_samples(*obs);
   Real* cn = sc.constraint.data();
   for_chunks(m, [&](int ch) {
     Real u = 0;
@@ -813,16 +878,31 @@ Check implicit_substep(const Model& m, State& s, Real t, Real h, const SolverOpt
         // c |v'_t - u_t|, short of mu N by the substep's change of the relative
         // speed (4 % under a node dragged by a table, 1 ms substeps, until
         // 2026-11-28: MovingObstacles.ASlidingTableDragsANodeByFriction).
-        const std::int32_t k = s.contact_obstacle[static_cast<std::size_t>(i)];
+        // A node of the tissue's surface that an obstacle's edge pushed in the
+        // last substep (State::face_holds) is held the same way, along the
+        // normal the edge pushed it, at the obstacle's velocity there.
+        std::int32_t k = s.contact_obstacle[static_cast<std::size_t>(i)];
         Real cf = 0;
-        if (k >= 0) {
-          const Vec3 xi = load3(x, i);
-          const ObstacleContact c = rests_on(*obs, k, xi, mo);
+        ObstacleContact c;
+        const Vec3 xi = load3(x, i);
+        if (k >= 0) c = rests_on(*obs, k, xi, mo);
+        const Real* last_force = s.contact_force.data();
+        if (faced) {
+          sc.face_held[static_cast<std::size_t>(i)] = -1;
+          const std::int32_t kf = s.face_holds.obstacle[static_cast<std::size_t>(i)];
+          if (c.obstacle < 0 && kf >= 0) {
+            k = kf;
+            c = {kf, load3(s.face_holds.normal.data(), i)};
+            last_force = s.face_holds.force.data();
+            sc.face_held[static_cast<std::size_t>(i)] = kf;
+          }
+        }
+        {
           if (c.obstacle >= 0) {
             ni = c.n;
             ui = mo.velocity(k, xi, 0, h);
             const Vec3 vt = filter(vi - ui, ni);
-            const Real n_prev = std::max(Real(0), dot(load3(s.contact_force.data(), i), ni));  // N of the last substep
+            const Real n_prev = std::max(Real(0), dot(load3(last_force, i), ni));  // N of the last substep
             const Real mu_n = obstacle_friction_coefficient(*obs, k) * n_prev, st = norm(vt);
             if (mu_n * h < mass[i] * st) {
               f_slide = (-mu_n / st) * vt;
@@ -1030,6 +1110,11 @@ Check implicit_substep(const Model& m, State& s, Real t, Real h, const SolverOpt
     sc.constrained = true;
   }
 
+  // the meshes' edges against the tissue's faces: on the solve's velocities,
+  // before the nodes' contacts (which then keep every node off the obstacles)
+  Real face_meetings = 0;
+  if (obs) face_meetings = face_pass(m, s, mo, std::span<Real>(sc.vnew), h, tool_work, faced);
+
   // update: v = v', x += h v' (kinematic nodes land exactly on their targets)
   Real* xw = s.x.data();
   Real* vw = s.v.data();
@@ -1046,12 +1131,13 @@ Check implicit_substep(const Model& m, State& s, Real t, Real h, const SolverOpt
       // on the node is that normal force and the damper's -c v'_t.
       bool keep = false;
       Vec3 hold_force{};
+      const std::int32_t face_hold = faced ? sc.face_held[static_cast<std::size_t>(i)] : -1;  // a face's hold: its obstacle
       if (constrained) {
         const Vec3 ni = load3(cn, i);
         if (holds(ni)) {
           const Real normal_force = dot(load3(q, i) - load3(rhs, i), ni) / h;
           keep = normal_force > 0;
-          const Vec3 ui = mo.velocity(s.contact_obstacle[static_cast<std::size_t>(i)], load3(xw, i), 0, h);
+          const Vec3 ui = mo.velocity(face_hold >= 0 ? face_hold : s.contact_obstacle[static_cast<std::size_t>(i)], load3(xw, i), 0, h);
           hold_force = normal_force * ni - sc.friction_c[static_cast<std::size_t>(i)] * filter(vi - ui, ni) +
                        load3(sc.friction_f.data(), i);
         }
@@ -1067,7 +1153,7 @@ Check implicit_substep(const Model& m, State& s, Real t, Real h, const SolverOpt
           // put on an obstacle: the contact's velocity change is the impulse
           // m dv of a force m dv / h over the substep
           fc = (mass[i] / h) * (vi - v_before);
-        } else if (keep) {
+        } else if (keep && face_hold < 0) {
           k = s.contact_obstacle[static_cast<std::size_t>(i)];  // held on it by the solve
           fc = hold_force;
         }
@@ -1075,6 +1161,19 @@ Check implicit_substep(const Model& m, State& s, Real t, Real h, const SolverOpt
         s.contact_obstacle[static_cast<std::size_t>(i)] = k;
         contacts += k >= 0;
         if (mo.moving()) work += h * dot(fc, mo.velocity(k, xi, 1, h));  // a moving obstacle's work on the node
+        // a face's hold: pushing, it stays (and its force is the face's);
+        // pulling, the node is let go
+        if (face_hold >= 0) {
+          const Vec3 fh = keep ? hold_force : Vec3{};
+          store3(sc.face_v.data(), i, fh);
+          if (keep) {
+            store3(s.face_holds.force.data(), i, load3(s.face_holds.force.data(), i) + fh);
+            if (s.face_holds.obstacle[static_cast<std::size_t>(i)] < 0) s.face_holds.obstacle[static_cast<std::size_t>(i)] = face_hold;
+          } else {
+            s.face_holds.obstacle[static_cast<std::size_t>(i)] = -1;
+          }
+          if (mo.moving()) work += h * dot(fh, mo.velocity(face_hold, xi, 1, h));
+        }
       }
       store3(vw, i, vi);
       store3(xw, i, xi);
@@ -1087,8 +1186,13 @@ Check implicit_substep(const Model& m, State& s, Real t, Real h, const SolverOpt
     partial[ch * kPad + 4] = contacts;
     partial[ch * kPad + 5] = work;
   });
+  // the faces' holds: their forces on the tissue are the obstacles'
+  if (faced)
+    for (std::int32_t i = 0; i < m.n_nodes; ++i)
+      if (const std::int32_t kf = sc.face_held[static_cast<std::size_t>(i)]; kf >= 0 && w[i] > 0)
+        store3(s.face_force.data(), kf, load3(s.face_force.data(), kf) + load3(sc.face_v.data(), i));
   Check out{partial_sum(m, sc, 1), partial_sum(m, sc, 0) + u_tets, partial_max(m, sc, 2),
-            obs ? partial_sum(m, sc, 4) : Real(0)};
+            obs ? partial_sum(m, sc, 4) : Real(0), face_meetings};
   if (mo.moving()) *tool_work += partial_sum(m, sc, 5);
   *tool_work += move_kinematic(s, t + h, h);
   return out;
@@ -1205,7 +1309,9 @@ StepInfo step(const Model& m, State& s, Real dt, const SolverOptions& o) {
   std::memcpy(sc.v0.data(), s.v.data(), s.v.size() * sizeof(Real));
   std::vector<Real> warm0;
   if (implicit) warm0 = s.warm;
-  if (!s.contact_obstacle.empty()) sc.contact0 = s.contact_obstacle, sc.force0 = s.contact_force;
+  if (!s.contact_obstacle.empty()) sc.contact0 = s.contact_obstacle, sc.force0 = s.contact_force, sc.face_force0 = s.face_force;
+  if (!s.face_holds.obstacle.empty()) sc.face_holds0 = s.face_holds;
+  if (!s.face_met.empty()) sc.face_met0 = s.face_met;
   bool ok = false;
   Check last;
   for (int attempt = 0; attempt <= o.max_retries; ++attempt) {
@@ -1213,7 +1319,7 @@ StepInfo step(const Model& m, State& s, Real dt, const SolverOptions& o) {
     budget.w_tool = 0;
     int cg_its = 0;
     long done = 0, unconverged = 0;
-    Real contacts = 0;
+    Real contacts = 0, faces = 0;
     Verdict verdict = Verdict::ok;
     for (long k = 0; k < n_sub; ++k) {
       const Real t = t0 + h * static_cast<Real>(k);
@@ -1224,6 +1330,7 @@ StepInfo step(const Model& m, State& s, Real dt, const SolverOptions& o) {
       cg_its += its;
       unconverged += !converged;
       contacts += last.contacts;
+      faces += last.faces;
       ++done;
       if (budget.u0 < 0) budget.u0 = std::isfinite(last.u) ? last.u : 0;
       verdict = judge(m, last, budget, h, o);
@@ -1245,6 +1352,7 @@ StepInfo step(const Model& m, State& s, Real dt, const SolverOptions& o) {
       s.counters.substeps += n_sub;
       s.counters.cg_unconverged += unconverged;
       s.counters.obstacle_contacts += static_cast<std::int64_t>(contacts);
+      s.counters.face_contacts += static_cast<std::int64_t>(faces);
       break;
     }
     // detected: count, restore, refine
@@ -1259,7 +1367,9 @@ StepInfo step(const Model& m, State& s, Real dt, const SolverOptions& o) {
     std::memcpy(s.x.data(), sc.x0.data(), s.x.size() * sizeof(Real));
     std::memcpy(s.v.data(), sc.v0.data(), s.v.size() * sizeof(Real));
     if (implicit) s.warm = warm0;
-    if (!s.contact_obstacle.empty()) s.contact_obstacle = sc.contact0, s.contact_force = sc.force0;
+    if (!s.contact_obstacle.empty()) s.contact_obstacle = sc.contact0, s.contact_force = sc.force0, s.face_force = sc.face_force0;
+    if (!s.face_holds.obstacle.empty()) s.face_holds = sc.face_holds0;
+    if (!s.face_met.empty()) s.face_met = sc.face_met0;
     info.retries = attempt + 1;
     if (n_sub >= o.max_substeps) break;
     n_sub = std::min<long>(2 * n_sub, o.max_substeps);
@@ -1272,7 +1382,9 @@ StepInfo step(const Model& m, State& s, Real dt, const SolverOptions& o) {
     info.failed = true;
     std::fill(s.v.begin(), s.v.end(), 0);
     std::fill(s.warm.begin(), s.warm.end(), 0);
-    if (!s.contact_obstacle.empty()) s.contact_obstacle = sc.contact0, s.contact_force = sc.force0;
+    if (!s.contact_obstacle.empty()) s.contact_obstacle = sc.contact0, s.contact_force = sc.force0, s.face_force = sc.face_force0;
+    if (!s.face_holds.obstacle.empty()) s.face_holds = sc.face_holds0;
+    if (!s.face_met.empty()) s.face_met = sc.face_met0;
     for (std::int32_t i = 0; i < m.n_nodes; ++i)
       if (!std::isfinite(s.f[3 * i]) || !std::isfinite(s.f[3 * i + 1]) || !std::isfinite(s.f[3 * i + 2]))
         store3(s.f.data(), i, Vec3{});

@@ -73,6 +73,27 @@ struct Counters {
   std::int64_t cg_redos = 0;          // implicit: attempts redone because a solve stopped at the cap
   std::int64_t factorizations = 0;    // implicit, cholesky preconditioner: sparse factors built
   std::int64_t obstacle_contacts = 0; // node-substeps that touched an obstacle (State::obstacles), in accepted attempts
+  std::int64_t face_contacts = 0;     // mesh edge samples that met a tissue face, summed over the substeps of accepted attempts
+};
+
+// The tissue's faces held by obstacles' edges (runtime/obstacles.h,
+// resolve_face_contacts): per node, the obstacle a face contact of the last
+// substep moved it for (-1: none), the unit normal it pushed it along (into
+// the tissue), and the face contacts' force on it (N: the implicit solve's
+// hold and the contact's impulse over the substep). The implicit solve holds
+// such a node's normal velocity at the obstacle's, as it holds a node
+// resting on an obstacle.
+struct FaceHolds {
+  std::vector<std::int32_t> obstacle;  // (n_nodes)
+  std::vector<Real> normal;            // (n_nodes x 3)
+  std::vector<Real> force;             // (n_nodes x 3) N
+};
+
+// Scratch of resolve_face_contacts (runtime/obstacles.h).
+struct FaceScratch {
+  std::vector<Real> body0, body1;     // (n_nodes x 3) m: the nodes at the substep's start and end, in a mesh's frame
+  std::vector<std::int32_t> hits;     // (n x 2) sample, triangle
+  std::vector<std::uint8_t> met;      // (a mesh's samples) which met the faces in the last substep
 };
 
 // Scratch the solver resizes on demand (never read across steps).
@@ -103,6 +124,12 @@ struct Scratch {
   std::vector<Real> friction_c;        // (n_nodes) N s/m: the friction damper of each held node in this substep
   std::vector<Real> friction_f;        // (n_nodes x 3) N: the Coulomb force of each held node sliding in this substep (else zero)
   std::vector<ObstacleFrame> obstacle_frames;  // where each moving obstacle is over the substep (runtime/obstacles.h)
+  FaceScratch faces;                           // the meshes' edges against the tissue's faces
+  std::vector<Real> face_force0;               // State::face_force at the step's start, for redo
+  FaceHolds face_holds0;                       // State::face_holds at the step's start, for redo
+  std::vector<std::uint8_t> face_met0;         // State::face_met at the step's start, for redo
+  std::vector<Real> face_v;                    // (n_nodes x 3) implicit: the solve's velocities before the face contacts
+  std::vector<std::int32_t> face_held;         // (n_nodes) implicit: the obstacle of this substep's hold where it is a face's, else -1
 };
 
 // The cholesky preconditioner's factor (runtime/solver.cpp): immutable once
@@ -139,6 +166,14 @@ struct State {
   // damper, or the contact's impulse over the substep; zero: none). Its
   // normal part bounds the next substep's friction.
   std::vector<Real> contact_force;
+  // (obstacles x 3) N: each mesh's force on the tissue's surface faces in the
+  // last substep, through its edges (resolve_face_contacts; not in
+  // contact_force, which is the nodes'); sized by the solver
+  std::vector<Real> face_force;
+  FaceHolds face_holds;  // sized by the solver when some mesh has edge samples
+  // (all meshes' edge samples, in order) 1 where the sample met or touched a
+  // tissue face in the last substep (resolve_face_contacts); sized by the solver
+  std::vector<std::uint8_t> face_met;
 
   Real kinetic_energy = 0;  // J, after the last substep
   Real spring_energy = 0;   // J, at the start of the last substep

@@ -241,11 +241,12 @@ void add_run_command(CLI::App& app) {
             const runtime::Vec3 d = runtime::load3(om.vertices.data(), static_cast<std::int64_t>(v)) - om.pivot;
             r2 = std::max(r2, runtime::dot(d, d));
           }
-          // - a moving mesh narrower than the tissue's node spacing: only nodes
-          //   collide, so it can pass between them (a probe through the skin)
+          // - a moving mesh narrower than the tissue's node spacing whose edges
+          //   do not meet the tissue's faces (edge_spacing 0, or no quads): only
+          //   nodes collide, so it can pass between them (a probe through the skin)
           double ext[3] = {mhi[0] - mlo[0], mhi[1] - mlo[1], mhi[2] - mlo[2]};
           std::sort(ext, ext + 3);
-          if (!c.path.t.empty() && ext[1] < spacing)
+          if (!c.path.t.empty() && ext[1] < spacing && om.samples.empty())
             std::cerr << "orthosim run: warning: " << scene_file << ": the moving collider" << quoted(c.name) << " (" << c.stl
                       << ") is " << ext[1] << " m across, less than the tissue's node spacing (" << spacing
                       << " m, the median spring): only nodes collide, so it can pass between them\n";
@@ -385,6 +386,7 @@ void add_run_command(CLI::App& app) {
     met["symplectic_step_limit_s"] = scene->step_limit();
     // node-substeps in contact with the static colliders (null without a collider on the tissue)
     met["obstacle_contacts"] = scene->obstacles() ? nlohmann::json(c.obstacle_contacts) : nlohmann::json(nullptr);
+    met["face_contacts"] = scene->obstacles() ? nlohmann::json(c.face_contacts) : nlohmann::json(nullptr);
     // each collider's force on the tissue (N): at the end, and the largest
     // over the steps with its time (null for a collider off the tissue)
     met["colliders"] = nlohmann::json::array();

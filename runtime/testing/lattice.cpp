@@ -216,9 +216,9 @@ LayeredBlock make_layered_block(const LayeredBlockOptions& o) {
     for (int j = 0; j + 1 < nv; ++j)
       for (int i = 0; i + 1 < nu; ++i, ++qi) {
         l.quads(qi, 0) = id(i, j, s);
-        l.quads(qi, 1) = id(i, j + 1, s);
+        l.quads(qi, 1) = id(i + 1, j, s);
         l.quads(qi, 2) = id(i + 1, j + 1, s);
-        l.quads(qi, 3) = id(i + 1, j, s);
+        l.quads(qi, 3) = id(i, j + 1, s);
       }
     VecXi set(per_sheet);
     for (std::int64_t q = 0; q < per_sheet; ++q) set[q] = static_cast<std::int32_t>(s * per_sheet + q);

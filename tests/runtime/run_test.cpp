@@ -299,23 +299,32 @@ TEST_F(RunCli, WhatTheRunWillNotDoIsAWarning) {
                                                                  fc["tissue_force_n"][2].get<double>()));
   }
   EXPECT_TRUE(nlohmann::json::parse(test::read_file(dir / "dry.json"))["metrics"]["obstacle_contacts"].is_null());
-  // a moving mesh narrower than the tissue's node spacing can pass between the
-  // nodes: a 1 mm rod pushed up into the skin is a warning, a 20 mm plate is not
+  // a moving mesh narrower than the tissue's node spacing whose edges do not
+  // meet the tissue's faces can pass between the nodes: a 1 mm rod pushed up
+  // into the skin with "edge_spacing": 0 is a warning; by default its edges
+  // meet the faces (silent, and it presses the skin), and a 20 mm plate is silent
   auto box = [&](const std::string& file, double w, double h) {  // w x h x w m, its top face at y = -0.002
     test::write_file(dir / file, test::box_stl({0.02 - w / 2, -0.002 - h, 0.008 - w / 2}, {0.02 + w / 2, -0.002, 0.008 + w / 2}));
   };
   box("rod.stl", 0.001, 0.02);
   box("plate.stl", 0.02, 0.001);
-  auto pushed = [&](const std::string& stl) {
+  auto pushed = [&](const std::string& stl, const std::string& more) {
     return scene(R"({
-      "model": "model.h5", "fixed": ["fixed"], "integrator": "implicit", "dt": 0.005, "duration": 0.01,
-      "colliders": [{"name": "probe", "type": "mesh", "stl": ")" + stl + R"(", "path": [[0, 0, 0, 0], [1, 0, 0.01, 0]]}]})");
+      "model": "model.h5", "fixed": ["fixed"], "integrator": "implicit", "dt": 0.005, "duration": 0.05,
+      "colliders": [{"name": "probe", "type": "mesh", "stl": ")" + stl + R"(", "path": [[0, 0, 0, 0], [0.05, 0, 0.003, 0]])" + more + "}]}");
   };
-  const auto rod = pushed("rod.stl");
+  const auto rod = pushed("rod.stl", R"(, "edge_spacing": 0)");
   const auto rod_run = run_cli("run " + rod + " --no-output --quiet");
   expect_one_warning(rod_run, "orthosim run: warning: " + rod + ": the moving collider 'probe' (" + (dir / "rod.stl") + ") is 0.001 m across");
   EXPECT_NE(rod_run.err.find("only nodes collide, so it can pass between them"), std::string::npos) << rod_run.err;
-  expect_silent(run_cli("run " + pushed("plate.stl") + " --no-output --quiet"));
+  expect_silent(run_cli("run " + pushed("rod.stl", "") + " --no-output --quiet --report " + (dir / "rod.json")));
+  {
+    // pushed 3 mm up in 0.05 s, its top 2 mm under the skin at the start: it presses the skin 1 mm
+    const auto rm = nlohmann::json::parse(test::read_file(dir / "rod.json"))["metrics"];
+    EXPECT_GT(rm["face_contacts"].get<long long>(), 0) << rm.dump();
+    EXPECT_GT(rm["colliders"][0]["tissue_force_n"][1].get<double>(), 0) << rm.dump();
+  }
+  expect_silent(run_cli("run " + pushed("plate.stl", "") + " --no-output --quiet"));
   // the far mesh brought to the tissue by its path is not far: the box it sweeps meets the tissue
   const auto brought = scene(R"({
       "model": "model.h5", "fixed": ["fixed"], "integrator": "implicit", "dt": 0.005, "duration": 0.01,

@@ -17,6 +17,7 @@ namespace orthosim::runtime {
 namespace {
 
 using test::all_finite;
+using test::box_mesh;
 using test::make_model;
 using test::max_node_distance;
 using testing::make_layered_block;
@@ -1523,6 +1524,172 @@ TEST(MovingObstacles, ASwingingDoorDoesNotPassANode) {
     EXPECT_GT(std::hypot(s.x[0], s.x[2]), 0.1 - 1e-9) << "swept round (it slides outward, frictionless)";
     EXPECT_EQ(s.counters.events, 0);
   }
+}
+
+// ---- a mesh's edges against the tissue's faces -----------------------------
+
+// One triangle pair of free nodes (a unit square at y = 0, its outside -y)
+// moving out at 1 m/s and along x at 0.3 m/s meets a sample 0.5 mm in front
+// of its centre in a 1 ms substep: the two nodes of the diagonal under it
+// (weights 1/2, 1/2) move back so that the point under it ends on it, 0.5 m/s
+// slower, and friction 0.2 takes 0.2 x 0.5 m/s of their 0.3 m/s along it
+// (Coulomb). The impulse is their momentum change.
+TEST(FaceContacts, TheLawOnOneFace) {
+  // the samples: a box's 8 corners, and points along its 12 edges and 6 face diagonals
+  Obstacles o;
+  add_obstacle_mesh(o, box_mesh({0.4, -0.1, 0.4}, {0.6, 0.1, 0.6}));
+  sample_obstacle_edges(o.meshes[0], 1.0);
+  EXPECT_EQ(o.meshes[0].samples.size(), 3u * 8) << "edges shorter than the spacing: the corners";
+  sample_obstacle_edges(o.meshes[0], 0.05);
+  EXPECT_EQ(o.meshes[0].samples.size(), 3u * (8 + 12 * 3 + 6 * 5)) << "0.2 m edges in 4, 0.28 m diagonals in 6";
+  sample_obstacle_edges(o.meshes[0], 0);
+  EXPECT_TRUE(o.meshes[0].samples.empty()) << "spacing 0: none";
+  EXPECT_THROW(sample_obstacle_edges(o.meshes[0], 1e-9), Error) << "10^8 points";
+  // a box whose one corner over the square is (0.5, -0.0005, 0.5)
+  Obstacles o1;
+  ObstacleMesh one = box_mesh({0.5, -0.0015, 0.5}, {1.5, -0.0005, 1.5});
+  one.friction = 0.2;
+  add_obstacle_mesh(o1, std::move(one));
+  sample_obstacle_edges(o1.meshes[0], 2.0);
+  const std::vector<std::int32_t> quads = {0, 1, 2, 3};  // (0,0,0) (1,0,0) (1,0,1) (0,0,1): counter-clockwise from -y
+  const std::vector<Real> x = {0, 0, 0, 1, 0, 0, 1, 0, 1, 0, 0, 1};
+  std::vector<Real> v;
+  for (int k = 0; k < 4; ++k) v.insert(v.end(), {0.2, -1, 0.2});  // out, and along the diagonal under the sample
+  const std::vector<Real> v_in = v;
+  const std::vector<Real> inv_mass(4, 1.0);
+  std::vector<Real> impulse(3, 0);
+  FaceScratch sc;
+  const Real h = 1e-3;
+  const FaceContacts c = resolve_face_contacts(o1, {}, quads, x, v, inv_mass, h, impulse, sc);
+  EXPECT_EQ(c.contacts, 1) << "the corner over the square's centre (the one under it is in front)";
+  EXPECT_EQ(c.work, 0) << "a mesh at rest does no work";
+  // at the end the square has moved 0.2 mm along the diagonal: the sample is at 0.4998 of it
+  const Real w0 = 0.5002, w2 = 0.4998;
+  auto at_point = [&](const std::vector<Real>& a, int k) { return w0 * a[k] + w2 * a[6 + k]; };
+  // the point under it ends on it, 10^-9 m (the standoff) behind it (deeper: +y)
+  const Real standoff = 1e-9;
+  EXPECT_NEAR(at_point(x, 1) + h * at_point(v, 1), -0.0005 + standoff, 1e-15);
+  const Real dvn = (0.0005 + standoff) / h;  // its normal change: 0.5 m/s slower out
+  EXPECT_NEAR(at_point(v, 1), -1 + dvn, 1e-12);
+  // Coulomb: 0.2 x that off its 0.283 m/s along the diagonal, not turned
+  EXPECT_NEAR(std::hypot(at_point(v, 0), at_point(v, 2)), std::hypot(0.2, 0.2) - 0.2 * dvn, 1e-12);
+  EXPECT_NEAR(at_point(v, 0), at_point(v, 2), 1e-15);
+  // the nodes' shares: w_j / sum w^2 of the point's change each
+  const Real W = w0 * w0 + w2 * w2;
+  for (int k = 0; k < 3; ++k) EXPECT_NEAR((v[k] - v_in[k]) / w0, (v[6 + k] - v_in[6 + k]) / w2, 1e-9) << k;
+  EXPECT_NEAR((at_point(v, 1) - at_point(v_in, 1)), (v[1] - v_in[1]) * W / w0, 1e-9);
+  for (int i : {1, 3})
+    for (int k = 0; k < 3; ++k) EXPECT_EQ(v[3 * i + k], v_in[3 * i + k]) << "off the diagonal: untouched";
+  for (int k = 0; k < 3; ++k) EXPECT_NEAR(impulse[k], v[k] - v_in[k] + v[6 + k] - v_in[6 + k], 1e-12) << "the momentum change";
+  // fixed nodes do not move; a free one takes it all
+  std::vector<Real> v2(12);
+  for (int k = 0; k < 4; ++k) v2[3 * k + 1] = -1;
+  std::vector<Real> im2 = {0, 1, 0, 0};
+  std::vector<Real> imp2(3, 0);
+  EXPECT_EQ(resolve_face_contacts(o1, {}, quads, x, v2, im2, h, imp2, sc).contacts, 0) << "the diagonal's nodes are fixed";
+  // already behind the face at the start (inside the tissue): left alone
+  std::vector<Real> x3 = x;
+  for (int k = 0; k < 4; ++k) x3[3 * k + 1] = -0.001;
+  std::vector<Real> v3(12, 0);
+  EXPECT_EQ(resolve_face_contacts(o1, {}, quads, x3, v3, inv_mass, h, imp2, sc).contacts, 0);
+}
+
+// A probe narrower than the skin's 4 mm node spacing, pushed 5 mm into the
+// layered block between its nodes: a 1 mm rod tip first, and a 1 mm bar
+// lying across the skin whose vertices all lie beyond the block (only its
+// edges' samples meet the faces). With the edge samples the skin is pressed:
+// no sample of the probe gets behind a skin face, the face under it is on it,
+// and the probe's force on the tissue is what the fixed bone carries. With
+// them off (spacing 0) the probe passes through the skin. Both integrators,
+// 1 and 2 threads the same.
+TEST(FaceContacts, AThinProbePressesTheSkinBetweenNodes) {
+  const auto b = make_layered_block(13, 5, 4);
+  const Model m = model_from_layers(b.layers, b.sets);
+  ASSERT_GT(m.n_quads, 0);
+  std::vector<std::int32_t> skin_quads;  // the skin sheet's quads (its nodes at y = 0 at rest)
+  for (std::int32_t q = 0; q < m.n_quads; ++q) {
+    bool top = true;
+    for (int c = 0; c < 4; ++c) top = top && m.rest_x[3 * static_cast<std::size_t>(m.quads[4 * static_cast<std::size_t>(q) + c]) + 1] == 0;
+    if (top) skin_quads.insert(skin_quads.end(), &m.quads[4 * static_cast<std::size_t>(q)], &m.quads[4 * static_cast<std::size_t>(q)] + 4);
+  }
+  ASSERT_EQ(skin_quads.size(), 4u * 12 * 4);
+  const Real spacing = default_edge_spacing(m.quads, m.rest_x);
+  EXPECT_NEAR(spacing, 2e-3, 1e-12) << "half the 4 mm edges";
+  const Real push = 5e-3;
+  struct Result {
+    Real behind = -HUGE_VAL;  // the most a sample is behind the skin face over (under) it, over the steps
+    Real gap = HUGE_VAL;      // at the end: the least distance from a sample to the face under it
+    Vec3 force, bone;         // at the end: the probe's force on the tissue; the fixed nodes' reaction
+    std::int64_t events = 0, faces = 0;
+    std::uint64_t hash = 0;
+  };
+  auto press = [&](const ObstacleMesh& probe_mesh, Real edge_spacing, Integrator integ, int threads) {
+    auto ob = std::make_shared<Obstacles>();
+    add_obstacle_mesh(*ob, probe_mesh);
+    sample_obstacle_edges(ob->meshes[0], edge_spacing);
+    State s = make_state(m);
+    fix_nodes(m, s, m.set("fixed"));
+    s.obstacles = ob;
+    s.obstacle_paths = {displacement_path({{0, 0, 0, 0}, {0.25, 0, push, 0}})};
+    SolverOptions o;
+    o.integrator = integ;
+    o.gravity = {0, 0, 0};
+    o.mass_damping = 20;
+    Result r;
+    // the probe's points at the default spacing (whether or not the solve
+    // uses them) in space, and how far each is behind the skin under it (y: deeper)
+    ObstacleMesh points = probe_mesh;
+    sample_obstacle_edges(points, spacing);
+    auto measure = [&](bool end) {
+      const test::SkinDepth sd = test::depth_behind_skin(points.samples, s.obstacle_paths[0].at(s.time), skin_quads, s.x);
+      r.behind = std::max(r.behind, sd.behind);
+      if (end) r.gap = sd.gap;
+    };
+    tbb::task_arena arena(threads);
+    arena.execute([&] {
+      for (int k = 0; k < 60; ++k) {
+        step(m, s, 1.0 / 120, o);
+        measure(k == 59);
+      }
+    });
+    r.force = load3(s.face_force.data(), 0);
+    // the springs' pull on the fixed nodes
+    for (std::int32_t k = 0; k < m.n_springs; ++k) {
+      const std::int32_t a = m.spring_a[static_cast<std::size_t>(k)], bn = m.spring_b[static_cast<std::size_t>(k)];
+      const bool fa = s.inv_mass[static_cast<std::size_t>(a)] == 0, fb = s.inv_mass[static_cast<std::size_t>(bn)] == 0;
+      if (fa == fb) continue;
+      const Vec3 d = load3(s.x.data(), bn) - load3(s.x.data(), a);
+      const Real l = norm(d), stretch = l - m.spring_rest[static_cast<std::size_t>(k)];
+      if (m.spring_tension[static_cast<std::size_t>(k)] && stretch < 0) continue;
+      const Vec3 on_a = (m.spring_k[static_cast<std::size_t>(k)] * stretch / l) * d;
+      r.bone += fa ? on_a : -on_a;
+    }
+    r.events = s.counters.events;
+    r.faces = s.counters.face_contacts;
+    r.hash = state_hash(s);
+    EXPECT_TRUE(all_finite(s));
+    return r;
+  };
+  // between the nodes at x = 20, 24 mm and z = 4, 8 mm: a rod, tip up at y = -1 mm; a bar along z across the block
+  const ObstacleMesh rod = box_mesh({0.0215, -0.02, 0.0055}, {0.0225, -0.001, 0.0065});
+  const ObstacleMesh bar = box_mesh({0.0215, -0.002, -0.01}, {0.0225, -0.001, 0.026});
+  for (const auto& [name, probe] : {std::pair{"rod", rod}, std::pair{"bar", bar}})
+    for (Integrator integ : {Integrator::symplectic_euler, Integrator::implicit_euler}) {
+      SCOPED_TRACE(std::string(name) + ", " + to_string(integ));
+      const Result r = press(probe, spacing, integ, 1);
+      std::printf("  %s, %s: force %.6f N (the bone %.6f N), deepest sample %.3g m, gap %.3g m, %lld face contacts\n", name,
+                  to_string(integ), r.force.y, r.bone.y, r.behind, r.gap, static_cast<long long>(r.faces));
+      EXPECT_LE(r.behind, 1e-9) << "no sample behind the skin";
+      EXPECT_LT(r.gap, 1e-6) << "the skin pressed is on the probe";
+      EXPECT_GT(r.force.y, 0) << "the probe pushes the skin in";
+      EXPECT_NEAR(r.bone.y, r.force.y, 0.02 * r.force.y) << "at rest, the bone carries the push";
+      EXPECT_GT(r.faces, 0);
+      EXPECT_EQ(r.events, 0);
+      EXPECT_EQ(press(probe, spacing, integ, 2).hash, r.hash) << "threads";
+      const Result off = press(probe, 0, integ, 1);
+      EXPECT_GT(off.behind, 2e-3) << "without the samples it passes through the skin";
+      EXPECT_EQ(off.faces, 0);
+    }
 }
 
 }  // namespace
