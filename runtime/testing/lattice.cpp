@@ -292,4 +292,19 @@ void write_model_file(const std::string& path, const LayeredBlock& b, bool extra
   w.commit();
 }
 
+Vec3 fixed_reaction(const Model& m, std::span<const Real> x, std::span<const Real> inv_mass) {
+  Vec3 r;
+  for (std::int32_t k = 0; k < m.n_springs; ++k) {
+    const std::int32_t a = m.spring_a[static_cast<std::size_t>(k)], b = m.spring_b[static_cast<std::size_t>(k)];
+    const bool fa = inv_mass[static_cast<std::size_t>(a)] == 0, fb = inv_mass[static_cast<std::size_t>(b)] == 0;
+    if (fa == fb) continue;
+    const Vec3 d = load3(x.data(), b) - load3(x.data(), a);
+    const Real l = norm(d), stretch = l - m.spring_rest[static_cast<std::size_t>(k)];
+    if ((m.spring_tension[static_cast<std::size_t>(k)] && stretch < 0) || !(l > 0)) continue;
+    const Vec3 on_a = (m.spring_k[static_cast<std::size_t>(k)] * stretch / l) * d;
+    r += fa ? on_a : -on_a;
+  }
+  return r;
+}
+
 }  // namespace orthosim::runtime::testing

@@ -21,9 +21,11 @@
 #pragma once
 
 #include "libmodel/format/model.h"
+#include "runtime/model.h"
 #include "runtime/types.h"
 
 #include <map>
+#include <span>
 #include <string>
 #include <utility>
 #include <vector>
@@ -73,5 +75,11 @@ LayeredBlock make_layered_block(int nu, int nv, int layers);
 // /surfaces/skin, /quads/skin, a /vessels/artery tree and /tuning, so
 // lazy-loading tests can check they are not read.
 void write_model_file(const std::string& path, const LayeredBlock& b, bool extras = false);
+
+// The springs' pull (N) on the nodes a State holds fixed (inverse mass 0),
+// summed: at rest, what the fixed nodes carry of the loads on the free ones
+// (their springs' elastic forces at x; tension-only springs count only
+// stretched; damping and the volume term left out).
+Vec3 fixed_reaction(const Model& m, std::span<const Real> x, std::span<const Real> inv_mass);
 
 }  // namespace orthosim::runtime::testing

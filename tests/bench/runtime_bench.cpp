@@ -27,6 +27,7 @@
 #include "runtime/testing/newton.h"
 #include "runtime/testing/stress.h"
 #include "tests/bench/bench_results.h"
+#include "tests/runtime/runtime_test_util.h"
 
 #include <benchmark/benchmark.h>
 #include <tbb/blocked_range.h>
@@ -751,12 +752,75 @@ void contact_rows(ob::Results& out, bool quick) {
   }
 }
 
+// A thin probe on the tissue: a 1 mm rod, narrower than the skin's 4 mm node
+// spacing, pushed 5 mm into the paper-sized lattice (bone fixed, no gravity)
+// between nodes over 0.25 s and held, 2 s of 1/60 s implicit steps; its edges
+// meet the skin's faces (resolve_face_contacts). Error: its force on the
+// tissue at the end against what the fixed bone carries (at rest they are
+// equal). Beside it, the same run with the edge samples off (only nodes
+// collide: the rod passes through the skin, and carries nothing; the tissue
+// at rest takes far fewer PCG iterations, so the time ratio is mostly the
+// pressed tissue's solves, not the faces' pass).
+void thin_probe_rows(ob::Results& out, bool quick) {
+  const Lattice& L = lattice(39, 9, 4);
+  // the rod's tip 1 mm under the skin (y = 0) in the middle of a quad near the lattice's middle
+  const Real cx = 0.5 * 0.004 * 19 + 0.002, cz = 0.5 * 0.004 * 8 + 0.002, push = 0.005;
+  const rt::ObstacleMesh rod = rt::test::box_mesh({cx - 0.0005, -0.021, cz - 0.0005}, {cx + 0.0005, -0.001, cz + 0.0005});
+  struct Result {
+    rt::Vec3 force, bone;
+    std::int64_t faces = 0;
+    double its = 0;  // PCG iterations per solve
+  };
+  auto run = [&](Real spacing, Result& r) {
+    auto ob = std::make_shared<rt::Obstacles>();
+    rt::add_obstacle_mesh(*ob, rod);
+    rt::sample_obstacle_edges(ob->meshes[0], spacing);
+    rt::State s = L.rest;
+    s.obstacles = ob;
+    s.obstacle_paths.resize(1);
+    s.obstacle_paths[0].t = {0, 0.25};
+    s.obstacle_paths[0].p = {0, 0, 0, 0, push, 0};
+    rt::SolverOptions o;
+    o.integrator = rt::Integrator::implicit_euler;
+    o.gravity = {0, 0, 0};
+    o.mass_damping = 20;
+    tbb::task_arena arena(2);
+    arena.execute([&] {
+      for (int k = 0; k < 120; ++k) rt::step(L.model, s, 1.0 / 60, o);
+    });
+    r.force = rt::load3(s.face_force.data(), 0);
+    r.bone = rt::testing::fixed_reaction(L.model, s.x, s.inv_mass);
+    r.faces = s.counters.face_contacts;
+    r.its = static_cast<double>(s.counters.cg_iterations) / static_cast<double>(std::max<std::int64_t>(1, s.counters.cg_solves));
+  };
+  const Real spacing = rt::default_edge_spacing(L.model.quads, L.model.rest_x);
+  Result with, without;
+  std::vector<double> off_s;
+  ob::Row row;
+  row.workload = "a 1 mm rod pushed 5 mm into the 39x9x4 lattice's skin between nodes (4 mm apart), 2 s of 1/60 s steps: its "
+                 "force on the tissue against the fixed bone's reaction";
+  row.setting = "implicit, 120 steps, 2 threads, edge samples " + std::to_string(1e3 * spacing).substr(0, 4) + " mm apart";
+  row.x = L.model.n_nodes;
+  ob::time_alternating(quick ? 1 : 3, [&] { run(spacing, with); }, [&] { run(0, without); }, &row.seconds, &off_s);
+  row.error("relative force error", std::abs(with.bone.y - with.force.y) / with.force.y, "<=", 1e-3);
+  row.extra = {{"force_y_n", with.force.y},
+               {"bone_reaction_y_n", with.bone.y},
+               {"face_contacts", with.faces},
+               {"seconds_nodes_only_median", ob::median(off_s)},
+               {"ratio_to_nodes_only", ob::median(row.seconds) / ob::median(off_s)},
+               {"nodes_only_force_y_n", without.bone.y},
+               {"pcg_iterations_per_solve", with.its},
+               {"nodes_only_pcg_iterations_per_solve", without.its}};
+  out.add(row);
+}
+
 void results(const std::string& path, bool quick) {
   ob::Results out("runtime", "runtime_bench", quick);
   integrator_rows(out, quick);
   grid_rows(out, quick);
   sag_rows(out, quick);
   contact_rows(out, quick);
+  thin_probe_rows(out, quick);
   stability_rows(out, quick);
   out.write(path);
 }

@@ -827,6 +827,32 @@ TEST_F(SceneTest, SampleProbeScenePlacesItsSpatulaOnTheBox) {
   EXPECT_TRUE(fs::exists(d.output.dir + "/tissue_moving_colliders.pvd"));
 }
 
+// The sample thin-probe scene parses and runs on a lattice model: its rod's
+// edges are sampled at half the median quad edge (the lattice's 4 mm: 2 mm),
+// so its 30 mm edges carry 15 pieces each.
+TEST_F(SceneTest, SampleRodSceneSamplesItsEdges) {
+  SceneDef d = parse_scene_file(std::string(ORTHOSIM_SOURCE_DIR) + "/data-samples/scenes/rod.json");
+  d.model = model;
+  d.output.dir = dir / "rod";
+  ASSERT_EQ(d.colliders.size(), 1u);
+  EXPECT_EQ(d.colliders[0].edge_spacing, -1) << "the default";
+  Scene s(d);
+  ASSERT_NE(s.obstacles(), nullptr);
+  ASSERT_EQ(s.obstacles()->meshes.size(), 1u);
+  const Real spacing = default_edge_spacing(s.model().quads, s.model().rest_x);
+  ASSERT_GT(spacing, 0) << "the scene loaded the quads";
+  // 8 corners; the 4 edges of 30 mm, the 4 side faces' diagonals (30.04 mm),
+  // the 8 edges of 1.5 mm and the 2 end faces' diagonals (2.12 mm), each in
+  // ceil(length / spacing) pieces
+  auto inner = [&](Real length) { return static_cast<std::size_t>(std::ceil(length / spacing)) - 1; };
+  EXPECT_EQ(s.obstacles()->meshes[0].samples.size(),
+            3 * (8 + 4 * inner(0.030) + 4 * inner(std::hypot(0.030, 0.0015)) + 8 * inner(0.0015) + 2 * inner(std::hypot(0.0015, 0.0015))));
+  const auto r = run(s, 6);
+  EXPECT_EQ(r.steps, 6);
+  EXPECT_EQ(s.counters().failed, 0);
+  EXPECT_TRUE(fs::exists(d.output.dir + "/tissue_moving_colliders.pvd"));
+}
+
 // The sample scenes parse and run on a lattice model (the builder's model
 // replaces it in scripts/demo).
 TEST_F(SceneTest, SampleScenesRunOnALatticeModel) {
