@@ -499,10 +499,10 @@ FaceContacts resolve_face_contacts(const Obstacles& o, const ObstacleMotion& mo,
   const std::size_t nq = quads.size() / 4;
   if (nq == 0 || !(h > 0)) return out;
   const auto np = static_cast<std::int32_t>(o.planes.size());
-  const std::int32_t* Q = quads.data();
+  const bool with_holds = holds && holds->obstacle.size() == static_cast<std::size_t>(n);
   // triangle t of quad t / 2: (q0, q1, q2) or (q0, q2, q3)
   auto corners = [&](std::size_t t, std::int32_t c[3]) {
-    const std::int32_t* q = Q + 4 * (t / 2);
+    const std::int32_t* q = quads.data() + 4 * (t / 2);
     c[0] = q[0], c[1] = q[1 + (t & 1)], c[2] = q[2 + (t & 1)];
   };
   std::size_t met_first = 0;  // the mesh's first sample in `met`
@@ -511,7 +511,6 @@ FaceContacts resolve_face_contacts(const Obstacles& o, const ObstacleMotion& mo,
     if (mesh.samples.empty()) continue;
     const auto k = np + static_cast<std::int32_t>(mi);
     const SampleCells& g = mesh.sample_cells;
-    const bool with_holds = holds && holds->obstacle.size() == static_cast<std::size_t>(n);
     // the samples that met the faces in the last substep (in), and in this one (out)
     const std::size_t ns = mesh.samples.size() / 3;
     std::uint8_t* met_now = nullptr;
@@ -523,167 +522,173 @@ FaceContacts resolve_face_contacts(const Obstacles& o, const ObstacleMotion& mo,
       was_met = sc.met.data();
     }
     met_first += ns;
-    Vec3 total_impulse{};
-    // Rounds of finding the meetings and resolving them: a round's
-    // corrections may bring a sample behind a triangle it did not meet (a
-    // neighbour of one it met), which the next round finds; at most kRounds.
-    constexpr int kRounds = 4;
-    for (int round = 0; round < kRounds; ++round) {
-    // the nodes in the mesh's frame at the substep's start and (tentative) end
-    sc.body0.resize(3 * static_cast<std::size_t>(n));
-    sc.body1.resize(3 * static_cast<std::size_t>(n));
-    for (std::int64_t i = 0; i < n; ++i) {
-      const Vec3 xi = load3(x.data(), i);
-      store3(sc.body0.data(), i, mo.to_body(k, xi, 0));
-      store3(sc.body1.data(), i, mo.to_body(k, xi + h * load3(v.data(), i), 1));
-    }
-    const Real* B0 = sc.body0.data();
-    const Real* B1 = sc.body1.data();
-    // the meetings: each triangle against the samples of the cells its box (grown by its depth) covers;
-    // with holds, the samples that touch a triangle too
-    sc.hits.clear();
-    for (std::size_t t = 0; t < 2 * nq; ++t) {
-      std::int32_t c[3];
-      corners(t, c);
-      const Vec3 a = load3(B1, c[0]), b = load3(B1, c[1]), cc = load3(B1, c[2]);
-      const Vec3 a0 = load3(B0, c[0]), b0 = load3(B0, c[1]), c0 = load3(B0, c[2]);
-      // how deep a sample meets it: within its thickness (half its shortest
-      // edge), or, having crossed it over the substep, as deep as the
-      // triangle moved relative to the mesh
-      const Real motion = std::max({norm(a - a0), norm(b - b0), norm(cc - c0)}) + obstacle_reach(a);
-      const Real thick = Real(0.5) * std::sqrt(std::min({dot(b - a, b - a), dot(cc - b, cc - b), dot(a - cc, a - cc)}));
-      const Real depth = std::max(motion, thick);
-      // the box of the triangle over the substep, grown by that depth
-      const Vec3 lo{std::min({a.x, b.x, cc.x, a0.x, b0.x, c0.x}) - depth, std::min({a.y, b.y, cc.y, a0.y, b0.y, c0.y}) - depth,
-                    std::min({a.z, b.z, cc.z, a0.z, b0.z, c0.z}) - depth};
-      const Vec3 hi{std::max({a.x, b.x, cc.x, a0.x, b0.x, c0.x}) + depth, std::max({a.y, b.y, cc.y, a0.y, b0.y, c0.y}) + depth,
-                    std::max({a.z, b.z, cc.z, a0.z, b0.z, c0.z}) + depth};
-      if (lo.x > g.hi.x || lo.y > g.hi.y || lo.z > g.hi.z || hi.x < g.lo.x || hi.y < g.lo.y || hi.z < g.lo.z) continue;
-      if (!(depth > 0)) continue;  // (a non-finite triangle)
-      const Vec3 nrm = cross(b - a, cc - a);
-      const Real n2 = dot(nrm, nrm);
-      if (!(n2 > 0)) continue;
-      const Vec3 nh = (1 / std::sqrt(n2)) * nrm;
-      const Real touch = obstacle_reach(a);
-      const Vec3 nrm0 = cross(b0 - a0, c0 - a0);
-      const Real n20 = dot(nrm0, nrm0);
-      std::int32_t r0[3], r1[3];
-      const Real blo[3] = {lo.x - g.origin.x, lo.y - g.origin.y, lo.z - g.origin.z}, bhi[3] = {hi.x - g.origin.x, hi.y - g.origin.y, hi.z - g.origin.z};
-      for (int d = 0; d < 3; ++d) {
-        r0[d] = static_cast<std::int32_t>(std::clamp<Real>(std::floor(blo[d] / g.cell), 0, g.dims[d] - 1));
-        r1[d] = static_cast<std::int32_t>(std::clamp<Real>(std::floor(bhi[d] / g.cell), 0, g.dims[d] - 1));
+
+    // The meetings, as (sample, triangle) in sc.hits: each triangle where
+    // the velocities put it at the substep's end, against the samples of the
+    // grid cells its box over the substep (grown by how deep a sample may
+    // meet it) covers; with holds, the samples that touch it too.
+    auto find_meetings = [&] {
+      sc.body0.resize(3 * static_cast<std::size_t>(n));
+      sc.body1.resize(3 * static_cast<std::size_t>(n));
+      for (std::int64_t i = 0; i < n; ++i) {  // the nodes in the mesh's frame at the substep's start and end
+        const Vec3 xi = load3(x.data(), i);
+        store3(sc.body0.data(), i, mo.to_body(k, xi, 0));
+        store3(sc.body1.data(), i, mo.to_body(k, xi + h * load3(v.data(), i), 1));
       }
-      for (std::int32_t cz = r0[2]; cz <= r1[2]; ++cz)
-        for (std::int32_t cy = r0[1]; cy <= r1[1]; ++cy)
-          for (std::int32_t cx = r0[0]; cx <= r1[0]; ++cx) {
-            const std::int64_t cell = (static_cast<std::int64_t>(cz) * g.dims[1] + cy) * g.dims[0] + cx;
-            for (std::int32_t s = g.start[static_cast<std::size_t>(cell)], e = g.start[static_cast<std::size_t>(cell + 1)]; s < e; ++s) {
-              const std::int32_t id = g.items[static_cast<std::size_t>(s)];
-              const Vec3 p = load3(mesh.samples.data(), id);
-              const Real d1 = dot(nh, p - a);
-              if (!(d1 <= touch && d1 >= -depth)) continue;
-              // within it, or behind its edge: beyond its extent by no more
-              // than it is behind its plane (the wedge behind a convex crease
-              // of the surface, where no face's extent holds it)
-              const bool within = project(p, a, b, cc, nrm, n2).inside;
-              if (!within && !(d1 < 0 && near_edge(p, a, b, cc, d1))) continue;
-              // behind it (or touching it) at the end: a sample that met the
-              // tissue's faces in the last substep (on its surface) meets it
-              // within its thickness, if within it; another, or one behind an
-              // edge, no deeper than the triangle moved, unless it was behind
-              // it (or its edge) at the start too (inside the tissue, not
-              // entering it)
-              const bool on_surface = was_met && was_met[id] && within;
-              if (!on_surface || d1 < -thick) {
-                if (!(d1 >= -motion)) continue;
-                const Real d0 = n20 > 0 ? dot(nrm0, p - a0) / std::sqrt(n20) : 0;
-                const bool front0 = n20 > 0 && d0 >= -obstacle_reach(p);
-                const bool in0 = n20 > 0 && (project(p, a0, b0, c0, nrm0, n20).inside || (d0 < 0 && near_edge(p, a0, b0, c0, d0)));
-                if (in0 && !front0) continue;
-              }
-              sc.hits.insert(sc.hits.end(), {id, static_cast<std::int32_t>(t)});
-            }
-          }
-    }
-    if (sc.hits.empty()) break;
-    // in turn, by sample, then triangle
-    std::vector<std::array<std::int32_t, 2>> order(sc.hits.size() / 2);
-    for (std::size_t j = 0; j < order.size(); ++j) order[j] = {sc.hits[2 * j], sc.hits[2 * j + 1]};
-    std::sort(order.begin(), order.end());
-    // Gauss-Seidel sweeps until none moves a face (a meeting moves nodes that
-    // other meetings' triangles share), at most kSweeps; the first marks the
-    // holds, and the first round's first counts the meetings
-    constexpr int kSweeps = 8;
-    bool round_moved = false;
-    for (int sweep = 0; sweep < kSweeps; ++sweep) {
-    bool moved = false;
-    for (const auto& [id, t] : order) {
-      std::int32_t c[3];
-      corners(static_cast<std::size_t>(t), c);
-      Vec3 y[3];
-      for (int j = 0; j < 3; ++j) y[j] = mo.to_body(k, load3(x.data(), c[j]) + h * load3(v.data(), c[j]), 1);
-      const Vec3 p = load3(mesh.samples.data(), id);
-      const Vec3 nrm = cross(y[1] - y[0], y[2] - y[0]);
-      const Real n2 = dot(nrm, nrm);
-      if (!(n2 > 0)) continue;
-      const Vec3 nh = (1 / std::sqrt(n2)) * nrm;
-      const Real d = dot(nh, p - y[0]);
-      if (!(d < 0) && sweep > 0) continue;  // an earlier meeting has moved it
-      if (!(d <= obstacle_reach(p))) continue;  // (a touch: on the surface, and with holds, holding the face)
-      Projection w = project(p, y[0], y[1], y[2], nrm, n2);
-      Real ws = 0;
-      for (Real& wj : w.w) ws += (wj = std::max<Real>(wj, 0));
-      if (!(ws > 0)) continue;
-      Real W = 0, free_w = 0;
-      for (int j = 0; j < 3; ++j) {
-        w.w[j] /= ws;
-        const Real im = inv_mass[static_cast<std::size_t>(c[j])];
-        W += w.w[j] * w.w[j] * im;
-        free_w += im > 0 ? w.w[j] : 0;
-      }
-      if (!(W > 0)) continue;  // all its nodes fixed
-      const Vec3 nw = mo.normal_to_world(k, nh, 1);
-      if (with_holds && sweep == 0)
-        for (int j = 0; j < 3; ++j)
-          if (w.w[j] > 0 && inv_mass[static_cast<std::size_t>(c[j])] > 0) {
-            holds->obstacle[static_cast<std::size_t>(c[j])] = k;
-            store3(holds->normal.data(), c[j], -nw);
-          }
-      if (met_now && sweep == 0) met_now[id] = 1;
-      if (round == 0 && sweep == 0 && (d < 0 || with_holds)) ++out.contacts;
-      if (!(d < 0)) continue;  // touching: held, not moved
-      moved = round_moved = true;
-      // the normal change: the point moves behind the sample by a standoff, over the substep
-      const Real need = standoff(p) - d;
-      Vec3 dv = (-need / h) * nw;
-      auto apply = [&](const Vec3& change) {
-        for (int j = 0; j < 3; ++j) {
-          const Real im = inv_mass[static_cast<std::size_t>(c[j])];
-          if (im > 0) store3(v.data(), c[j], load3(v.data(), c[j]) + (w.w[j] * im / W) * change);
+      sc.hits.clear();
+      for (std::size_t t = 0; t < 2 * nq; ++t) {
+        std::int32_t c[3];
+        corners(t, c);
+        const Vec3 a = load3(sc.body1.data(), c[0]), b = load3(sc.body1.data(), c[1]), cc = load3(sc.body1.data(), c[2]);
+        const Vec3 a0 = load3(sc.body0.data(), c[0]), b0 = load3(sc.body0.data(), c[1]), c0 = load3(sc.body0.data(), c[2]);
+        // how deep a sample meets it: within its thickness (half its shortest
+        // edge), or no deeper than it moved relative to the mesh
+        const Real motion = std::max({norm(a - a0), norm(b - b0), norm(cc - c0)}) + obstacle_reach(a);
+        const Real thick = Real(0.5) * std::sqrt(std::min({dot(b - a, b - a), dot(cc - b, cc - b), dot(a - cc, a - cc)}));
+        const Real depth = std::max(motion, thick);
+        if (!(depth > 0)) continue;  // (a non-finite triangle)
+        Real lo[3], hi[3];
+        for (int d = 0; d < 3; ++d) {
+          const Real e[6] = {(&a.x)[d], (&b.x)[d], (&cc.x)[d], (&a0.x)[d], (&b0.x)[d], (&c0.x)[d]};
+          lo[d] = *std::min_element(e, e + 6) - depth, hi[d] = *std::max_element(e, e + 6) + depth;
         }
-      };
-      apply(dv);
-      // friction on the point's velocity relative to the mesh's surface there
-      const Vec3 pw = mo.to_world(k, p, 1);
-      const Vec3 u = mo.velocity(k, pw, 1, h);
-      Vec3 vp{};
-      for (int j = 0; j < 3; ++j) vp += w.w[j] * load3(v.data(), c[j]);
-      const Vec3 vr = vp - u;
-      const Vec3 vt = vr - dot(vr, nw) * nw;
-      const Real st = norm(vt);
-      if (st > 0) {
-        const Vec3 dvt = (-std::min(Real(1), mesh.friction * (need / h) / st)) * vt;
-        apply(dvt);
-        dv += dvt;
+        if (lo[0] > g.hi.x || lo[1] > g.hi.y || lo[2] > g.hi.z || hi[0] < g.lo.x || hi[1] < g.lo.y || hi[2] < g.lo.z) continue;
+        const Vec3 nrm = cross(b - a, cc - a), nrm0 = cross(b0 - a0, c0 - a0);
+        const Real n2 = dot(nrm, nrm), n20 = dot(nrm0, nrm0);
+        if (!(n2 > 0)) continue;
+        const Vec3 nh = (1 / std::sqrt(n2)) * nrm;
+        const Real touch = obstacle_reach(a);
+        std::int32_t r0[3], r1[3];
+        const Real origin[3] = {g.origin.x, g.origin.y, g.origin.z};
+        for (int d = 0; d < 3; ++d) {
+          r0[d] = static_cast<std::int32_t>(std::clamp<Real>(std::floor((lo[d] - origin[d]) / g.cell), 0, g.dims[d] - 1));
+          r1[d] = static_cast<std::int32_t>(std::clamp<Real>(std::floor((hi[d] - origin[d]) / g.cell), 0, g.dims[d] - 1));
+        }
+        for (std::int32_t cz = r0[2]; cz <= r1[2]; ++cz)
+          for (std::int32_t cy = r0[1]; cy <= r1[1]; ++cy)
+            for (std::int32_t cx = r0[0]; cx <= r1[0]; ++cx) {
+              const auto cell = static_cast<std::size_t>((static_cast<std::int64_t>(cz) * g.dims[1] + cy) * g.dims[0] + cx);
+              for (std::int32_t q = g.start[cell]; q < g.start[cell + 1]; ++q) {
+                const std::int32_t id = g.items[static_cast<std::size_t>(q)];
+                const Vec3 p = load3(mesh.samples.data(), id);
+                const Real d1 = dot(nh, p - a);
+                if (!(d1 <= touch && d1 >= -depth)) continue;
+                // within it, or behind its edge: beyond its extent by no more
+                // than it is behind its plane (the wedge behind a convex crease
+                // of the surface, where no face's extent holds it)
+                const bool within = project(p, a, b, cc, nrm, n2).inside;
+                if (!within && !(d1 < 0 && near_edge(p, a, b, cc, d1))) continue;
+                // A sample that met the faces in the last substep (on the
+                // surface) meets it within its thickness, if within it; any
+                // other no deeper than the triangle moved, and not if it was
+                // behind it (or its edge) at the start too (inside the tissue,
+                // not entering it)
+                const bool on_surface = was_met && was_met[id] && within;
+                if (!on_surface || d1 < -thick) {
+                  if (!(d1 >= -motion)) continue;
+                  const Real d0 = n20 > 0 ? dot(nrm0, p - a0) / std::sqrt(n20) : 0;
+                  const bool front0 = n20 > 0 && d0 >= -obstacle_reach(p);
+                  const bool in0 = n20 > 0 && (project(p, a0, b0, c0, nrm0, n20).inside || (d0 < 0 && near_edge(p, a0, b0, c0, d0)));
+                  if (in0 && !front0) continue;
+                }
+                sc.hits.insert(sc.hits.end(), {id, static_cast<std::int32_t>(t)});
+              }
+            }
       }
-      // the tissue's momentum change: sum m_j dv_j = (free weights / W) dv
-      const Vec3 imp = (free_w / W) * dv;
-      total_impulse += imp;
-      out.work += dot(imp, u);
-    }
-    if (!moved) break;
-    }
-    if (!round_moved) break;
+    };
+
+    // One sweep over the meetings (sc.order), each in turn against the
+    // velocities as the earlier ones left them; returns whether one moved a face.
+    Vec3 total_impulse{};
+    auto sweep_meetings = [&](bool first_sweep, bool first_round) {
+      bool moved = false;
+      for (const auto& [id, t] : sc.order) {
+        std::int32_t c[3];
+        corners(static_cast<std::size_t>(t), c);
+        Vec3 y[3];
+        for (int j = 0; j < 3; ++j) y[j] = mo.to_body(k, load3(x.data(), c[j]) + h * load3(v.data(), c[j]), 1);
+        const Vec3 p = load3(mesh.samples.data(), id);
+        const Vec3 nrm = cross(y[1] - y[0], y[2] - y[0]);
+        const Real n2 = dot(nrm, nrm);
+        if (!(n2 > 0)) continue;
+        const Vec3 nh = (1 / std::sqrt(n2)) * nrm;
+        const Real d = dot(nh, p - y[0]);
+        if (!(d < 0) && !first_sweep) continue;   // an earlier meeting has moved it
+        if (!(d <= obstacle_reach(p))) continue;  // (a touch: on the surface, and with holds, holding the face)
+        Projection w = project(p, y[0], y[1], y[2], nrm, n2);
+        Real ws = 0;
+        for (Real& wj : w.w) ws += (wj = std::max<Real>(wj, 0));
+        if (!(ws > 0)) continue;
+        Real W = 0, free_w = 0;
+        for (int j = 0; j < 3; ++j) {
+          w.w[j] /= ws;
+          const Real im = inv_mass[static_cast<std::size_t>(c[j])];
+          W += w.w[j] * w.w[j] * im;
+          free_w += im > 0 ? w.w[j] : 0;
+        }
+        if (!(W > 0)) continue;  // all its nodes fixed
+        const Vec3 nw = mo.normal_to_world(k, nh, 1);
+        if (first_sweep) {
+          if (with_holds)
+            for (int j = 0; j < 3; ++j)
+              if (w.w[j] > 0 && inv_mass[static_cast<std::size_t>(c[j])] > 0) {
+                holds->obstacle[static_cast<std::size_t>(c[j])] = k;
+                store3(holds->normal.data(), c[j], -nw);
+              }
+          if (met_now) met_now[id] = 1;
+          if (first_round && (d < 0 || with_holds)) ++out.contacts;
+        }
+        if (!(d < 0)) continue;  // touching: held, not moved
+        moved = true;
+        // the normal change: the point moves behind the sample by a standoff, over the substep
+        const Real need = standoff(p) - d;
+        auto apply = [&](const Vec3& change) {
+          for (int j = 0; j < 3; ++j) {
+            const Real im = inv_mass[static_cast<std::size_t>(c[j])];
+            if (im > 0) store3(v.data(), c[j], load3(v.data(), c[j]) + (w.w[j] * im / W) * change);
+          }
+        };
+        Vec3 dv = (-need / h) * nw;
+        apply(dv);
+        // friction on the point's velocity relative to the mesh's surface there
+        const Vec3 u = mo.velocity(k, mo.to_world(k, p, 1), 1, h);
+        Vec3 vp{};
+        for (int j = 0; j < 3; ++j) vp += w.w[j] * load3(v.data(), c[j]);
+        const Vec3 vr = vp - u, vt = vr - dot(vr, nw) * nw;
+        const Real st = norm(vt);
+        if (st > 0) {
+          const Vec3 dvt = (-std::min(Real(1), mesh.friction * (need / h) / st)) * vt;
+          apply(dvt);
+          dv += dvt;
+        }
+        // the tissue's momentum change: sum m_j dv_j = (free weights / W) dv
+        const Vec3 imp = (free_w / W) * dv;
+        total_impulse += imp;
+        out.work += dot(imp, u);
+      }
+      return moved;
+    };
+
+    // Rounds of finding the meetings and resolving them in Gauss-Seidel
+    // sweeps (by sample, then triangle) until no sweep moves a face (a
+    // meeting moves nodes that others' triangles share), at most kSweeps; a
+    // round's corrections may bring a sample behind a triangle it did not
+    // meet (a neighbour of one it met), which the next round finds, at most
+    // kRounds. The first sweep of a round marks the holds and what met, the
+    // first round's counts the meetings.
+    constexpr int kRounds = 4, kSweeps = 8;
+    for (int round = 0; round < kRounds; ++round) {
+      find_meetings();
+      if (sc.hits.empty()) break;
+      sc.order.resize(sc.hits.size() / 2);
+      for (std::size_t j = 0; j < sc.order.size(); ++j) sc.order[j] = {sc.hits[2 * j], sc.hits[2 * j + 1]};
+      std::sort(sc.order.begin(), sc.order.end());
+      bool moved = false;
+      for (int sweep = 0; sweep < kSweeps; ++sweep) {
+        if (!sweep_meetings(sweep == 0, round == 0)) break;
+        moved = true;
+      }
+      if (!moved) break;
     }
     if (impulse.size() >= 3 * static_cast<std::size_t>(k + 1)) store3(impulse.data(), k, load3(impulse.data(), k) + total_impulse);
   }

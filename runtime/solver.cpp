@@ -1161,17 +1161,14 @@ Check implicit_substep(const Model& m, State& s, Real t, Real h, const SolverOpt
         s.contact_obstacle[static_cast<std::size_t>(i)] = k;
         contacts += k >= 0;
         if (mo.moving()) work += h * dot(fc, mo.velocity(k, xi, 1, h));  // a moving obstacle's work on the node
-        // a face's hold: pushing, it stays (and its force is the face's);
-        // pulling, the node is let go
+        // a face's hold: pushing, its force is the face's, and it stays
+        // while a sample still meets or touches the node's faces (the face
+        // pass above marked it again); pulling, the node is let go
         if (face_hold >= 0) {
           const Vec3 fh = keep ? hold_force : Vec3{};
           store3(sc.face_v.data(), i, fh);
-          if (keep) {
-            store3(s.face_holds.force.data(), i, load3(s.face_holds.force.data(), i) + fh);
-            if (s.face_holds.obstacle[static_cast<std::size_t>(i)] < 0) s.face_holds.obstacle[static_cast<std::size_t>(i)] = face_hold;
-          } else {
-            s.face_holds.obstacle[static_cast<std::size_t>(i)] = -1;
-          }
+          if (keep) store3(s.face_holds.force.data(), i, load3(s.face_holds.force.data(), i) + fh);
+          else s.face_holds.obstacle[static_cast<std::size_t>(i)] = -1;
           if (mo.moving()) work += h * dot(fh, mo.velocity(face_hold, xi, 1, h));
         }
       }

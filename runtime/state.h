@@ -11,6 +11,7 @@
 #include "runtime/model.h"
 #include "runtime/types.h"
 
+#include <array>
 #include <cstdint>
 #include <memory>
 #include <span>
@@ -93,6 +94,7 @@ struct FaceHolds {
 struct FaceScratch {
   std::vector<Real> body0, body1;     // (n_nodes x 3) m: the nodes at the substep's start and end, in a mesh's frame
   std::vector<std::int32_t> hits;     // (n x 2) sample, triangle
+  std::vector<std::array<std::int32_t, 2>> order;  // the hits sorted
   std::vector<std::uint8_t> met;      // (a mesh's samples) which met the faces in the last substep
 };
 
