@@ -99,6 +99,17 @@ inline ObstacleMesh box_mesh(const Vec3& lo, const Vec3& hi) {
   return b;
 }
 
+// The quads of the sheet at y = 0 at rest (a layered block's skin), (n x 4).
+inline std::vector<std::int32_t> top_sheet_quads(const Model& m) {
+  std::vector<std::int32_t> out;
+  for (std::size_t q = 0; q < static_cast<std::size_t>(m.n_quads); ++q) {
+    bool top = true;
+    for (std::size_t c = 0; c < 4; ++c) top = top && m.rest_x[3 * static_cast<std::size_t>(m.quads[4 * q + c]) + 1] == 0;
+    if (top) out.insert(out.end(), &m.quads[4 * q], &m.quads[4 * q] + 4);
+  }
+  return out;
+}
+
 // How far the points p (n x 3, moved by d) lie inside the skin: a point is
 // inside where it lies behind (deeper in +y than) a triangle of the quads
 // (n x 4, each split (q0, q1, q2), (q0, q2, q3)) whose (x, z) projection

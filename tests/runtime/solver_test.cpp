@@ -1606,12 +1606,7 @@ TEST(FaceContacts, AThinProbePressesTheSkinBetweenNodes) {
   const auto b = make_layered_block(13, 5, 4);
   const Model m = model_from_layers(b.layers, b.sets);
   ASSERT_GT(m.n_quads, 0);
-  std::vector<std::int32_t> skin_quads;  // the skin sheet's quads (its nodes at y = 0 at rest)
-  for (std::int32_t q = 0; q < m.n_quads; ++q) {
-    bool top = true;
-    for (int c = 0; c < 4; ++c) top = top && m.rest_x[3 * static_cast<std::size_t>(m.quads[4 * static_cast<std::size_t>(q) + c]) + 1] == 0;
-    if (top) skin_quads.insert(skin_quads.end(), &m.quads[4 * static_cast<std::size_t>(q)], &m.quads[4 * static_cast<std::size_t>(q)] + 4);
-  }
+  const std::vector<std::int32_t> skin_quads = test::top_sheet_quads(m);  // the skin sheet's quads
   ASSERT_EQ(skin_quads.size(), 4u * 12 * 4);
   const Real spacing = default_edge_spacing(m.quads, m.rest_x);
   EXPECT_NEAR(spacing, 2e-3, 1e-12) << "half the 4 mm edges";

@@ -66,6 +66,26 @@ ObstacleMesh two_sided_square(const Vec3& c, const Vec3& t1, const Vec3& t2) {
   return m;
 }
 
+// A collider's stress path: pressed to `up` by t_up, dragged to `dragged` and
+// turned by `turn` rad about z (its pivot) over 0.1 s, back to where it
+// started 0.05 s later.
+Path press_drag_turn(Real t_up, const Vec3& up, const Vec3& dragged, Real turn) {
+  Path path;
+  path.t = {0, t_up, t_up + 0.1, t_up + 0.15};
+  path.p = {0, 0, 0, up.x, up.y, up.z, dragged.x, dragged.y, dragged.z, 0, 0, 0};
+  path.r = {0, 0, 0, 0, 0, 0, 0, 0, turn, 0, 0, 0};
+  return path;
+}
+
+// The colliders' stress runs' solver: light damping, room to subdivide.
+SolverOptions collider_stress_options(Integrator integ) {
+  SolverOptions o;
+  o.integrator = integ;
+  o.mass_damping = 2;
+  o.max_substeps = 1 << 14;
+  return o;
+}
+
 // The colliders' stress trials: 12 random trials on both integrators, dt
 // 1/240 and 1/30 s in turn, each on the 8 x 4 x 4 block hanging from its
 // bone sheet (x 0..28 mm, z 0..12 mm, y 0 (skin) .. 17 mm (fixed));
@@ -197,15 +217,9 @@ TEST(Stress, MovingCollidersNeverLetANodeThroughNorProduceNaN) {
       const Vec3 up = rise * n, dragged = up + ((u(rng) - 0.5) * 0.02) * t1;
       // and turned about its centre by up to 0.15 rad each way while pressed
       const Real turn = (u(rng) - 0.5) * 0.3;
-      Path path;
-      path.t = {0, t_up, t_up + 0.1, t_up + 0.15};
-      path.p = {0, 0, 0, up.x, up.y, up.z, dragged.x, dragged.y, dragged.z, 0, 0, 0};
-      path.r = {0, 0, 0, 0, 0, 0, 0, 0, turn, 0, 0, 0};
+      const Path path = press_drag_turn(t_up, up, dragged, turn);
       s.obstacle_paths = {path};
-      SolverOptions o;
-      o.integrator = integ;
-      o.mass_damping = 2;
-      o.max_substeps = 1 << 14;
+      const SolverOptions o = collider_stress_options(integ);
       int through = 0;
       bool finite = true;
       Real deepest = 0;
@@ -249,12 +263,7 @@ TEST(Stress, ThinProbesPressTheSkinWithoutPassingIt) {
   std::mt19937_64 rng(20261130);
   const auto b = make_layered_block(8, 8, 4);
   const Model m = model_from_layers(b.layers, b.sets);
-  std::vector<std::int32_t> skin_quads;  // the skin sheet's quads
-  for (std::int32_t q = 0; q < m.n_quads; ++q) {
-    bool top = true;
-    for (int c = 0; c < 4; ++c) top = top && m.rest_x[3 * static_cast<std::size_t>(m.quads[4 * static_cast<std::size_t>(q) + c]) + 1] == 0;
-    if (top) skin_quads.insert(skin_quads.end(), &m.quads[4 * static_cast<std::size_t>(q)], &m.quads[4 * static_cast<std::size_t>(q)] + 4);
-  }
+  const std::vector<std::int32_t> skin_quads = test::top_sheet_quads(m);  // the skin sheet's quads
   ASSERT_EQ(skin_quads.size(), 4u * 7 * 7);
   const Real spacing = default_edge_spacing(m.quads, m.rest_x);
   int cases = 0;
@@ -280,15 +289,9 @@ TEST(Stress, ThinProbesPressTheSkinWithoutPassingIt) {
       const Real rise = 0.003 + 0.004 * u(rng);        // 1-5 mm into the skin
       const Real t_up = rise / (0.05 + 1.35 * u(rng));  // at 0.05 .. 1.4 m/s
       const Real drag = (u(rng) - 0.5) * 0.006, turn = (u(rng) - 0.5) * 0.3;
-      Path path;
-      path.t = {0, t_up, t_up + 0.1, t_up + 0.15};
-      path.p = {0, 0, 0, 0, rise, 0, drag, rise, 0, 0, 0, 0};
-      path.r = {0, 0, 0, 0, 0, 0, 0, 0, turn, 0, 0, 0};
+      const Path path = press_drag_turn(t_up, {0, rise, 0}, {drag, rise, 0}, turn);
       s.obstacle_paths = {path};
-      SolverOptions o;
-      o.integrator = integ;
-      o.mass_damping = 2;
-      o.max_substeps = 1 << 14;
+      const SolverOptions o = collider_stress_options(integ);
       bool finite = true;
       Real behind = -HUGE_VAL, behind_face = -HUGE_VAL;
       std::vector<Real> points(ob->meshes[0].samples.size());
