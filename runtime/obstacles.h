@@ -220,29 +220,30 @@ bool has_edge_samples(const Obstacles& o);
 // substep of h seconds from positions x with the (tentative) velocities v:
 // the faces are the quads (n x 4 node ids, counter-clockwise seen from
 // outside) split into two triangles each, (q0, q1, q2) and (q0, q2, q3), where
-// x + h v puts them at the substep's end. A sample behind a triangle at the
-// end, within its extent and less than half its shortest edge deep, meets it,
-// unless it was already behind it at the start (more than obstacle_reach deep,
-// within its extent then: inside the tissue, not entering it). Each meeting
-// in turn (by sample, then triangle; Gauss-Seidel) moves the triangle's
-// point under the sample behind it by a standoff, its nodes' share w_j
-// m_j^-1 / sum w^2 m^-1 each (w the point's barycentric weights; fixed nodes
-// do not move), as a change of their velocity (x + h v moves by it); then
-// Coulomb friction takes at most friction x that normal velocity change off
-// the point's tangential velocity relative to the mesh's surface there. The
-// meshes where `motion` puts them at the substep's end. Adds each mesh's
-// impulse on the tissue (N s) to impulse (obstacles x 3, indexed as
-// ObstacleContact::obstacle). With `holds` sized (n_nodes), each node of a
-// triangle a sample meets, or touches (in front of it by at most
-// obstacle_reach, within its extent), with a weight > 0 gets the mesh's index
-// and the unit normal the sample pushes it along (into the tissue); others
-// are left as they are. With `met` sized (all meshes' samples, in order), it
-// says which samples met or touched a face in the last substep, and is set
-// to those of this one: such a sample is on the tissue's surface, and meets
-// a triangle within its thickness (half its shortest edge) whatever it did
-// at the start (sliding from one face on to the next across a ridge, it
-// starts behind the next one's plane); another meets one no deeper than the
-// triangle moved over the substep.
+// x + h v puts them at the substep's end; the meshes where `motion` puts them
+// then. A sample meets a triangle when it is behind it at the end, within its
+// extent or behind its edge (beyond its extent by no more than it is behind
+// its plane: the wedge behind a convex crease); and then, if it met or touched
+// a face in the last substep (`met`: it is on the surface) and is within the
+// extent, less than the triangle's thickness (half its shortest edge) deep;
+// otherwise no deeper than the triangle moved relative to the mesh over the
+// substep, and not if it was behind it (or its edge) at the start too by more
+// than obstacle_reach (inside the tissue, not entering it). Each meeting in
+// turn (by sample, then triangle; Gauss-Seidel sweeps until none moves a
+// face, and rounds of finding the meetings again) moves the triangle's point
+// under the sample behind it by a standoff, its nodes' share w_j m_j^-1 /
+// sum w^2 m^-1 each (w the point's barycentric weights, clamped to the
+// triangle; fixed nodes do not move), as a change of their velocity (x + h v
+// moves by it); then Coulomb friction takes at most friction x that normal
+// velocity change off the point's tangential velocity relative to the mesh's
+// surface there. Adds each mesh's impulse on the tissue (N s) to impulse
+// (obstacles x 3, indexed as ObstacleContact::obstacle). With `holds` sized
+// (n_nodes), each node of a triangle a sample meets, or touches (in front of
+// it by at most obstacle_reach), with a weight > 0 gets the mesh's index and
+// the unit normal the sample pushes it along (into the tissue); others are
+// left as they are. With `met` sized (all meshes' samples, in order), it says
+// which samples met or touched a face in the last substep and is set to
+// those of this one (empty: none did).
 struct FaceContacts {
   std::int64_t contacts = 0;  // sample-triangle meetings (with holds: and touches)
   Real work = 0;              // J, the moving meshes' work on the tissue (impulse . their surface's velocity)
