@@ -7,6 +7,7 @@
 #include <algorithm>
 #include <array>
 #include <cmath>
+#include <cstdio>
 #include <utility>
 
 namespace orthosim::runtime {
@@ -469,8 +470,11 @@ void sample_obstacle_edges(ObstacleMesh& m, Real spacing) {
     for (const auto& [a, b] : edges) {
       const Real len = norm(load3(m.vertices.data(), b) - load3(m.vertices.data(), a));
       total += static_cast<std::int64_t>(std::min<Real>(std::ceil(len / spacing), 1e8)) - 1;
-      if (total > 10'000'000)
-        throw Error("", "obstacle mesh: edge samples " + std::to_string(spacing) + " m apart would be more than 10^7 points");
+      if (total > 10'000'000) {
+        char text[32];
+        std::snprintf(text, sizeof text, "%g", spacing);
+        throw Error("", std::string("obstacle mesh: edge samples ") + text + " m apart would be more than 10^7 points");
+      }
     }
     m.samples.reserve(3 * static_cast<std::size_t>(total));
     for (const std::int32_t v : used) m.samples.insert(m.samples.end(), &m.vertices[3 * static_cast<std::size_t>(v)], &m.vertices[3 * static_cast<std::size_t>(v)] + 3);
