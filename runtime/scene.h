@@ -318,8 +318,9 @@ class Scene {
   // Their planes and meshes are those of def().colliders with tissue set, in order.
   const Obstacles* obstacles() const { return state_.obstacles.get(); }
   // N: the force each of def().colliders exerts on the tissue in the last
-  // substep (State::contact_force summed over the nodes in contact with it);
-  // zero for a collider that does not act on the tissue
+  // substep (State::contact_force summed over the nodes in contact with it,
+  // plus State::face_force, its edges' on the tissue's faces); zero for a
+  // collider that does not act on the tissue
   std::vector<std::array<Real, 3>> collider_forces() const;
   // N: the force the blood exerted on each moving collider that acts on it
   // over the last step (its moving wall's reaction, FluidSurface::force
