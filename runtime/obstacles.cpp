@@ -378,41 +378,6 @@ void obstacle_frames(const Obstacles& o, std::span<const Path> paths, Real t, Re
 
 namespace {
 
-void build_sample_cells(const std::vector<Real>& p, Real spacing, SampleCells& g) {
-  const auto n = static_cast<std::int64_t>(p.size() / 3);
-  g = SampleCells{};
-  if (n == 0) return;
-  Vec3 lo = load3(p.data(), 0), hi = lo;
-  for (std::int64_t i = 1; i < n; ++i) {
-    const Vec3 a = load3(p.data(), i);
-    lo = {std::min(lo.x, a.x), std::min(lo.y, a.y), std::min(lo.z, a.z)};
-    hi = {std::max(hi.x, a.x), std::max(hi.y, a.y), std::max(hi.z, a.z)};
-  }
-  g.lo = lo, g.hi = hi, g.origin = lo;
-  // cells of about two spacings, widened until there are at most 4 per point (and 64^3)
-  const Real ext[3] = {hi.x - lo.x, hi.y - lo.y, hi.z - lo.z};
-  g.cell = 2 * spacing;
-  auto cells = [&](Real c) {
-    std::int64_t total = 1;
-    for (int a = 0; a < 3; ++a) total *= static_cast<std::int64_t>(std::floor(ext[a] / c)) + 1;
-    return total;
-  };
-  while (cells(g.cell) > std::max<std::int64_t>(4 * n, 64 * 64 * 64)) g.cell *= 2;
-  for (int a = 0; a < 3; ++a) g.dims[a] = static_cast<std::int32_t>(std::floor(ext[a] / g.cell)) + 1;
-  const std::int64_t nc = static_cast<std::int64_t>(g.dims[0]) * g.dims[1] * g.dims[2];
-  auto cell_of = [&](const Vec3& a) {
-    const Real r[3] = {a.x - lo.x, a.y - lo.y, a.z - lo.z};
-    std::int64_t c[3];
-    for (int k = 0; k < 3; ++k) c[k] = std::clamp<std::int64_t>(static_cast<std::int64_t>(std::floor(r[k] / g.cell)), 0, g.dims[k] - 1);
-    return (c[2] * g.dims[1] + c[1]) * g.dims[0] + c[0];
-  };
-  g.start.assign(static_cast<std::size_t>(nc + 1), 0);
-  for (std::int64_t i = 0; i < n; ++i) ++g.start[static_cast<std::size_t>(cell_of(load3(p.data(), i)) + 1)];
-  for (std::int64_t c = 0; c < nc; ++c) g.start[static_cast<std::size_t>(c + 1)] += g.start[static_cast<std::size_t>(c)];
-  g.items.assign(static_cast<std::size_t>(n), 0);
-  std::vector<std::int32_t> fill(g.start.begin(), g.start.end() - 1);
-  for (std::int64_t i = 0; i < n; ++i) g.items[static_cast<std::size_t>(fill[static_cast<std::size_t>(cell_of(load3(p.data(), i)))]++)] = static_cast<std::int32_t>(i);
-}
 
 // The barycentric weights of p's projection on the plane of triangle abc (n
 // its unnormalised normal, n2 = |n|^2), and whether the projection lies in the
@@ -450,7 +415,7 @@ void sample_obstacle_edges(ObstacleMesh& m, Real spacing) {
   if (std::isnan(spacing) || std::isinf(spacing)) throw Error("", "obstacle mesh: the edge sample spacing must be finite");
   {
     m.samples.clear();
-    m.sample_cells = SampleCells{};
+    m.sample_grid = NeighbourGrid{};
     if (!(spacing > 0)) return;
     const std::size_t nt = m.triangles.size() / 3;
     std::vector<std::pair<std::int32_t, std::int32_t>> edges;
@@ -486,7 +451,18 @@ void sample_obstacle_edges(ObstacleMesh& m, Real spacing) {
         m.samples.insert(m.samples.end(), {q.x, q.y, q.z});
       }
     }
-    build_sample_cells(m.samples, spacing, m.sample_cells);
+    // their box and grid (the neighbour grid of the blood's particles, here over the samples)
+    const std::size_t ns = m.samples.size() / 3;
+    std::vector<Real> xyz[3];
+    for (int a = 0; a < 3; ++a) xyz[a].resize(ns);
+    for (std::size_t i = 0; i < ns; ++i)
+      for (int a = 0; a < 3; ++a) xyz[a][i] = m.samples[3 * i + static_cast<std::size_t>(a)];
+    m.samples_lo = {*std::min_element(xyz[0].begin(), xyz[0].end()), *std::min_element(xyz[1].begin(), xyz[1].end()),
+                    *std::min_element(xyz[2].begin(), xyz[2].end())};
+    m.samples_hi = {*std::max_element(xyz[0].begin(), xyz[0].end()), *std::max_element(xyz[1].begin(), xyz[1].end()),
+                    *std::max_element(xyz[2].begin(), xyz[2].end())};
+    build_neighbour_grid(xyz[0].data(), xyz[1].data(), xyz[2].data(), static_cast<std::int64_t>(ns), 2 * spacing, {0, 0, 0},
+                         {0, 0, 0}, {false, false, false}, m.sample_grid);
   }
 }
 
@@ -514,7 +490,8 @@ FaceContacts resolve_face_contacts(const Obstacles& o, const ObstacleMotion& mo,
     const ObstacleMesh& mesh = o.meshes[mi];
     if (mesh.samples.empty()) continue;
     const auto k = np + static_cast<std::int32_t>(mi);
-    const SampleCells& g = mesh.sample_cells;
+    const NeighbourGrid& g = mesh.sample_grid;
+    const Vec3 glo = mesh.samples_lo, ghi = mesh.samples_hi;
     // the samples that met the faces in the last substep (in), and in this one (out)
     const std::size_t ns = mesh.samples.size() / 3;
     std::uint8_t* met_now = nullptr;
@@ -556,46 +533,45 @@ FaceContacts resolve_face_contacts(const Obstacles& o, const ObstacleMotion& mo,
           const Real e[6] = {(&a.x)[d], (&b.x)[d], (&cc.x)[d], (&a0.x)[d], (&b0.x)[d], (&c0.x)[d]};
           lo[d] = *std::min_element(e, e + 6) - depth, hi[d] = *std::max_element(e, e + 6) + depth;
         }
-        if (lo[0] > g.hi.x || lo[1] > g.hi.y || lo[2] > g.hi.z || hi[0] < g.lo.x || hi[1] < g.lo.y || hi[2] < g.lo.z) continue;
+        if (lo[0] > ghi.x || lo[1] > ghi.y || lo[2] > ghi.z || hi[0] < glo.x || hi[1] < glo.y || hi[2] < glo.z) continue;
         const Vec3 nrm = cross(b - a, cc - a), nrm0 = cross(b0 - a0, c0 - a0);
         const Real n2 = dot(nrm, nrm), n20 = dot(nrm0, nrm0);
         if (!(n2 > 0)) continue;
         const Vec3 nh = (1 / std::sqrt(n2)) * nrm;
         const Real touch = obstacle_reach(a);
         std::int32_t r0[3], r1[3];
-        const Real origin[3] = {g.origin.x, g.origin.y, g.origin.z};
         for (int d = 0; d < 3; ++d) {
-          r0[d] = static_cast<std::int32_t>(std::clamp<Real>(std::floor((lo[d] - origin[d]) / g.cell), 0, g.dims[d] - 1));
-          r1[d] = static_cast<std::int32_t>(std::clamp<Real>(std::floor((hi[d] - origin[d]) / g.cell), 0, g.dims[d] - 1));
+          r0[d] = static_cast<std::int32_t>(std::clamp<Real>(std::floor((lo[d] - g.origin[d]) / g.cell[d]), 0, g.dims[d] - 1));
+          r1[d] = static_cast<std::int32_t>(std::clamp<Real>(std::floor((hi[d] - g.origin[d]) / g.cell[d]), 0, g.dims[d] - 1));
         }
         for (std::int32_t cz = r0[2]; cz <= r1[2]; ++cz)
-          for (std::int32_t cy = r0[1]; cy <= r1[1]; ++cy)
-            for (std::int32_t cx = r0[0]; cx <= r1[0]; ++cx) {
-              const auto cell = static_cast<std::size_t>((static_cast<std::int64_t>(cz) * g.dims[1] + cy) * g.dims[0] + cx);
-              for (std::int32_t q = g.start[cell]; q < g.start[cell + 1]; ++q) {
-                const std::int32_t id = g.items[static_cast<std::size_t>(q)];
-                const Vec3 p = load3(mesh.samples.data(), id);
-                const Real d1 = dot(nh, p - a);
-                if (!(d1 <= touch && d1 >= -depth)) continue;
-                // within it, or behind its edge: beyond its extent by no more
-                // than it is behind its plane (the wedge behind a convex crease
-                // of the surface, where no face's extent holds it)
-                const bool within = project(p, a, b, cc, nrm, n2).inside;
-                if (!within && !(d1 < 0 && near_edge(p, a, b, cc, d1))) continue;
-                // A sample that met the faces in the last substep (on the
-                // surface) meets it within its thickness, if within it; any
-                // other no deeper than the triangle moved, and not if it was
-                // behind it (or its edge) at the start too (inside the tissue,
-                // not entering it)
-                const bool on_surface = was_met && was_met[id] && within;
-                if (!on_surface || d1 < -thick) {
-                  if (!(d1 >= -motion)) continue;
-                  const Real d0 = n20 > 0 ? dot(nrm0, p - a0) / std::sqrt(n20) : 0;
-                  const bool front0 = n20 > 0 && d0 >= -obstacle_reach(p);
-                  const bool in0 = n20 > 0 && (project(p, a0, b0, c0, nrm0, n20).inside || (d0 < 0 && near_edge(p, a0, b0, c0, d0)));
-                  if (in0 && !front0) continue;
-                }
-                sc.hits.insert(sc.hits.end(), {id, static_cast<std::int32_t>(t)});
+          for (std::int32_t cy = r0[1]; cy <= r1[1]; ++cy) {
+            // the row's cells cx = r0 .. r1 are consecutive in the sorted order
+            const auto row = static_cast<std::size_t>((static_cast<std::int64_t>(cz) * g.dims[1] + cy) * g.dims[0]);
+            for (std::int32_t q = g.start[row + static_cast<std::size_t>(r0[0])]; q < g.start[row + static_cast<std::size_t>(r1[0]) + 1]; ++q) {
+              const std::int32_t id = g.order[static_cast<std::size_t>(q)];
+              const Vec3 p = load3(mesh.samples.data(), id);
+              const Real d1 = dot(nh, p - a);
+              if (!(d1 <= touch && d1 >= -depth)) continue;
+              // within it, or behind its edge: beyond its extent by no more
+              // than it is behind its plane (the wedge behind a convex crease
+              // of the surface, where no face's extent holds it)
+              const bool within = project(p, a, b, cc, nrm, n2).inside;
+              if (!within && !(d1 < 0 && near_edge(p, a, b, cc, d1))) continue;
+              // A sample that met the faces in the last substep (on the
+              // surface) meets it within its thickness, if within it; any
+              // other no deeper than the triangle moved, and not if it was
+              // behind it (or its edge) at the start too (inside the tissue,
+              // not entering it)
+              const bool on_surface = was_met && was_met[id] && within;
+              if (!on_surface || d1 < -thick) {
+                if (!(d1 >= -motion)) continue;
+                const Real d0 = n20 > 0 ? dot(nrm0, p - a0) / std::sqrt(n20) : 0;
+                const bool front0 = n20 > 0 && d0 >= -obstacle_reach(p);
+                const bool in0 = n20 > 0 && (project(p, a0, b0, c0, nrm0, n20).inside || (d0 < 0 && near_edge(p, a0, b0, c0, d0)));
+                if (in0 && !front0) continue;
+              }
+              sc.hits.insert(sc.hits.end(), {id, static_cast<std::int32_t>(t)});
               }
             }
       }

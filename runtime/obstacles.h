@@ -59,16 +59,6 @@ struct ObstaclePlane {
   Vec3 pivot{};          // m: the centre its path's rotations turn it about
 };
 
-// A uniform grid of points, built once in O(n) by counting sort: cell c
-// lists items [start[c], start[c + 1]).
-struct SampleCells {
-  Vec3 origin, lo, hi;              // m: the grid's corner, the points' bounding box
-  Real cell = 1;                    // m
-  std::int32_t dims[3] = {0, 0, 0};
-  std::vector<std::int32_t> start;  // (n_cells + 1)
-  std::vector<std::int32_t> items;  // point ids
-};
-
 struct ObstacleMesh {
   std::vector<Real> vertices;           // (n_vertices x 3) m
   std::vector<std::int32_t> triangles;  // (n_triangles x 3), counter-clockwise seen from the free side
@@ -78,9 +68,11 @@ struct ObstacleMesh {
   TriangleGrid grid;                    // built by add_obstacle_mesh; level 0's margin is the sampling step along a motion
   Vec3 pivot{};                         // m: the centre its path's rotations turn it about
   // the points of its edges that the tissue's faces meet (sample_obstacle_edges;
-  // empty: none), in its own coordinates, and their grid
+  // empty: none), in its own coordinates, their bounding box and their grid
+  // (cells of about twice the sampling spacing)
   std::vector<Real> samples;            // (n_samples x 3) m
-  SampleCells sample_cells;
+  Vec3 samples_lo, samples_hi;          // m
+  NeighbourGrid sample_grid;
 };
 
 struct Obstacles {
