@@ -158,6 +158,7 @@ void obstacle_friction(const Obstacles& o, std::int32_t k, const Vec3& n, Real d
 }
 
 Real obstacle_reach(const Vec3& x) { return 1e3 * standoff(x); }
+Real obstacle_standoff(const Vec3& x) { return standoff(x); }
 
 ObstacleContact rests_on(const Obstacles& o, std::int32_t k, const Vec3& x_world, const ObstacleMotion& mo) {
   const auto np = static_cast<std::int32_t>(o.planes.size());
@@ -472,14 +473,15 @@ bool has_edge_samples(const Obstacles& o) {
 
 FaceContacts resolve_face_contacts(const Obstacles& o, const ObstacleMotion& mo, std::span<const std::int32_t> quads,
                                    std::span<const Real> x, std::span<Real> v, std::span<const Real> inv_mass, Real h,
-                                   std::span<Real> impulse, FaceScratch& sc, FaceHolds* holds,
+                                   std::span<Real> impulse, FaceScratch& sc, std::vector<FaceRow>* rows,
                                    std::span<std::uint8_t> met) {
   FaceContacts out;
+  if (rows) rows->clear();
   const auto n = static_cast<std::int64_t>(x.size() / 3);
   const std::size_t nq = quads.size() / 4;
   if (nq == 0 || !(h > 0)) return out;
   const auto np = static_cast<std::int32_t>(o.planes.size());
-  const bool with_holds = holds && holds->obstacle.size() == static_cast<std::size_t>(n);
+  const bool with_rows = rows != nullptr;
   // triangle t of quad t / 2: (q0, q1, q2) or (q0, q2, q3)
   auto corners = [&](std::size_t t, std::int32_t c[3]) {
     const std::int32_t* q = quads.data() + 4 * (t / 2);
@@ -507,7 +509,7 @@ FaceContacts resolve_face_contacts(const Obstacles& o, const ObstacleMotion& mo,
     // The meetings, as (sample, triangle) in sc.hits: each triangle where
     // the velocities put it at the substep's end, against the samples of the
     // grid cells its box over the substep (grown by how deep a sample may
-    // meet it) covers; with holds, the samples that touch it too.
+    // meet it) covers; with rows, the samples that touch it too.
     auto find_meetings = [&] {
       sc.body0.resize(3 * static_cast<std::size_t>(n));
       sc.body1.resize(3 * static_cast<std::size_t>(n));
@@ -538,7 +540,9 @@ FaceContacts resolve_face_contacts(const Obstacles& o, const ObstacleMotion& mo,
         const Real n2 = dot(nrm, nrm), n20 = dot(nrm0, nrm0);
         if (!(n2 > 0)) continue;
         const Vec3 nh = (1 / std::sqrt(n2)) * nrm;
-        const Real touch = obstacle_reach(a);
+        // how far in front it takes a sample: touching it (within
+        // obstacle_reach), or with rows within its motion (a candidate row)
+        const Real front = with_rows ? std::max(obstacle_reach(a), motion) : obstacle_reach(a);
         std::int32_t r0[3], r1[3];
         for (int d = 0; d < 3; ++d) {
           r0[d] = static_cast<std::int32_t>(std::clamp<Real>(std::floor((lo[d] - g.origin[d]) / g.cell[d]), 0, g.dims[d] - 1));
@@ -552,7 +556,7 @@ FaceContacts resolve_face_contacts(const Obstacles& o, const ObstacleMotion& mo,
               const std::int32_t id = g.order[static_cast<std::size_t>(q)];
               const Vec3 p = load3(mesh.samples.data(), id);
               const Real d1 = dot(nh, p - a);
-              if (!(d1 <= touch && d1 >= -depth)) continue;
+              if (!(d1 <= front && d1 >= -depth)) continue;
               // within it, or behind its edge: beyond its extent by no more
               // than it is behind its plane (the wedge behind a convex crease
               // of the surface, where no face's extent holds it)
@@ -582,7 +586,9 @@ FaceContacts resolve_face_contacts(const Obstacles& o, const ObstacleMotion& mo,
     Vec3 total_impulse{};
     auto sweep_meetings = [&](bool first_sweep, bool first_round) {
       bool moved = false;
-      for (const auto& [id, t] : sc.order) {
+      if (first_sweep) sc.row_of.assign(sc.order.size(), -1);
+      for (std::size_t o_j = 0; o_j < sc.order.size(); ++o_j) {
+        const auto [id, t] = sc.order[o_j];
         std::int32_t c[3];
         corners(static_cast<std::size_t>(t), c);
         Vec3 y[3];
@@ -593,8 +599,12 @@ FaceContacts resolve_face_contacts(const Obstacles& o, const ObstacleMotion& mo,
         if (!(n2 > 0)) continue;
         const Vec3 nh = (1 / std::sqrt(n2)) * nrm;
         const Real d = dot(nh, p - y[0]);
-        if (!(d < 0) && !first_sweep) continue;   // an earlier meeting has moved it
-        if (!(d <= obstacle_reach(p))) continue;  // (a touch: on the surface, and with holds, holding the face)
+        if (!(d < 0) && !first_sweep) continue;  // an earlier meeting has moved it
+        // a touch: on the surface, and with rows, holding the face; with
+        // rows, a sample further in front (find_meetings took it within the
+        // triangle's motion) is a candidate row, not a meeting
+        const bool touch = d <= obstacle_reach(p);
+        if (!touch && !(with_rows && first_sweep)) continue;
         Projection w = project(p, y[0], y[1], y[2], nrm, n2);
         Real ws = 0;
         for (Real& wj : w.w) ws += (wj = std::max<Real>(wj, 0));
@@ -609,17 +619,26 @@ FaceContacts resolve_face_contacts(const Obstacles& o, const ObstacleMotion& mo,
         if (!(W > 0)) continue;  // all its nodes fixed
         const Vec3 nw = mo.normal_to_world(k, nh, 1);
         if (first_sweep) {
-          if (with_holds)
-            for (int j = 0; j < 3; ++j)
-              if (w.w[j] > 0 && inv_mass[static_cast<std::size_t>(c[j])] > 0) {
-                holds->obstacle[static_cast<std::size_t>(c[j])] = k;
-                store3(holds->normal.data(), c[j], -nw);
-              }
+          if (with_rows) {
+            FaceRow row;
+            row.obstacle = k, row.sample = id, row.triangle = t;
+            for (int j = 0; j < 3; ++j) row.node[j] = c[j], row.w[j] = w.w[j];
+            row.n = -1 * nw;
+            row.candidate = !touch;
+            sc.row_of[o_j] = static_cast<std::int32_t>(rows->size());
+            rows->push_back(row);
+          }
+          if (!touch) continue;
           if (met_now) met_now[id] = 1;
-          if (first_round && (d < 0 || with_holds)) ++out.contacts;
+          if (first_round && (d < 0 || with_rows)) ++out.contacts;
         }
         if (!(d < 0)) continue;  // touching: held, not moved
         moved = true;
+        // (a candidate an earlier meeting of this sweep brought behind the face meets it)
+        if (!first_sweep && with_rows && sc.row_of[o_j] >= 0 && (*rows)[static_cast<std::size_t>(sc.row_of[o_j])].candidate) {
+          (*rows)[static_cast<std::size_t>(sc.row_of[o_j])].candidate = false;
+          if (met_now) met_now[id] = 1;
+        }
         // the normal change: the point moves behind the sample by a standoff, over the substep
         const Real need = standoff(p) - d;
         auto apply = [&](const Vec3& change) {
@@ -644,6 +663,7 @@ FaceContacts resolve_face_contacts(const Obstacles& o, const ObstacleMotion& mo,
         // the tissue's momentum change: sum m_j dv_j = (free weights / W) dv
         const Vec3 imp = (free_w / W) * dv;
         total_impulse += imp;
+        if (with_rows && sc.row_of[o_j] >= 0) (*rows)[static_cast<std::size_t>(sc.row_of[o_j])].impulse -= dot(imp, nw);
         out.work += dot(imp, u);
       }
       return moved;
@@ -654,7 +674,7 @@ FaceContacts resolve_face_contacts(const Obstacles& o, const ObstacleMotion& mo,
     // meeting moves nodes that others' triangles share), at most kSweeps; a
     // round's corrections may bring a sample behind a triangle it did not
     // meet (a neighbour of one it met), which the next round finds, at most
-    // kRounds. The first sweep of a round marks the holds and what met, the
+    // kRounds. The first sweep of a round records the rows and what met, the
     // first round's counts the meetings.
     constexpr int kRounds = 4, kSweeps = 8;
     for (int round = 0; round < kRounds; ++round) {
@@ -671,6 +691,24 @@ FaceContacts resolve_face_contacts(const Obstacles& o, const ObstacleMotion& mo,
       if (!moved) break;
     }
     if (impulse.size() >= 3 * static_cast<std::size_t>(k + 1)) store3(impulse.data(), k, load3(impulse.data(), k) + total_impulse);
+  }
+  if (rows && !rows->empty()) {
+    // one row per (mesh, sample, triangle): a later round's finds the same
+    // meeting again (its geometry the later one's, the impulses summed)
+    auto key = [](const FaceRow& r) { return std::array<std::int32_t, 3>{r.obstacle, r.sample, r.triangle}; };
+    std::stable_sort(rows->begin(), rows->end(), [&](const FaceRow& a, const FaceRow& b) { return key(a) < key(b); });
+    std::size_t kept = 0;
+    for (std::size_t j = 0; j < rows->size(); ++j) {
+      FaceRow& r = (*rows)[j];
+      if (kept > 0 && key((*rows)[kept - 1]) == key(r)) {
+        r.impulse += (*rows)[kept - 1].impulse;
+        r.candidate = r.candidate && (*rows)[kept - 1].candidate;
+        (*rows)[kept - 1] = r;
+      } else {
+        (*rows)[kept++] = r;
+      }
+    }
+    rows->resize(kept);
   }
   return out;
 }

@@ -181,6 +181,9 @@ Real obstacle_friction_coefficient(const Obstacles& o, std::int32_t k);
 // coordinates' size, at least 1 micrometre (a node put on a surface stands
 // 10^-9 in front of it).
 Real obstacle_reach(const Vec3& x);
+// How far in front of a mesh's surface a node (or a face under an edge
+// sample) is put: 10^-9 of the coordinates' size, at least 1 nanometre.
+Real obstacle_standoff(const Vec3& x);
 
 // Whether a node at x rests on obstacle k (where `motion` puts it at the
 // substep's start): within obstacle_reach(x) in front of it (a plane: or
@@ -229,20 +232,23 @@ bool has_edge_samples(const Obstacles& o);
 // moves by it); then Coulomb friction takes at most friction x that normal
 // velocity change off the point's tangential velocity relative to the mesh's
 // surface there. Adds each mesh's impulse on the tissue (N s) to impulse
-// (obstacles x 3, indexed as ObstacleContact::obstacle). With `holds` sized
-// (n_nodes), each node of a triangle a sample meets, or touches (in front of
-// it by at most obstacle_reach), with a weight > 0 gets the mesh's index and
-// the unit normal the sample pushes it along (into the tissue); others are
-// left as they are. With `met` sized (all meshes' samples, in order), it says
-// which samples met or touched a face in the last substep and is set to
-// those of this one (empty: none did).
+// (obstacles x 3, indexed as ObstacleContact::obstacle). With `rows`, it is
+// set to one FaceRow per sample and triangle the sample meets or touches (in
+// front of it by at most obstacle_reach) with a free node of weight > 0,
+// sorted, each with the normal impulse it gave the face, and one candidate
+// row (FaceRow::candidate) per sample in front of a triangle by more than
+// that but no more than the triangle moved relative to the mesh over the
+// substep, within its extent: the implicit solve holds them in the next
+// substep. With `met` sized (all meshes' samples, in
+// order), it says which samples met or touched a face in the last substep
+// and is set to those of this one (empty: none did).
 struct FaceContacts {
-  std::int64_t contacts = 0;  // sample-triangle meetings (with holds: and touches)
+  std::int64_t contacts = 0;  // sample-triangle meetings (with rows: and touches)
   Real work = 0;              // J, the moving meshes' work on the tissue (impulse . their surface's velocity)
 };
 FaceContacts resolve_face_contacts(const Obstacles& o, const ObstacleMotion& motion, std::span<const std::int32_t> quads,
                                    std::span<const Real> x, std::span<Real> v, std::span<const Real> inv_mass, Real h,
-                                   std::span<Real> impulse, FaceScratch& scratch, FaceHolds* holds = nullptr,
+                                   std::span<Real> impulse, FaceScratch& scratch, std::vector<FaceRow>* rows = nullptr,
                                    std::span<std::uint8_t> met = {});
 
 // The number of obstacles (planes, then meshes).

@@ -132,12 +132,6 @@ void ensure_scratch(const Model& m, State& s, bool implicit) {
     std::size_t samples = 0;
     for (const ObstacleMesh& om : s.obstacles->meshes) samples += om.samples.size() / 3;
     if (s.face_met.size() != samples) s.face_met.assign(samples, 0);
-    if (implicit && m.n_quads > 0 && has_edge_samples(*s.obstacles)) {
-      FaceHolds& fh = s.face_holds;
-      if (fh.obstacle.size() != n3 / 3) fh.obstacle.assign(n3 / 3, -1), fh.normal.assign(n3, 0), fh.force.assign(n3, 0);
-      if (sc.face_v.size() != n3) sc.face_v.assign(n3, 0);
-      if (sc.face_held.size() != n3 / 3) sc.face_held.assign(n3 / 3, -1);
-    }
     if (implicit && sc.friction_c.size() != n3 / 3) sc.friction_c.assign(n3 / 3, 0);
     if (implicit && sc.friction_f.size() != n3) sc.friction_f.assign(n3, 0);
     if (implicit && sc.constraint.size() != n3) sc.constraint.assign(n3, 0);
@@ -228,25 +222,15 @@ ObstacleMotion obstacle_motion(State& s, Real t, Real h) {
 // the substep: changes v (the substep's velocities, x + h v its end), sets
 // State::face_force and adds the moving meshes' work to *tool_work. Returns
 // the meetings (0 without edge samples or quads).
-// With holds (the implicit solve's), it marks State::face_holds for the next
-// substep's solve and sets their forces to the contacts' impulses over h.
+// With rows (the implicit solve's), the meetings and touches it finds go to
+// Scratch::face_rows_new (FaceRow), the rows of the next substep's solve.
 Real face_pass(const Model& m, State& s, const ObstacleMotion& mo, std::span<Real> v, Real h, Real* tool_work,
-               bool holds = false) {
+               bool rows = false) {
   if (!s.obstacles || m.n_quads == 0 || !has_edge_samples(*s.obstacles)) return 0;
   std::fill(s.face_force.begin(), s.face_force.end(), 0);
-  FaceHolds* fh = nullptr;
-  if (holds) {
-    fh = &s.face_holds;
-    std::fill(fh->obstacle.begin(), fh->obstacle.end(), -1);
-    std::copy(v.begin(), v.end(), s.scratch.face_v.begin());
-  }
-  const FaceContacts c =
-      resolve_face_contacts(*s.obstacles, mo, m.quads, s.x, v, s.inv_mass, h, s.face_force, s.scratch.faces, fh, s.face_met);
+  const FaceContacts c = resolve_face_contacts(*s.obstacles, mo, m.quads, s.x, v, s.inv_mass, h, s.face_force, s.scratch.faces,
+                                               rows ? &s.scratch.face_rows_new : nullptr, s.face_met);
   for (Real& f : s.face_force) f /= h;  // the impulses over the substep: forces
-  if (fh)
-    for (std::size_t i = 0; i < fh->obstacle.size(); ++i)
-      store3(fh->force.data(), static_cast<std::int64_t>(i),
-             (m.mass[i] / h) * (load3(v.data(), static_cast<std::int64_t>(i)) - load3(s.scratch.face_v.data(), static_cast<std::int64_t>(i))));
   *tool_work += c.work;
   return static_cast<Real>(c.contacts);
 }
@@ -487,6 +471,91 @@ inline Vec3 filter(const Vec3& a, const Vec3& n) { return a - dot(a, n) * n; }
 // Whether a hold's normal n (Scratch::constraint) holds its node (zero: no hold).
 inline bool holds(const Vec3& n) { return n.x != 0 || n.y != 0 || n.z != 0; }
 
+// ---- the faces' rows in the implicit solve ---------------------------------
+//
+// Each FaceRow of the last substep (a mesh's edge sample that met or touched
+// a tissue face, or a candidate in front of one) is one constraint row on
+// the solve's velocities. Its point is the triangle's (at the substep's
+// start) under the sample where the mesh puts it at the substep's end,
+// clamped to the triangle; to first order the sample's distance to the face
+// changes with that point's velocity along the face's normal n (into the
+// tissue), sum_j w_j v_j . n = J v, and the row asks J v >= c = (standoff -
+// gap) / h, gap the sample's distance in front of the point were the face to
+// stay: the face does not pass the sample over the substep. A row whose
+// sample has left its triangle (not within its extent, nor in the wedge behind
+// its edge) or was behind it at the start (inside the tissue) is not made.
+// The solve holds J v = c as a stiff compliant constraint: the energy it
+// minimises gains (J v - c)^2 / (2 eps), the row's impulse on the face is
+// lambda = (c - J v) / eps, eps = kappa (J Q J^T)_rr (kappa = kFaceCompliance;
+// Q the block-Jacobi inverse, filtered where a node is held): the row gives
+// way by kappa of the velocity change its impulse would make on its own, which
+// the face pass after the solve mends, and rows that say the same (more
+// samples on a face than it has corners) stay solvable. (The forces hardly
+// depend on kappa: the benchmark rod's within 1.4e-4 for kappa 1e-8 .. 1e-2,
+// its PCG iterations a solve 66, 55, 47, 42 for 1e-8, 1e-6, 1e-4, 1e-2:
+// docs/BENCHMARKS.md.) The preconditioner is the inverse of (Q^-1 + J^T J /
+// eps), by Woodbury: Q - Q J^T S^-1 J Q, S = eps + J Q J^T (a sparse LDL^T,
+// rows x rows, once a solve), so the stiff rows cost no more iterations than
+// the tissue. Rows push, never pull: an active set. Rows that met or touched
+// start active, as do candidates that pushed in the last substep; after a
+// solve, an active row that pulls is let go, a candidate whose face the solve
+// passes its sample with is taken, and a row whose impulse outgrows
+// kFaceConflict times the step's momentum terms and its own need is dropped
+// (it is held against rows it cannot meet together), and the solve is run
+// again from there, kFaceActiveSetPasses solves at most
+// (Counters::face_resolves). A row's friction is a damper on its corners (c
+// w_j (I - n n^T) each, c = mu N / max(|v_t|, friction_creep_speed), N its
+// normal impulse of the last substep over h), or Coulomb's force when the
+// point slides too fast for one substep's friction to stop it, as a held
+// node's.
+constexpr Real kFaceCompliance = 1e-4;
+constexpr int kFaceActiveSetPasses = 4;
+constexpr Real kFaceConflict = 1e3;
+
+struct FaceSolve {
+  struct Row {
+    std::int32_t src = -1;       // its FaceRow (State::face_rows)
+    std::int32_t obstacle = -1;  // the mesh
+    std::int32_t node[3]{};      // the triangle's corners
+    Real wa[3]{};                // the point's weights (barycentric, clamped to the triangle)
+    Real w[3]{};                 // the weights of its free corners (0 at a fixed one)
+    Real gap = 0;                // m, how far the sample is in front of the point at the substep's end, were the face to stay
+    Real standoff = 0;           // m, obstacle_standoff there
+    bool candidate = false;      // FaceRow::candidate: starts inactive (unless below)
+    bool pushed = false;         // its impulse in the last substep was > 0
+    Real d = 0;                  // kg^-1, (J Q J^T)_rr: its velocity change per unit impulse, alone
+    Real need = 0;               // m/s, |c - J v| at the substep's start velocities: what it asks of the face
+    bool usable = false;         // can hold (some free corner, finite)
+    Vec3 n{};                    // unit, into the tissue
+    Vec3 u{};                    // m/s, the mesh's velocity at the sample at the substep's start
+    Real c = 0;                  // m/s: J v >= c
+    Real eps = 0;                // 1/kg, the compliance
+    Real lambda = 0;             // N s, its impulse on the face along n
+    Vec3 force{};                // N, its force on the tissue in the solve (normal and friction)
+    Real cf = 0;                 // N s/m, its friction damper
+    Vec3 f_slide{};              // N, a sliding point's Coulomb force (else zero)
+    bool active = false;
+  };
+  std::vector<Row> rows;
+  std::vector<std::int32_t> nodes;   // the free nodes the rows touch, ascending (Scratch::face_slot: node -> index)
+  std::vector<Real> node_D;          // (nodes x 6) the rows' friction dampers h c w_j (I - n n^T)
+  std::vector<Real> node_b;          // (nodes x 3) friction's part of b
+  std::vector<Real> acc;             // (nodes x 3) J^T y
+  std::vector<Real> rhs0;            // (nodes x 3) b without the rows
+  std::vector<std::int32_t> index;   // (rows) a row's index among the active ones, -1: inactive
+  std::int32_t n_active = 0;
+  Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>> S;
+  Eigen::VectorXd t, y;
+  bool any() const { return n_active > 0; }
+};
+
+inline Real row_dot(const FaceSolve::Row& r, const Real* p) {
+  Real s = 0;
+  for (int j = 0; j < 3; ++j)
+    if (r.w[j] != 0) s += r.w[j] * dot(r.n, load3(p, r.node[j]));
+  return s;
+}
+
 // How apply_matrix reads its vector: p itself, or the PCG direction update
 // p_next = z + beta p fused into the read (beta == 0: z alone).
 enum class Read { plain, fused_first, fused };
@@ -495,7 +564,8 @@ enum class Read { plain, fused_first, fused };
 // node-neighbour rows: y_i = D_i p_i - sum_j O_ij p_j. The fused modes also
 // write p_next for each node. Returns p.y (of p_next when fused).
 template <Read kRead>
-Real apply_matrix(const Model& m, State& s, const Real* p, const Real* z, Real beta, Real* p_next, Real* y) {
+Real apply_matrix(const Model& m, State& s, const Real* p, const Real* z, Real beta, Real* p_next, Real* y,
+                  const FaceSolve* fs = nullptr) {
   Scratch& sc = s.scratch;
   const Real* D = sc.diag.data();
   const Real* O = sc.offdiag.data();
@@ -554,10 +624,309 @@ Real apply_matrix(const Model& m, State& s, const Real* p, const Real* z, Real b
     }
     partial[ch * kPad + 3] = pq;
   });
-  return partial_sum(m, sc, 3);
+  Real pq = partial_sum(m, sc, 3);
+  // the faces' rows: J^T (J p) / eps (filtered where a node is held), after
+  // the nodes' pass (serial: rows share nodes)
+  if (fs && fs->any()) {
+    const Real* d = kRead == Read::plain ? p : p_next;
+    for (const FaceSolve::Row& r : fs->rows) {
+      if (!r.active) continue;
+      const Real jp = row_dot(r, d), coef = jp / r.eps;
+      for (int j = 0; j < 3; ++j) {
+        if (r.w[j] == 0) continue;
+        Vec3 a = (coef * r.w[j]) * r.n;
+        if (constrained) a = filter(a, load3(cn, r.node[j]));
+        store3(y, r.node[j], load3(y, r.node[j]) + a);
+      }
+      pq += jp * coef;
+    }
+  }
+  return pq;
 }
 
 inline Vec3 apply_precond(const Real* P, std::int32_t i, const Vec3& r) { return sym_at(P, i) * r; }
+
+// Q a at node i: the block-Jacobi inverse, between the filters of a held node
+inline Vec3 q_apply(const Real* P, const Real* cn, bool constrained, std::int32_t i, Vec3 a) {
+  if (!constrained) return apply_precond(P, i, a);
+  const Vec3 n = load3(cn, i);
+  return filter(apply_precond(P, i, filter(a, n)), n);
+}
+
+// The rows of State::face_rows for this substep's solve and their friction
+// (FaceSolve::node_D, node_b, for the nodes' pass); the velocities v at the
+// substep's start.
+void face_rows_begin(const Model& m, State& s, const ObstacleMotion& mo, Real h, const SolverOptions& o, FaceSolve& fs) {
+  fs.rows.clear();
+  fs.nodes.clear();
+  fs.n_active = 0;
+  if (s.face_rows.empty()) return;
+  Scratch& sc = s.scratch;
+  if (sc.face_slot.size() != static_cast<std::size_t>(m.n_nodes)) sc.face_slot.assign(static_cast<std::size_t>(m.n_nodes), -1);
+  const Obstacles& obs = *s.obstacles;
+  const auto np = static_cast<std::int32_t>(obs.planes.size());
+  for (std::size_t q = 0; q < s.face_rows.size(); ++q) {
+    const FaceRow& fr = s.face_rows[q];
+    FaceSolve::Row r;
+    r.src = static_cast<std::int32_t>(q);
+    r.obstacle = fr.obstacle;
+    r.candidate = fr.candidate;
+    r.pushed = fr.impulse > 0;
+    // the point of the triangle (at the substep's start) under the sample
+    // where the mesh puts it at the substep's end, clamped to the triangle:
+    // to first order, the face's distance to the sample moves with that
+    // point's velocity along the normal
+    const ObstacleMesh& mesh = obs.meshes[static_cast<std::size_t>(fr.obstacle - np)];
+    const Vec3 ps = load3(mesh.samples.data(), fr.sample);
+    const Vec3 p0 = mo.to_world(fr.obstacle, ps, 0), p1 = mo.to_world(fr.obstacle, ps, 1);
+    Vec3 y[3];
+    for (int j = 0; j < 3; ++j) y[j] = load3(s.x.data(), r.node[j] = fr.node[static_cast<std::size_t>(j)]);
+    const Vec3 nrm = cross(y[1] - y[0], y[2] - y[0]);
+    const Real n2 = dot(nrm, nrm);
+    if (!(n2 > 0)) continue;
+    Real wa[3] = {dot(cross(y[1] - p1, y[2] - p1), nrm), dot(cross(y[2] - p1, y[0] - p1), nrm), dot(cross(y[0] - p1, y[1] - p1), nrm)};
+    r.n = (-1 / std::sqrt(n2)) * nrm;
+    // as the face pass meets it: the sample within the triangle's extent,
+    // or behind its plane and beyond its edge by no more than that (the
+    // wedge); else it has left this face (a neighbour's row may hold it)
+    if (std::min({wa[0], wa[1], wa[2]}) < -1e-12 * n2) {
+      const Real d_end = dot(p1 - y[0], -1 * r.n);  // < 0: behind the plane
+      const Vec3 e = p1 - closest_point_on_triangle(p1, y[0], y[1], y[2]);
+      if (!(d_end < 0 && dot(e, e) <= 2 * d_end * d_end)) continue;
+    }
+    Real ws = 0;
+    for (Real& wj : wa) ws += (wj = std::max<Real>(wj, 0));
+    if (!(ws > 0)) continue;
+    Real winv = 0;  // sum w^2 / m over the free corners: the point's inverse mass
+    Vec3 vp{}, xp{};
+    for (int j = 0; j < 3; ++j) {
+      r.wa[j] = wa[j] / ws;
+      const Real im = s.inv_mass[static_cast<std::size_t>(r.node[j])];
+      r.w[j] = im > 0 ? r.wa[j] : 0;
+      winv += r.w[j] * r.w[j] * im;
+      vp += r.wa[j] * load3(s.v.data(), r.node[j]);
+      xp += r.wa[j] * y[j];
+    }
+    if (!(winv > 0)) continue;  // all its corners fixed
+    r.gap = dot(xp - p1, r.n);  // the sample in front of the point, were the face to stay
+    // the sample in front of the face (or on it) at the substep's start, as
+    // the face pass asks of a meeting: one behind it is inside the tissue
+    if (!(dot(y[0] - p0, r.n) >= -obstacle_reach(p0))) continue;
+    r.standoff = obstacle_standoff(p1);
+    r.u = mo.velocity(fr.obstacle, p0, 0, h);
+    const Vec3 vt = filter(vp - r.u, r.n);
+    const Real mu_n = obstacle_friction_coefficient(obs, fr.obstacle) * std::max<Real>(0, fr.impulse) / h, st = norm(vt);
+    if (mu_n > 0) {
+      if (mu_n * h * winv < st) r.f_slide = (-mu_n / st) * vt;  // mu N h < m |v_t|: sliding
+      else r.cf = mu_n / std::max(st, o.friction_creep_speed);
+    }
+    for (int j = 0; j < 3; ++j)
+      if (r.w[j] != 0) fs.nodes.push_back(r.node[j]);
+    fs.rows.push_back(r);
+  }
+  std::sort(fs.nodes.begin(), fs.nodes.end());
+  fs.nodes.erase(std::unique(fs.nodes.begin(), fs.nodes.end()), fs.nodes.end());
+  for (std::size_t k = 0; k < fs.nodes.size(); ++k) sc.face_slot[static_cast<std::size_t>(fs.nodes[k])] = static_cast<std::int32_t>(k);
+  fs.node_D.assign(6 * fs.nodes.size(), 0);
+  fs.node_b.assign(3 * fs.nodes.size(), 0);
+  fs.acc.assign(3 * fs.nodes.size(), 0);
+  for (const FaceSolve::Row& r : fs.rows)
+    for (int j = 0; j < 3; ++j) {
+      if (r.w[j] == 0) continue;
+      const std::int32_t k = sc.face_slot[static_cast<std::size_t>(r.node[j])];
+      Vec3 b = (h * r.w[j]) * r.f_slide;
+      if (r.cf > 0) {
+        const Real a = h * r.cf * r.w[j];
+        sym_add(fs.node_D.data(), k, Sym3{a * (1 - r.n.x * r.n.x), a * (1 - r.n.y * r.n.y), a * (1 - r.n.z * r.n.z),
+                                         -a * r.n.x * r.n.y, -a * r.n.x * r.n.z, -a * r.n.y * r.n.z});
+        b += a * filter(r.u, r.n);
+      }
+      store3(fs.node_b.data(), k, load3(fs.node_b.data(), k) + b);
+    }
+}
+
+// The active rows' S = eps + J Q J^T, factorised (rows that cannot hold, or
+// a factor that fails, leave the rows inactive).
+void face_rows_factor(const State& s, FaceSolve& fs) {
+  const Scratch& sc = s.scratch;
+  const Real* P = sc.precond.data();
+  const Real* cn = sc.constraint.data();
+  const bool constrained = sc.constrained;
+  fs.index.assign(fs.rows.size(), -1);
+  fs.n_active = 0;
+  for (std::size_t q = 0; q < fs.rows.size(); ++q)
+    if (fs.rows[q].active) fs.index[q] = fs.n_active++;
+  if (fs.n_active == 0) return;
+  // per node, its rows' entries w_j n and Q (w_j n)
+  struct Entry {
+    std::int32_t slot, row;
+    Vec3 a, qa;
+  };
+  std::vector<Entry> e;
+  for (std::size_t q = 0; q < fs.rows.size(); ++q) {
+    const FaceSolve::Row& r = fs.rows[q];
+    if (!r.active) continue;
+    for (int j = 0; j < 3; ++j)
+      if (r.w[j] != 0) {
+        const Vec3 a = r.w[j] * r.n;
+        e.push_back({sc.face_slot[static_cast<std::size_t>(r.node[j])], fs.index[q], a, q_apply(P, cn, constrained, r.node[j], a)});
+      }
+  }
+  std::stable_sort(e.begin(), e.end(), [](const Entry& a, const Entry& b) { return a.slot < b.slot; });
+  std::vector<Eigen::Triplet<double>> tr;
+  for (std::size_t q = 0; q < fs.rows.size(); ++q)
+    if (fs.index[q] >= 0) tr.emplace_back(fs.index[q], fs.index[q], fs.rows[q].eps);
+  for (std::size_t b = 0; b < e.size();) {
+    std::size_t end = b;
+    while (end < e.size() && e[end].slot == e[b].slot) ++end;
+    for (std::size_t i = b; i < end; ++i)
+      for (std::size_t j = b; j < end; ++j) tr.emplace_back(e[i].row, e[j].row, dot(e[i].a, e[j].qa));
+    b = end;
+  }
+  Eigen::SparseMatrix<double> S(fs.n_active, fs.n_active);
+  S.setFromTriplets(tr.begin(), tr.end());
+  fs.S.compute(S);
+  if (fs.S.info() != Eigen::Success) {
+    for (FaceSolve::Row& r : fs.rows) r.active = false;
+    fs.n_active = 0;
+  }
+  fs.t.resize(fs.n_active);
+}
+
+// z -= Q J^T S^-1 J z (z = Q r: then z = (Q^-1 + J^T J / eps)^-1 r); *ez
+// changes by the mass norm's change. Returns t . y, by which r . z falls.
+Real face_rows_precondition(const Model& m, const State& s, FaceSolve& fs, Real* z, Real* ez) {
+  for (std::size_t q = 0; q < fs.rows.size(); ++q)
+    if (fs.index[q] >= 0) fs.t(fs.index[q]) = row_dot(fs.rows[q], z);
+  fs.y = fs.S.solve(fs.t);
+  const Scratch& sc = s.scratch;
+  std::fill(fs.acc.begin(), fs.acc.end(), 0);
+  for (std::size_t q = 0; q < fs.rows.size(); ++q) {
+    if (fs.index[q] < 0) continue;
+    const FaceSolve::Row& r = fs.rows[q];
+    const Real yq = fs.y(fs.index[q]);
+    for (int j = 0; j < 3; ++j)
+      if (r.w[j] != 0) {
+        const std::int32_t k = sc.face_slot[static_cast<std::size_t>(r.node[j])];
+        store3(fs.acc.data(), k, load3(fs.acc.data(), k) + (yq * r.w[j]) * r.n);
+      }
+  }
+  for (std::size_t k = 0; k < fs.nodes.size(); ++k) {
+    const std::int32_t i = fs.nodes[k];
+    const Vec3 zi = load3(z, i);
+    const Vec3 zn = zi - q_apply(sc.precond.data(), sc.constraint.data(), sc.constrained, i, load3(fs.acc.data(), static_cast<std::int64_t>(k)));
+    *ez += m.mass[static_cast<std::size_t>(i)] * (dot(zn, zn) - dot(zi, zi));
+    store3(z, i, zn);
+  }
+  return fs.t.dot(fs.y);
+}
+
+// v += Q J^T S^-1 (c - J v): the first guess moved onto the rows (as far as
+// their compliance lets it), the least change in Q's inverse norm.
+void face_rows_project(const State& s, FaceSolve& fs, Real* v) {
+  for (std::size_t q = 0; q < fs.rows.size(); ++q)
+    if (fs.index[q] >= 0) fs.t(fs.index[q]) = fs.rows[q].c - row_dot(fs.rows[q], v);
+  fs.y = fs.S.solve(fs.t);
+  const Scratch& sc = s.scratch;
+  std::fill(fs.acc.begin(), fs.acc.end(), 0);
+  for (std::size_t q = 0; q < fs.rows.size(); ++q) {
+    if (fs.index[q] < 0) continue;
+    const FaceSolve::Row& r = fs.rows[q];
+    for (int j = 0; j < 3; ++j)
+      if (r.w[j] != 0) {
+        const std::int32_t k = sc.face_slot[static_cast<std::size_t>(r.node[j])];
+        store3(fs.acc.data(), k, load3(fs.acc.data(), k) + (fs.y(fs.index[q]) * r.w[j]) * r.n);
+      }
+  }
+  for (std::size_t k = 0; k < fs.nodes.size(); ++k) {
+    const std::int32_t i = fs.nodes[k];
+    store3(v, i, load3(v, i) + q_apply(sc.precond.data(), sc.constraint.data(), sc.constrained, i, load3(fs.acc.data(), static_cast<std::int64_t>(k))));
+  }
+}
+
+// b at the rows' nodes: b0 (without the rows) + J^T c / eps of the active rows
+void face_rows_rhs(const FaceSolve& fs, Real* rhs) {
+  for (std::size_t k = 0; k < fs.nodes.size(); ++k) store3(rhs, fs.nodes[k], load3(fs.rhs0.data(), static_cast<std::int64_t>(k)));
+  for (const FaceSolve::Row& r : fs.rows) {
+    if (!r.active) continue;
+    for (int j = 0; j < 3; ++j)
+      if (r.w[j] != 0) store3(rhs, r.node[j], load3(rhs, r.node[j]) + (r.c / r.eps * r.w[j]) * r.n);
+  }
+}
+
+// After the nodes' pass (the preconditioner, holds and fixed velocities
+// known): each row's c and eps, the factor of S, and J^T c / eps in b.
+void face_rows_constrain(State& s, Real h, FaceSolve& fs) {
+  if (fs.rows.empty()) return;
+  Scratch& sc = s.scratch;
+  const Real* vnew = sc.vnew.data();
+  for (FaceSolve::Row& r : fs.rows) {
+    Real fixed_v = 0;  // the fixed corners' part of J v (their velocities are set)
+    Real d = 0;        // (J Q J^T)_rr
+    for (int j = 0; j < 3; ++j) {
+      if (r.w[j] == 0) fixed_v += r.wa[j] * dot(r.n, load3(vnew, r.node[j]));
+      else d += r.w[j] * r.w[j] * dot(r.n, q_apply(sc.precond.data(), sc.constraint.data(), sc.constrained, r.node[j], r.n));
+    }
+    r.c = (r.standoff - r.gap) / h - fixed_v;
+    r.need = std::abs(r.c - row_dot(r, s.v.data()));
+    r.eps = kFaceCompliance * d;
+    r.usable = d > 0 && std::isfinite(r.c);
+    r.d = d;
+    // a candidate starts active where it pushed in the last substep (its
+    // face drawn off the sample since by the mesh's motion, which it follows)
+    r.active = r.usable && (!r.candidate || r.pushed);
+  }
+  fs.rhs0.resize(3 * fs.nodes.size());
+  for (std::size_t k = 0; k < fs.nodes.size(); ++k) store3(fs.rhs0.data(), static_cast<std::int64_t>(k), load3(sc.rhs.data(), fs.nodes[k]));
+  face_rows_factor(s, fs);
+  face_rows_rhs(fs, sc.rhs.data());
+}
+
+// After the solve: each row's impulse lambda = (c - J v) / eps and its force
+// on the tissue (normal and friction) at the solve's velocities v.
+void face_rows_forces(FaceSolve& fs, const Real* v, Real h) {
+  for (FaceSolve::Row& r : fs.rows) {
+    r.lambda = r.active ? (r.c - row_dot(r, v)) / r.eps : 0;
+    r.force = Vec3{};
+    if (!r.active) continue;
+    Real wf = 0;  // the free corners' weight
+    for (int j = 0; j < 3; ++j) {
+      if (r.w[j] == 0) continue;
+      wf += r.w[j];
+      if (r.cf > 0) r.force -= (r.cf * r.w[j]) * filter(load3(v, r.node[j]) - r.u, r.n);
+    }
+    r.force += (wf * r.lambda / h) * r.n + wf * r.f_slide;
+  }
+}
+
+// After the face pass: the solve's rows' forces added to State::face_force
+// and their work (at the meshes' velocities at the substep's end) to
+// *tool_work; the rows the face pass found (Scratch::face_rows_new) become
+// State::face_rows, each with the impulse of its row in this solve added
+// (the next substep's friction bound); the node slots cleared.
+void face_rows_end(State& s, const ObstacleMotion& mo, Real h, FaceSolve& fs, Real* tool_work) {
+  Scratch& sc = s.scratch;
+  auto key = [](const FaceRow& r) { return std::array<std::int32_t, 3>{r.obstacle, r.sample, r.triangle}; };
+  if (!fs.rows.empty()) {
+    const Obstacles& obs = *s.obstacles;
+    const auto np = static_cast<std::int32_t>(obs.planes.size());
+    std::vector<FaceRow>& next = sc.face_rows_new;
+    for (const FaceSolve::Row& r : fs.rows) {
+      if (!r.active) continue;
+      const FaceRow& fr = s.face_rows[static_cast<std::size_t>(r.src)];
+      store3(s.face_force.data(), r.obstacle, load3(s.face_force.data(), r.obstacle) + r.force);
+      if (mo.moving()) {
+        const ObstacleMesh& mesh = obs.meshes[static_cast<std::size_t>(fr.obstacle - np)];
+        const Vec3 p1 = mo.to_world(fr.obstacle, load3(mesh.samples.data(), fr.sample), 1);
+        *tool_work += h * dot(r.force, mo.velocity(fr.obstacle, p1, 1, h));
+      }
+      const auto it = std::lower_bound(next.begin(), next.end(), key(fr), [&](const FaceRow& a, const std::array<std::int32_t, 3>& k) { return key(a) < k; });
+      if (it != next.end() && key(*it) == key(fr)) it->impulse += std::max<Real>(0, r.lambda);
+    }
+    for (const std::int32_t i : fs.nodes) sc.face_slot[static_cast<std::size_t>(i)] = -1;
+  }
+  s.face_rows.swap(sc.face_rows_new);
+}
 
 // ---- the cholesky preconditioner -------------------------------------------
 
@@ -781,8 +1150,13 @@ Check implicit_substep(const Model& m, State& s, Real t, Real h, const SolverOpt
   const bool use_warm = o.warm_start;
   const Obstacles* obs = s.obstacles && !s.obstacles->empty() ? s.obstacles.get() : nullptr;
   const ObstacleMotion mo = obs ? obstacle_motion(s, t, h) : ObstacleMotion{};
-  // the tissue's faces meet the meshes' edges (and are held by them)
-  const bool faced = obs && m.n_quads > 0 && !s.face_holds.obstacle.empty() && has_edge_samples(*obs);
+  // the tissue's faces meet the meshes' edges, and the solve holds those
+  // they met in the last substep (FaceSolve)
+  const bool faced = obs && m.n_quads > 0 && has_edge_samples(*obs);
+  FaceSolve faces;
+  if (faced) face_rows_begin(m, s, mo, h, o, faces);
+  const bool face_rows = !faces.rows.empty();
+  const std::int32_t* face_slot = sc.face_slot.data();
   Real* cn = sc.constraint.data();
   for_chunks(m, [&](int ch) {
     Real u = 0;
@@ -878,25 +1252,12 @@ Check implicit_substep(const Model& m, State& s, Real t, Real h, const SolverOpt
         // c |v'_t - u_t|, short of mu N by the substep's change of the relative
         // speed (4 % under a node dragged by a table, 1 ms substeps, until
         // 2026-11-28: MovingObstacles.ASlidingTableDragsANodeByFriction).
-        // A node of the tissue's surface that an obstacle's edge pushed in the
-        // last substep (State::face_holds) is held the same way, along the
-        // normal the edge pushed it, at the obstacle's velocity there.
-        std::int32_t k = s.contact_obstacle[static_cast<std::size_t>(i)];
+        const std::int32_t k = s.contact_obstacle[static_cast<std::size_t>(i)];
         Real cf = 0;
         ObstacleContact c;
         const Vec3 xi = load3(x, i);
         if (k >= 0) c = rests_on(*obs, k, xi, mo);
         const Real* last_force = s.contact_force.data();
-        if (faced) {
-          sc.face_held[static_cast<std::size_t>(i)] = -1;
-          const std::int32_t kf = s.face_holds.obstacle[static_cast<std::size_t>(i)];
-          if (c.obstacle < 0 && kf >= 0) {
-            k = kf;
-            c = {kf, load3(s.face_holds.normal.data(), i)};
-            last_force = s.face_holds.force.data();
-            sc.face_held[static_cast<std::size_t>(i)] = kf;
-          }
-        }
         {
           if (c.obstacle >= 0) {
             ni = c.n;
@@ -921,6 +1282,12 @@ Check implicit_substep(const Model& m, State& s, Real t, Real h, const SolverOpt
         sc.friction_c[static_cast<std::size_t>(i)] = cf;
         store3(sc.friction_f.data(), i, f_slide);
       }
+      // the faces' rows' friction at their corners
+      if (face_rows)
+        if (const std::int32_t k = face_slot[i]; k >= 0) {
+          Di += sym_at(faces.node_D.data(), k);
+          b_friction += load3(faces.node_b.data(), k);
+        }
       sym_store(D, i, Di);
       Di += Dt;  // the whole diagonal block from here on
       Sym3 inv;
@@ -956,6 +1323,7 @@ Check implicit_substep(const Model& m, State& s, Real t, Real h, const SolverOpt
   });
   sc.constrained = obs && partial_sum(m, sc, 4) > 0;
   const bool constrained = sc.constrained;
+  if (face_rows) face_rows_constrain(s, h, faces);
   const Real rhs2 = partial_sum(m, sc, 1);
   const Real terms2 = partial_sum(m, sc, 2);
   const Real termsw = partial_sum(m, sc, 3);
@@ -966,7 +1334,9 @@ Check implicit_substep(const Model& m, State& s, Real t, Real h, const SolverOpt
   // the preconditioner: block Jacobi (P), or the sparse factor, built here
   // from this substep's matrix when due (SolverOptions::preconditioner)
   const SparseFactor* F = nullptr;
-  if (o.preconditioner == Preconditioner::cholesky || (o.preconditioner == Preconditioner::automatic && s.cholesky_on)) {
+  // (not with the faces' rows: their preconditioner is block Jacobi's, by Woodbury)
+  if (!faces.any() &&
+      (o.preconditioner == Preconditioner::cholesky || (o.preconditioner == Preconditioner::automatic && s.cholesky_on))) {
     if (s.refactor || !s.factor || !factor_matches(*s.factor, m, s)) {
       s.factor = build_factor(m, s, s.factor.get());
       s.refactor = false;
@@ -1000,84 +1370,123 @@ Check implicit_substep(const Model& m, State& s, Real t, Real h, const SolverOpt
     *ez_out = partial_sum(m, sc, 3);
   };
 
-  // PCG on the free nodes, from the initial guess in vnew
-  apply_matrix<Read::plain>(m, s, vnew, nullptr, 0, nullptr, q);
-  for_chunks(m, [&](int ch) {
-    Real rz = 0, rr = 0, ez = 0;
-    for (std::int32_t i = chunk_begin(m, ch), e = chunk_end(m, ch); i < e; ++i) {
-      Vec3 ri = w[i] == 0 ? Vec3{} : load3(rhs, i) - load3(q, i);
-      if (constrained) ri = filter(ri, load3(cn, i));
-      store3(r, i, ri);
-      rr += dot(ri, ri);
-      if (F) continue;
-      Vec3 zi = apply_precond(P, i, ri);
-      if (constrained) zi = filter(zi, load3(cn, i));
-      store3(z, i, zi);
-      rz += dot(ri, zi);
-      ez += mass[i] * dot(zi, zi);
-    }
-    partial[ch * kPad + 1] = rz;
-    partial[ch * kPad + 2] = rr;
-    partial[ch * kPad + 3] = ez;
-  });
-  Real rz = partial_sum(m, sc, 1);
-  Real rr = partial_sum(m, sc, 2);
-  Real ez = partial_sum(m, sc, 3);
-  if (F) factor_pass(&rz, &ez);
-  // Stop at |r| <= tol x the size of b's terms (root sum of squares), not of b
-  // itself: near equilibrium the terms cancel, |b| -> 0, and a test relative to
-  // |b| iterates on round-off (139 iterations a step for a block at rest in its
-  // equilibrium, now 0-2). A poor first guess (|r0| larger than both) sets the scale.
-  //
-  // And stop only once the velocity error the preconditioner reads off the
-  // residual (z = P r), in the mass norm, is below tol x the same terms as
-  // velocity changes (each over its node's diagonal). The first test alone
-  // let a stiff spring grip (1e9 N/m) set the scale: its force, h k x the
-  // lag, outweighed every free node's terms by 1e8, and the free nodes
-  // stopped far from their solution (the demo's pull_skin with that grip: 70
-  // stability events, 12 % too much elastic energy). Over its diagonal h^2 k,
-  // the grip's force is the velocity of its lag (the lag over h), a velocity
-  // like the others.
-  const Real thresh = o.cg_tolerance * o.cg_tolerance * std::max({terms2, rhs2, rr});
-  const Real thresh_e = o.cg_tolerance * o.cg_tolerance * std::max(termsw, ez);
+  // PCG on the free nodes, from the initial guess in vnew (moved onto the
+  // faces' rows first); the iterations add to it, converged says the last
+  // solve's verdict
   int it = 0;
-  bool converged = rr <= thresh && ez <= thresh_e;
-  Real beta = 0;
-  while (!converged && it < o.cg_max_iterations) {
-    const Real pq = it == 0 ? apply_matrix<Read::fused_first>(m, s, sc.p.data(), z, 0, sc.p_next.data(), q)
-                            : apply_matrix<Read::fused>(m, s, sc.p.data(), z, beta, sc.p_next.data(), q);
-    sc.p.swap(sc.p_next);
-    ++it;
-    if (!(pq > 0) || !std::isfinite(pq)) break;  // not positive definite or not finite: stop here
-    const Real alpha = rz / pq;
-    const Real* p = sc.p.data();
+  bool converged = false;
+  FaceSolve* rows = face_rows ? &faces : nullptr;
+  auto pcg = [&] {
+    if (rows && rows->any()) face_rows_project(s, *rows, vnew);
+    apply_matrix<Read::plain>(m, s, vnew, nullptr, 0, nullptr, q, rows);
     for_chunks(m, [&](int ch) {
-      Real rz_c = 0, rr_c = 0, ez_c = 0;
+      Real rz = 0, rr = 0, ez = 0;
       for (std::int32_t i = chunk_begin(m, ch), e = chunk_end(m, ch); i < e; ++i) {
-        if (w[i] == 0) continue;
-        store3(vnew, i, load3(vnew, i) + alpha * load3(p, i));
-        const Vec3 ri = load3(r, i) - alpha * load3(q, i);
+        Vec3 ri = w[i] == 0 ? Vec3{} : load3(rhs, i) - load3(q, i);
+        if (constrained) ri = filter(ri, load3(cn, i));
         store3(r, i, ri);
-        rr_c += dot(ri, ri);
+        rr += dot(ri, ri);
         if (F) continue;
         Vec3 zi = apply_precond(P, i, ri);
         if (constrained) zi = filter(zi, load3(cn, i));
         store3(z, i, zi);
-        rz_c += dot(ri, zi);
-        ez_c += mass[i] * dot(zi, zi);
+        rz += dot(ri, zi);
+        ez += mass[i] * dot(zi, zi);
       }
-      partial[ch * kPad + 1] = rz_c;
-      partial[ch * kPad + 2] = rr_c;
-      partial[ch * kPad + 3] = ez_c;
+      partial[ch * kPad + 1] = rz;
+      partial[ch * kPad + 2] = rr;
+      partial[ch * kPad + 3] = ez;
     });
-    Real rz_new = partial_sum(m, sc, 1);
-    rr = partial_sum(m, sc, 2);
-    ez = partial_sum(m, sc, 3);
-    if (F) factor_pass(&rz_new, &ez);
+    Real rz = partial_sum(m, sc, 1);
+    Real rr = partial_sum(m, sc, 2);
+    Real ez = partial_sum(m, sc, 3);
+    if (F) factor_pass(&rz, &ez);
+    if (rows && rows->any()) rz -= face_rows_precondition(m, s, *rows, z, &ez);
+    // Stop at |r| <= tol x the size of b's terms (root sum of squares), not of b
+    // itself: near equilibrium the terms cancel, |b| -> 0, and a test relative to
+    // |b| iterates on round-off (139 iterations a step for a block at rest in its
+    // equilibrium, now 0-2). A poor first guess (|r0| larger than both) sets the scale.
+    //
+    // And stop only once the velocity error the preconditioner reads off the
+    // residual (z = P r), in the mass norm, is below tol x the same terms as
+    // velocity changes (each over its node's diagonal). The first test alone
+    // let a stiff spring grip (1e9 N/m) set the scale: its force, h k x the
+    // lag, outweighed every free node's terms by 1e8, and the free nodes
+    // stopped far from their solution (the demo's pull_skin with that grip: 70
+    // stability events, 12 % too much elastic energy). Over its diagonal h^2 k,
+    // the grip's force is the velocity of its lag (the lag over h), a velocity
+    // like the others.
+    const Real thresh = o.cg_tolerance * o.cg_tolerance * std::max({terms2, rhs2, rr});
+    const Real thresh_e = o.cg_tolerance * o.cg_tolerance * std::max(termsw, ez);
+    int its = 0;
     converged = rr <= thresh && ez <= thresh_e;
-    beta = rz > 0 ? rz_new / rz : 0;
-    rz = rz_new;
+    Real beta = 0;
+    while (!converged && its < o.cg_max_iterations) {
+      const Real pq = its == 0 ? apply_matrix<Read::fused_first>(m, s, sc.p.data(), z, 0, sc.p_next.data(), q, rows)
+                               : apply_matrix<Read::fused>(m, s, sc.p.data(), z, beta, sc.p_next.data(), q, rows);
+      sc.p.swap(sc.p_next);
+      ++its;
+      if (!(pq > 0) || !std::isfinite(pq)) break;  // not positive definite or not finite: stop here
+      const Real alpha = rz / pq;
+      const Real* p = sc.p.data();
+      for_chunks(m, [&](int ch) {
+        Real rz_c = 0, rr_c = 0, ez_c = 0;
+        for (std::int32_t i = chunk_begin(m, ch), e = chunk_end(m, ch); i < e; ++i) {
+          if (w[i] == 0) continue;
+          store3(vnew, i, load3(vnew, i) + alpha * load3(p, i));
+          const Vec3 ri = load3(r, i) - alpha * load3(q, i);
+          store3(r, i, ri);
+          rr_c += dot(ri, ri);
+          if (F) continue;
+          Vec3 zi = apply_precond(P, i, ri);
+          if (constrained) zi = filter(zi, load3(cn, i));
+          store3(z, i, zi);
+          rz_c += dot(ri, zi);
+          ez_c += mass[i] * dot(zi, zi);
+        }
+        partial[ch * kPad + 1] = rz_c;
+        partial[ch * kPad + 2] = rr_c;
+        partial[ch * kPad + 3] = ez_c;
+      });
+      Real rz_new = partial_sum(m, sc, 1);
+      rr = partial_sum(m, sc, 2);
+      ez = partial_sum(m, sc, 3);
+      if (F) factor_pass(&rz_new, &ez);
+      if (rows && rows->any()) rz_new -= face_rows_precondition(m, s, *rows, z, &ez);
+      converged = rr <= thresh && ez <= thresh_e;
+      beta = rz > 0 ? rz_new / rz : 0;
+      rz = rz_new;
+    }
+    it += its;
+  };
+  pcg();
+  // the faces' rows push, never pull: a row that pulls is let go, a
+  // candidate the solve's face would pass is taken, and the solve run again
+  // from here (an active set, kFaceActiveSetPasses solves at most)
+  for (int pass = 1; rows && pass < kFaceActiveSetPasses; ++pass) {
+    bool changed = false;
+    for (FaceSolve::Row& fr : rows->rows) {
+      if (!fr.usable) continue;
+      // a row whose impulse outgrows kFaceConflict times the step's momentum
+      // terms and its own need is held against rows it cannot meet together
+      // (the compliance lets lambda grow as 1 / eps): it is let go
+      const Real jv = row_dot(fr, vnew);
+      if (fr.active && (fr.c - jv) / fr.eps > kFaceConflict * (std::sqrt(terms2) + fr.need / fr.d)) {
+        fr.active = fr.usable = false, changed = true;
+        continue;
+      }
+      const bool pulls = fr.active && jv > fr.c;
+      const bool passes = !fr.active && jv < fr.c;
+      if (pulls || passes) fr.active = !fr.active, changed = true;
+    }
+    if (!changed) break;
+    face_rows_factor(s, *rows);
+    if (rows->any()) F = nullptr;  // (the rows' preconditioner is block Jacobi's)
+    face_rows_rhs(*rows, rhs);
+    ++s.counters.face_resolves;
+    pcg();
   }
+  if (rows) face_rows_forces(*rows, vnew, h);
   // a slow solve: the factor has drifted from the matrix (rebuild it next
   // substep), or (automatic) block Jacobi is not enough for this model
   // (With nodes held on obstacles the factor is of the held system as it was
@@ -1106,7 +1515,7 @@ Check implicit_substep(const Model& m, State& s, Real t, Real h, const SolverOpt
   // and their release
   if (constrained) {
     sc.constrained = false;
-    apply_matrix<Read::plain>(m, s, vnew, nullptr, 0, nullptr, q);
+    apply_matrix<Read::plain>(m, s, vnew, nullptr, 0, nullptr, q, rows);
     sc.constrained = true;
   }
 
@@ -1131,13 +1540,12 @@ Check implicit_substep(const Model& m, State& s, Real t, Real h, const SolverOpt
       // on the node is that normal force and the damper's -c v'_t.
       bool keep = false;
       Vec3 hold_force{};
-      const std::int32_t face_hold = faced ? sc.face_held[static_cast<std::size_t>(i)] : -1;  // a face's hold: its obstacle
       if (constrained) {
         const Vec3 ni = load3(cn, i);
         if (holds(ni)) {
           const Real normal_force = dot(load3(q, i) - load3(rhs, i), ni) / h;
           keep = normal_force > 0;
-          const Vec3 ui = mo.velocity(face_hold >= 0 ? face_hold : s.contact_obstacle[static_cast<std::size_t>(i)], load3(xw, i), 0, h);
+          const Vec3 ui = mo.velocity(s.contact_obstacle[static_cast<std::size_t>(i)], load3(xw, i), 0, h);
           hold_force = normal_force * ni - sc.friction_c[static_cast<std::size_t>(i)] * filter(vi - ui, ni) +
                        load3(sc.friction_f.data(), i);
         }
@@ -1153,7 +1561,7 @@ Check implicit_substep(const Model& m, State& s, Real t, Real h, const SolverOpt
           // put on an obstacle: the contact's velocity change is the impulse
           // m dv of a force m dv / h over the substep
           fc = (mass[i] / h) * (vi - v_before);
-        } else if (keep && face_hold < 0) {
+        } else if (keep) {
           k = s.contact_obstacle[static_cast<std::size_t>(i)];  // held on it by the solve
           fc = hold_force;
         }
@@ -1161,16 +1569,6 @@ Check implicit_substep(const Model& m, State& s, Real t, Real h, const SolverOpt
         s.contact_obstacle[static_cast<std::size_t>(i)] = k;
         contacts += k >= 0;
         if (mo.moving()) work += h * dot(fc, mo.velocity(k, xi, 1, h));  // a moving obstacle's work on the node
-        // a face's hold: pushing, its force is the face's, and it stays
-        // while a sample still meets or touches the node's faces (the face
-        // pass above marked it again); pulling, the node is let go
-        if (face_hold >= 0) {
-          const Vec3 fh = keep ? hold_force : Vec3{};
-          store3(sc.face_v.data(), i, fh);
-          if (keep) store3(s.face_holds.force.data(), i, load3(s.face_holds.force.data(), i) + fh);
-          else s.face_holds.obstacle[static_cast<std::size_t>(i)] = -1;
-          if (mo.moving()) work += h * dot(fh, mo.velocity(face_hold, xi, 1, h));
-        }
       }
       store3(vw, i, vi);
       store3(xw, i, xi);
@@ -1183,11 +1581,9 @@ Check implicit_substep(const Model& m, State& s, Real t, Real h, const SolverOpt
     partial[ch * kPad + 4] = contacts;
     partial[ch * kPad + 5] = work;
   });
-  // the faces' holds: their forces on the tissue are the obstacles'
-  if (faced)
-    for (std::int32_t i = 0; i < m.n_nodes; ++i)
-      if (const std::int32_t kf = sc.face_held[static_cast<std::size_t>(i)]; kf >= 0 && w[i] > 0)
-        store3(s.face_force.data(), kf, load3(s.face_force.data(), kf) + load3(sc.face_v.data(), i));
+  // the faces' rows: their forces on the tissue are the meshes'; the rows
+  // the face pass found hold the faces in the next substep
+  if (faced) face_rows_end(s, mo, h, faces, tool_work);
   Check out{partial_sum(m, sc, 1), partial_sum(m, sc, 0) + u_tets, partial_max(m, sc, 2),
             obs ? partial_sum(m, sc, 4) : Real(0), face_meetings};
   if (mo.moving()) *tool_work += partial_sum(m, sc, 5);
@@ -1307,7 +1703,8 @@ StepInfo step(const Model& m, State& s, Real dt, const SolverOptions& o) {
   std::vector<Real> warm0;
   if (implicit) warm0 = s.warm;
   if (!s.contact_obstacle.empty()) sc.contact0 = s.contact_obstacle, sc.force0 = s.contact_force, sc.face_force0 = s.face_force;
-  if (!s.face_holds.obstacle.empty()) sc.face_holds0 = s.face_holds;
+  if (!s.face_rows.empty()) sc.face_rows0 = s.face_rows;
+  else sc.face_rows0.clear();
   if (!s.face_met.empty()) sc.face_met0 = s.face_met;
   bool ok = false;
   Check last;
@@ -1365,7 +1762,7 @@ StepInfo step(const Model& m, State& s, Real dt, const SolverOptions& o) {
     std::memcpy(s.v.data(), sc.v0.data(), s.v.size() * sizeof(Real));
     if (implicit) s.warm = warm0;
     if (!s.contact_obstacle.empty()) s.contact_obstacle = sc.contact0, s.contact_force = sc.force0, s.face_force = sc.face_force0;
-    if (!s.face_holds.obstacle.empty()) s.face_holds = sc.face_holds0;
+    s.face_rows = sc.face_rows0;
     if (!s.face_met.empty()) s.face_met = sc.face_met0;
     info.retries = attempt + 1;
     if (n_sub >= o.max_substeps) break;
@@ -1380,7 +1777,7 @@ StepInfo step(const Model& m, State& s, Real dt, const SolverOptions& o) {
     std::fill(s.v.begin(), s.v.end(), 0);
     std::fill(s.warm.begin(), s.warm.end(), 0);
     if (!s.contact_obstacle.empty()) s.contact_obstacle = sc.contact0, s.contact_force = sc.force0, s.face_force = sc.face_force0;
-    if (!s.face_holds.obstacle.empty()) s.face_holds = sc.face_holds0;
+    s.face_rows = sc.face_rows0;
     if (!s.face_met.empty()) s.face_met = sc.face_met0;
     for (std::int32_t i = 0; i < m.n_nodes; ++i)
       if (!std::isfinite(s.f[3 * i]) || !std::isfinite(s.f[3 * i + 1]) || !std::isfinite(s.f[3 * i + 2]))

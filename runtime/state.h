@@ -75,19 +75,25 @@ struct Counters {
   std::int64_t factorizations = 0;    // implicit, cholesky preconditioner: sparse factors built
   std::int64_t obstacle_contacts = 0; // node-substeps that touched an obstacle (State::obstacles), in accepted attempts
   std::int64_t face_contacts = 0;     // mesh edge samples that met a tissue face, summed over the substeps of accepted attempts
+  std::int64_t face_resolves = 0;     // implicit: solves run again for the faces' rows (one let go, or one taken), all attempts
 };
 
-// The tissue's faces held by obstacles' edges (runtime/obstacles.h,
-// resolve_face_contacts): per node, the obstacle a face contact of the last
-// substep moved it for (-1: none), the unit normal it pushed it along (into
-// the tissue), and the face contacts' force on it (N: the implicit solve's
-// hold and the contact's impulse over the substep). The implicit solve holds
-// such a node's normal velocity at the obstacle's, as it holds a node
-// resting on an obstacle.
-struct FaceHolds {
-  std::vector<std::int32_t> obstacle;  // (n_nodes)
-  std::vector<Real> normal;            // (n_nodes x 3)
-  std::vector<Real> force;             // (n_nodes x 3) N
+// A tissue face held by a mesh's edge sample (resolve_face_contacts): the
+// sample met or touched the face's triangle in the last substep. The
+// implicit solve keeps the triangle's point under the sample from moving out
+// past the sample: one constraint row, sum_j w_j n . v_j >= the sample's
+// velocity along n less the gap over the substep (docs/runtime.md, Thin
+// instruments). Sorted by (obstacle, sample, triangle).
+struct FaceRow {
+  std::int32_t obstacle = -1;          // the mesh, indexed as ObstacleContact::obstacle
+  std::int32_t sample = -1;            // its edge sample (ObstacleMesh::samples)
+  std::int32_t triangle = -1;          // the face: triangle t of quad t / 2, (q0, q1, q2) or (q0, q2, q3)
+  std::array<std::int32_t, 3> node{};  // the triangle's corners
+  std::array<Real, 3> w{};             // the point's barycentric weights, clamped to the triangle (sum 1)
+  Vec3 n{};                            // unit: the normal the sample pushes the face along (into the tissue)
+  Real impulse = 0;                    // N s: the normal impulse on the face in the last substep (bounds its friction)
+  bool candidate = false;              // the sample in front of the face, neither meeting nor touching it, but
+                                       // within the triangle's motion over the substep: a contact the solve may make
 };
 
 // Scratch of resolve_face_contacts (runtime/obstacles.h).
@@ -96,6 +102,7 @@ struct FaceScratch {
   std::vector<std::int32_t> hits;     // (n x 2) sample, triangle
   std::vector<std::array<std::int32_t, 2>> order;  // the hits sorted
   std::vector<std::uint8_t> met;      // (a mesh's samples) which met the faces in the last substep
+  std::vector<std::int32_t> row_of;   // (order) the row a meeting's first sweep added (-1: none)
 };
 
 // Scratch the solver resizes on demand (never read across steps).
@@ -128,10 +135,10 @@ struct Scratch {
   std::vector<ObstacleFrame> obstacle_frames;  // where each moving obstacle is over the substep (runtime/obstacles.h)
   FaceScratch faces;                           // the meshes' edges against the tissue's faces
   std::vector<Real> face_force0;               // State::face_force at the step's start, for redo
-  FaceHolds face_holds0;                       // State::face_holds at the step's start, for redo
+  std::vector<FaceRow> face_rows0;             // State::face_rows at the step's start, for redo
+  std::vector<FaceRow> face_rows_new;          // implicit: the rows the face pass finds for the next substep
+  std::vector<std::int32_t> face_slot;         // (n_nodes) implicit: a node's index among the solve's rows' nodes, or -1
   std::vector<std::uint8_t> face_met0;         // State::face_met at the step's start, for redo
-  std::vector<Real> face_v;                    // (n_nodes x 3) implicit: the solve's velocities before the face contacts
-  std::vector<std::int32_t> face_held;         // (n_nodes) implicit: the obstacle of this substep's hold where it is a face's, else -1
 };
 
 // The cholesky preconditioner's factor (runtime/solver.cpp): immutable once
@@ -172,7 +179,8 @@ struct State {
   // last substep, through its edges (resolve_face_contacts; not in
   // contact_force, which is the nodes'); sized by the solver
   std::vector<Real> face_force;
-  FaceHolds face_holds;  // sized by the solver when some mesh has edge samples
+  // implicit: the faces the meshes' edge samples hold (FaceRow), found in the last substep
+  std::vector<FaceRow> face_rows;
   // (all meshes' edge samples, in order) 1 where the sample met or touched a
   // tissue face in the last substep (resolve_face_contacts); sized by the solver
   std::vector<std::uint8_t> face_met;

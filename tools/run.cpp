@@ -433,7 +433,8 @@ void add_run_command(CLI::App& app) {
                    {"max_iterations", c.cg_max_iterations},
                    {"unconverged", c.cg_unconverged},
                    {"redos", c.cg_redos},
-                   {"factorizations", c.factorizations}};
+                   {"factorizations", c.factorizations},
+                   {"face_resolves", c.face_resolves}};
     if (const runtime::FluidState* fs = scene->fluid_state()) {
       const auto f = scene->fluid_summary();
       const runtime::Fluid& fl = *scene->fluid();

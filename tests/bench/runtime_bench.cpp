@@ -770,6 +770,7 @@ void thin_probe_rows(ob::Results& out, bool quick) {
     rt::Vec3 force, bone;
     std::int64_t faces = 0;
     double its = 0;  // PCG iterations per solve
+    std::int64_t resolves = 0;
   };
   auto run = [&](Real spacing, Result& r) {
     auto ob = std::make_shared<rt::Obstacles>();
@@ -791,6 +792,7 @@ void thin_probe_rows(ob::Results& out, bool quick) {
     r.force = rt::load3(s.face_force.data(), 0);
     r.bone = rt::testing::fixed_reaction(L.model, s.x, s.inv_mass);
     r.faces = s.counters.face_contacts;
+    r.resolves = s.counters.face_resolves;
     r.its = static_cast<double>(s.counters.cg_iterations) / static_cast<double>(std::max<std::int64_t>(1, s.counters.cg_solves));
   };
   const Real spacing = rt::default_edge_spacing(L.model.quads, L.model.rest_x);
@@ -810,6 +812,7 @@ void thin_probe_rows(ob::Results& out, bool quick) {
                {"ratio_to_nodes_only", ob::median(row.seconds) / ob::median(off_s)},
                {"nodes_only_force_y_n", without.bone.y},
                {"pcg_iterations_per_solve", with.its},
+               {"face_resolves", with.resolves},
                {"nodes_only_pcg_iterations_per_solve", without.its}};
   out.add(row);
 }

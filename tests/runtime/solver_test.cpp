@@ -1663,7 +1663,8 @@ TEST(FaceContacts, AThinProbePressesTheSkinBetweenNodes) {
   // between the nodes at x = 20, 24 mm and z = 4, 8 mm: a rod, tip up at y = -1 mm; a bar along z across the block
   const ObstacleMesh rod = box_mesh({0.0215, -0.02, 0.0055}, {0.0225, -0.001, 0.0065});
   const ObstacleMesh bar = box_mesh({0.0215, -0.002, -0.01}, {0.0225, -0.001, 0.026});
-  for (const auto& [name, probe] : {std::pair{"rod", rod}, std::pair{"bar", bar}})
+  for (const auto& [name, probe] : {std::pair{"rod", rod}, std::pair{"bar", bar}}) {
+    Real symplectic_force = 0;
     for (Integrator integ : {Integrator::symplectic_euler, Integrator::implicit_euler}) {
       SCOPED_TRACE(std::string(name) + ", " + to_string(integ));
       const Result r = press(probe, spacing, integ, 1);
@@ -1673,6 +1674,13 @@ TEST(FaceContacts, AThinProbePressesTheSkinBetweenNodes) {
       EXPECT_LT(r.gap, 1e-6) << "the skin pressed is on the probe";
       EXPECT_GT(r.force.y, 0) << "the probe pushes the skin in";
       EXPECT_NEAR(r.bone.y, r.force.y, 0.02 * r.force.y) << "at rest, the bone carries the push";
+      // the implicit solve holds the point the probe presses, not its whole
+      // triangle: its force is the symplectic run's (until 2026-11-29 it held
+      // the triangle's corners, +4 % for the rod). Within 2 %: with friction
+      // the two integrators' paths stick and slip differently (frictionless,
+      // the bar's agree within 2e-4)
+      if (integ == Integrator::symplectic_euler) symplectic_force = r.force.y;
+      else EXPECT_NEAR(r.force.y, symplectic_force, 0.02 * symplectic_force) << "the implicit's force is the symplectic's";
       EXPECT_GT(r.faces, 0);
       EXPECT_EQ(r.events, 0);
       EXPECT_EQ(press(probe, spacing, integ, 2).hash, r.hash) << "threads";
@@ -1680,11 +1688,12 @@ TEST(FaceContacts, AThinProbePressesTheSkinBetweenNodes) {
       EXPECT_GT(off.behind, 2e-3) << "without the samples it passes through the skin";
       EXPECT_EQ(off.faces, 0);
     }
+  }
 }
 
 // A rod pressed 1.5 mm into the skin between nodes and then slid 30 mm
 // sideways, off the block's edge (frictionless, at the same depth), lets the
-// skin go: once it has left, no node is held by a face (implicit), and the
+// skin go: once it has left, no face row remains (implicit), and the
 // skin comes back to rest. Both integrators. (Pressed deeper than the 2 mm
 // skin layer, the implicit run folds the layer, which central springs do not
 // unfold: docs/runtime.md, "Inverted layers"; so the press stays shallower.)
@@ -1714,12 +1723,60 @@ TEST(FaceContacts, ARodSlidOffLetsTheSkinGo) {
     EXPECT_GT(pressed, 0.001) << "the rod pressed the skin";
     EXPECT_GT(s.counters.face_contacts, 0);
     for (int k = 0; k < 120; ++k) step(m, s, 1.0 / 120, o);  // the rod off the block from 0.6 s
-    EXPECT_TRUE(std::all_of(s.face_holds.obstacle.begin(), s.face_holds.obstacle.end(), [](std::int32_t h) { return h < 0; }))
-        << "no face held";
+    EXPECT_TRUE(s.face_rows.empty()) << "no face held";
     EXPECT_LT(max_node_distance(s.x, m.rest_x), 1e-4) << "the skin back at rest";
     for (const auto& ic : inverted_columns(m, s.x)) EXPECT_EQ(ic.inverted, 0) << ic.layer;
     EXPECT_EQ(s.counters.events, 0);
   }
+}
+
+// A rod pressed 1.5 mm into the skin between nodes and dragged 10 mm along it
+// with friction, towards the block's open side, in the demo's steps of 1/60 s
+// (implicit), keeps its contact: its force changes smoothly from step to step
+// (falling from 0.10 to 0.04 N as the skin nears the side; no step gives up the contact
+// and the next takes it back: until 2026-11-29 the drag alternated 0.002 and
+// 0.066 N from step to step in the demo's rod scene, as the rod's edge point
+// slid off the face it held onto one it did not yet touch), the skin does not
+// fold, and no point of the rod gets behind the skin.
+TEST(FaceContacts, ARodDraggedAlongTheSkinKeepsItsContact) {
+  const auto b = make_layered_block(13, 5, 4);
+  const Model m = model_from_layers(b.layers, b.sets);
+  const std::vector<std::int32_t> skin_quads = test::top_sheet_quads(m);
+  const Real spacing = default_edge_spacing(m.quads, m.rest_x);
+  auto ob = std::make_shared<Obstacles>();
+  ObstacleMesh rod = box_mesh({0.0215, -0.02, 0.0055}, {0.0225, -0.001, 0.0065});
+  rod.friction = 0.3;
+  add_obstacle_mesh(*ob, rod);
+  sample_obstacle_edges(ob->meshes[0], spacing);
+  ObstacleMesh points = rod;
+  sample_obstacle_edges(points, spacing);
+  State s = make_state(m);
+  fix_nodes(m, s, m.set("fixed"));
+  s.obstacles = ob;
+  // down 2.5 mm (1.5 mm into the skin) over 0.3 s, then along z 10 mm over 0.6 s
+  s.obstacle_paths = {displacement_path({{0, 0, 0, 0}, {0.3, 0, 0.0025, 0}, {0.9, 0, 0.0025, 0.01}})};
+  SolverOptions o;
+  o.integrator = Integrator::implicit_euler;
+  o.gravity = {0, 0, 0};
+  o.mass_damping = 5;
+  std::vector<Real> fy;
+  Real behind = -HUGE_VAL;
+  for (int k = 0; k < 54; ++k) {
+    step(m, s, 1.0 / 60, o);
+    fy.push_back(load3(s.face_force.data(), 0).y);
+    behind = std::max(behind, test::depth_behind_skin(points.samples, s.obstacle_paths[0].at(s.time), skin_quads, s.x).behind);
+    for (const auto& ic : inverted_columns(m, s.x)) EXPECT_EQ(ic.inverted, 0) << ic.layer << " at step " << k;
+  }
+  // the drag: from one step after it starts to its end
+  Real lo = HUGE_VAL, hi = 0, worst = 1;
+  for (int k = 19; k < 54; ++k) {
+    lo = std::min(lo, fy[k]), hi = std::max(hi, fy[k]);
+    worst = std::min(worst, fy[k] / fy[k - 1]);
+  }
+  std::printf("  the drag's force %.4f - %.4f N, the least step-to-step ratio %.3f, deepest point %.3g m\n", lo, hi, worst, behind);
+  EXPECT_GT(worst, 0.8) << "no step lets the skin go (the force falls towards the block's side smoothly)";
+  EXPECT_LE(behind, 1e-9) << "no point of the rod behind the skin";
+  EXPECT_EQ(s.counters.events, 0);
 }
 
 }  // namespace
