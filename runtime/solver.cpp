@@ -793,11 +793,9 @@ void face_rows_factor(const State& s, FaceSolve& fs) {
   fs.t.resize(fs.n_active);
 }
 
-// z -= Q J^T S^-1 J z (z = Q r: then z = (Q^-1 + J^T J / eps)^-1 r); *ez
-// changes by the mass norm's change. Returns t . y, by which r . z falls.
-Real face_rows_precondition(const Model& m, const State& s, FaceSolve& fs, Real* z, Real* ez) {
-  for (std::size_t q = 0; q < fs.rows.size(); ++q)
-    if (fs.index[q] >= 0) fs.t(fs.index[q]) = row_dot(fs.rows[q], z);
+// y = S^-1 t (t set for the active rows), and at each of the rows' nodes
+// (FaceSolve::acc) Q (J^T y): the move the rows' impulses y make there
+void face_rows_spread(const State& s, FaceSolve& fs) {
   fs.y = fs.S.solve(fs.t);
   const Scratch& sc = s.scratch;
   std::fill(fs.acc.begin(), fs.acc.end(), 0);
@@ -811,10 +809,21 @@ Real face_rows_precondition(const Model& m, const State& s, FaceSolve& fs, Real*
         store3(fs.acc.data(), k, load3(fs.acc.data(), k) + (yq * r.w[j]) * r.n);
       }
   }
+  for (std::size_t k = 0; k < fs.nodes.size(); ++k)
+    store3(fs.acc.data(), static_cast<std::int64_t>(k),
+           q_apply(sc.precond.data(), sc.constraint.data(), sc.constrained, fs.nodes[k], load3(fs.acc.data(), static_cast<std::int64_t>(k))));
+}
+
+// z -= Q J^T S^-1 J z (z = Q r: then z = (Q^-1 + J^T J / eps)^-1 r); *ez
+// changes by the mass norm's change. Returns t . y, by which r . z falls.
+Real face_rows_precondition(const Model& m, const State& s, FaceSolve& fs, Real* z, Real* ez) {
+  for (std::size_t q = 0; q < fs.rows.size(); ++q)
+    if (fs.index[q] >= 0) fs.t(fs.index[q]) = row_dot(fs.rows[q], z);
+  face_rows_spread(s, fs);
   for (std::size_t k = 0; k < fs.nodes.size(); ++k) {
     const std::int32_t i = fs.nodes[k];
     const Vec3 zi = load3(z, i);
-    const Vec3 zn = zi - q_apply(sc.precond.data(), sc.constraint.data(), sc.constrained, i, load3(fs.acc.data(), static_cast<std::int64_t>(k)));
+    const Vec3 zn = zi - load3(fs.acc.data(), static_cast<std::int64_t>(k));
     *ez += m.mass[static_cast<std::size_t>(i)] * (dot(zn, zn) - dot(zi, zi));
     store3(z, i, zn);
   }
@@ -826,22 +835,9 @@ Real face_rows_precondition(const Model& m, const State& s, FaceSolve& fs, Real*
 void face_rows_project(const State& s, FaceSolve& fs, Real* v) {
   for (std::size_t q = 0; q < fs.rows.size(); ++q)
     if (fs.index[q] >= 0) fs.t(fs.index[q]) = fs.rows[q].c - row_dot(fs.rows[q], v);
-  fs.y = fs.S.solve(fs.t);
-  const Scratch& sc = s.scratch;
-  std::fill(fs.acc.begin(), fs.acc.end(), 0);
-  for (std::size_t q = 0; q < fs.rows.size(); ++q) {
-    if (fs.index[q] < 0) continue;
-    const FaceSolve::Row& r = fs.rows[q];
-    for (int j = 0; j < 3; ++j)
-      if (r.w[j] != 0) {
-        const std::int32_t k = sc.face_slot[static_cast<std::size_t>(r.node[j])];
-        store3(fs.acc.data(), k, load3(fs.acc.data(), k) + (fs.y(fs.index[q]) * r.w[j]) * r.n);
-      }
-  }
-  for (std::size_t k = 0; k < fs.nodes.size(); ++k) {
-    const std::int32_t i = fs.nodes[k];
-    store3(v, i, load3(v, i) + q_apply(sc.precond.data(), sc.constraint.data(), sc.constrained, i, load3(fs.acc.data(), static_cast<std::int64_t>(k))));
-  }
+  face_rows_spread(s, fs);
+  for (std::size_t k = 0; k < fs.nodes.size(); ++k)
+    store3(v, fs.nodes[k], load3(v, fs.nodes[k]) + load3(fs.acc.data(), static_cast<std::int64_t>(k)));
 }
 
 // b at the rows' nodes: b0 (without the rows) + J^T c / eps of the active rows
@@ -1376,6 +1372,28 @@ Check implicit_substep(const Model& m, State& s, Real t, Real h, const SolverOpt
   int it = 0;
   bool converged = false;
   FaceSolve* rows = face_rows ? &faces : nullptr;
+  // z_i = P r_i (filtered where the node is held), adding its r.z and mass-norm terms
+  auto precondition = [&](std::int32_t i, const Vec3& ri, Real& rz_c, Real& ez_c) {
+    Vec3 zi = apply_precond(P, i, ri);
+    if (constrained) zi = filter(zi, load3(cn, i));
+    store3(z, i, zi);
+    rz_c += dot(ri, zi);
+    ez_c += mass[i] * dot(zi, zi);
+  };
+  // a chunk's, and then all chunks' sums r.z, |r|^2 and z's mass norm (z by
+  // the factor, or corrected for the faces' rows)
+  auto put_sums = [&](int ch, Real rz_c, Real rr_c, Real ez_c) {
+    partial[ch * kPad + 1] = rz_c;
+    partial[ch * kPad + 2] = rr_c;
+    partial[ch * kPad + 3] = ez_c;
+  };
+  auto sums = [&](Real* rz, Real* rr, Real* ez) {
+    *rz = partial_sum(m, sc, 1);
+    *rr = partial_sum(m, sc, 2);
+    *ez = partial_sum(m, sc, 3);
+    if (F) factor_pass(rz, ez);
+    if (rows && rows->any()) *rz -= face_rows_precondition(m, s, *rows, z, ez);
+  };
   auto pcg = [&] {
     if (rows && rows->any()) face_rows_project(s, *rows, vnew);
     apply_matrix<Read::plain>(m, s, vnew, nullptr, 0, nullptr, q, rows);
@@ -1386,22 +1404,12 @@ Check implicit_substep(const Model& m, State& s, Real t, Real h, const SolverOpt
         if (constrained) ri = filter(ri, load3(cn, i));
         store3(r, i, ri);
         rr += dot(ri, ri);
-        if (F) continue;
-        Vec3 zi = apply_precond(P, i, ri);
-        if (constrained) zi = filter(zi, load3(cn, i));
-        store3(z, i, zi);
-        rz += dot(ri, zi);
-        ez += mass[i] * dot(zi, zi);
+        if (!F) precondition(i, ri, rz, ez);
       }
-      partial[ch * kPad + 1] = rz;
-      partial[ch * kPad + 2] = rr;
-      partial[ch * kPad + 3] = ez;
+      put_sums(ch, rz, rr, ez);
     });
-    Real rz = partial_sum(m, sc, 1);
-    Real rr = partial_sum(m, sc, 2);
-    Real ez = partial_sum(m, sc, 3);
-    if (F) factor_pass(&rz, &ez);
-    if (rows && rows->any()) rz -= face_rows_precondition(m, s, *rows, z, &ez);
+    Real rz, rr, ez;
+    sums(&rz, &rr, &ez);
     // Stop at |r| <= tol x the size of b's terms (root sum of squares), not of b
     // itself: near equilibrium the terms cancel, |b| -> 0, and a test relative to
     // |b| iterates on round-off (139 iterations a step for a block at rest in its
@@ -1437,22 +1445,12 @@ Check implicit_substep(const Model& m, State& s, Real t, Real h, const SolverOpt
           const Vec3 ri = load3(r, i) - alpha * load3(q, i);
           store3(r, i, ri);
           rr_c += dot(ri, ri);
-          if (F) continue;
-          Vec3 zi = apply_precond(P, i, ri);
-          if (constrained) zi = filter(zi, load3(cn, i));
-          store3(z, i, zi);
-          rz_c += dot(ri, zi);
-          ez_c += mass[i] * dot(zi, zi);
+          if (!F) precondition(i, ri, rz_c, ez_c);
         }
-        partial[ch * kPad + 1] = rz_c;
-        partial[ch * kPad + 2] = rr_c;
-        partial[ch * kPad + 3] = ez_c;
+        put_sums(ch, rz_c, rr_c, ez_c);
       });
-      Real rz_new = partial_sum(m, sc, 1);
-      rr = partial_sum(m, sc, 2);
-      ez = partial_sum(m, sc, 3);
-      if (F) factor_pass(&rz_new, &ez);
-      if (rows && rows->any()) rz_new -= face_rows_precondition(m, s, *rows, z, &ez);
+      Real rz_new;
+      sums(&rz_new, &rr, &ez);
       converged = rr <= thresh && ez <= thresh_e;
       beta = rz > 0 ? rz_new / rz : 0;
       rz = rz_new;
