@@ -1488,6 +1488,9 @@ CutReport Scene::apply_cut(const CutDef& def) {
   model_ = edited;
   if (!rep.detached.empty()) fix_nodes(*model_, state_, rep.detached);
   state_.step_limit = 0;
+  // the faces' rows name triangles of the quads as they were (a cut removes
+  // some and renumbers the rest): the next substep's face pass finds them again
+  state_.face_rows.clear();
   if (vtk_) vtk_->set_topology(*model_);
   if (fluid_) {
     // each cut vessel bleeds: Poiseuille flow of its radius capped by the

@@ -79,18 +79,20 @@ struct Counters {
 };
 
 // A tissue face held by a mesh's edge sample (resolve_face_contacts): the
-// sample met or touched the face's triangle in the last substep. The
-// implicit solve keeps the triangle's point under the sample from moving out
-// past the sample: one constraint row, sum_j w_j n . v_j >= the sample's
-// velocity along n less the gap over the substep (docs/runtime.md, Thin
-// instruments). Sorted by (obstacle, sample, triangle).
+// sample met or touched the face's triangle in the last substep, or lies in
+// front of it within its motion (a candidate). The implicit solve keeps the
+// triangle's point under the sample from moving out past it: one constraint
+// row on sum_j w_j v_j . n (runtime/solver.cpp, "the faces' rows", which takes
+// the point again under the sample where the mesh puts it at the substep's
+// end; docs/runtime.md, Thin instruments). Sorted by (obstacle, sample,
+// triangle).
 struct FaceRow {
   std::int32_t obstacle = -1;          // the mesh, indexed as ObstacleContact::obstacle
   std::int32_t sample = -1;            // its edge sample (ObstacleMesh::samples)
   std::int32_t triangle = -1;          // the face: triangle t of quad t / 2, (q0, q1, q2) or (q0, q2, q3)
   std::array<std::int32_t, 3> node{};  // the triangle's corners
-  std::array<Real, 3> w{};             // the point's barycentric weights, clamped to the triangle (sum 1)
-  Vec3 n{};                            // unit: the normal the sample pushes the face along (into the tissue)
+  std::array<Real, 3> w{};             // the point's barycentric weights, clamped to the triangle (sum 1), as the face pass found it
+  Vec3 n{};                            // unit: the normal the sample pushes the face along (into the tissue), as found
   Real impulse = 0;                    // N s: the normal impulse on the face in the last substep (bounds its friction)
   bool candidate = false;              // the sample in front of the face, neither meeting nor touching it, but
                                        // within the triangle's motion over the substep: a contact the solve may make
