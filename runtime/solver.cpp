@@ -222,8 +222,8 @@ ObstacleMotion obstacle_motion(State& s, Real t, Real h) {
 // the substep: changes v (the substep's velocities, x + h v its end), sets
 // State::face_force and adds the moving meshes' work to *tool_work. Returns
 // the meetings (0 without edge samples or quads).
-// With rows (the implicit solve's), the meetings and touches it finds go to
-// Scratch::face_rows_new (FaceRow), the rows of the next substep's solve.
+// With rows (the implicit solve's), the meetings, touches and candidates it
+// finds go to Scratch::face_rows_new (FaceRow), the next substep's rows.
 Real face_pass(const Model& m, State& s, const ObstacleMotion& mo, std::span<Real> v, Real h, Real* tool_work,
                bool rows = false) {
   if (!s.obstacles || m.n_quads == 0 || !has_edge_samples(*s.obstacles)) return 0;
@@ -488,9 +488,11 @@ inline bool holds(const Vec3& n) { return n.x != 0 || n.y != 0 || n.z != 0; }
 // minimises gains (J v - c)^2 / (2 eps), the row's impulse on the face is
 // lambda = (c - J v) / eps, eps = kappa (J Q J^T)_rr (kappa = kFaceCompliance;
 // Q the block-Jacobi inverse, filtered where a node is held): the row gives
-// way by kappa of the velocity change its impulse would make on its own, which
-// the face pass after the solve mends, and rows that say the same (more
-// samples on a face than it has corners) stay solvable. (The forces hardly
+// way by kappa of the velocity change its impulse would make on its own (the
+// face pass after the solve mends it where it would leave the face past the
+// sample; else the next substep's row asks it back, the gap being less than
+// the standoff), and rows that say the same (more samples on a face than it
+// has corners) stay solvable. (The forces hardly
 // depend on kappa: the benchmark rod's within 1.4e-4 for kappa 1e-8 .. 1e-2,
 // its PCG iterations a solve 66, 55, 47, 42 for 1e-8, 1e-6, 1e-4, 1e-2:
 // docs/BENCHMARKS.md.) The preconditioner is the inverse of (Q^-1 + J^T J /
