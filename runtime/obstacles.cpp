@@ -557,6 +557,11 @@ FaceContacts resolve_face_contacts(const Obstacles& o, const ObstacleMotion& mo,
               const Vec3 p = load3(mesh.samples.data(), id);
               const Real d1 = dot(nh, p - a);
               if (!(d1 <= front && d1 >= -depth)) continue;
+              // a candidate (in front, beyond a touch) is a sample on the
+              // surface, one that met or touched a face in the last substep:
+              // where it slides from face to face (a sample coming in from
+              // outside meets the faces in the face pass first)
+              if (d1 > obstacle_reach(a) && !(was_met && was_met[id])) continue;
               // within it, or behind its edge: beyond its extent by no more
               // than it is behind its plane (the wedge behind a convex crease
               // of the surface, where no face's extent holds it)

@@ -236,10 +236,10 @@ bool has_edge_samples(const Obstacles& o);
 // set to one FaceRow per sample and triangle the sample meets or touches (in
 // front of it by at most obstacle_reach) with a free node of weight > 0,
 // sorted, each with the normal impulse it gave the face, and one candidate
-// row (FaceRow::candidate) per sample in front of a triangle by more than
-// that but no more than the triangle moved relative to the mesh over the
-// substep, within its extent: the implicit solve holds them in the next
-// substep. With `met` sized (all meshes' samples, in
+// row (FaceRow::candidate) per sample on the surface (`met`) in front of a
+// triangle by more than that but no more than the triangle moved relative to
+// the mesh over the substep, within its extent: the implicit solve holds them
+// in the next substep (and marks in `met` the samples whose rows pushed). With `met` sized (all meshes' samples, in
 // order), it says which samples met or touched a face in the last substep
 // and is set to those of this one (empty: none did).
 struct FaceContacts {

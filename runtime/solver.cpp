@@ -920,6 +920,14 @@ void face_rows_end(State& s, const ObstacleMotion& mo, Real h, FaceSolve& fs, Re
       }
       const auto it = std::lower_bound(next.begin(), next.end(), key(fr), [&](const FaceRow& a, const std::array<std::int32_t, 3>& k) { return key(a) < k; });
       if (it != next.end() && key(*it) == key(fr)) it->impulse += std::max<Real>(0, r.lambda);
+      // a sample whose row pushed is on the surface, as one the face pass
+      // met (State::face_met): the next face pass may make it a candidate
+      if (r.lambda > 0) {
+        std::size_t first = 0;
+        for (std::int32_t j = np; j < fr.obstacle; ++j) first += obs.meshes[static_cast<std::size_t>(j - np)].samples.size() / 3;
+        const std::size_t id = first + static_cast<std::size_t>(fr.sample);
+        if (id < s.face_met.size()) s.face_met[id] = 1;
+      }
     }
     for (const std::int32_t i : fs.nodes) sc.face_slot[static_cast<std::size_t>(i)] = -1;
   }
