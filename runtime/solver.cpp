@@ -499,7 +499,8 @@ inline bool holds(const Vec3& n) { return n.x != 0 || n.y != 0 || n.z != 0; }
 // eps), by Woodbury: Q - Q J^T S^-1 J Q, S = eps + J Q J^T (a sparse LDL^T,
 // rows x rows, once a solve), so the stiff rows cost no more iterations than
 // the tissue. Rows push, never pull: an active set. Rows that met or touched
-// start active, as do candidates that pushed in the last substep; after a
+// start active, as do candidates (samples on the surface in front of another
+// face within its motion: resolve_face_contacts) that pushed in the last substep; after a
 // solve, an active row that pulls is let go, a candidate whose face the solve
 // passes its sample with is taken, and a row whose impulse outgrows
 // kFaceConflict times the step's momentum terms and its own need is dropped
