@@ -377,30 +377,16 @@ void obstacle_frames(const Obstacles& o, std::span<const Path> paths, Real t, Re
 
 // ---- the meshes' edges against the tissue's faces ---------------------------
 
-namespace {
-
-
-// The barycentric weights of p's projection on the plane of triangle abc (n
-// its unnormalised normal, n2 = |n|^2), and whether the projection lies in the
-// triangle (edges included, to round-off).
-struct Projection {
-  Real w[3];
-  bool inside;
-};
-Projection project(const Vec3& p, const Vec3& a, const Vec3& b, const Vec3& c, const Vec3& n, Real n2) {
+TriangleProjection triangle_projection(const Vec3& p, const Vec3& a, const Vec3& b, const Vec3& c, const Vec3& n, Real n2) {
   const Real wa = dot(cross(b - p, c - p), n), wb = dot(cross(c - p, a - p), n), wc = dot(cross(a - p, b - p), n);
   const Real tol = -1e-12 * n2;
   return {{wa / n2, wb / n2, wc / n2}, wa >= tol && wb >= tol && wc >= tol};
 }
 
-// Whether p, d (< 0) behind the plane of triangle abc, lies beyond its
-// extent by no more than that: |p - closest point|^2 <= 2 d^2.
 bool near_edge(const Vec3& p, const Vec3& a, const Vec3& b, const Vec3& c, Real d) {
   const Vec3 e = p - closest_point_on_triangle(p, a, b, c);
   return dot(e, e) <= 2 * d * d;
 }
-
-}  // namespace
 
 Real default_edge_spacing(std::span<const std::int32_t> quads, std::span<const Real> x) {
   std::vector<Real> len;
@@ -565,7 +551,7 @@ FaceContacts resolve_face_contacts(const Obstacles& o, const ObstacleMotion& mo,
               // within it, or behind its edge: beyond its extent by no more
               // than it is behind its plane (the wedge behind a convex crease
               // of the surface, where no face's extent holds it)
-              const bool within = project(p, a, b, cc, nrm, n2).inside;
+              const bool within = triangle_projection(p, a, b, cc, nrm, n2).inside;
               if (!within && !(d1 < 0 && near_edge(p, a, b, cc, d1))) continue;
               // A sample that met the faces in the last substep (on the
               // surface) meets it within its thickness, if within it; any
@@ -577,7 +563,7 @@ FaceContacts resolve_face_contacts(const Obstacles& o, const ObstacleMotion& mo,
                 if (!(d1 >= -motion)) continue;
                 const Real d0 = n20 > 0 ? dot(nrm0, p - a0) / std::sqrt(n20) : 0;
                 const bool front0 = n20 > 0 && d0 >= -obstacle_reach(p);
-                const bool in0 = n20 > 0 && (project(p, a0, b0, c0, nrm0, n20).inside || (d0 < 0 && near_edge(p, a0, b0, c0, d0)));
+                const bool in0 = n20 > 0 && (triangle_projection(p, a0, b0, c0, nrm0, n20).inside || (d0 < 0 && near_edge(p, a0, b0, c0, d0)));
                 if (in0 && !front0) continue;
               }
               sc.hits.insert(sc.hits.end(), {id, static_cast<std::int32_t>(t)});
@@ -610,7 +596,7 @@ FaceContacts resolve_face_contacts(const Obstacles& o, const ObstacleMotion& mo,
         // triangle's motion) is a candidate row, not a meeting
         const bool touch = d <= obstacle_reach(p);
         if (!touch && !(with_rows && first_sweep)) continue;
-        Projection w = project(p, y[0], y[1], y[2], nrm, n2);
+        TriangleProjection w = triangle_projection(p, y[0], y[1], y[2], nrm, n2);
         Real ws = 0;
         for (Real& wj : w.w) ws += (wj = std::max<Real>(wj, 0));
         if (!(ws > 0)) continue;
@@ -700,12 +686,11 @@ FaceContacts resolve_face_contacts(const Obstacles& o, const ObstacleMotion& mo,
   if (rows && !rows->empty()) {
     // one row per (mesh, sample, triangle): a later round's finds the same
     // meeting again (its geometry the later one's, the impulses summed)
-    auto key = [](const FaceRow& r) { return std::array<std::int32_t, 3>{r.obstacle, r.sample, r.triangle}; };
-    std::stable_sort(rows->begin(), rows->end(), [&](const FaceRow& a, const FaceRow& b) { return key(a) < key(b); });
+    std::stable_sort(rows->begin(), rows->end(), [](const FaceRow& a, const FaceRow& b) { return a.key() < b.key(); });
     std::size_t kept = 0;
     for (std::size_t j = 0; j < rows->size(); ++j) {
       FaceRow& r = (*rows)[j];
-      if (kept > 0 && key((*rows)[kept - 1]) == key(r)) {
+      if (kept > 0 && (*rows)[kept - 1].key() == r.key()) {
         r.impulse += (*rows)[kept - 1].impulse;
         r.candidate = r.candidate && (*rows)[kept - 1].candidate;
         (*rows)[kept - 1] = r;

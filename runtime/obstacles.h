@@ -199,6 +199,19 @@ ObstacleContact rests_on(const Obstacles& o, std::int32_t k, const Vec3& x, cons
 std::vector<std::int64_t> obstacle_nodes_behind(const Obstacles& o, std::span<const Real> x,
                                                 std::span<const std::int32_t> nodes, const ObstacleMotion& motion = {});
 
+// The barycentric weights of p's projection on the plane of triangle abc (n
+// its unnormalised normal, n2 = |n|^2), and whether the projection lies in the
+// triangle (edges included, to round-off).
+struct TriangleProjection {
+  Real w[3];
+  bool inside;
+};
+TriangleProjection triangle_projection(const Vec3& p, const Vec3& a, const Vec3& b, const Vec3& c, const Vec3& n, Real n2);
+// Whether p, d (< 0) behind the plane of triangle abc, lies beyond its
+// extent by no more than that, |p - closest point|^2 <= 2 d^2: in the wedge
+// behind a convex crease, where a face contact still meets it.
+bool near_edge(const Vec3& p, const Vec3& a, const Vec3& b, const Vec3& c, Real d);
+
 // Samples a mesh's edges for resolve_face_contacts: its vertices (those of
 // its triangles) and points along each edge, evenly, at most `spacing` apart.
 // spacing <= 0 clears them (only nodes meet the mesh then). Throws

@@ -687,18 +687,18 @@ void face_rows_begin(const Model& m, State& s, const ObstacleMotion& mo, Real h,
     const Vec3 nrm = cross(y[1] - y[0], y[2] - y[0]);
     const Real n2 = dot(nrm, nrm);
     if (!(n2 > 0)) continue;
-    Real wa[3] = {dot(cross(y[1] - p1, y[2] - p1), nrm), dot(cross(y[2] - p1, y[0] - p1), nrm), dot(cross(y[0] - p1, y[1] - p1), nrm)};
+    TriangleProjection pr = triangle_projection(p1, y[0], y[1], y[2], nrm, n2);
     r.n = (-1 / std::sqrt(n2)) * nrm;
     // as the face pass meets it: the sample within the triangle's extent,
     // or behind its plane and beyond its edge by no more than that (the
     // wedge); else it has left this face (a neighbour's row may hold it)
-    if (std::min({wa[0], wa[1], wa[2]}) < -1e-12 * n2) {
+    if (!pr.inside) {
       const Real d_end = dot(p1 - y[0], -1 * r.n);  // < 0: behind the plane
-      const Vec3 e = p1 - closest_point_on_triangle(p1, y[0], y[1], y[2]);
-      if (!(d_end < 0 && dot(e, e) <= 2 * d_end * d_end)) continue;
+      if (!(d_end < 0 && near_edge(p1, y[0], y[1], y[2], d_end))) continue;
     }
+    Real* wa = pr.w;
     Real ws = 0;
-    for (Real& wj : wa) ws += (wj = std::max<Real>(wj, 0));
+    for (int j = 0; j < 3; ++j) ws += (wa[j] = std::max<Real>(wa[j], 0));
     if (!(ws > 0)) continue;
     Real winv = 0;  // sum w^2 / m over the free corners: the point's inverse mass
     Vec3 vp{}, xp{};
@@ -905,7 +905,6 @@ void face_rows_forces(FaceSolve& fs, const Real* v, Real h) {
 // (the next substep's friction bound); the node slots cleared.
 void face_rows_end(State& s, const ObstacleMotion& mo, Real h, FaceSolve& fs, Real* tool_work) {
   Scratch& sc = s.scratch;
-  auto key = [](const FaceRow& r) { return std::array<std::int32_t, 3>{r.obstacle, r.sample, r.triangle}; };
   if (!fs.rows.empty()) {
     const Obstacles& obs = *s.obstacles;
     const auto np = static_cast<std::int32_t>(obs.planes.size());
@@ -919,8 +918,8 @@ void face_rows_end(State& s, const ObstacleMotion& mo, Real h, FaceSolve& fs, Re
         const Vec3 p1 = mo.to_world(fr.obstacle, load3(mesh.samples.data(), fr.sample), 1);
         *tool_work += h * dot(r.force, mo.velocity(fr.obstacle, p1, 1, h));
       }
-      const auto it = std::lower_bound(next.begin(), next.end(), key(fr), [&](const FaceRow& a, const std::array<std::int32_t, 3>& k) { return key(a) < k; });
-      if (it != next.end() && key(*it) == key(fr)) it->impulse += std::max<Real>(0, r.lambda);
+      const auto it = std::lower_bound(next.begin(), next.end(), fr.key(), [](const FaceRow& a, const std::array<std::int32_t, 3>& k) { return a.key() < k; });
+      if (it != next.end() && it->key() == fr.key()) it->impulse += std::max<Real>(0, r.lambda);
       // a sample whose row pushed is on the surface, as one the face pass
       // met (State::face_met): the next face pass may make it a candidate
       if (r.lambda > 0) {

@@ -96,6 +96,7 @@ struct FaceRow {
   Real impulse = 0;                    // N s: the normal impulse on the face in the last substep (bounds its friction)
   bool candidate = false;              // the sample in front of the face, neither meeting nor touching it, but
                                        // within the triangle's motion over the substep: a contact the solve may make
+  std::array<std::int32_t, 3> key() const { return {obstacle, sample, triangle}; }  // the rows' order
 };
 
 // Scratch of resolve_face_contacts (runtime/obstacles.h).
