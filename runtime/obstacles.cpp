@@ -468,10 +468,9 @@ FaceContacts resolve_face_contacts(const Obstacles& o, const ObstacleMotion& mo,
   if (nq == 0 || !(h > 0)) return out;
   const auto np = static_cast<std::int32_t>(o.planes.size());
   const bool with_rows = rows != nullptr;
-  // triangle t of quad t / 2: (q0, q1, q2) or (q0, q2, q3)
   auto corners = [&](std::size_t t, std::int32_t c[3]) {
-    const std::int32_t* q = quads.data() + 4 * (t / 2);
-    c[0] = q[0], c[1] = q[1 + (t & 1)], c[2] = q[2 + (t & 1)];
+    const auto q = quad_triangle(quads, static_cast<std::int32_t>(t));
+    c[0] = q[0], c[1] = q[1], c[2] = q[2];
   };
   std::size_t met_first = 0;  // the mesh's first sample in `met`
   for (std::size_t mi = 0; mi < o.meshes.size(); ++mi) {

@@ -44,6 +44,7 @@
 #include "runtime/state.h"
 #include "runtime/types.h"
 
+#include <array>
 #include <cstdint>
 #include <span>
 #include <string>
@@ -211,6 +212,19 @@ TriangleProjection triangle_projection(const Vec3& p, const Vec3& a, const Vec3&
 // extent by no more than that, |p - closest point|^2 <= 2 d^2: in the wedge
 // behind a convex crease, where a face contact still meets it.
 bool near_edge(const Vec3& p, const Vec3& a, const Vec3& b, const Vec3& c, Real d);
+
+// The corners of the tissue's face t: triangle t of quad t / 2 of `quads`
+// (n x 4 node ids), (q0, q1, q2) for even t and (q0, q2, q3) for odd t.
+inline std::array<std::int32_t, 3> quad_triangle(std::span<const std::int32_t> quads, std::int32_t t) {
+  const std::int32_t* q = quads.data() + 4 * static_cast<std::size_t>(t / 2);
+  return {q[0], q[1 + (t & 1)], q[2 + (t & 1)]};
+}
+// Whether face row r's triangle is still a face of `quads` with the corners
+// it names: a cut (cut_model) removes and renumbers quads, and a row of the
+// quads before it holds nodes that may no longer be a face.
+inline bool face_row_current(std::span<const std::int32_t> quads, const FaceRow& r) {
+  return r.triangle >= 0 && static_cast<std::size_t>(r.triangle / 2) < quads.size() / 4 && quad_triangle(quads, r.triangle) == r.node;
+}
 
 // Samples a mesh's edges for resolve_face_contacts: its vertices (those of
 // its triangles) and points along each edge, evenly, at most `spacing` apart.

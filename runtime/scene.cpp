@@ -1488,9 +1488,8 @@ CutReport Scene::apply_cut(const CutDef& def) {
   model_ = edited;
   if (!rep.detached.empty()) fix_nodes(*model_, state_, rep.detached);
   state_.step_limit = 0;
-  // the faces' rows name triangles of the quads as they were (a cut removes
-  // some and renumbers the rest): the next substep's face pass finds them again
-  state_.face_rows.clear();
+  // (the faces' rows name triangles of the quads as they were: the solve
+  // holds those whose corners are still a face and drops the others)
   if (vtk_) vtk_->set_topology(*model_);
   if (fluid_) {
     // each cut vessel bleeds: Poiseuille flow of its radius capped by the

@@ -668,8 +668,24 @@ void face_rows_begin(const Model& m, State& s, const ObstacleMotion& mo, Real h,
   if (sc.face_slot.size() != static_cast<std::size_t>(m.n_nodes)) sc.face_slot.assign(static_cast<std::size_t>(m.n_nodes), -1);
   const Obstacles& obs = *s.obstacles;
   const auto np = static_cast<std::int32_t>(obs.planes.size());
+  // A cut (cut_model) removes quads and renumbers the rest, and the rows name
+  // triangles of the quads before it: a row whose triangle no longer has its
+  // corners is held if they are still a face, and dropped if the cut removed
+  // it (its nodes may lie on the wound's sides; the face pass finds the
+  // contact again). The faces' corners, sorted, at the first such row.
+  std::vector<std::array<std::int32_t, 3>> faces;
+  auto still_a_face = [&](const FaceRow& fr) {
+    if (face_row_current(m.quads, fr)) return true;
+    if (faces.empty()) {
+      const auto nt = static_cast<std::int32_t>(m.quads.size() / 2);
+      for (std::int32_t t = 0; t < nt; ++t) faces.push_back(quad_triangle(m.quads, t));
+      std::sort(faces.begin(), faces.end());
+    }
+    return std::binary_search(faces.begin(), faces.end(), fr.node);
+  };
   for (std::size_t q = 0; q < s.face_rows.size(); ++q) {
     const FaceRow& fr = s.face_rows[q];
+    if (!still_a_face(fr)) continue;
     FaceSolve::Row r;
     r.src = static_cast<std::int32_t>(q);
     r.obstacle = fr.obstacle;

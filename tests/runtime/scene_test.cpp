@@ -855,8 +855,9 @@ TEST_F(SceneTest, SampleRodSceneSamplesItsEdges) {
 
 // A cut made while a thin rod presses the skin between nodes: the faces' rows
 // of the last substep name triangles of the quads as they were before the
-// cut (which removes and renumbers quads), so the cut clears them; the next
-// steps find the contacts again on the cut skin, and the rod keeps pressing.
+// cut (which removes and renumbers quads); the cut beside the rod leaves its
+// faces, so the rows are kept and held (FaceContacts.ACutKeepsTheRowsOfFacesItLeaves),
+// and the rod keeps pressing as before.
 TEST_F(SceneTest, ACutWhileARodPressesTheSkin) {
   const auto c = skin_point();  // a node of the skin (y = 0; the tissue above, to y > 0)
   const Real x = c[0] + 2e-3, z = c[2] + 2e-3;  // between nodes
@@ -878,14 +879,20 @@ TEST_F(SceneTest, ACutWhileARodPressesTheSkin) {
   const CutReport rep = s.cut(cut);
   EXPECT_GT(rep.springs_cut, 0) << "the blade cut the skin";
   EXPECT_NE(s.model().n_quads, quads_before) << "and its quads";
-  EXPECT_TRUE(s.state().face_rows.empty()) << "the rows of the quads before the cut are gone";
-  run(s, 10);
+  EXPECT_FALSE(s.state().face_rows.empty()) << "the rows are kept (the solve checks their faces)";
+  Real least = HUGE_VAL;  // the rod's force over the steps after the cut
+  for (int k = 0; k < 10; ++k) {
+    run(s, 1);
+    least = std::min(least, s.collider_forces()[0][1]);
+  }
   EXPECT_EQ(s.counters().failed, 0);
   EXPECT_EQ(s.counters().events, 0);
-  ASSERT_FALSE(s.state().face_rows.empty()) << "found again";
+  ASSERT_FALSE(s.state().face_rows.empty()) << "still held";
   for (const FaceRow& r : s.state().face_rows) EXPECT_LT(r.triangle, 2 * s.model().n_quads);
-  // (less: the cut skin beside it carries less, 0.053 against 0.129 N)
-  EXPECT_GT(s.collider_forces()[0][1], 0) << "the rod still presses the skin";
+  // the rod keeps its hold: 0.1276-0.1273 N against 0.1292 N before the cut.
+  // (Until 2026-11-29 the cut cleared the rows: the skin sprang up round the
+  // rod's tip in the next step, 0.001 N, and the rod settled at 0.052 N.)
+  EXPECT_GT(least, 0.8 * pressing) << "the rod still presses the skin as before the cut";
 }
 
 // The sample scenes parse and run on a lattice model (the builder's model

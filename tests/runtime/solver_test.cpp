@@ -1,4 +1,5 @@
 // Accuracy, conservation and determinism of the mass-spring solver.
+#include "runtime/cut.h"
 #include "runtime/kernels.h"
 #include "runtime/obstacles.h"
 #include "runtime/solver.h"
@@ -1777,6 +1778,76 @@ TEST(FaceContacts, ARodDraggedAlongTheSkinKeepsItsContact) {
   EXPECT_GT(worst, 0.8) << "no step lets the skin go (the force falls towards the block's side smoothly)";
   EXPECT_LE(behind, 1e-9) << "no point of the rod behind the skin";
   EXPECT_EQ(s.counters.events, 0);
+}
+
+// A caller that cuts a Model itself (cut_model, as Scene::cut does) while a
+// rod presses the skin, and steps on: the rows of the last substep name
+// triangles of the quads before the cut, which removes the quads it crosses
+// and renumbers the rest. The solve holds a row whose corners are still a
+// face (renumbered: the rod keeps its hold through a cut beside it) and
+// drops one whose face the cut removed (its nodes may be the wound's sides):
+// the step is the one from rows made on the cut model, renumbered or gone. (Until
+// 2026-11-29 the solve held every row's nodes for a substep, faces the cut
+// had opened too, and Scene::cut cleared all rows.) Cuts under the rod and
+// beside it.
+TEST(FaceContacts, ACutKeepsTheRowsOfFacesItLeaves) {
+  const auto b = make_layered_block(13, 5, 4);
+  const Model m = model_from_layers(b.layers, b.sets);
+  auto ob = std::make_shared<Obstacles>();
+  ObstacleMesh rod = box_mesh({0.0215, -0.02, 0.0055}, {0.0225, -0.001, 0.0065});
+  rod.friction = 0.3;
+  add_obstacle_mesh(*ob, rod);
+  sample_obstacle_edges(ob->meshes[0], default_edge_spacing(m.quads, m.rest_x));
+  State s = make_state(m);
+  fix_nodes(m, s, m.set("fixed"));
+  s.obstacles = ob;
+  s.obstacle_paths = {displacement_path({{0, 0, 0, 0}, {0.25, 0, 0.003, 0}})};
+  SolverOptions o;
+  o.integrator = Integrator::implicit_euler;
+  o.gravity = {0, 0, 0};
+  o.mass_damping = 20;
+  for (int k = 0; k < 30; ++k) step(m, s, 1.0 / 120, o);  // the rod 2 mm into the skin
+  ASSERT_FALSE(s.face_rows.empty()) << "the rod holds the skin";
+  for (const FaceRow& r : s.face_rows) ASSERT_TRUE(face_row_current(m.quads, r)) << "rows of the model they were made on";
+  auto face_of = [](const Model& mm, const FaceRow& r) {  // the triangle with the row's corners (-1: none)
+    for (std::int32_t t = 0; t < 2 * mm.n_quads; ++t)
+      if (quad_triangle(mm.quads, t) == r.node) return t;
+    return -1;
+  };
+  // the rod spans x 21.5-22.5 mm, z 5.5-6.5 mm, between the nodes at x 20, 24 and z 4, 8 mm
+  std::int64_t renumbered_all = 0, removed_all = 0;
+  for (Real z : {0.002, 0.006, 0.010}) {
+    SCOPED_TRACE("a cut along x at z = " + std::to_string(z));
+    Model cut = m;
+    CutDef def;
+    def.polyline = {Vec3{0.010, -5e-4, z}, Vec3{0.034, -5e-4, z}};
+    def.direction = {0, 1, 0};
+    def.depth = 0.004;  // the skin under the rod is 2 mm down
+    ASSERT_GT(cut_model(cut, s.x, def).springs_cut, 0);
+    ASSERT_LT(cut.n_quads, m.n_quads) << "the cut removed quads";
+    State expected = s;  // as if the rows had been made on the cut model: renumbered, or gone with their face
+    for (FaceRow& r : expected.face_rows) r.triangle = face_of(cut, r);
+    std::erase_if(expected.face_rows, [&](const FaceRow& r) { return r.triangle < 0; });
+    std::int64_t renumbered = 0, removed = 0;
+    for (const FaceRow& r : s.face_rows) {
+      const bool face = face_of(cut, r) >= 0;
+      renumbered += face && !face_row_current(cut.quads, r);
+      removed += !face && r.impulse > 0;
+    }
+    renumbered_all += renumbered, removed_all += removed;
+    std::printf("  z = %.3f: %zu rows, %lld renumbered, %lld pushing on removed faces\n", z, s.face_rows.size(),
+                static_cast<long long>(renumbered), static_cast<long long>(removed));
+    State held = s;
+    step(cut, held, 1.0 / 120, o);
+    step(cut, expected, 1.0 / 120, o);
+    EXPECT_EQ(state_hash(held), state_hash(expected)) << "the rows of removed faces are not held, the others are";
+    for (int k = 0; k < 10; ++k) step(cut, held, 1.0 / 120, o);
+    EXPECT_TRUE(all_finite(held));
+    EXPECT_EQ(held.counters.failed, s.counters.failed);
+    for (const FaceRow& r : held.face_rows) EXPECT_TRUE(face_row_current(cut.quads, r));
+  }
+  EXPECT_GT(renumbered_all, 0) << "a cut before the rod renumbers its faces";
+  EXPECT_GT(removed_all, 0) << "a cut under it removes the faces it pushed";
 }
 
 }  // namespace
