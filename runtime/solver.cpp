@@ -3,6 +3,7 @@
 #include "runtime/kernels.h"
 #include "runtime/obstacles.h"
 
+#include <Eigen/Cholesky>
 #include <Eigen/Sparse>
 #include <Eigen/SparseCholesky>
 #include <tbb/blocked_range.h>
@@ -547,8 +548,16 @@ struct FaceSolve {
   std::vector<Real> rhs0;            // (nodes x 3) b without the rows
   std::vector<std::int32_t> index;   // (rows) a row's index among the active ones, -1: inactive
   std::int32_t n_active = 0;
+  std::vector<std::int32_t> active;  // (n_active) the active rows, by index
   Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>> S;
   Eigen::VectorXd t, y;
+  // With the sparse factor F (the cholesky preconditioner) in place of Q:
+  // per row, G J_r^T with G = Pi F^-1 Pi (Pi the held nodes' filter), (n_nodes
+  // x 3), made once a substep when the row is first active; S = eps + J G J^T
+  // is then dense
+  const SparseFactor* F = nullptr;
+  std::vector<std::vector<Real>> W;
+  Eigen::LDLT<Eigen::MatrixXd> S_dense;
   bool any() const { return n_active > 0; }
 };
 
@@ -663,6 +672,8 @@ void face_rows_begin(const Model& m, State& s, const ObstacleMotion& mo, Real h,
   fs.rows.clear();
   fs.nodes.clear();
   fs.n_active = 0;
+  fs.F = nullptr;
+  fs.W.clear();
   if (s.face_rows.empty()) return;
   Scratch& sc = s.scratch;
   if (sc.face_slot.size() != static_cast<std::size_t>(m.n_nodes)) sc.face_slot.assign(static_cast<std::size_t>(m.n_nodes), -1);
@@ -749,6 +760,7 @@ void face_rows_begin(const Model& m, State& s, const ObstacleMotion& mo, Real h,
   fs.node_D.assign(6 * fs.nodes.size(), 0);
   fs.node_b.assign(3 * fs.nodes.size(), 0);
   fs.acc.assign(3 * fs.nodes.size(), 0);
+  fs.W.resize(fs.rows.size());
   for (const FaceSolve::Row& r : fs.rows)
     for (int j = 0; j < 3; ++j) {
       if (r.w[j] == 0) continue;
@@ -764,18 +776,71 @@ void face_rows_begin(const Model& m, State& s, const ObstacleMotion& mo, Real h,
     }
 }
 
+void factor_solve(const SparseFactor& f, const Model& m, const Real* r, Real* z);
+
+// With the sparse factor (FaceSolve::F): each active row's G J_r^T, made where
+// the substep has not yet, and S = eps + J G J^T, dense.
+void face_rows_factor_dense(const Model& m, const State& s, FaceSolve& fs) {
+  const Scratch& sc = s.scratch;
+  const Real* cn = sc.constraint.data();
+  const bool constrained = sc.constrained;
+  const auto n3 = 3 * static_cast<std::size_t>(m.n_nodes);
+  std::vector<Real> a;
+  for (const std::int32_t q : fs.active) {
+    std::vector<Real>& Wq = fs.W[static_cast<std::size_t>(q)];
+    if (!Wq.empty()) continue;
+    const FaceSolve::Row& r = fs.rows[static_cast<std::size_t>(q)];
+    a.assign(n3, 0);
+    for (int j = 0; j < 3; ++j)
+      if (r.w[j] != 0) {
+        Vec3 aj = r.w[j] * r.n;
+        if (constrained) aj = filter(aj, load3(cn, r.node[j]));
+        store3(a.data(), r.node[j], load3(a.data(), r.node[j]) + aj);
+      }
+    Wq.resize(n3);
+    factor_solve(*fs.F, m, a.data(), Wq.data());
+    if (constrained)
+      for (std::int32_t i = 0; i < m.n_nodes; ++i) store3(Wq.data(), i, filter(load3(Wq.data(), i), load3(cn, i)));
+  }
+  const Eigen::Index na = fs.n_active;
+  Eigen::MatrixXd S(na, na);
+  for (Eigen::Index i = 0; i < na; ++i)
+    for (Eigen::Index k = 0; k < na; ++k)
+      S(i, k) = row_dot(fs.rows[static_cast<std::size_t>(fs.active[static_cast<std::size_t>(i)])],
+                        fs.W[static_cast<std::size_t>(fs.active[static_cast<std::size_t>(k)])].data());
+  S = (0.5 * (S + S.transpose())).eval();  // (J G J^T is symmetric but for round-off)
+  for (Eigen::Index i = 0; i < na; ++i) S(i, i) += fs.rows[static_cast<std::size_t>(fs.active[static_cast<std::size_t>(i)])].eps;
+  fs.S_dense.compute(S);
+  if (fs.S_dense.info() != Eigen::Success || !(fs.S_dense.vectorD().minCoeff() > 0)) {
+    for (FaceSolve::Row& r : fs.rows) r.active = false;
+    fs.n_active = 0;
+    fs.active.clear();
+  }
+}
+
 // The active rows' S = eps + J Q J^T, factorised (rows that cannot hold, or
-// a factor that fails, leave the rows inactive).
-void face_rows_factor(const State& s, FaceSolve& fs) {
+// a factor that fails, leave the rows inactive); with the sparse factor F,
+// S = eps + J G J^T (face_rows_factor_dense).
+void face_rows_factor(const Model& m, const State& s, FaceSolve& fs) {
   const Scratch& sc = s.scratch;
   const Real* P = sc.precond.data();
   const Real* cn = sc.constraint.data();
   const bool constrained = sc.constrained;
   fs.index.assign(fs.rows.size(), -1);
+  fs.active.clear();
   fs.n_active = 0;
   for (std::size_t q = 0; q < fs.rows.size(); ++q)
-    if (fs.rows[q].active) fs.index[q] = fs.n_active++;
+    if (fs.rows[q].active) {
+      fs.index[q] = fs.n_active++;
+      fs.active.push_back(static_cast<std::int32_t>(q));
+    }
+  fs.t.resize(fs.n_active);
   if (fs.n_active == 0) return;
+  if (fs.F) {
+    face_rows_factor_dense(m, s, fs);
+    fs.t.resize(fs.n_active);
+    return;
+  }
   // per node, its rows' entries w_j n and Q (w_j n)
   struct Entry {
     std::int32_t slot, row;
@@ -808,6 +873,7 @@ void face_rows_factor(const State& s, FaceSolve& fs) {
   if (fs.S.info() != Eigen::Success) {
     for (FaceSolve::Row& r : fs.rows) r.active = false;
     fs.n_active = 0;
+    fs.active.clear();
   }
   fs.t.resize(fs.n_active);
 }
@@ -849,6 +915,30 @@ Real face_rows_precondition(const Model& m, const State& s, FaceSolve& fs, Real*
   return fs.t.dot(fs.y);
 }
 
+// With the sparse factor: z -= G J^T S^-1 J z (z = G r: then z is M^-1 r,
+// M = G^-1 + J^T J / eps, by Woodbury), over all nodes (G J^T reaches them);
+// *ez changes by the mass norm's change. Returns t . y, by which r . z falls.
+Real face_rows_precondition_factor(const Model& m, State& s, FaceSolve& fs, Real* z, Real* ez) {
+  const auto na = static_cast<std::size_t>(fs.n_active);
+  for (std::size_t k = 0; k < na; ++k) fs.t(static_cast<Eigen::Index>(k)) = row_dot(fs.rows[static_cast<std::size_t>(fs.active[k])], z);
+  fs.y = fs.S_dense.solve(fs.t);
+  Real* partial = s.scratch.partial.data();
+  const Real* mass = m.mass.data();
+  for_chunks(m, [&](int ch) {
+    Real de = 0;
+    for (std::int32_t i = chunk_begin(m, ch), e = chunk_end(m, ch); i < e; ++i) {
+      const Vec3 zi = load3(z, i);
+      Vec3 zn = zi;
+      for (std::size_t k = 0; k < na; ++k) zn -= fs.y(static_cast<Eigen::Index>(k)) * load3(fs.W[static_cast<std::size_t>(fs.active[k])].data(), i);
+      de += mass[i] * (dot(zn, zn) - dot(zi, zi));
+      store3(z, i, zn);
+    }
+    partial[ch * kPad + 5] = de;
+  });
+  *ez += partial_sum(m, s.scratch, 5);
+  return fs.t.dot(fs.y);
+}
+
 // b at the rows' nodes: b0 (without the rows) + J^T c / eps of the active rows
 void face_rows_rhs(const FaceSolve& fs, Real* rhs) {
   for (std::size_t k = 0; k < fs.nodes.size(); ++k) store3(rhs, fs.nodes[k], load3(fs.rhs0.data(), static_cast<std::int64_t>(k)));
@@ -883,8 +973,6 @@ void face_rows_constrain(State& s, Real h, FaceSolve& fs) {
   }
   fs.rhs0.resize(3 * fs.nodes.size());
   for (std::size_t k = 0; k < fs.nodes.size(); ++k) store3(fs.rhs0.data(), static_cast<std::int64_t>(k), load3(sc.rhs.data(), fs.nodes[k]));
-  face_rows_factor(s, fs);
-  face_rows_rhs(fs, sc.rhs.data());
 }
 
 // After the solve: each row's impulse lambda = (c - J v) / eps and its force
@@ -1346,9 +1434,7 @@ Check implicit_substep(const Model& m, State& s, Real t, Real h, const SolverOpt
   // the preconditioner: block Jacobi (P), or the sparse factor, built here
   // from this substep's matrix when due (SolverOptions::preconditioner)
   const SparseFactor* F = nullptr;
-  // (not with the faces' rows: their preconditioner is block Jacobi's, by Woodbury)
-  if (!faces.any() &&
-      (o.preconditioner == Preconditioner::cholesky || (o.preconditioner == Preconditioner::automatic && s.cholesky_on))) {
+  if (o.preconditioner == Preconditioner::cholesky || (o.preconditioner == Preconditioner::automatic && s.cholesky_on)) {
     if (s.refactor || !s.factor || !factor_matches(*s.factor, m, s)) {
       s.factor = build_factor(m, s, s.factor.get());
       s.refactor = false;
@@ -1356,6 +1442,12 @@ Check implicit_substep(const Model& m, State& s, Real t, Real h, const SolverOpt
       ++s.counters.factorizations;
     }
     if (s.factor->ok) F = s.factor.get();  // (not positive definite: block Jacobi this time)
+  }
+  // the faces' rows: S with the preconditioner chosen (Q's or the factor's), J^T c / eps in b
+  if (face_rows) {
+    faces.F = F;
+    face_rows_factor(m, s, faces);
+    face_rows_rhs(faces, sc.rhs.data());
   }
   Real* r = sc.r.data();
   Real* z = sc.z.data();
@@ -1392,6 +1484,7 @@ Check implicit_substep(const Model& m, State& s, Real t, Real h, const SolverOpt
   // a new row's residual goes in the first iterations, the preconditioner
   // holding the rows exactly.)
   int it = 0;
+  int its_most = 0;  // the most iterations of one solve (the faces' rows' active set may solve again)
   bool converged = false;
   FaceSolve* rows = face_rows ? &faces : nullptr;
   // z_i = P r_i (filtered where the node is held), adding its r.z and mass-norm terms
@@ -1414,7 +1507,7 @@ Check implicit_substep(const Model& m, State& s, Real t, Real h, const SolverOpt
     *rr = partial_sum(m, sc, 2);
     *ez = partial_sum(m, sc, 3);
     if (F) factor_pass(rz, ez);
-    if (rows && rows->any()) *rz -= face_rows_precondition(m, s, *rows, z, ez);
+    if (rows && rows->any()) *rz -= F ? face_rows_precondition_factor(m, s, *rows, z, ez) : face_rows_precondition(m, s, *rows, z, ez);
   };
   auto pcg = [&] {
     apply_matrix<Read::plain>(m, s, vnew, nullptr, 0, nullptr, q, rows);
@@ -1477,6 +1570,7 @@ Check implicit_substep(const Model& m, State& s, Real t, Real h, const SolverOpt
       rz = rz_new;
     }
     it += its;
+    its_most = std::max(its_most, its);
   };
   pcg();
   // the faces' rows push, never pull: a row that pulls is let go, a
@@ -1499,8 +1593,7 @@ Check implicit_substep(const Model& m, State& s, Real t, Real h, const SolverOpt
       if (pulls || passes) fr.active = !fr.active, changed = true;
     }
     if (!changed) break;
-    face_rows_factor(s, *rows);
-    if (rows->any()) F = nullptr;  // (the rows' preconditioner is block Jacobi's)
+    face_rows_factor(m, s, *rows);
     face_rows_rhs(*rows, rhs);
     ++s.counters.face_resolves;
     pcg();
@@ -1515,9 +1608,9 @@ Check implicit_substep(const Model& m, State& s, Real t, Real h, const SolverOpt
   // knew the holds, a free block resting on a table got a new factor every
   // substep.)
   if (F) {
-    if (s.factor_first_iterations < 0) s.factor_first_iterations = it;
+    if (s.factor_first_iterations < 0) s.factor_first_iterations = its_most;
     const int limit = constrained ? std::max(o.refactor_after, 2 * s.factor_first_iterations) : o.refactor_after;
-    if (it > limit) s.refactor = true;
+    if (its_most > limit) s.refactor = true;
   }
   if (o.preconditioner == Preconditioner::automatic && !s.cholesky_on && !converged) {
     s.cholesky_on = true;

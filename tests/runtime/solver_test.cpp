@@ -1850,5 +1850,65 @@ TEST(FaceContacts, ACutKeepsTheRowsOfFacesItLeaves) {
   EXPECT_GT(removed_all, 0) << "a cut under it removes the faces it pushed";
 }
 
+// A thin rod pressed into a stiff, nearly incompressible skin (the block's
+// 0.118 MPa dermis with a volume term of 16 E, nu about 0.49), where block
+// Jacobi cannot see the incompressible modes and the sparse factor is the
+// preconditioner that works (docs/BENCHMARKS.md, "the volume term"): the
+// factor preconditions the faces' rows too, by Woodbury (G - G J^T S^-1 J G,
+// G = F^-1 between the holds' filters), and the force is block Jacobi's.
+// Until 2026-11-29 a solve with rows fell back to block Jacobi: the same
+// iterations as block Jacobi's (its PCG stopped at its cap and the steps were
+// redone with more substeps: the demo's rod and spatula on the limb with its
+// dermis in MPa ran at 11 and 14 steps/s with 127 and 131 steps redone, 59
+// and 54 now).
+TEST(FaceContacts, TheSparseFactorPreconditionsTheRows) {
+  testing::LayeredBlockOptions bo;
+  bo.nu = 13, bo.nv = 5;
+  bo.volume_modulus = {16 * bo.youngs[0], 0, 0};
+  const auto b = make_layered_block(bo);
+  const Model m = model_from_layers(b.layers, b.sets);
+  ASSERT_GT(m.n_tets, 0);
+  struct Result {
+    Real force = 0;
+    double its = 0;  // PCG iterations a solve
+    std::int64_t factors = 0, redos = 0, resolves = 0;
+    std::uint64_t hash = 0;
+  };
+  auto press = [&](Preconditioner pc, int threads) {
+    auto ob = std::make_shared<Obstacles>();
+    add_obstacle_mesh(*ob, box_mesh({0.0215, -0.02, 0.0055}, {0.0225, -0.001, 0.0065}));
+    sample_obstacle_edges(ob->meshes[0], default_edge_spacing(m.quads, m.rest_x));
+    State s = make_state(m);
+    fix_nodes(m, s, m.set("fixed"));
+    s.obstacles = ob;
+    s.obstacle_paths = {displacement_path({{0, 0, 0, 0}, {0.25, 0, 0.004, 0}})};
+    SolverOptions o;
+    o.integrator = Integrator::implicit_euler;
+    o.gravity = {0, 0, 0};
+    o.mass_damping = 20;
+    o.preconditioner = pc;
+    o.cg_max_iterations = 5000;  // block Jacobi converges, slowly
+    tbb::task_arena(threads).execute([&] {
+      for (int k = 0; k < 40; ++k) step(m, s, 1.0 / 120, o);
+    });
+    EXPECT_TRUE(all_finite(s));
+    EXPECT_EQ(s.counters.failed, 0);
+    EXPECT_FALSE(s.face_rows.empty()) << "the rod holds the skin";
+    return Result{load3(s.face_force.data(), 0).y,
+                  static_cast<double>(s.counters.cg_iterations) / static_cast<double>(s.counters.cg_solves),
+                  s.counters.factorizations, s.counters.cg_redos, s.counters.face_resolves, state_hash(s)};
+  };
+  const Result bj = press(Preconditioner::block_jacobi, 1), f = press(Preconditioner::cholesky, 1);
+  std::printf("  block Jacobi: %.6f N, %.1f PCG a solve, %lld resolves; factor: %.6f N, %.1f PCG a solve, %lld factors, %lld resolves\n",
+              bj.force, bj.its, static_cast<long long>(bj.resolves), f.force, f.its, static_cast<long long>(f.factors),
+              static_cast<long long>(f.resolves));
+  EXPECT_GT(f.force, 0);
+  EXPECT_NEAR(f.force, bj.force, 1e-4 * bj.force) << "the same solve";
+  EXPECT_LT(f.its, bj.its / 5) << "the factor's iterations, not block Jacobi's";
+  EXPECT_LT(f.factors, 10) << "the rows do not make the factor stale";
+  EXPECT_EQ(f.redos, 0);
+  EXPECT_EQ(press(Preconditioner::cholesky, 2).hash, f.hash) << "threads";
+}
+
 }  // namespace
 }  // namespace orthosim::runtime

@@ -259,7 +259,7 @@ TEST(Stress, MovingCollidersNeverLetANodeThroughNorProduceNaN) {
 // faces: a rod that reached one would enter the tissue there, so the rod
 // stays in the middle.)
 // (the trials, for rods w_min .. w_min + w_span wide)
-void probe_trials(Real w_min, Real w_span) {
+void probe_trials(Real w_min, Real w_span, Preconditioner pc = Preconditioner::automatic) {
   std::uniform_real_distribution<Real> u(0, 1);
   std::mt19937_64 rng(20261130);
   const auto b = make_layered_block(8, 8, 4);
@@ -292,7 +292,8 @@ void probe_trials(Real w_min, Real w_span) {
       const Real drag = (u(rng) - 0.5) * 0.006, turn = (u(rng) - 0.5) * 0.3;
       const Path path = press_drag_turn(t_up, {0, rise, 0}, {drag, rise, 0}, turn);
       s.obstacle_paths = {path};
-      const SolverOptions o = collider_stress_options(integ);
+      SolverOptions o = collider_stress_options(integ);
+      o.preconditioner = pc;
       bool finite = true;
       Real behind = -HUGE_VAL, behind_face = -HUGE_VAL;
       std::vector<Real> points(ob->meshes[0].samples.size());
@@ -315,6 +316,7 @@ void probe_trials(Real w_min, Real w_span) {
       EXPECT_LE(behind_face, 1e-6) << "a point of the rod behind a skin face";
       EXPECT_LE(behind, 1e-6) << "a point of the rod inside the skin";
       EXPECT_GT(s.counters.face_contacts, 0) << "the rod met the skin";
+      if (integ == Integrator::implicit_euler && pc == Preconditioner::cholesky) EXPECT_GT(s.counters.factorizations, 0);
       std::printf("  %s dt %.4f: w %.2f mm, rise %.1f mm at %.2f m/s, behind a face %.3g m, inside %.3g m, %lld face contacts\n",
                   to_string(integ), dt, 1e3 * w, 1e3 * rise, rise / t_up, behind_face, behind, static_cast<long long>(s.counters.face_contacts));
       worst = std::max(worst, behind);
@@ -335,5 +337,10 @@ TEST(Stress, ThinProbesPressTheSkinWithoutPassingIt) { probe_trials(0.0005, 0.00
 // another (impulses of 10^3-10^4 N s); now only samples on the surface are
 // candidates.
 TEST(Stress, WideProbesPressTheSkinWithoutPassingIt) { probe_trials(0.004, 0.008); }
+
+// The wide probes' trials with the sparse factor as the implicit solve's
+// preconditioner: it preconditions the faces' rows too (by Woodbury, since
+// 2026-11-29; before, a solve with rows fell back to block Jacobi).
+TEST(Stress, WideProbesOnTheSparseFactor) { probe_trials(0.004, 0.008, Preconditioner::cholesky); }
 }  // namespace
 }  // namespace orthosim::runtime::testing
