@@ -1780,6 +1780,31 @@ TEST(FaceContacts, ARodDraggedAlongTheSkinKeepsItsContact) {
   EXPECT_EQ(s.counters.events, 0);
 }
 
+// The 1 mm rod of the tests below (x 21.5-22.5 mm, z 5.5-6.5 mm, its tip 1 mm
+// above the skin, between the nodes at x 20, 24 and z 4, 8 mm), its edges
+// sampled at the default spacing, on a fresh State of the block m (bone
+// fixed) that pushes it `push` into the skin over 0.25 s; implicit, no
+// gravity, mass damping 20.
+struct PressingRod {
+  State s;
+  SolverOptions o;
+};
+PressingRod pressing_rod(const Model& m, Real push, Real friction) {
+  auto ob = std::make_shared<Obstacles>();
+  ObstacleMesh rod = box_mesh({0.0215, -0.02, 0.0055}, {0.0225, -0.001, 0.0065});
+  rod.friction = friction;
+  add_obstacle_mesh(*ob, rod);
+  sample_obstacle_edges(ob->meshes[0], default_edge_spacing(m.quads, m.rest_x));
+  PressingRod r{make_state(m), {}};
+  fix_nodes(m, r.s, m.set("fixed"));
+  r.s.obstacles = ob;
+  r.s.obstacle_paths = {displacement_path({{0, 0, 0, 0}, {0.25, 0, push, 0}})};
+  r.o.integrator = Integrator::implicit_euler;
+  r.o.gravity = {0, 0, 0};
+  r.o.mass_damping = 20;
+  return r;
+}
+
 // A caller that cuts a Model itself (cut_model, as Scene::cut does) while a
 // rod presses the skin, and steps on: the rows of the last substep name
 // triangles of the quads before the cut, which removes the quads it crosses
@@ -1793,19 +1818,7 @@ TEST(FaceContacts, ARodDraggedAlongTheSkinKeepsItsContact) {
 TEST(FaceContacts, ACutKeepsTheRowsOfFacesItLeaves) {
   const auto b = make_layered_block(13, 5, 4);
   const Model m = model_from_layers(b.layers, b.sets);
-  auto ob = std::make_shared<Obstacles>();
-  ObstacleMesh rod = box_mesh({0.0215, -0.02, 0.0055}, {0.0225, -0.001, 0.0065});
-  rod.friction = 0.3;
-  add_obstacle_mesh(*ob, rod);
-  sample_obstacle_edges(ob->meshes[0], default_edge_spacing(m.quads, m.rest_x));
-  State s = make_state(m);
-  fix_nodes(m, s, m.set("fixed"));
-  s.obstacles = ob;
-  s.obstacle_paths = {displacement_path({{0, 0, 0, 0}, {0.25, 0, 0.003, 0}})};
-  SolverOptions o;
-  o.integrator = Integrator::implicit_euler;
-  o.gravity = {0, 0, 0};
-  o.mass_damping = 20;
+  auto [s, o] = pressing_rod(m, 0.003, 0.3);
   for (int k = 0; k < 30; ++k) step(m, s, 1.0 / 120, o);  // the rod 2 mm into the skin
   ASSERT_FALSE(s.face_rows.empty()) << "the rod holds the skin";
   for (const FaceRow& r : s.face_rows) ASSERT_TRUE(face_row_current(m.quads, r)) << "rows of the model they were made on";
@@ -1875,17 +1888,7 @@ TEST(FaceContacts, TheSparseFactorPreconditionsTheRows) {
     std::uint64_t hash = 0;
   };
   auto press = [&](Preconditioner pc, int threads) {
-    auto ob = std::make_shared<Obstacles>();
-    add_obstacle_mesh(*ob, box_mesh({0.0215, -0.02, 0.0055}, {0.0225, -0.001, 0.0065}));
-    sample_obstacle_edges(ob->meshes[0], default_edge_spacing(m.quads, m.rest_x));
-    State s = make_state(m);
-    fix_nodes(m, s, m.set("fixed"));
-    s.obstacles = ob;
-    s.obstacle_paths = {displacement_path({{0, 0, 0, 0}, {0.25, 0, 0.004, 0}})};
-    SolverOptions o;
-    o.integrator = Integrator::implicit_euler;
-    o.gravity = {0, 0, 0};
-    o.mass_damping = 20;
+    auto [s, o] = pressing_rod(m, 0.004, ObstacleMesh{}.friction);
     o.preconditioner = pc;
     o.cg_max_iterations = 5000;  // block Jacobi converges, slowly
     tbb::task_arena(threads).execute([&] {
