@@ -785,23 +785,27 @@ void face_rows_factor_dense(const Model& m, const State& s, FaceSolve& fs) {
   const Real* cn = sc.constraint.data();
   const bool constrained = sc.constrained;
   const auto n3 = 3 * static_cast<std::size_t>(m.n_nodes);
-  std::vector<Real> a;
-  for (const std::int32_t q : fs.active) {
-    std::vector<Real>& Wq = fs.W[static_cast<std::size_t>(q)];
-    if (!Wq.empty()) continue;
+  // the rows new to the factor this substep, their solves side by side (each
+  // its own: the same for any thread count)
+  std::vector<std::int32_t> fresh;
+  for (const std::int32_t q : fs.active)
+    if (fs.W[static_cast<std::size_t>(q)].empty()) fresh.push_back(q);
+  tbb::parallel_for(std::size_t(0), fresh.size(), [&](std::size_t k) {
+    const std::int32_t q = fresh[k];
     const FaceSolve::Row& r = fs.rows[static_cast<std::size_t>(q)];
-    a.assign(n3, 0);
+    std::vector<Real> a(n3, 0);
     for (int j = 0; j < 3; ++j)
       if (r.w[j] != 0) {
         Vec3 aj = r.w[j] * r.n;
         if (constrained) aj = filter(aj, load3(cn, r.node[j]));
         store3(a.data(), r.node[j], load3(a.data(), r.node[j]) + aj);
       }
+    std::vector<Real>& Wq = fs.W[static_cast<std::size_t>(q)];
     Wq.resize(n3);
     factor_solve(*fs.F, m, a.data(), Wq.data());
     if (constrained)
       for (std::int32_t i = 0; i < m.n_nodes; ++i) store3(Wq.data(), i, filter(load3(Wq.data(), i), load3(cn, i)));
-  }
+  });
   const Eigen::Index na = fs.n_active;
   Eigen::MatrixXd S(na, na);
   for (Eigen::Index i = 0; i < na; ++i)
