@@ -2,6 +2,7 @@
 // test, vessel hits, the cut tool of a scene, and 10^4 random cuts that must
 // never crash or produce a non-finite state.
 #include "runtime/cut.h"
+#include "runtime/obstacles.h"
 #include "runtime/scene.h"
 #include "runtime/solver.h"
 #include "runtime/state.h"
@@ -631,6 +632,76 @@ TEST(Cut, RemovesTheVolumeTermsTetrahedraAcrossTheBlade) {
     }
   EXPECT_LT(shallow[0], 4 * 6) << "the shallow blade misses some tetrahedra of each cell";
   EXPECT_EQ(shallow[1], 4 * 6) << "but not their cells' terms";
+}
+
+// 200 random cuts into the skin, a step after each, while a thin rod presses
+// it between its nodes and is dragged along it (implicit; the rod's edges meet
+// the skin's faces, one row of the solve per contact; nine cuts in ten beside
+// the rod's row of quads, one through it): the rows of the quads before a cut
+// are kept where their corners are still a face and dropped where the cut
+// removed it (FaceContacts.ACutKeepsTheRowsOfFacesItLeaves), the rod keeps
+// pressing (200 of 200 steps), the solver never fails nor makes a NaN, and
+// after each step every row names a face of the cut model.
+TEST(Cut, RandomCutsWhileARodPressesTheSkin) {
+  Model m = block_with_volume_term(10, 4, 4, 1, true);
+  State s = make_state(m);
+  {
+    auto b = runtime::testing::make_layered_block(10, 4, 4);
+    std::vector<std::int32_t> fixed(b.sets.at("fixed").data(), b.sets.at("fixed").data() + b.sets.at("fixed").size());
+    fix_nodes(m, s, fixed);
+  }
+  auto ob = std::make_shared<Obstacles>();
+  ObstacleMesh rod = test::box_mesh({0.0175, -0.02, 0.0055}, {0.0185, -0.001, 0.0065});  // between the nodes
+  rod.friction = 0.3;
+  add_obstacle_mesh(*ob, rod);
+  sample_obstacle_edges(ob->meshes[0], default_edge_spacing(m.quads, m.rest_x));
+  s.obstacles = ob;
+  s.obstacle_paths = {test::displacement_path({{0, 0, 0, 0}, {0.25, 0, 0.003, 0}, {3.5, 0.01, 0.003, 0}})};
+  SolverOptions o;
+  o.integrator = Integrator::implicit_euler;
+  o.gravity = {0, 0, 0};
+  o.mass_damping = 5;
+  std::mt19937_64 rng(11);
+  std::uniform_real_distribution<Real> ux(-0.005, 0.04), uz(-0.005, 0.017), uu(0, 1), ud(-0.3, 0.3), depth(1e-4, 0.0025);
+  for (int k = 0; k < 15; ++k) step(m, s, 1.0 / 60, o);  // pressed
+  ASSERT_FALSE(s.face_rows.empty()) << "the rod holds the skin";
+  std::int64_t kept = 0, dropped = 0, cut_springs = 0;
+  std::int64_t held = 0;  // steps that began with rows
+  for (int c = 0; c < 200; ++c) {
+    CutDef d;
+    // beside the rod's row of quads (z 4-8 mm) or through it, one cut in ten
+    const int side = rng() % 10 == 0 ? 2 : static_cast<int>(rng() % 2);
+    for (int k = 0; k < 2 + static_cast<int>(rng() % 2); ++k) {
+      const Real z = side == 2 ? uz(rng) : side == 0 ? -0.005 + 0.0085 * uu(rng) : 0.0085 + 0.0085 * uu(rng);
+      d.polyline.push_back({ux(rng), -5e-4, z});
+    }
+    if (rng() % 2) d.direction = {ud(rng), 1, ud(rng)};
+    d.depth = depth(rng);
+    try {
+      const CutReport r = cut_model(m, s.x, d);
+      cut_springs += r.springs_cut;
+      if (!r.detached.empty()) fix_nodes(m, s, r.detached);
+      s.step_limit = 0;
+    } catch (const Error&) {
+    }
+    held += !s.face_rows.empty();
+    for (const FaceRow& r : s.face_rows) {
+      bool face = false;
+      for (std::int32_t t = 0; t < 2 * m.n_quads && !face; ++t) face = quad_triangle(m.quads, t) == r.node;
+      (face ? kept : dropped) += 1;
+    }
+    step(m, s, 1.0 / 60, o);
+    ASSERT_TRUE(test::all_finite(s)) << "after cut " << c;
+    for (const FaceRow& r : s.face_rows) ASSERT_TRUE(face_row_current(m.quads, r)) << "after cut " << c;
+  }
+  std::printf("  %lld springs cut; %lld of 200 steps began with rows: %lld on faces kept, %lld on faces cut away; %d quads left\n",
+              static_cast<long long>(cut_springs), static_cast<long long>(held), static_cast<long long>(kept), static_cast<long long>(dropped),
+              m.n_quads);
+  EXPECT_GT(cut_springs, 0);
+  EXPECT_GT(held, 150) << "the rod presses the skin through the cuts beside it";
+  EXPECT_GT(kept, 0);
+  EXPECT_GT(dropped, 0);
+  EXPECT_EQ(s.counters.failed, 0);
 }
 
 TEST(Cut, TenThousandRandomCutsNeverBreakTheSolver) {

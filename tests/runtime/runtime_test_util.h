@@ -9,6 +9,7 @@
 
 #include <array>
 #include <cmath>
+#include <initializer_list>
 #include <string>
 #include <utility>
 #include <vector>
@@ -89,6 +90,16 @@ inline Real max_node_distance(const std::vector<Real>& a, const std::vector<Real
 }
 
 // A box [lo, hi] as an obstacle mesh, counter-clockwise seen from outside.
+// A path of displacements: {t, dx, dy, dz} waypoints.
+inline Path displacement_path(std::initializer_list<std::array<Real, 4>> w) {
+  Path p;
+  for (const auto& e : w) {
+    p.t.push_back(e[0]);
+    p.p.insert(p.p.end(), {e[1], e[2], e[3]});
+  }
+  return p;
+}
+
 inline ObstacleMesh box_mesh(const Vec3& lo, const Vec3& hi) {
   ObstacleMesh b;
   for (int k = 0; k < 8; ++k) {

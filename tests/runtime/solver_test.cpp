@@ -19,6 +19,7 @@ namespace {
 
 using test::all_finite;
 using test::box_mesh;
+using test::displacement_path;
 using test::make_model;
 using test::max_node_distance;
 using testing::make_layered_block;
@@ -1245,15 +1246,6 @@ TEST(Obstacles, BadObstaclesAreRefused) {
 
 // ---- moving obstacles (State::obstacle_paths) -------------------------------------
 
-// A path of displacements: {t, dx, dy, dz} waypoints.
-Path displacement_path(std::initializer_list<std::array<Real, 4>> w) {
-  Path p;
-  for (const auto& e : w) {
-    p.t.push_back(e[0]);
-    p.p.insert(p.p.end(), {e[1], e[2], e[3]});
-  }
-  return p;
-}
 
 // The square_at(y) turned over: its front (one-sided) faces -y.
 ObstacleMesh square_facing_down(Real y, Real friction) {
