@@ -499,7 +499,9 @@ inline bool holds(const Vec3& n) { return n.x != 0 || n.y != 0 || n.z != 0; }
 // docs/BENCHMARKS.md.) The preconditioner is the inverse of (Q^-1 + J^T J /
 // eps), by Woodbury: Q - Q J^T S^-1 J Q, S = eps + J Q J^T (a sparse LDL^T,
 // rows x rows, once a solve), so the stiff rows cost no more iterations than
-// the tissue. Rows push, never pull: an active set. Rows that met or touched
+// the tissue; with the sparse factor F (the cholesky preconditioner) the same
+// with G = F^-1 between the holds' filters in place of Q (G J^T a factor solve
+// per row, once a substep; S dense). Rows push, never pull: an active set. Rows that met or touched
 // start active, as do candidates (samples on the surface in front of another
 // face within its motion: resolve_face_contacts) that pushed in the last substep; after a
 // solve, an active row that pulls is let go, a candidate whose face the solve
