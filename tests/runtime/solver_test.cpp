@@ -1864,8 +1864,8 @@ TEST(FaceContacts, ACutKeepsTheRowsOfFacesItLeaves) {
 // Until 2026-11-29 a solve with rows fell back to block Jacobi: the same
 // iterations as block Jacobi's (its PCG stopped at its cap and the steps were
 // redone with more substeps: the demo's rod and spatula on the limb with its
-// dermis in MPa ran at 11 and 14 steps/s with 127 and 131 steps redone, 59
-// and 54 now).
+// dermis in MPa ran at 11-14 steps/s with 127 and 131 steps redone; 7.2x
+// and 5.7x faster now: docs/BENCHMARKS.md).
 TEST(FaceContacts, TheSparseFactorPreconditionsTheRows) {
   testing::LayeredBlockOptions bo;
   bo.nu = 13, bo.nv = 5;
