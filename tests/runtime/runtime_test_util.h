@@ -100,6 +100,14 @@ inline Path displacement_path(std::initializer_list<std::array<Real, 4>> w) {
   return p;
 }
 
+// The triangle of m's quads (quad_triangle) with face row r's corners, -1
+// if none: where a row's face is after a cut renumbered the quads.
+inline std::int32_t face_with_corners(const Model& m, const FaceRow& r) {
+  for (std::int32_t t = 0; t < 2 * m.n_quads; ++t)
+    if (quad_triangle(m.quads, t) == r.node) return t;
+  return -1;
+}
+
 inline ObstacleMesh box_mesh(const Vec3& lo, const Vec3& hi) {
   ObstacleMesh b;
   for (int k = 0; k < 8; ++k) {

@@ -1814,11 +1814,6 @@ TEST(FaceContacts, ACutKeepsTheRowsOfFacesItLeaves) {
   for (int k = 0; k < 30; ++k) step(m, s, 1.0 / 120, o);  // the rod 2 mm into the skin
   ASSERT_FALSE(s.face_rows.empty()) << "the rod holds the skin";
   for (const FaceRow& r : s.face_rows) ASSERT_TRUE(face_row_current(m.quads, r)) << "rows of the model they were made on";
-  auto face_of = [](const Model& mm, const FaceRow& r) {  // the triangle with the row's corners (-1: none)
-    for (std::int32_t t = 0; t < 2 * mm.n_quads; ++t)
-      if (quad_triangle(mm.quads, t) == r.node) return t;
-    return -1;
-  };
   // the rod spans x 21.5-22.5 mm, z 5.5-6.5 mm, between the nodes at x 20, 24 and z 4, 8 mm
   std::int64_t renumbered_all = 0, removed_all = 0;
   for (Real z : {0.002, 0.006, 0.010}) {
@@ -1831,11 +1826,11 @@ TEST(FaceContacts, ACutKeepsTheRowsOfFacesItLeaves) {
     ASSERT_GT(cut_model(cut, s.x, def).springs_cut, 0);
     ASSERT_LT(cut.n_quads, m.n_quads) << "the cut removed quads";
     State expected = s;  // as if the rows had been made on the cut model: renumbered, or gone with their face
-    for (FaceRow& r : expected.face_rows) r.triangle = face_of(cut, r);
+    for (FaceRow& r : expected.face_rows) r.triangle = test::face_with_corners(cut, r);
     std::erase_if(expected.face_rows, [&](const FaceRow& r) { return r.triangle < 0; });
     std::int64_t renumbered = 0, removed = 0;
     for (const FaceRow& r : s.face_rows) {
-      const bool face = face_of(cut, r) >= 0;
+      const bool face = test::face_with_corners(cut, r) >= 0;
       renumbered += face && !face_row_current(cut.quads, r);
       removed += !face && r.impulse > 0;
     }
