@@ -91,9 +91,13 @@ Model load_model(const ModelReader& r, const LoadRequest& req) {
     // a volume_modulus or a guard_modulus)
     if (l.volume_modulus > 0 || l.guard_modulus > 0) {
       if (f.exists(g + "/tets")) l.tets = r.layer_fields(name, {"tets"}).tets;
-      if (l.tets.rows() == 0)
+      // (the term's own tetrahedra, where the layer has them: Layer::volume_tets)
+      if (l.volume_modulus > 0 && f.exists(g + "/volume_tets"))
+        l.volume_tets = r.layer_fields(name, {"volume_tets"}).volume_tets;
+      if (l.tets.rows() == 0 && (l.guard_modulus > 0 || l.volume_tets.rows() == 0))
         throw Error(path, g + " has a " + (l.volume_modulus > 0 ? "volume_modulus" : "guard_modulus") + " but no tets");
       check_index_range(l.tets, n_global, path, g + "/tets");
+      check_index_range(l.volume_tets, n_global, path, g + "/volume_tets");
     }
     check_index_range(l.lin_springs, n_global, path, g + "/lin_springs");
     if (req.surface) check_index_range(l.quads, n_global, path, g + "/quads");

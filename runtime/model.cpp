@@ -357,14 +357,14 @@ Model assemble_model(const ModelSource& src) {
   // inversion guard's (one tetrahedron each), where every corner is in the
   // model and one is loaded
   m.tet_group_first.assign(1, 0);
-  auto add_groups = [&](const Layer& l, Eigen::Index G, Real k, Real guard) {
-    for (Eigen::Index t0 = 0; t0 < l.tets.rows(); t0 += G) {
+  auto add_groups = [&](const MatX4i& tets, Eigen::Index G, Real k, Real guard) {
+    for (Eigen::Index t0 = 0; t0 < tets.rows(); t0 += G) {
       std::vector<std::int32_t> c;
       bool any = false, all = true;
       for (Eigen::Index t = t0; t < t0 + G && all; ++t)
         for (int q = 0; q < 4; ++q) {
-          any = any || is_loaded(l.tets(t, q));
-          auto it = local.find(l.tets(t, q));
+          any = any || is_loaded(tets(t, q));
+          auto it = local.find(tets(t, q));
           all = all && it != local.end();
           c.push_back(all ? it->second : -1);
         }
@@ -386,16 +386,20 @@ Model assemble_model(const ModelSource& src) {
   for (std::size_t li : layer_order) {
     const auto& [name, l] = src.layers[li];
     if (l.volume_modulus > 0) {
+      // over the term's own tetrahedra where the layer has them (a tetra
+      // layer's grid prisms), else over its cells'
+      const bool own = l.volume_tets.rows() > 0;
+      const MatX4i& vt = own ? l.volume_tets : l.tets;
       const Eigen::Index G = std::max(1, l.volume_group);
-      if (l.tets.rows() % G != 0)
-        throw Error(file, "/layers/" + name + ": " + std::to_string(l.tets.rows()) +
-                              " tets are not groups of volume_group " + std::to_string(G));
-      add_groups(l, G, l.volume_modulus, 0);
+      if (vt.rows() % G != 0)
+        throw Error(file, "/layers/" + name + ": " + std::to_string(vt.rows()) + (own ? " volume_tets" : " tets") +
+                              " are not groups of volume_group " + std::to_string(G));
+      add_groups(vt, G, l.volume_modulus, 0);
     }
     if (l.guard_modulus > 0) {
       if (!(l.guard_ratio > 0 && l.guard_ratio < 1))
         throw Error(file, "/layers/" + name + ": guard_ratio must be in (0, 1)");
-      add_groups(l, 1, l.guard_modulus, l.guard_ratio);
+      add_groups(l.tets, 1, l.guard_modulus, l.guard_ratio);
     }
   }
   m.n_tets = static_cast<std::int32_t>(m.tet_k.size());

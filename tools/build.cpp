@@ -59,6 +59,7 @@ json report_json(const msm::BuildReport& r) {
       e["zero_stiffness_dropped"] = l.zero_stiffness_dropped;
       e["volume_modulus_pa"] = l.volume_modulus_pa;
       e["volume_group"] = l.volume_group;
+      e["volume_tets"] = l.volume_tets;
       e["guard_modulus_pa"] = l.guard_modulus_pa;
       e["guard_ratio"] = l.guard_ratio;
       e["springs_by_class"] = l.springs_by_class;
@@ -124,6 +125,11 @@ void add_build_command(CLI::App& app) {
   sub->add_option("--poisson-ratio", opt.poisson_ratio,
                   "Poisson's ratio of the layers, in [0.25, 0.5): a volume term per tetrahedron of a tetra layer, and "
                   "with --lattice-volume-term per hexahedron of a lattice layer (0.25: none; docs/msm.md, The volume term)")
+      ->capture_default_str();
+  sub->add_option("--tetra-volume-term", opt.tetra_volume_term,
+                  "where a tetra layer's volume term acts: tets (one per cell tetrahedron; locks in bending) or prisms "
+                  "(one per grid prism: keeps the grid's volume without locking; docs/msm.md, The volume term)")
+      ->check(CLI::IsMember({"tets", "prisms"}))
       ->capture_default_str();
   sub->add_option("--inversion-guard", opt.inversion_guard,
                   "every tetrahedron of a layer without a volume term of its own (the lattices') resists being pressed "

@@ -77,6 +77,7 @@ struct Args {
   double poisson_ratio = msm::BuildOptions{}.poisson_ratio;  // build's --poisson-ratio (the layers' volume term)
   bool lattice_volume_term = false;                          // build's --lattice-volume-term
   double inversion_guard = msm::BuildOptions{}.inversion_guard;  // build's --inversion-guard
+  std::string tetra_volume_term = msm::BuildOptions{}.tetra_volume_term;  // build's --tetra-volume-term
   double spur_ratio = VesselOptions{}.spur_ratio;                 // vessels' --spur-ratio
   bool axis_correction = true;                               // build's axis correction (--no-axis-correction: off)
   CommonOptions common;
@@ -389,7 +390,7 @@ int run_stages(Args a, Report& report) {
   report.input(a.stack);
   report.input(a.tissues);
   if (!a.scene.empty()) report.input(a.scene);
-  report.parameters() = {{"grid", a.grid}, {"through_cells", a.through_cells}, {"poisson_ratio", a.poisson_ratio}, {"lattice_volume_term", a.lattice_volume_term}, {"inversion_guard", a.inversion_guard}, {"spur_ratio", a.spur_ratio}, {"axis_correction", a.axis_correction}, {"bit_depth", a.bit_depth}, {"smoothness", a.smoothness}, {"spacing_mm", a.spacing}, {"origin_mm", a.origin}, {"roi_px", region.roi_px}, {"slices", {region.first_slice, region.last_slice}},
+  report.parameters() = {{"grid", a.grid}, {"through_cells", a.through_cells}, {"poisson_ratio", a.poisson_ratio}, {"lattice_volume_term", a.lattice_volume_term}, {"inversion_guard", a.inversion_guard}, {"tetra_volume_term", a.tetra_volume_term}, {"spur_ratio", a.spur_ratio}, {"axis_correction", a.axis_correction}, {"bit_depth", a.bit_depth}, {"smoothness", a.smoothness}, {"spacing_mm", a.spacing}, {"origin_mm", a.origin}, {"roi_px", region.roi_px}, {"slices", {region.first_slice, region.last_slice}},
                          {"work", a.work}, {"texture", a.texture}, {"tune", a.tune},
                          {"tune_budget_s", a.tune_budget_s}, {"tune_evaluations", a.tune_evaluations}, {"seed", a.seed}, {"export", a.export_dir}};
 
@@ -682,11 +683,13 @@ int run_stages(Args a, Report& report) {
     const auto bld = run.stage(
         "build", {rem.key, table_hash, "through-cells " + std::to_string(a.through_cells), "poisson-ratio " + exact(a.poisson_ratio),
                   a.lattice_volume_term ? "lattice-volume-term" : "no-lattice-volume-term",
-                  a.axis_correction ? "axis-correction" : "no-axis-correction", "inversion-guard " + exact(a.inversion_guard)},
+                  a.axis_correction ? "axis-correction" : "no-axis-correction", "inversion-guard " + exact(a.inversion_guard),
+                  "tetra-volume-term " + a.tetra_volume_term},
         run.command([&](const std::string& d) {
           std::vector<std::string> args{"build", "--model", d + "/model.h5", "--tissues", a.tissues, "--through-cells",
                                         std::to_string(a.through_cells), "--poisson-ratio", exact(a.poisson_ratio),
-                                        "--inversion-guard", exact(a.inversion_guard)};
+                                        "--inversion-guard", exact(a.inversion_guard), "--tetra-volume-term",
+                                        a.tetra_volume_term};
           if (a.lattice_volume_term) args.push_back("--lattice-volume-term");
           if (!a.axis_correction) args.push_back("--no-axis-correction");
           return args;
@@ -897,6 +900,10 @@ void add_pipeline_command(CLI::App& app) {
       ->capture_default_str();
   sub->add_flag("--lattice-volume-term", a.lattice_volume_term,
                 "build's: a volume term per hexahedron of the lattice layers too (docs/msm.md, The volume term)");
+  sub->add_option("--tetra-volume-term", a.tetra_volume_term,
+                  "build's: where a tetra layer's volume term acts, tets or prisms (docs/msm.md, The volume term)")
+      ->check(CLI::IsMember({"tets", "prisms"}))
+      ->capture_default_str();
   sub->add_option("--inversion-guard", a.inversion_guard,
                   "build's: the fraction of its rest volume below which a tetrahedron resists with the bulk modulus, "
                   "[0, 1) (0: none; docs/msm.md, The inversion guard)")

@@ -100,6 +100,8 @@ json experiment_json(const tune::ExperimentOptions& e) {
           {"lattice_min_weight", e.lattice_min_weight},
           {"axis_correction", e.axis_correction},
           {"volume_ratio", e.volume_ratio},
+          {"volume_group", e.volume_group},
+          {"tetra_grid_prisms", e.tetra_grid_prisms},
           {"force_tolerance", e.solver.force_tolerance},
           {"newton_iterations", e.solver.max_iterations}};
 }

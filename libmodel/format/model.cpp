@@ -277,10 +277,18 @@ void read_layer_attrs(const h5::File& f, const std::string& g, Layer& l) {
 }
 }  // namespace
 
+namespace {
+// the optional volume_tets dataset (Layer::volume_tets)
+void read_volume_tets(const h5::File& f, const std::string& g, Layer& l) {
+  if (f.exists(g + "/volume_tets")) FieldReader{f, g, nullptr}(l.volume_tets, "volume_tets", "n_volume_tets", "1", "");
+}
+}  // namespace
+
 Layer ModelReader::layer(const std::string& name) const {
   const std::string g = "/layers/" + name;
   auto l = read_group<Layer>(file_, g);
   read_layer_attrs(file_, g, l);
+  read_volume_tets(file_, g, l);
   return l;
 }
 
@@ -288,6 +296,7 @@ Layer ModelReader::layer_fields(const std::string& name, const std::vector<std::
   const std::string g = "/layers/" + name;
   auto l = read_group<Layer>(file_, g, &fields);
   read_layer_attrs(file_, g, l);
+  if (std::find(fields.begin(), fields.end(), "volume_tets") != fields.end()) read_volume_tets(file_, g, l);
   return l;
 }
 
@@ -398,9 +407,15 @@ void ModelWriter::write_layer(const std::string& name, const Layer& l) {
   file_->set_attr(g, "order", static_cast<std::int64_t>(l.order));
   file_->set_attr(g, "node_offset", l.node_offset);
   if (!l.spring_law.empty()) file_->set_attr(g, "spring_law", l.spring_law);
+  if (l.volume_tets.rows() > 0) {
+    if (l.volume_modulus <= 0) throw Error(out_.target(), g + ": volume_tets without a volume_modulus");
+    FieldWriter{*file_, g}(l.volume_tets, "volume_tets", "n_volume_tets", "1",
+                           "the volume term's tetrahedra (n x 4), global ids, where they are not tets");
+  }
   if (l.volume_modulus > 0) {
-    if (l.volume_group < 1 || l.volume_group > 64 || l.tets.rows() % l.volume_group != 0)
-      throw Error(out_.target(), g + ": a volume_modulus needs tets in groups of volume_group (1..64)");
+    const Eigen::Index n = l.volume_tets.rows() > 0 ? l.volume_tets.rows() : l.tets.rows();
+    if (l.volume_group < 1 || l.volume_group > 64 || n % l.volume_group != 0)
+      throw Error(out_.target(), g + ": a volume_modulus needs tets (or volume_tets) in groups of volume_group (1..64)");
     file_->set_attr(g, "volume_modulus", std::vector<double>{l.volume_modulus});
     if (l.volume_group != 1) file_->set_attr(g, "volume_group", static_cast<std::int64_t>(l.volume_group));
   }

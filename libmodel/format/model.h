@@ -142,6 +142,14 @@ struct Layer {
   // law's K1) and rescaled by tune with K1.
   double volume_modulus = 0;
   int volume_group = 1;
+  // The volume term's own tetrahedra, where they are not `tets`: a tetra
+  // layer built with --tetra-volume-term prisms holds its grid prisms here
+  // (msm::grid_prism_tets: the 6 grid nodes under each triangle of a quad, 3
+  // tetrahedra each, volume_group 3; the projected centroids in none), and
+  // the inversion guard keeps `tets`. Empty: the term's groups are rows of
+  // `tets`. Optional dataset "volume_tets" (n x 4, global ids; files before
+  // 2026-11-29 have none).
+  MatX4i volume_tets;
   // The inversion guard (docs/msm.md, "The inversion guard"): each row of
   // `tets`, of signed rest volume V0 (s its sign), adds (guard_modulus / 2)
   // min(0, s V - guard_ratio |V0|)^2 / |V0|: nothing until the tetrahedron

@@ -99,6 +99,8 @@ void validate_options(const BuildOptions& o) {
   if (!(o.projection.max_distance_factor > 0)) throw Error("", "max_distance_factor must be > 0");
   if (!(o.poisson_ratio >= 0.25 && o.poisson_ratio < 0.5)) throw Error("", "poisson_ratio must be in [0.25, 0.5)");
   if (!(o.inversion_guard >= 0 && o.inversion_guard < 1)) throw Error("", "inversion_guard must be in [0, 1) (0: none)");
+  if (o.tetra_volume_term != "tets" && o.tetra_volume_term != "prisms")
+    throw Error("", "tetra_volume_term must be tets or prisms, not '" + o.tetra_volume_term + "'");
 }
 
 }  // namespace
@@ -310,6 +312,9 @@ BuiltModel build_layers(const std::vector<std::pair<std::string, QuadSurface>>& 
   blocks[nl].created = offset + ng;
   blocks[nl].bottom = offset + ng;
   const std::int32_t n_nodes = offset + ng;
+  const bool grid_prisms = o.tetra_volume_term == "prisms";
+  // a tetra layer's term modulus over K1 (per group: half the tissue's over the grid prisms)
+  const double tetra_ratio = volume_ratio(o.poisson_ratio) * (grid_prisms ? kGridPrismShare : 1.0);
   std::vector<std::array<double, 3>> tetra_shape(nl, {0, 0, 0});
   std::vector<AxisCalibration> tetra_axes(nl);
   for (std::size_t l = 0; l < nl; ++l) {
@@ -323,7 +328,7 @@ BuiltModel build_layers(const std::vector<std::pair<std::string, QuadSurface>>& 
       if (o.axis_correction) {
         if (!(tetra_shape[l][0] > 0 && tetra_shape[l][1] > 0 && tetra_shape[l][2] > 0))
           throw Error("", "layer '" + surfaces[l].first + "' has degenerate cells");
-        tetra_axes[l] = tetra_layer_axes(tetra_shape[l], volume_ratio(o.poisson_ratio));
+        tetra_axes[l] = tetra_layer_axes(tetra_shape[l], tetra_ratio, 0, grid_prisms);
         to.axis_factors = tetra_axes[l].factors;
         to.alternate_diagonals = true;
       }
@@ -432,11 +437,22 @@ BuiltModel build_layers(const std::vector<std::pair<std::string, QuadSurface>>& 
         (specs[l].kind == "tetra" || o.lattice_volume_term)) {
       L.volume_modulus = volume_ratio(o.poisson_ratio) * law.k1_pa;
       L.volume_group = specs[l].kind == "lattice" ? 6 : 1;
+      // (or per grid prism and its cap: their own tetrahedra, split as
+      // tetra_cells split the quads, two groups a prism at half the modulus)
+      if (specs[l].kind == "tetra" && grid_prisms) {
+        L.volume_modulus = tetra_ratio * law.k1_pa;
+        const auto split = o.axis_correction ? alternating_split(quads) : std::vector<std::uint8_t>{};
+        const auto pt = grid_prism_tets(quads, split, blocks[l].top, blocks[l].bottom, blocks[l].created);
+        L.volume_tets.resize(static_cast<Eigen::Index>(pt.size()), 4);
+        for (std::size_t t = 0; t < pt.size(); ++t)
+          for (int k = 0; k < 4; ++k) L.volume_tets(static_cast<Eigen::Index>(t), k) = pt[t][static_cast<std::size_t>(k)];
+        L.volume_group = kGridPrismTets;
+      }
     }
     // the inversion guard on every tetrahedron, but not where each has a
     // two-sided term of its own (a tetra layer at nu > 1/4: that term already
     // resists from the rest volume down)
-    const bool own_term = L.volume_modulus > 0 && L.volume_group == 1;
+    const bool own_term = L.volume_modulus > 0 && L.volume_group == 1 && L.volume_tets.rows() == 0;
     if (!cells[l].tets.empty() && o.inversion_guard > 0 && !own_term) {
       L.guard_modulus = bulk_ratio(o.poisson_ratio) * law.k1_pa;
       L.guard_ratio = o.inversion_guard;
@@ -545,6 +561,7 @@ BuiltModel build_layers(const std::vector<std::pair<std::string, QuadSurface>>& 
     lr.tets = L.tets.rows();
     lr.volume_modulus_pa = L.volume_modulus;
     lr.volume_group = L.volume_group;
+    lr.volume_tets = L.volume_tets.rows();
     lr.guard_modulus_pa = L.guard_modulus;
     lr.guard_ratio = L.guard_ratio;
     const Tissue* t = tissues.find(L.tissue);
@@ -647,6 +664,7 @@ std::string build_parameters_json(const BuildOptions& o, const Stack& st) {
   j["axis_correction"] = o.axis_correction;
   j["poisson_ratio"] = o.poisson_ratio;
   j["inversion_guard"] = o.inversion_guard;
+  j["tetra_volume_term"] = o.tetra_volume_term;
   j["surfaces"] = st.surfaces;
   nlohmann::json layers = nlohmann::json::array();
   for (const auto& l : st.layers) layers.push_back(l.tissue + ":" + l.kind);

@@ -92,6 +92,14 @@ struct BuildOptions {
   // none (central springs alone, the rules before 2026-11-28). Soft tissue is
   // nearly incompressible (0.45-0.499 in the literature).
   double poisson_ratio = 0.49;
+  // Where a tetra layer's volume term acts (docs/msm.md, "The volume term"):
+  // "tets", one term per cell tetrahedron (14 a quad: the layer locks in
+  // bending, 13.9x stiffer at nu = 0.49 than at 1/4), or "prisms", one per
+  // grid prism (grid_prism_tets: the 6 grid nodes under each triangle, 2 a
+  // quad; Layer::volume_tets), which keeps the grid's volume without locking
+  // (1.04x) and leaves the projected centroids to the springs and the
+  // inversion guard.
+  std::string tetra_volume_term = "tets";
   // The lattice layers' volume term (one per hexahedron), off by default:
   // it keeps a lattice from folding through itself, but in cells far from
   // cubes (the rule's shear moduli 1-3 % of E) its pressure buckles the
@@ -132,7 +140,8 @@ struct LayerReport {
   std::array<double, 3> mean_cell_m{0, 0, 0};
   AxisCalibration axes;
   double volume_modulus_pa = 0;    // Layer::volume_modulus (0: none)
-  int volume_group = 1;            // Layer::volume_group: tetrahedra per volume term (tetra 1, lattice 6)
+  int volume_group = 1;            // Layer::volume_group: tetrahedra per volume term (tetra 1 or 3 over volume_tets, lattice 6)
+  std::int64_t volume_tets = 0;    // Layer::volume_tets rows (a tetra layer's grid prisms: 6 a quad; 0: the term is over tets)
   double guard_modulus_pa = 0;     // Layer::guard_modulus (0: none)
   double guard_ratio = 0;          // Layer::guard_ratio
 };

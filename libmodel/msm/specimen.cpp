@@ -404,15 +404,24 @@ Specimen make_specimen(const SpecimenOptions& o) {
     // the global ids of the cells are the rows of X (top, created, bottom);
     // as build writes them: one term per tetrahedron of a tetra layer, per
     // hexahedron (6 tetrahedra) of a lattice layer
-    const auto nt = static_cast<Eigen::Index>(cells.tets.size());
+    // (a tetra layer's term over its grid prisms instead: 3 tetrahedra of the
+    // 6 grid nodes under each triangle, one term a prism)
+    const bool grid = o.kind == "tetra" && o.tetra_grid_prisms;
+    if (grid && o.volume_group != 0 && o.volume_group != kGridPrismTets)
+      throw Error("", "specimen: the grid prisms' terms are groups of " + std::to_string(kGridPrismTets));
+    const std::vector<std::array<std::int32_t, 4>> vt =
+        grid ? grid_prism_tets(quads, o.tetra_alternate_diagonals ? alternating_split(quads) : std::vector<std::uint8_t>{},
+                               blocks.top, blocks.bottom, blocks.created)
+             : std::move(cells.tets);
+    const auto nt = static_cast<Eigen::Index>(vt.size());
     s.network.tets.resize(nt, 4);
     s.network.tet_rest_volume.resize(nt);
     for (Eigen::Index t = 0; t < nt; ++t) {
-      const auto& c = cells.tets[static_cast<std::size_t>(t)];
+      const auto& c = vt[static_cast<std::size_t>(t)];
       for (int k = 0; k < 4; ++k) s.network.tets(t, k) = c[static_cast<std::size_t>(k)];
       s.network.tet_rest_volume(t) = tet_volume(X.row(c[0]), X.row(c[1]), X.row(c[2]), X.row(c[3]));
     }
-    const int G = o.volume_group > 0 ? o.volume_group : o.kind == "lattice" ? 6 : 1;
+    const int G = grid ? kGridPrismTets : o.volume_group > 0 ? o.volume_group : o.kind == "lattice" ? 6 : 1;
     if (nt % G != 0) throw Error("", "specimen: its tetrahedra are not groups of volume_group " + std::to_string(G));
     if (G > 1) {
       const Eigen::Index ng = nt / G;
@@ -441,10 +450,15 @@ UniaxialCurve uniaxial_test(const Specimen& s, const std::vector<double>& strain
   const double L = s.size_m[static_cast<std::size_t>(ax)];
   const double tol = 1e-9 * std::max({s.size_m[0], s.size_m[1], s.size_m[2]});
   std::vector<int> lo, hi, side[2][2];
+  const Eigen::Index ng = static_cast<Eigen::Index>(s.options.cells[0] + 1) * (s.options.cells[1] + 1);
   for (Eigen::Index i = 0; i < X.rows(); ++i) {
     const int n = static_cast<int>(i);
     if (std::abs(X(i, ax)) < tol) lo.push_back(n);
     if (std::abs(X(i, ax) - L) < tol) hi.push_back(n);
+    // a tetra layer's created nodes (the projected centroids, rows ng ..
+    // n - ng) lie on the bottom face at rest but are inside the layer: the
+    // next layer holds only the grid, so the faces' motion is the grids'
+    if (s.options.kind == "tetra" && i >= ng && i < X.rows() - ng) continue;
     for (int k = 0; k < 2; ++k) {
       const int lat = k == 0 ? l1 : l2;
       if (std::abs(X(i, lat)) < tol) side[k][0].push_back(n);
@@ -580,10 +594,12 @@ AxisCalibration calibrate_tetra_axes(SpecimenOptions o, double tolerance, int ma
                       std::to_string(o.cell_m[1] * 1e3) + " x " + std::to_string(o.cell_m[2] * 1e3) + " mm)");
 }
 
-AxisCalibration tetra_layer_axes(const std::array<double, 3>& cell_m, double volume_ratio, int volume_group) {
+AxisCalibration tetra_layer_axes(const std::array<double, 3>& cell_m, double volume_ratio, int volume_group,
+                                 bool grid_prisms) {
   SpecimenOptions o;
   o.volume_ratio = volume_ratio;
   o.volume_group = volume_group;
+  o.tetra_grid_prisms = grid_prisms;
   o.kind = "tetra";
   o.cells = kTetraCalibrationCells;
   o.cell_m = cell_m;

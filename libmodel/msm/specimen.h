@@ -132,6 +132,12 @@ struct SpecimenOptions {
   // modelled: it does nothing until a tetrahedron has lost 1 - guard_ratio
   // of its volume, far beyond the specimens' strains.
   int volume_group = 0;
+  // tetra only: the volume term over the layer's grid prisms and their caps
+  // (grid_prism_tets: groups of kGridPrismTets, two a prism, each at
+  // volume_ratio x K1, so volume_ratio is kGridPrismShare of the tissue's)
+  // instead of over its cells' tetrahedra, as build writes it with
+  // BuildOptions::tetra_volume_term "prisms" (docs/msm.md, "The volume term")
+  bool tetra_grid_prisms = false;
 };
 
 // A block [0, X] x [0, Y] x [0, Z]: the top grid at z = Z, the bottom at z = 0,
@@ -179,7 +185,9 @@ AxisCalibration calibrate_tetra_axes(SpecimenOptions options, double tolerance =
 inline constexpr std::array<int, 3> kTetraCalibrationCells{6, 6, 1};
 // volume_ratio: the layer's volume term (SpecimenOptions::volume_ratio), which
 // the factors then account for.
-AxisCalibration tetra_layer_axes(const std::array<double, 3>& cell_m, double volume_ratio = 0, int volume_group = 0);
+// grid_prisms: the term over the grid prisms (SpecimenOptions::tetra_grid_prisms).
+AxisCalibration tetra_layer_axes(const std::array<double, 3>& cell_m, double volume_ratio = 0, int volume_group = 0,
+                                 bool grid_prisms = false);
 
 // A layer's mean cell: the mean top-quad edge along u (q0q1, q3q2) and v
 // (q1q2, q0q3), and the mean distance between corresponding top and bottom

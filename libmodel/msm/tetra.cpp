@@ -26,6 +26,41 @@ Surface triangulate(const MatX3d& vertices, const MatX4i& quads, const std::vect
   return s;
 }
 
+std::vector<std::array<std::int32_t, 4>> grid_prism_tets(const MatX4i& quads, const std::vector<std::uint8_t>& split,
+                                                         std::int32_t top_block, std::int32_t bottom_block,
+                                                         std::int32_t created_block) {
+  std::vector<std::array<std::int32_t, 4>> out;
+  out.reserve(static_cast<std::size_t>(quads.rows()) * 2 * kGridPrismTets);
+  for (Eigen::Index q = 0; q < quads.rows(); ++q) {
+    const int v[4] = {quads(q, 0), quads(q, 1), quads(q, 2), quads(q, 3)};
+    const bool alt = !split.empty() && split[static_cast<std::size_t>(q)] != 0;
+    const std::array<std::array<int, 3>, 2> tris =
+        alt ? std::array<std::array<int, 3>, 2>{{{1, 2, 3}, {1, 3, 0}}} : std::array<std::array<int, 3>, 2>{{{0, 1, 2}, {0, 2, 3}}};
+    for (int i = 0; i < 2; ++i) {
+      const auto& tri = tris[static_cast<std::size_t>(i)];
+      std::array<int, 3> s = tri;
+      std::sort(s.begin(), s.end(), [&](int x, int y) { return v[x] < v[y]; });
+      const bool ccw = (s[0] == tri[0] && s[1] == tri[1]) || (s[0] == tri[1] && s[1] == tri[2]) ||
+                       (s[0] == tri[2] && s[1] == tri[0]);
+      const std::int32_t ia = top_block + v[s[0]], ib = top_block + v[s[1]], ic = top_block + v[s[2]];
+      const std::int32_t ia_ = bottom_block + v[s[0]], ib_ = bottom_block + v[s[1]], ic_ = bottom_block + v[s[2]];
+      std::array<std::array<std::int32_t, 4>, 3> g;
+      if (ccw)
+        g = {{{ia, ib_, ia_, ic_}, {ia, ib, ib_, ic_}, {ia, ic, ib, ic_}}};
+      else
+        g = {{{ia, ia_, ib_, ic_}, {ia, ib_, ib, ic_}, {ia, ib, ic, ic_}}};
+      // the cap (bottom triangle, centroid) subtracted, then added
+      const std::int32_t c = created_block + static_cast<std::int32_t>(2 * q + i);
+      const std::int32_t w0 = bottom_block + v[tri[0]], w1 = bottom_block + v[tri[1]], w2 = bottom_block + v[tri[2]];
+      for (const std::array<std::int32_t, 4>& cap : {std::array<std::int32_t, 4>{w1, w0, w2, c}, std::array<std::int32_t, 4>{w0, w1, w2, c}}) {
+        out.insert(out.end(), g.begin(), g.end());
+        out.push_back(cap);
+      }
+    }
+  }
+  return out;
+}
+
 std::vector<std::uint8_t> alternating_split(const MatX4i& quads) {
   const std::size_t nq = static_cast<std::size_t>(quads.rows());
   std::map<std::pair<std::int32_t, std::int32_t>, std::vector<std::int32_t>> by_edge;

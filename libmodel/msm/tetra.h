@@ -66,6 +66,32 @@ Surface triangulate(const MatX3d& vertices, const MatX4i& quads, const std::vect
 // stretch to in-plane shear (docs/msm.md); alternating cancels it.
 std::vector<std::uint8_t> alternating_split(const MatX4i& quads);
 
+// The volume term of a tetra layer over its grid prisms (docs/msm.md, "The
+// volume term"; BuildOptions::tetra_volume_term "prisms"). Under each
+// triangle of quad q (split as triangulate: faces 2q, 2q+1) lies the prism of
+// its 3 top and 3 bottom grid vertices, cut into 3 tetrahedra with side
+// diagonals from the smaller vertex id (consistent between neighbours, as
+// lattice_cells cuts its hexahedra), positively oriented where the top grid's
+// quads wind counter-clockwise seen from outside; its cap is the tetrahedron
+// (w0 w1 w2 c) of the bottom triangle and the face's projected centroid c,
+// flat at rest. Each prism gives two groups of kGridPrismTets: its 3
+// tetrahedra with the cap reversed, then with the cap; at modulus k' each
+// their two terms sum to k' ((V_p - V0)^2 + V_cap^2) / |V0| (exactly where
+// the cap is flat at rest): the grid's volume, which one term per prism keeps
+// without locking in bending, and the centroid's height over the bottom
+// triangle, which its own 3 dofs meet (so it locks nothing) and which keeps
+// the centroid, in no other term, on the surface below. 4 groups per quad, in
+// quad order; top ids top_block + vertex, bottom ids bottom_block + vertex,
+// centroids created_block + face.
+// So each group carries half the tissue's modulus: Layer::volume_modulus =
+// kGridPrismShare x volume_ratio(nu) K1 (and the specimen's volume_ratio the
+// same share).
+inline constexpr int kGridPrismTets = 4;
+inline constexpr double kGridPrismShare = 0.5;
+std::vector<std::array<std::int32_t, 4>> grid_prism_tets(const MatX4i& quads, const std::vector<std::uint8_t>& split,
+                                                         std::int32_t top_block, std::int32_t bottom_block,
+                                                         std::int32_t created_block);
+
 // The cells of a tetra layer between `top` and `bottom` grids (same rows and
 // quads). The projected centroids are created at blocks.created + face index.
 // `bottom_caster`: a RayCaster on triangulate(bottom, quads), or null to build one.

@@ -145,8 +145,10 @@ msm::Specimen make_tissue_specimen(const ExperimentOptions& o) {
   so.lattice_axis_correction = o.axis_correction;
   so.volume_ratio = o.volume_ratio;
   so.volume_group = o.volume_group;
+  so.tetra_grid_prisms = o.kind == "tetra" && o.tetra_grid_prisms;
   if (o.kind == "tetra" && o.axis_correction) {
-    so.tetra_axis_factors = msm::tetra_layer_axes(o.cell_m, so.volume_ratio, so.volume_group).factors;
+    so.tetra_axis_factors =
+        msm::tetra_layer_axes(o.cell_m, so.volume_ratio, so.volume_group, so.tetra_grid_prisms).factors;
     so.tetra_alternate_diagonals = true;
   }
   return msm::make_specimen(so);

@@ -89,6 +89,9 @@ struct ExperimentOptions {
   // tetrahedra per volume term (experiment_for_layer: the layer's
   // volume_group); 0: as build writes them (msm::SpecimenOptions::volume_group)
   int volume_group = 0;
+  // a tetra layer's term over its grid prisms (Layer::volume_tets;
+  // msm::SpecimenOptions::tetra_grid_prisms)
+  bool tetra_grid_prisms = false;
 };
 // Throws Error("", ...) for out-of-range options.
 void validate(const ExperimentOptions& options);

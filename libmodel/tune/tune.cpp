@@ -340,6 +340,7 @@ ExperimentOptions experiment_for_layer(const Layer& layer, const Layer& below, c
   o.kind = layer.kind;
   o.volume_ratio = layer_volume_ratio(layer);
   o.volume_group = o.volume_ratio > 0 ? layer.volume_group : 0;
+  o.tetra_grid_prisms = o.volume_ratio > 0 && layer.kind == "tetra" && layer.volume_tets.rows() > 0;
   if (layer.kind == "tetra") {
     o.cells[2] = 1;
     o.cell_m = {a, b, h};

@@ -6,6 +6,7 @@
 #include <filesystem>
 #include <map>
 #include <random>
+#include <tuple>
 
 using namespace orthosim;
 
@@ -204,6 +205,50 @@ TEST(ModelFile, FailedWriteLeavesExistingFileUntouched) {
   int files = 0;
   for (auto& e : std::filesystem::directory_iterator(dir.path)) files += e.is_regular_file();
   EXPECT_EQ(files, 1);
+}
+
+// Layer::volume_tets, the volume term's own tetrahedra (a tetra layer's grid
+// prisms): an optional dataset, read whole or by name, absent in older files
+// (read empty), written only with a volume_modulus and in whole groups.
+TEST(ModelFile, VolumeTetsAreOptional) {
+  test::TempDir dir("model");
+  Layer l = filled_layer();
+  l.kind = "tetra";
+  l.volume_modulus = 800;
+  l.volume_group = 4;
+  l.volume_tets.resize(8, 4);
+  for (Eigen::Index i = 0; i < l.volume_tets.size(); ++i) l.volume_tets.data()[i] = static_cast<std::int32_t>(i % 3);
+  Layer plain = filled_layer();
+  {
+    ModelWriter w(dir / "m.h5", ModelWriter::Start::fresh);
+    w.write_layer("skin", l);
+    w.write_layer("fat", plain);
+    w.commit();
+  }
+  ModelReader r(dir / "m.h5");
+  const Layer a = r.layer("skin");
+  EXPECT_EQ(a.volume_tets, l.volume_tets);
+  EXPECT_EQ(a.volume_group, 4);
+  EXPECT_EQ(r.layer_fields("skin", {"volume_tets"}).volume_tets, l.volume_tets);
+  EXPECT_EQ(r.layer_fields("skin", {"tets"}).volume_tets.rows(), 0);  // only what is asked
+  EXPECT_TRUE(r.h5().has_attr("/layers/skin/volume_tets", "unit"));
+  EXPECT_EQ(r.layer("fat").volume_tets.rows(), 0);
+  EXPECT_FALSE(r.h5().exists("/layers/fat/volume_tets"));
+  // not in whole groups, or without a term: refused, the file untouched
+  for (const auto& [modulus, rows, what] : std::vector<std::tuple<double, int, std::string>>{
+           {800.0, 7, "groups of volume_group"}, {0.0, 8, "without a volume_modulus"}}) {
+    Layer bad = l;
+    bad.volume_modulus = modulus;
+    bad.volume_tets.conservativeResize(rows, 4);
+    ModelWriter w(dir / "m.h5", ModelWriter::Start::update);
+    try {
+      w.write_layer("skin", bad);
+      ADD_FAILURE() << what;
+    } catch (const Error& e) {
+      EXPECT_NE(std::string(e.what()).find(what), std::string::npos) << e.what();
+    }
+  }
+  EXPECT_EQ(ModelReader(dir / "m.h5").layer("skin").volume_tets, l.volume_tets);
 }
 
 TEST(ModelFile, CountMismatchIsRejectedOnWrite) {

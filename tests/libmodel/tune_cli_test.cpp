@@ -612,3 +612,36 @@ TEST(TuneCli, TunesALatticeLayerWithItsVolumeTerm) {
   EXPECT_NEAR(after.guard_modulus, (50.0 / 3) * tuned[0].k1_pa, 1e-9 * after.guard_modulus);
   EXPECT_EQ(after.guard_ratio, 0.5);
 }
+
+// A tetra layer whose volume term is over its grid prisms (build
+// --tetra-volume-term prisms): the specimen carries the same term (its grid
+// prisms and caps, groups of 4 at half the tissue's modulus: ratio 8 at nu =
+// 0.49), the fit reaches the table along u, and tune writes the modulus back
+// at that ratio to the tuned K1, the layer's volume_tets and groups unchanged.
+TEST(TuneCli, TunesATetraLayerOverItsGridPrisms) {
+  test::TempDir d("tune-cli-grid-prisms");
+  const std::string model = cylinders(d, "m.h5", 15, 5);
+  ASSERT_EQ(test::run_cli("build --model " + model + " --tissues " + kTable +
+                          " --layers skin:tetra,fat:lattice --tetra-volume-term prisms --quiet")
+                .code,
+            0);
+  const Layer before = ModelReader(model).layer("skin");
+  ASSERT_EQ(before.volume_group, 4);
+  ASSERT_EQ(before.volume_tets.rows(), 15 * 4 * 16);
+  const auto r = test::run_cli("tune --tissues " + kTable + " --tissue skin --model " + model +
+                               " --max-evaluations 1000 --quiet --report " + (d / "r.json"));
+  ASSERT_EQ(r.code, 0) << r.err;
+  const json rep = json::parse(test::read_file(d / "r.json"));
+  const json& e = rep["parameters"]["tissues"][0]["experiment"];
+  EXPECT_NEAR(e["volume_ratio"].get<double>(), 8, 1e-9);
+  EXPECT_EQ(e["volume_group"].get<int>(), 4);
+  EXPECT_TRUE(e["tetra_grid_prisms"].get<bool>());
+  EXPECT_LT(rep["metrics"]["tissues"][0]["max_relative_error"].get<double>(), 0.02);
+  RecordProperty("skin_axis_ratio", rep["metrics"]["tissues"][0]["axis_ratio"].dump());
+  ModelReader m(model);
+  const tune::SpringParams tuned = tune::params_of(m.tuning("skin"));
+  const Layer after = m.layer("skin");
+  EXPECT_EQ(after.volume_group, 4);
+  EXPECT_EQ(after.volume_tets, before.volume_tets);
+  EXPECT_NEAR(after.volume_modulus, 8 * tuned[0].k1_pa, 1e-9 * after.volume_modulus);
+}

@@ -148,6 +148,55 @@ TEST_F(LoaderTest, TetsAreReadForAVolumeTermOnly) {
   }
 }
 
+// A layer's own tetrahedra for its volume term (Layer::volume_tets, a tetra
+// layer's grid prisms): the term's groups come from them, the guard's from
+// `tets`; ids out of range and rows that are not whole groups are one-line
+// errors.
+TEST_F(LoaderTest, TheVolumeTermsOwnTetsAreReadWhereTheLayerHasThem) {
+  auto o = block.options;
+  o.volume_modulus = {2e6};
+  o.guard_modulus = {3e5};
+  o.guard_ratio = 0.5;
+  auto with = testing::make_layered_block(o);
+  Layer& l = with.layers[0].second;
+  // the term over the cells' first 4 tetrahedra, twice over, in groups of 4
+  const Eigen::Index nc = l.tets.rows() / 6;
+  l.volume_tets.resize(2 * 4 * nc, 4);
+  for (Eigen::Index c = 0; c < nc; ++c)
+    for (int k = 0; k < 8; ++k) l.volume_tets.row(8 * c + k) = l.tets.row(6 * c + k % 4);
+  l.volume_group = 4;
+  const std::string f1 = dir / "own.h5";
+  write_model_file(f1, with);
+  {
+    ModelReader r(f1);
+    const Model m = load_model(r, {});
+    EXPECT_TRUE(read_any(r.h5().stats(), "/layers/dermis/volume_tets"));
+    ASSERT_EQ(m.n_tets, 8 * nc + 6 * nc);
+    ASSERT_EQ(m.n_groups, 2 * nc + 6 * nc);
+    for (std::int32_t g = 0; g < m.n_groups; ++g) {
+      const std::int32_t t0 = m.tet_group_first[g];
+      EXPECT_EQ(m.tet_group_first[g + 1] - t0, g < 2 * nc ? 4 : 1) << g;
+      EXPECT_EQ(m.tet_k[t0], g < 2 * nc ? 2e6 : 3e5) << g;
+      EXPECT_EQ(m.tet_guard[t0], g < 2 * nc ? 0 : 0.5) << g;
+    }
+    // a group's rest volume: its 4 tetrahedra's
+    Real v = 0;
+    for (int t = 0; t < 4; ++t) v += m.tet_rest_volume[static_cast<std::size_t>(t)];
+    EXPECT_NEAR(m.group_rest_volume[0], v, 1e-15);
+    EXPECT_NEAR(m.group_rest_volume[0], m.group_rest_volume[1], 1e-15) << "the same tetrahedra twice";
+  }
+  {
+    h5::File f(f1, h5::File::Mode::read_write);
+    f.set_attr("/layers/dermis", "volume_group", static_cast<std::int64_t>(7));
+  }
+  ASSERT_NE(8 * nc % 7, 0);
+  expect_load_refused(f1, std::to_string(8 * nc) + " volume_tets are not groups of volume_group 7");
+  l.volume_tets(5, 2) = 1 << 30;
+  const std::string f2 = dir / "own_bad.h5";
+  write_model_file(f2, with);
+  expect_load_refused(f2, "volume_tets");
+}
+
 // The inversion guard (Layer::guard_modulus, guard_ratio): its attributes
 // round-trip, its tets are read for it alone (one group each, at the ratio),
 // after the volume term's where both are set; a guard without tets or with a

@@ -1,6 +1,7 @@
 // orthosim build on a model file with analytic /quads: the layers, node sets
 // and report it writes, and bad input (one line, exit 2, file untouched).
 #include "libmodel/format/model.h"
+#include "libmodel/msm/tetra.h"
 #include "libmodel/provenance.h"
 #include "tests/libmodel/msm_fixtures.h"
 #include "tests/test_util.h"
@@ -121,6 +122,12 @@ TEST(BuildCli, BadInputOneLineExit2NoOutput) {
     expect_refused("build --model " + model + " --tissues " + tissues + " " + flag, model, "");
     EXPECT_EQ(test::run_cli("build --model " + model + " --tissues " + tissues + " " + flag).err, text);
   }
+  {
+    expect_refused("build --model " + model + " --tissues " + tissues + " --tetra-volume-term cells", model, "");
+    const auto r = test::run_cli("build --model " + model + " --tissues " + tissues + " --tetra-volume-term cells");
+    EXPECT_NE(r.err.find("--tetra-volume-term"), std::string::npos) << r.err;
+    EXPECT_EQ(std::count(r.err.begin(), r.err.end(), '\n'), 1) << r.err;
+  }
   auto swapped = good;
   std::swap(swapped[0].second, swapped[1].second);
   const std::string m2 = write_model(dir, swapped, "swapped.h5");
@@ -153,23 +160,28 @@ TEST(BuildCli, TheVolumeTermKeepsASoftSkinRightWayOut) {
   const std::string tissues = write_table(dir);
   std::map<std::string, std::int64_t> inverted;
   const std::int64_t skin_tets = 39 * 8 * 2 * 7, lattice_tets = 2 * 39 * 8 * 6;
-  for (const std::string run : {"springs", "guard", "default"}) {
+  const std::int64_t prism_tets = 39 * 8 * 2 * 2 * msm::kGridPrismTets;  // 2 groups a prism, 2 prisms a quad
+  for (const std::string run : {"springs", "guard", "default", "prisms"}) {
     SCOPED_TRACE(run);
     const std::string opts = run == "springs" ? " --poisson-ratio 0.25 --inversion-guard 0"
                              : run == "guard" ? " --poisson-ratio 0.25"
+                             : run == "prisms" ? " --tetra-volume-term prisms"
                                               : "";
     // the skin's guard only where its tetrahedra have no term of their own
-    const bool term = run == "default", guard = run != "springs", skin_guard = run == "guard";
+    const bool prisms = run == "prisms", term = run == "default" || prisms, guard = run != "springs",
+               skin_guard = run == "guard" || prisms;
     const std::string model = write_model(dir, test::cylinder_stack(39, 9), "m" + run + ".h5");
     const auto b = test::run_cli("build --model " + model + " --tissues " + tissues +
                                  " --layers skin:tetra,fat:lattice,muscle:lattice" + opts +
                                  " --quiet --report " + (dir / ("b" + run + ".json")));
     ASSERT_EQ(b.code, 0) << b.err;
     const auto br = nlohmann::json::parse(test::read_file(dir / ("b" + run + ".json")));
-    EXPECT_NEAR(br["metrics"]["layers"][0]["volume_modulus_pa"].get<double>(), term ? 1600.0 : 0.0, 1e-9);
-    EXPECT_EQ(br["metrics"]["layers"][0]["volume_group"].get<int>(), 1);
+    // (over the grid prisms: two groups a prism at half the modulus each)
+    EXPECT_NEAR(br["metrics"]["layers"][0]["volume_modulus_pa"].get<double>(), term ? (prisms ? 800.0 : 1600.0) : 0.0, 1e-9);
+    EXPECT_EQ(br["metrics"]["layers"][0]["volume_group"].get<int>(), prisms ? msm::kGridPrismTets : 1);
+    EXPECT_EQ(br["metrics"]["layers"][0]["volume_tets"].get<std::int64_t>(), prisms ? prism_tets : 0);
     // the guard: the bulk modulus K1 / (3 (1 - 2 nu)) at half the rest volume
-    const double bulk = run == "default" ? 100.0 / (3 * (1 - 2 * 0.49)) : 100.0 / 1.5;
+    const double bulk = term ? 100.0 / (3 * (1 - 2 * 0.49)) : 100.0 / 1.5;
     EXPECT_NEAR(br["metrics"]["layers"][0]["guard_modulus_pa"].get<double>(), skin_guard ? bulk : 0.0, 1e-9);
     EXPECT_EQ(br["metrics"]["layers"][0]["guard_ratio"].get<double>(), skin_guard ? 0.5 : 0.0);
     EXPECT_NEAR(br["metrics"]["layers"][1]["guard_modulus_pa"].get<double>(), guard ? 23 * bulk : 0.0, 1e-6);
@@ -182,8 +194,10 @@ TEST(BuildCli, TheVolumeTermKeepsASoftSkinRightWayOut) {
     EXPECT_EQ(skin.contains("volume_modulus"), term) << skin.dump();
     EXPECT_EQ(skin.contains("guard_modulus"), skin_guard) << skin.dump();
     if (term) {
-      EXPECT_NEAR(skin["volume_modulus"].get<double>(), 1600.0, 1e-9) << skin.dump();
+      EXPECT_NEAR(skin["volume_modulus"].get<double>(), prisms ? 800.0 : 1600.0, 1e-9) << skin.dump();
     }
+    EXPECT_EQ(skin.contains("n_volume_tets") ? skin["n_volume_tets"].get<std::int64_t>() : 0, prisms ? prism_tets : 0)
+        << skin.dump();
     if (guard) {
       EXPECT_NEAR(summary["summary"]["layers"]["fat"]["guard_modulus"].get<double>(), 2300.0 * bulk / 100.0, 1e-9);
     }
@@ -195,7 +209,7 @@ TEST(BuildCli, TheVolumeTermKeepsASoftSkinRightWayOut) {
     const auto j = nlohmann::json::parse(test::read_file(dir / ("r" + run + ".json")));
     // the runtime's tetrahedra: the term's and the guard's (one group each)
     EXPECT_EQ(j["metrics"]["volume_tets"].get<std::int64_t>(),
-              (term || skin_guard ? skin_tets : 0) + (guard ? lattice_tets : 0));
+              (term || skin_guard ? skin_tets : 0) + (prisms ? prism_tets : 0) + (guard ? lattice_tets : 0));
     for (int l = 1; l < 3; ++l) EXPECT_EQ(br["metrics"]["layers"][l]["volume_modulus_pa"].get<double>(), 0.0) << "lattices: opt-in";
     inverted[run] = 0;
     for (const char* layer : {"skin", "fat", "muscle"}) {
@@ -207,6 +221,7 @@ TEST(BuildCli, TheVolumeTermKeepsASoftSkinRightWayOut) {
   EXPECT_GT(inverted["springs"], 100) << "central springs alone fold the soft skin";
   EXPECT_LT(inverted["guard"], inverted["springs"] / 10);
   EXPECT_EQ(inverted["default"], 0);
+  EXPECT_EQ(inverted["prisms"], 0);
   // a guard ratio outside [0, 1) is refused
   const std::string bad = write_model(dir, test::cylinder_stack(39, 9), "bad.h5");
   for (const char* g : {"1", "-0.1", "nan"})
