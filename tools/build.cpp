@@ -156,10 +156,7 @@ void add_build_command(CLI::App& app) {
     try {
       msm::check_build_options(opt);
     } catch (const Error& e) {
-      std::string m = e.message();
-      const std::size_t sp = m.find(' ');
-      std::replace(m.begin(), m.begin() + static_cast<std::ptrdiff_t>(sp == std::string::npos ? 0 : sp), '_', '-');
-      throw UsageError("--" + m);
+      throw flag_error(e);
     }
     std::vector<msm::LayerSpec> requested;
     if (!layers_text.empty()) {

@@ -306,6 +306,13 @@ void parse_roi_flags(const std::string& roi, const std::string& slices, SegmentO
   }
 }
 
+UsageError flag_error(const Error& e) {
+  std::string m = e.message();
+  const std::size_t sp = m.find(' ');
+  std::replace(m.begin(), m.begin() + static_cast<std::ptrdiff_t>(sp == std::string::npos ? 0 : sp), '_', '-');
+  return UsageError("--" + m);
+}
+
 std::vector<int> parse_size(const std::string& text, int n, const std::string& flag) {
   std::vector<int> out;
   std::stringstream s(text);

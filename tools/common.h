@@ -30,6 +30,11 @@ class UsageError : public std::runtime_error {
   using std::runtime_error::runtime_error;
 };
 
+// A library options check's message ("damping_ratio must be in [0, 10]") as
+// the command line's error: the first word's underscores made dashes and
+// "--" before it ("--damping-ratio must be in [0, 10]").
+UsageError flag_error(const Error& e);
+
 // Options every subcommand has.
 struct CommonOptions {
   std::string report;  // --report FILE.json

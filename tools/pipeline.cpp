@@ -354,6 +354,18 @@ int run_stages(Args a, Report& report) {
       throw UsageError("--" + e.message());
     }
   }
+  {
+    // and build's (--tetra-volume-term prisms at --poisson-ratio 0.25), before any stage runs
+    msm::BuildOptions bo;
+    bo.poisson_ratio = a.poisson_ratio;
+    bo.inversion_guard = a.inversion_guard;
+    bo.tetra_volume_term = a.tetra_volume_term;
+    try {
+      msm::check_build_options(bo);
+    } catch (const Error& e) {
+      throw flag_error(e);
+    }
+  }
   check_voxel_flags(parse_list(a.spacing, 3, "--spacing", true), parse_list(a.origin, 3, "--origin", false));
   SegmentOptions region;  // segment's --roi and --slices
   parse_roi_flags(a.roi, a.slices, region);

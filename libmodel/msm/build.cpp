@@ -101,6 +101,8 @@ void validate_options(const BuildOptions& o) {
   if (!(o.inversion_guard >= 0 && o.inversion_guard < 1)) throw Error("", "inversion_guard must be in [0, 1) (0: none)");
   if (o.tetra_volume_term != "tets" && o.tetra_volume_term != "prisms")
     throw Error("", "tetra_volume_term must be tets or prisms, not '" + o.tetra_volume_term + "'");
+  if (o.tetra_volume_term == "prisms" && !(volume_ratio(o.poisson_ratio) > 0))
+    throw Error("", "tetra_volume_term prisms needs a volume term: a Poisson's ratio above 0.25");
 }
 
 }  // namespace

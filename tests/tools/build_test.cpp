@@ -127,6 +127,9 @@ TEST(BuildCli, BadInputOneLineExit2NoOutput) {
     const auto r = test::run_cli("build --model " + model + " --tissues " + tissues + " --tetra-volume-term cells");
     EXPECT_NE(r.err.find("--tetra-volume-term"), std::string::npos) << r.err;
     EXPECT_EQ(std::count(r.err.begin(), r.err.end(), '\n'), 1) << r.err;
+    // and prisms without a term (nu 1/4) asks for nothing: refused, not ignored
+    expect_refused("build --model " + model + " --tissues " + tissues + " --tetra-volume-term prisms --poisson-ratio 0.25",
+                   model, "--tetra-volume-term prisms needs a volume term: a Poisson's ratio above 0.25");
   }
   auto swapped = good;
   std::swap(swapped[0].second, swapped[1].second);

@@ -657,6 +657,12 @@ TEST(Pipeline, BadFlags) {
   EXPECT_EQ(r.code, 2);
   EXPECT_EQ(r.err, "orthosim pipeline: error: --grid: expected sizes like 39x9, got 'abc'\n");
   EXPECT_FALSE(fs::exists(s.dir / "work-grid"));
+  // build's options likewise: the grid prisms' term without a term (nu 1/4)
+  r = test::run_cli("pipeline --stack " + s.stack + " --tissues " + s.tissues + " --spacing 0.75,0.75,3 --work " +
+                    (s.dir / "work-grid") + " --out " + (s.dir / "x.h5") + " --tetra-volume-term prisms --poisson-ratio 0.25");
+  EXPECT_EQ(r.code, 2);
+  EXPECT_EQ(r.err, "orthosim pipeline: error: --tetra-volume-term prisms needs a volume term: a Poisson's ratio above 0.25\n");
+  EXPECT_FALSE(fs::exists(s.dir / "work-grid"));
   // a second outermost layered tissue: refused before any stage, naming the table (it failed in
   // the build stage, naming a model file in the cache)
   nlohmann::json t = nlohmann::json::parse(test::read_file(s.tissues));
