@@ -95,7 +95,7 @@ Model load_model(const ModelReader& r, const LoadRequest& req) {
       if (l.volume_modulus > 0 && f.exists(g + "/volume_tets"))
         l.volume_tets = r.layer_fields(name, {"volume_tets"}).volume_tets;
       if (l.tets.rows() == 0 && (l.guard_modulus > 0 || l.volume_tets.rows() == 0))
-        throw Error(path, g + " has a " + (l.volume_modulus > 0 ? "volume_modulus" : "guard_modulus") + " but no tets");
+        throw Error(path, g + " has a " + (l.guard_modulus > 0 ? "guard_modulus" : "volume_modulus") + " but no tets");
       check_index_range(l.tets, n_global, path, g + "/tets");
       check_index_range(l.volume_tets, n_global, path, g + "/volume_tets");
     }

@@ -143,10 +143,11 @@ struct Layer {
   double volume_modulus = 0;
   int volume_group = 1;
   // The volume term's own tetrahedra, where they are not `tets`: a tetra
-  // layer built with --tetra-volume-term prisms holds its grid prisms here
-  // (msm::grid_prism_tets: the 6 grid nodes under each triangle of a quad, 3
-  // tetrahedra each, volume_group 3; the projected centroids in none), and
-  // the inversion guard keeps `tets`. Empty: the term's groups are rows of
+  // layer built with --tetra-volume-term prisms holds its grid prisms and
+  // their caps here (msm::grid_prism_tets: under each triangle of a quad the
+  // 3 tetrahedra of its 6 grid nodes with the cap of its projected centroid
+  // reversed, then with it, volume_group 4), and the inversion guard keeps
+  // `tets`. Empty: the term's groups are rows of
   // `tets`. Optional dataset "volume_tets" (n x 4, global ids; files before
   // 2026-11-29 have none).
   MatX4i volume_tets;

@@ -96,9 +96,9 @@ struct BuildOptions {
   // "tets", one term per cell tetrahedron (14 a quad: the layer locks in
   // bending, 13.9x stiffer at nu = 0.49 than at 1/4), or "prisms", one per
   // grid prism (grid_prism_tets: the 6 grid nodes under each triangle, 2 a
-  // quad; Layer::volume_tets), which keeps the grid's volume without locking
-  // (1.04x) and leaves the projected centroids to the springs and the
-  // inversion guard.
+  // quad; Layer::volume_tets) with a cap that keeps the projected centroid on
+  // the surface below, which keeps the grid's volume without locking (1.14x)
+  // at 0.62-0.78x the speed (docs/msm.md, "The term over the grid prisms").
   std::string tetra_volume_term = "tets";
   // The lattice layers' volume term (one per hexahedron), off by default:
   // it keeps a lattice from folding through itself, but in cells far from
@@ -140,8 +140,8 @@ struct LayerReport {
   std::array<double, 3> mean_cell_m{0, 0, 0};
   AxisCalibration axes;
   double volume_modulus_pa = 0;    // Layer::volume_modulus (0: none)
-  int volume_group = 1;            // Layer::volume_group: tetrahedra per volume term (tetra 1 or 3 over volume_tets, lattice 6)
-  std::int64_t volume_tets = 0;    // Layer::volume_tets rows (a tetra layer's grid prisms: 6 a quad; 0: the term is over tets)
+  int volume_group = 1;            // Layer::volume_group: tetrahedra per volume term (tetra 1, or 4 over volume_tets; lattice 6)
+  std::int64_t volume_tets = 0;    // Layer::volume_tets rows (a tetra layer's grid prisms and caps: 16 a quad; 0: the term is over tets)
   double guard_modulus_pa = 0;     // Layer::guard_modulus (0: none)
   double guard_ratio = 0;          // Layer::guard_ratio
 };

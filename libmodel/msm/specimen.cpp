@@ -404,8 +404,8 @@ Specimen make_specimen(const SpecimenOptions& o) {
     // the global ids of the cells are the rows of X (top, created, bottom);
     // as build writes them: one term per tetrahedron of a tetra layer, per
     // hexahedron (6 tetrahedra) of a lattice layer
-    // (a tetra layer's term over its grid prisms instead: 3 tetrahedra of the
-    // 6 grid nodes under each triangle, one term a prism)
+    // (a tetra layer's term over its grid prisms and their caps instead,
+    // grid_prism_tets: two groups of 4 a prism)
     const bool grid = o.kind == "tetra" && o.tetra_grid_prisms;
     if (grid && o.volume_group != 0 && o.volume_group != kGridPrismTets)
       throw Error("", "specimen: the grid prisms' terms are groups of " + std::to_string(kGridPrismTets));
