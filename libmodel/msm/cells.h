@@ -14,6 +14,7 @@
 #include <Eigen/Core>
 #include <Eigen/Geometry>
 
+#include <algorithm>
 #include <array>
 #include <cstdint>
 #include <vector>
@@ -99,6 +100,31 @@ std::int64_t drop_zero_stiffness(MergedSprings& m);
 inline double tet_volume(const Eigen::Vector3d& a, const Eigen::Vector3d& b, const Eigen::Vector3d& c,
                          const Eigen::Vector3d& d) {
   return (b - a).dot((c - a).cross(d - a)) / 6.0;
+}
+
+// A corner of the prism over a quad's triangle: the quad's local vertex
+// (0-3) on the top grid, or on the bottom grid (the same vertex one layer down).
+struct PrismCorner {
+  int local;
+  bool bottom;
+};
+
+// The prism over the triangle `tri` (local vertices of a quad whose node ids
+// are `ids`; counter-clockwise seen from the top, the bottom below it) cut
+// into 3 tetrahedra by the side diagonals from the vertex with the smaller
+// id, so that two prisms sharing a side quad cut it the same way. Each
+// tetrahedron is positively oriented where the prism is. The lattice's
+// hexahedra (two prisms each) and the tetra layer's grid prisms
+// (grid_prism_tets) are cut by it.
+inline std::array<std::array<PrismCorner, 4>, 3> prism_cut(const int ids[4], const std::array<int, 3>& tri) {
+  std::array<int, 3> s = tri;
+  std::sort(s.begin(), s.end(), [&](int x, int y) { return ids[x] < ids[y]; });
+  // the sorted order is counter-clockwise iff it is an even permutation of tri
+  const bool ccw = (s[0] == tri[0] && s[1] == tri[1]) || (s[0] == tri[1] && s[1] == tri[2]) ||
+                   (s[0] == tri[2] && s[1] == tri[0]);
+  const PrismCorner a{s[0], false}, b{s[1], false}, c{s[2], false}, a_{s[0], true}, b_{s[1], true}, c_{s[2], true};
+  if (ccw) return {{{a, b_, a_, c_}, {a, b, b_, c_}, {a, c, b, c_}}};
+  return {{{a, a_, b_, c_}, {a, b_, b, c_}, {a, b, c, c_}}};
 }
 
 // Volume enclosed between a top and a bottom grid with the same quads (both

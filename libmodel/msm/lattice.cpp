@@ -275,31 +275,20 @@ LayerCells lattice_cells(const MatX3d& top, const MatX3d& bottom, const MatX4i& 
         b[i] = gid(k + 1, v[i]);
       }
       // volume: two prisms over (0,1,2) and (0,2,3), each cut into 3 tetrahedra
-      // with side diagonals from the smaller local id (consistent between cells)
+      // with side diagonals from the smaller node id (prism_cut: consistent
+      // between cells)
       double V = 0;
       int sub = 0;
       std::array<std::int32_t, 4>* tet = with_tets ? &out.tets[static_cast<std::size_t>(cell) * 6] : nullptr;
-      for (const auto& tri : {std::array<int, 3>{0, 1, 2}, std::array<int, 3>{0, 2, 3}}) {
-        std::array<int, 3> s = tri;
-        std::sort(s.begin(), s.end(), [&](int x, int y) { return v[x] < v[y]; });
-        // sorted order is counter-clockwise iff it is an even permutation of tri
-        const bool ccw = (s[0] == tri[0] && s[1] == tri[1]) || (s[0] == tri[1] && s[1] == tri[2]) ||
-                         (s[0] == tri[2] && s[1] == tri[0]);
-        const Vec3 &a = T[s[0]], &bb = T[s[1]], &c = T[s[2]], &a_ = B[s[0]], &b_ = B[s[1]], &c_ = B[s[2]];
-        const std::int32_t ia = t[s[0]], ib = t[s[1]], ic = t[s[2]], ia_ = b[s[0]], ib_ = b[s[1]], ic_ = b[s[2]];
-        double tv[3];
-        if (ccw) {
-          tv[0] = tet_volume(a, b_, a_, c_), tv[1] = tet_volume(a, bb, b_, c_), tv[2] = tet_volume(a, c, bb, c_);
-          if (tet) *tet++ = {ia, ib_, ia_, ic_}, *tet++ = {ia, ib, ib_, ic_}, *tet++ = {ia, ic, ib, ic_};
-        } else {
-          tv[0] = tet_volume(a, a_, b_, c_), tv[1] = tet_volume(a, b_, bb, c_), tv[2] = tet_volume(a, bb, c, c_);
-          if (tet) *tet++ = {ia, ia_, ib_, ic_}, *tet++ = {ia, ib_, ib, ic_}, *tet++ = {ia, ib, ic, ic_};
-        }
-        for (double x : tv) {
+      const auto P = [&](PrismCorner c) -> const Vec3& { return c.bottom ? B[c.local] : T[c.local]; };
+      const auto I = [&](PrismCorner c) { return c.bottom ? b[c.local] : t[c.local]; };
+      for (const auto& tri : {std::array<int, 3>{0, 1, 2}, std::array<int, 3>{0, 2, 3}})
+        for (const auto& tc : prism_cut(v, tri)) {
+          const double x = tet_volume(P(tc[0]), P(tc[1]), P(tc[2]), P(tc[3]));
+          if (tet) *tet++ = {I(tc[0]), I(tc[1]), I(tc[2]), I(tc[3])};
           sub_v[static_cast<std::size_t>(cell) * 6 + sub++] = x;
           V += x;
         }
-      }
       cell_v[static_cast<std::size_t>(cell)] = V;
       cell_j[static_cast<std::size_t>(cell)] = hex_min_jacobian(T, B);
       // equivalent box: mean edge lengths along u (q0q1, q3q2), v (q1q2, q0q3), w

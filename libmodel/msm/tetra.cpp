@@ -38,17 +38,10 @@ std::vector<std::array<std::int32_t, 4>> grid_prism_tets(const MatX4i& quads, co
         alt ? std::array<std::array<int, 3>, 2>{{{1, 2, 3}, {1, 3, 0}}} : std::array<std::array<int, 3>, 2>{{{0, 1, 2}, {0, 2, 3}}};
     for (int i = 0; i < 2; ++i) {
       const auto& tri = tris[static_cast<std::size_t>(i)];
-      std::array<int, 3> s = tri;
-      std::sort(s.begin(), s.end(), [&](int x, int y) { return v[x] < v[y]; });
-      const bool ccw = (s[0] == tri[0] && s[1] == tri[1]) || (s[0] == tri[1] && s[1] == tri[2]) ||
-                       (s[0] == tri[2] && s[1] == tri[0]);
-      const std::int32_t ia = top_block + v[s[0]], ib = top_block + v[s[1]], ic = top_block + v[s[2]];
-      const std::int32_t ia_ = bottom_block + v[s[0]], ib_ = bottom_block + v[s[1]], ic_ = bottom_block + v[s[2]];
       std::array<std::array<std::int32_t, 4>, 3> g;
-      if (ccw)
-        g = {{{ia, ib_, ia_, ic_}, {ia, ib, ib_, ic_}, {ia, ic, ib, ic_}}};
-      else
-        g = {{{ia, ia_, ib_, ic_}, {ia, ib_, ib, ic_}, {ia, ib, ic, ic_}}};
+      const auto id = [&](PrismCorner c) { return (c.bottom ? bottom_block : top_block) + v[c.local]; };
+      const auto cut = prism_cut(v, tri);
+      for (std::size_t j = 0; j < 3; ++j) g[j] = {id(cut[j][0]), id(cut[j][1]), id(cut[j][2]), id(cut[j][3])};
       // the cap (bottom triangle, centroid) subtracted, then added
       const std::int32_t c = created_block + static_cast<std::int32_t>(2 * q + i);
       const std::int32_t w0 = bottom_block + v[tri[0]], w1 = bottom_block + v[tri[1]], w2 = bottom_block + v[tri[2]];

@@ -18,6 +18,7 @@
 #include <cmath>
 #include <iomanip>
 #include <random>
+#include <set>
 #include <sstream>
 
 using namespace orthosim;
@@ -909,6 +910,50 @@ TEST(MsmLattice, HexJacobianSeparatesValidFromInvertedCells) {
   EXPECT_LE(J(flat), 0);
   auto inside_out = cell(2, 3, 5, V(0, 0, 10), 0);  // the bottom quad above the top one
   EXPECT_LT(J(inside_out), 0);
+}
+
+// prism_cut, for every order of the three vertex ids: the 3 tetrahedra of a
+// sheared prism are positive and fill it, and each side quad (a b b_ a_) is
+// cut by the diagonal from the top of its smaller-id vertex, whichever prism
+// of the two sharing it cuts it (so neighbouring cells agree).
+TEST(MsmLattice, PrismCutFillsThePrismAndAgreesAcrossItsSides) {
+  using V = Eigen::Vector3d;
+  const V top[3] = {V(0, 0, 1), V(2, 0, 1), V(0.5, 1.5, 1)};  // counter-clockwise from +z
+  const V shift(0.3, -0.2, -1.4);                            // bottom under the top, sheared
+  const double prism = 0.5 * (top[1] - top[0]).cross(top[2] - top[0]).z() * 1.4;
+  const std::array<int, 3> tri = {0, 1, 2};
+  std::array<int, 3> perm = {0, 1, 2};
+  int orders = 0;
+  do {
+    const int ids[4] = {10 + perm[0], 10 + perm[1], 10 + perm[2], 99};
+    const auto cut = prism_cut(ids, tri);
+    double sum = 0;
+    std::set<std::pair<int, int>> diagonals;  // (top local, bottom local), a side diagonal
+    for (const auto& t : cut) {
+      V x[4];
+      for (int j = 0; j < 4; ++j) {
+        x[j] = top[t[static_cast<std::size_t>(j)].local] + (t[static_cast<std::size_t>(j)].bottom ? shift : V::Zero());
+        for (int k = 0; k < j; ++k) {
+          const PrismCorner a = t[static_cast<std::size_t>(j)], b = t[static_cast<std::size_t>(k)];
+          if (a.local != b.local && a.bottom != b.bottom)
+            diagonals.insert(a.bottom ? std::pair{b.local, a.local} : std::pair{a.local, b.local});
+        }
+      }
+      const double vol = tet_volume(x[0], x[1], x[2], x[3]);
+      EXPECT_GT(vol, 0.05 * prism);
+      sum += vol;
+    }
+    EXPECT_NEAR(sum, prism, 1e-12 * prism);
+    // a side's diagonal runs from the top of its smaller id to the bottom of the larger
+    std::set<std::pair<int, int>> expected;
+    for (int i = 0; i < 3; ++i) {
+      const int a = i, b = (i + 1) % 3;
+      expected.insert(ids[a] < ids[b] ? std::pair{a, b} : std::pair{b, a});
+    }
+    EXPECT_EQ(diagonals, expected) << "ids " << ids[0] << " " << ids[1] << " " << ids[2];
+    ++orders;
+  } while (std::next_permutation(perm.begin(), perm.end()));
+  EXPECT_EQ(orders, 6);
 }
 
 // A clamped plate's tip stiffness: the specimen's x = 0 face held, its x = L
