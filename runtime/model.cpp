@@ -170,9 +170,16 @@ void Model::finalize() {
   for (auto c : tet) ++tet_first[static_cast<std::size_t>(c) + 1];
   for (std::size_t i = 0; i < n; ++i) tet_first[i + 1] += tet_first[i];
   tet_corner.assign(4 * nt, 0);
+  tet_guard_begin.assign(n, 0);
   {
+    // the volume terms' corners, then the guards': a guard is mostly inactive,
+    // and the solver skips a node's guard corners where none of its guards acts
     std::vector<std::int32_t> fill(tet_first.begin(), tet_first.end() - 1);
-    for (std::size_t e = 0; e < 4 * nt; ++e) tet_corner[static_cast<std::size_t>(fill[tet[e]]++)] = static_cast<std::int32_t>(e);
+    for (std::size_t e = 0; e < 4 * nt; ++e)
+      if (tet_guard[e / 4] == 0) tet_corner[static_cast<std::size_t>(fill[tet[e]]++)] = static_cast<std::int32_t>(e);
+    std::copy(fill.begin(), fill.end(), tet_guard_begin.begin());
+    for (std::size_t e = 0; e < 4 * nt; ++e)
+      if (tet_guard[e / 4] != 0) tet_corner[static_cast<std::size_t>(fill[tet[e]]++)] = static_cast<std::int32_t>(e);
   }
   tet_chunk = std::clamp<std::int32_t>((n_groups + 15) / 16, 64, 2048);
   n_tet_chunks = n_groups == 0 ? 0 : (n_groups + tet_chunk - 1) / tet_chunk;

@@ -102,7 +102,11 @@ struct Model {
   std::vector<Real> tet_rest_volume;         // (n_tets) m^3, signed V0 at rest_x
   std::vector<Real> group_rest_volume;       // (n_groups) m^3, signed sum over the group (non-zero)
   std::vector<std::int32_t> tet_first;       // (n_nodes + 1) node i's corners: tet_corner[tet_first[i] .. tet_first[i+1])
-  std::vector<std::int32_t> tet_corner;      // (4 n_tets) 4 t + c for corner c of tetrahedron t, ascending per node
+  // (4 n_tets) 4 t + c for corner c of tetrahedron t: per node, the corners of
+  // volume-term groups first, then those of inversion guards from
+  // tet_guard_begin[i] on, each part ascending (so a group's come together)
+  std::vector<std::int32_t> tet_corner;
+  std::vector<std::int32_t> tet_guard_begin; // (n_nodes) where node i's guard corners start in tet_corner
   std::int32_t tet_chunk = 1;                // groups per work chunk (a function of n_groups only)
   std::int32_t n_tet_chunks = 0;
 

@@ -124,6 +124,7 @@ void ensure_scratch(const Model& m, State& s, bool implicit) {
   if (sc.tet_g.size() != 12 * nt) sc.tet_g.assign(12 * nt, 0);
   for (auto* v : {&sc.tet_p, &sc.tet_c, &sc.tet_s})
     if (v->size() != nt) v->assign(nt, 0);
+  if (sc.guard_acts.size() != n3 / 3) sc.guard_acts.assign(n3 / 3, 0);
   if (sc.tet_partial.size() != static_cast<std::size_t>(m.n_tet_chunks)) sc.tet_partial.assign(static_cast<std::size_t>(m.n_tet_chunks), 0);
   if (s.obstacles) {
     if (s.contact_obstacle.size() != n3 / 3) s.contact_obstacle.assign(n3 / 3, -1);
@@ -269,6 +270,7 @@ Real tet_pass(const Model& m, State& s, Real h2) {
       for (std::int32_t t = t0; t < t1; ++t) {
         sc.tet_p[t] = k * strain;
         sc.tet_c[t] = c;
+        if (c == 0) sc.tet_s[t] = 0;  // the PCG product leaves such groups out
       }
       u += Real(0.5) * k * av0 * strain * strain;
     }
@@ -282,12 +284,15 @@ Real tet_pass(const Model& m, State& s, Real h2) {
 // The volume term's force on node i, -sum over its corners of p_t g_tc, and
 // (implicit) the Gauss-Newton diagonal block, the sum over its groups of
 // tet_c G G^T with G the node's summed corner gradients in the group, and
-// sum |f|^2 per group. A node's corners are in ascending tetrahedron order,
-// so each group's come together.
+// sum |f|^2 per group. A node's corners are the volume terms' then the
+// guards', each in ascending tetrahedron order, so each group's come
+// together. A guard that does not act (p = 0, and c = 0) adds nothing and is
+// skipped; guard_acts says whether any of the node's acts.
 struct TetNodeTerms {
   Vec3 f;
   Sym3 block;
   Real f2 = 0;
+  bool guard_acts = false;
 };
 template <bool kImplicit>
 TetNodeTerms tet_node_terms(const Model& m, const Scratch& sc, std::int32_t i) {
@@ -303,8 +308,12 @@ TetNodeTerms tet_node_terms(const Model& m, const Scratch& sc, std::int32_t i) {
       out.block += outer(sc.tet_c[last_t], G);
     }
   };
-  for (std::int32_t q = m.tet_first[i], qe = m.tet_first[i + 1]; q < qe; ++q) {
+  for (std::int32_t q = m.tet_first[i], qg = m.tet_guard_begin[i], qe = m.tet_first[i + 1]; q < qe; ++q) {
     const std::int32_t e = m.tet_corner[static_cast<std::size_t>(q)], t = e >> 2;
+    if (q >= qg) {
+      if (sc.tet_p[t] == 0) continue;
+      out.guard_acts = true;
+    }
     if (m.tet_group[t] != group) {
       flush();
       group = m.tet_group[t];
@@ -589,6 +598,7 @@ Real apply_matrix(const Model& m, State& s, const Real* p, const Real* z, Real b
   Real* partial = sc.partial.data();
   const bool constrained = sc.constrained;
   const Real* cn = sc.constraint.data();
+  const std::uint8_t* acts = sc.guard_acts.data();
   auto dir = [&](std::int32_t j) {
     if constexpr (kRead == Read::plain) return load3(p, j);
     else if constexpr (kRead == Read::fused_first) return load3(z, j);
@@ -603,10 +613,7 @@ Real apply_matrix(const Model& m, State& s, const Real* p, const Real* z, Real b
     for_tet_chunks(m, [&](int ch) {
       for (std::int32_t g = ch * m.tet_chunk, ge = std::min(m.n_groups, (ch + 1) * m.tet_chunk); g < ge; ++g) {
         const std::int32_t t0 = m.tet_group_first[g], t1 = m.tet_group_first[g + 1];
-        if (sc.tet_c[t0] == 0) {  // an inversion guard above its ratio
-          for (std::int32_t t = t0; t < t1; ++t) sc.tet_s[t] = 0;
-          continue;
-        }
+        if (sc.tet_c[t0] == 0) continue;  // an inversion guard above its ratio (tet_pass set its tet_s to 0)
         Real gp = 0;
         for (std::int32_t t = t0; t < t1; ++t) {
           const std::int32_t* c = &m.tet[4 * static_cast<std::size_t>(t)];
@@ -627,8 +634,8 @@ Real apply_matrix(const Model& m, State& s, const Real* p, const Real* z, Real b
       }
       Vec3 yi = sym_at(D, i) * pi;
       for (std::int32_t k = nbr_first[i], ke = nbr_first[i + 1]; k < ke; ++k) yi -= sym_at(O, k) * dir(nbr[k]);
-      if (has_tets)
-        for (std::int32_t q = m.tet_first[i], qe = m.tet_first[i + 1]; q < qe; ++q) {
+      if (has_tets)  // the volume terms' corners, and the guards' where one acts
+        for (std::int32_t q = m.tet_first[i], qe = acts[i] ? m.tet_first[i + 1] : m.tet_guard_begin[i]; q < qe; ++q) {
           const std::int32_t e = m.tet_corner[static_cast<std::size_t>(q)];
           yi += sc.tet_s[e >> 2] * load3(sc.tet_g.data(), e);
         }
@@ -1317,6 +1324,7 @@ Check implicit_substep(const Model& m, State& s, Real t, Real h, const SolverOpt
       Sym3 Dt;
       if (has_tets) {
         const TetNodeTerms tt = tet_node_terms<true>(m, sc, i);
+        sc.guard_acts[i] = tt.guard_acts;
         fi += tt.f;
         fs2 += tt.f2;
         Dt = tt.block;

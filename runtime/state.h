@@ -125,7 +125,8 @@ struct Scratch {
   std::vector<Real> tet_g;         // (n_tets x 4 x 3) m^2: dV/dx of each corner at the substep's start
   std::vector<Real> tet_p;         // (n_tets) Pa: k (V - V0) / |V0|, the force on corner c being -tet_p g_c
   std::vector<Real> tet_c;         // (n_tets) implicit: h^2 k / |V0|, the Gauss-Newton block h^2 (k/|V0|) g g^T
-  std::vector<Real> tet_s;         // (n_tets) implicit: tet_c g.p of the PCG product
+  std::vector<Real> tet_s;         // (n_tets) implicit: tet_c g.p of the PCG product (0 for a guard that does not act)
+  std::vector<std::uint8_t> guard_acts;  // (n_nodes) implicit: node i has a corner in an acting inversion guard
   std::vector<Real> tet_partial;   // (n_tet_chunks) per-chunk energy sums
   // implicit, with obstacles: the unit normal of each node's hold in this
   // substep's solve (zero: none), the filter I - n n^T
