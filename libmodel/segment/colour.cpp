@@ -136,6 +136,18 @@ int ColourModel::nearest(const std::array<double, 3>& lab) const {
   return best;
 }
 
+int ColourModel::nearest_table_rgb(const std::uint8_t* rgb) const {
+  int best = 0;
+  double bd = 1e300;
+  for (std::size_t i = 0; i < centres.size(); ++i) {
+    const auto& t = centres[i].table_rgb;
+    const double d0 = rgb[0] - t[0], d1 = rgb[1] - t[1], d2 = rgb[2] - t[2];
+    const double d = d0 * d0 + d1 * d1 + d2 * d2;
+    if (d < bd) bd = d, best = static_cast<int>(i);
+  }
+  return best;
+}
+
 int ColourModel::nearest_allowed(const std::array<double, 3>& lab, const std::vector<std::uint8_t>& allowed) const {
   int best = -1;
   double bd = 1e300;
@@ -186,6 +198,20 @@ struct Samples {
 // per-channel median of its 3 x 3 neighbourhood (clipped at the border):
 // the calibration's samples, whose noise it cuts to ~0.4 sigma (a tissue's
 // mean colour is what calibration estimates) while keeping edges.
+// The median of 9 values by the 19 compare-exchanges of Paeth's network
+// (Graphics Gems, 1990), branch-free: nth_element over a 9-array took a sixth
+// of a quiet stack's run once the normalisation's fits sampled medians too.
+std::uint8_t median9(std::array<std::uint8_t, 9> p) {
+  auto sort2 = [&](int a, int b) {
+    const std::uint8_t lo = std::min(p[a], p[b]), hi = std::max(p[a], p[b]);
+    p[a] = lo, p[b] = hi;
+  };
+  sort2(1, 2), sort2(4, 5), sort2(7, 8), sort2(0, 1), sort2(3, 4), sort2(6, 7), sort2(1, 2), sort2(4, 5), sort2(7, 8);
+  sort2(0, 3), sort2(5, 8), sort2(4, 7), sort2(3, 6), sort2(1, 4), sort2(2, 5), sort2(4, 7), sort2(4, 2), sort2(6, 4);
+  sort2(4, 2);
+  return p[4];
+}
+
 Samples grid_samples(const std::uint8_t* rgb, int nx, int ny, int stride, bool median3 = false) {
   Samples s;
   const int off = stride / 2;
@@ -195,7 +221,14 @@ Samples grid_samples(const std::uint8_t* rgb, int nx, int ny, int stride, bool m
   for (int y = y0; y < ny; y += stride)
     for (int x = x0; x < nx; x += stride) {
       const std::uint8_t* p = rgb + (static_cast<std::size_t>(y) * nx + x) * 3;
-      if (median3) {
+      if (median3 && x > 0 && y > 0 && x + 1 < nx && y + 1 < ny) {
+        const std::size_t row = static_cast<std::size_t>(nx) * 3;
+        for (int c = 0; c < 3; ++c) {
+          const std::uint8_t* q = p + c;
+          s.rgb.push_back(median9({q[-row - 3], q[-row], q[-row + 3], q[-3], q[0], q[3], q[row - 3], q[row], q[row + 3]}));
+        }
+        s.raw.insert(s.raw.end(), p, p + 3);
+      } else if (median3) {  // at the border: the neighbours inside the slice
         for (int c = 0; c < 3; ++c) {
           std::array<std::uint8_t, 9> w{};
           int k = 0;
@@ -288,9 +321,11 @@ GainField fit_gain(const ColourModel& m, const std::uint8_t* rgb, int nx, int ny
   GainField g;
   if (mode == SegmentOptions::Normalise::none || m.bg_reference.empty()) return g;
   // at most about 96 samples along the shorter side whatever the slice
-  // size: plenty for 3 parameters
+  // size: plenty for 3 parameters. Each is the 3 x 3 median, as the
+  // calibration's reference is: on single pixels the selection by nearest
+  // colour below cut a noisy background's tail the reference's medians keep.
   const int stride = std::max(1, (std::min(nx, ny) + 95) / 96);
-  const Samples s = grid_samples(rgb, nx, ny, stride);
+  const Samples s = grid_samples(rgb, nx, ny, stride, /*median3=*/true);
   std::vector<std::uint8_t> corr;
   std::vector<std::array<double, 3>> I, T;
   std::vector<double> u, v;
@@ -300,7 +335,7 @@ GainField fit_gain(const ColourModel& m, const std::uint8_t* rgb, int nx, int ny
     I.clear(), T.clear(), u.clear(), v.clear();
     double umin = 1, umax = -1, vmin = 1, vmax = -1;
     for (std::size_t i = 0; i < s.u.size(); ++i) {
-      const int c = m.centre_of(&corr[3 * i]);
+      const int c = m.nearest_table_rgb(&corr[3 * i]);
       if (m.centres[static_cast<std::size_t>(c)].label != 0) continue;
       I.push_back({double(s.rgb[3 * i]), double(s.rgb[3 * i + 1]), double(s.rgb[3 * i + 2])});
       T.push_back(m.bg_reference[static_cast<std::size_t>(c)]);
@@ -540,22 +575,34 @@ void calibrate(ColourModel& m, const std::vector<std::vector<std::uint8_t>>& sli
     }
   }
 
-  // 1. reference background colours: medians of the raw background pixels
+  // 1. reference background colours: over the calibration samples the
+  // nearest colour calls background, the same estimator as fit_gain's per
+  // slice (its trimmed least squares, a constant fit against 1), so a slice
+  // lit as the calibration's gets a gain of 1 whatever the noise. The
+  // selection by nearest colour truncates a noisy background's distribution
+  // on the side of the tissues next to it; a median here against the fit's
+  // trimmed mean there (and the fit on single pixels, the reference on 3 x 3
+  // medians, before 2026-11-29) made that truncation a gain of 1.03-1.09 at
+  // 8-bit noise 32, every colour moved by it, and the calibration collapsed.
   m.bg_reference.clear();
   if (nb > 0 && o.normalise != SegmentOptions::Normalise::none) {
-    std::vector<std::array<std::vector<double>, 3>> vals(static_cast<std::size_t>(nb));
+    std::vector<std::vector<std::array<double, 3>>> vals(static_cast<std::size_t>(nb));
     for (const auto& s : samples) {
       for (std::size_t i = 0; i < s.u.size(); ++i) {
-        const int c = m.centre_of(&s.rgb[3 * i]);
+        const int c = m.nearest_table_rgb(&s.rgb[3 * i]);
         if (m.centres[static_cast<std::size_t>(c)].label != 0) continue;
-        for (int k = 0; k < 3; ++k) vals[static_cast<std::size_t>(c)][k].push_back(s.rgb[3 * i + k]);
+        vals[static_cast<std::size_t>(c)].push_back({double(s.rgb[3 * i]), double(s.rgb[3 * i + 1]), double(s.rgb[3 * i + 2])});
       }
     }
     bool any = false;
     for (int c = 0; c < nb; ++c) {
       std::array<double, 3> ref = m.centres[static_cast<std::size_t>(c)].table_rgb;
-      if (vals[static_cast<std::size_t>(c)][0].size() >= 32) {
-        for (int k = 0; k < 3; ++k) ref[k] = std::max(1.0, median_inplace(vals[static_cast<std::size_t>(c)][k]));
+      const auto& I = vals[static_cast<std::size_t>(c)];
+      if (I.size() >= 32) {
+        const std::vector<std::array<double, 3>> ones(I.size(), {1.0, 1.0, 1.0});
+        const std::vector<double> zero(I.size(), 0.0);
+        const GainField level = fit_samples(I, ones, zero, zero, /*plane=*/false);
+        for (int k = 0; k < 3; ++k) ref[k] = std::max(1.0, level.coef[k][0]);
         any = true;
       }
       m.bg_reference.push_back(ref);

@@ -101,6 +101,12 @@ struct ColourModel {
   }
   // Best centre (first of equals) under score.
   int nearest(const std::array<double, 3>& lab) const;
+  // Best centre by the squared RGB distance to the table colours (table_rgb,
+  // after the exposure): the background pick of the normalisation's reference
+  // and of its per-slice fits, one rule for both whatever the calibration
+  // did. RGB, where sensor noise is isotropic, so the nearest colour is the
+  // likelier one, and no conversion per sample.
+  int nearest_table_rgb(const std::uint8_t* rgb) const;
   // Best centre whose label is allowed[label] != 0; -1 if none.
   int nearest_allowed(const std::array<double, 3>& lab, const std::vector<std::uint8_t>& allowed) const;
 
