@@ -194,10 +194,6 @@ struct Samples {
   std::vector<double> u, v;       // position relative to the centre, in image sizes
 };
 
-// The pixels on a grid of the given stride. median3: each sample is the
-// per-channel median of its 3 x 3 neighbourhood (clipped at the border):
-// the calibration's samples, whose noise it cuts to ~0.4 sigma (a tissue's
-// mean colour is what calibration estimates) while keeping edges.
 // The median of 9 values by the 19 compare-exchanges of Paeth's network
 // (Graphics Gems, 1990), branch-free: nth_element over a 9-array took a sixth
 // of a quiet stack's run once the normalisation's fits sampled medians too.
@@ -212,6 +208,10 @@ std::uint8_t median9(std::array<std::uint8_t, 9> p) {
   return p[4];
 }
 
+// The pixels on a grid of the given stride. median3: each sample is the
+// per-channel median of its 3 x 3 neighbourhood (clipped at the border):
+// the calibration's samples, whose noise it cuts to ~0.4 sigma (a tissue's
+// mean colour is what calibration estimates) while keeping edges.
 Samples grid_samples(const std::uint8_t* rgb, int nx, int ny, int stride, bool median3 = false) {
   Samples s;
   const int off = stride / 2;
@@ -575,15 +575,17 @@ void calibrate(ColourModel& m, const std::vector<std::vector<std::uint8_t>>& sli
     }
   }
 
-  // 1. reference background colours: over the calibration samples the
-  // nearest colour calls background, the same estimator as fit_gain's per
-  // slice (its trimmed least squares, a constant fit against 1), so a slice
-  // lit as the calibration's gets a gain of 1 whatever the noise. The
-  // selection by nearest colour truncates a noisy background's distribution
-  // on the side of the tissues next to it; a median here against the fit's
-  // trimmed mean there (and the fit on single pixels, the reference on 3 x 3
-  // medians, before 2026-11-29) made that truncation a gain of 1.03-1.09 at
-  // 8-bit noise 32, every colour moved by it, and the calibration collapsed.
+  // 1. reference background colours: the calibration samples (3 x 3
+  // medians) whose nearest table colour is a background's, estimated as
+  // fit_gain estimates each slice's (its trimmed least squares, a constant
+  // fit against 1): the same pick, samples and estimator on both sides, so a
+  // slice lit as the calibration's gets a gain of 1 whatever the noise. The
+  // pick truncates a noisy background's distribution on the side of the
+  // tissues next to it in colour. Before 2026-11-29 the two sides cut it
+  // differently (here a median of medians picked by the table, there a
+  // trimmed mean of single pixels picked by the calibrated rule): gains of
+  // 1.03-1.09 at 8-bit noise 32, every colour moved by them, and the
+  // calibration collapsed.
   m.bg_reference.clear();
   if (nb > 0 && o.normalise != SegmentOptions::Normalise::none) {
     std::vector<std::vector<std::array<double, 3>>> vals(static_cast<std::size_t>(nb));
