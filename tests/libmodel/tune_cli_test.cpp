@@ -545,6 +545,24 @@ TEST(TuneCli, ANonFiniteSpringIsRefused) {
   }
 }
 
+// The wall-clock budget stops a run that --max-evaluations does not bound
+// (0: no limit), says so in one warning (its result depends on the machine's
+// speed) and in the report's stop, and still writes the result. (The other
+// tests here bound tune by their experiments alone: tune_cli.)
+TEST(TuneCli, TheWallClockBudgetStopsARunAndSaysSo) {
+  test::TempDir d("tune-cli-budget");
+  const auto r = tune_cli("tune --tissues " + kTable + " --tissue skin --max-evaluations 0 --budget-s 0.2 --report " +
+                          (d / "r.json") + " --out " + (d / "t.json"));
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_NE(r.err.find("tune: warning: skin stopped on the wall-clock budget (--budget-s) after "), std::string::npos)
+      << r.err;
+  const json rep = json::parse(test::read_file(d / "r.json"));
+  const json& t = rep["metrics"]["tissues"][0];
+  EXPECT_EQ(t["stop"], "budget") << t.dump();
+  EXPECT_GT(t["evaluations"].get<long>(), 0);
+  EXPECT_TRUE(fs::exists(d / "t.json"));
+}
+
 // Found by corrupting a model one field at a time (2026-11-28): a spring
 // ending on no node was tuned and written back as it came, exit 0; two layers
 // at one order left one of them out of the stack tune reads the layer below from.
