@@ -186,7 +186,9 @@ void add_tune_command(CLI::App& app) {
                   "into it");
   sub->add_option("--seed", opt.seed, "random seed")
       ->check(seed_check())->capture_default_str();
-  sub->add_option("--budget-s", opt.budget_s, "wall-clock budget per tissue (s)")->capture_default_str();
+  sub->add_option("--budget-s", opt.budget_s,
+                  "wall-clock budget per tissue (s): a safety net; a run it stops depends on the machine's speed")
+      ->capture_default_str();
   sub->add_option("--max-evaluations", opt.max_evaluations,
                   "virtual experiments per tissue (0: no limit); a run bounded by this, not by time, is reproducible")
       // (1e20 was read as 2^63 - 1, silently)

@@ -73,8 +73,12 @@ struct TuneOptions {
   std::string polish = "bobyqa";  // local polish after an NLopt global method: "bobyqa" | "sbplx" | "none"
   double polish_share = 0.3;      // share of the budget and evaluations kept for the polish, [0, 1)
   std::uint64_t seed = 1;
-  double budget_s = 30;           // wall-clock budget per tissue (s), > 0
-  std::int64_t max_evaluations = 0;  // 0: no limit (then the run stops on the target or the budget)
+  // The run stops on the target, on max_evaluations or on budget_s. The
+  // defaults are orthosim pipeline's: bounded by the experiments, so the same
+  // inputs and seed give the same laws on any machine; the wall-clock budget
+  // is a safety net (a run it stops depends on the machine's speed).
+  double budget_s = 300;             // wall-clock budget per tissue (s), > 0
+  std::int64_t max_evaluations = 4000;  // 0: no limit (then the run stops on the target or the budget)
   double tolerance = 1e-3;        // stopping target: every weighted parameter within this relative error, (0, 0.5)
   bool per_class = false;         // each spring class its own law (Space); default: one law for all
   AnnealOptions anneal = default_anneal();  // "sa"; its seed, max_evaluations and budget_s are set from the fields above

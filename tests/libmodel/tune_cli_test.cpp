@@ -545,6 +545,33 @@ TEST(TuneCli, ANonFiniteSpringIsRefused) {
   }
 }
 
+// By default tune is bounded by its experiments (4000, orthosim pipeline's
+// --tune-evaluations), so a tissue whose tolerance is out of reach gives the
+// same laws on any machine: until 2026-11-29 the default was no limit and a
+// 30 s clock, where it stopped wherever the machine's speed put it.
+TEST(TuneCli, TheDefaultRunIsBoundedByItsExperiments) {
+  test::TempDir d("tune-cli-default");
+  std::string first;
+  for (int run = 0; run < 2; ++run) {
+    const auto r = test::run_cli("tune --tissues " + kTable + " --tissue fat --tolerance 1e-9 --quiet --report " +
+                                 (d / "r.json") + " --out " + (d / "t.json"));
+    ASSERT_EQ(r.code, 0) << r.err;
+    const json rep = json::parse(test::read_file(d / "r.json"));
+    const json& t = rep["metrics"]["tissues"][0];
+    EXPECT_EQ(t["stop"], "evaluations") << t.dump();
+    EXPECT_EQ(rep["parameters"]["max_evaluations"], 4000) << rep["parameters"].dump();
+    json tuned = json::parse(test::read_file(d / "t.json"));
+    std::function<void(json&)> strip = [&](json& j) {  // the timings aside
+      if (j.is_object()) j.erase("seconds"), j.erase("seconds_per_experiment");
+      if (j.is_object() || j.is_array())
+        for (auto& e : j) strip(e);
+    };
+    strip(tuned);
+    if (run == 0) first = tuned.dump();
+    else EXPECT_EQ(tuned.dump(), first);
+  }
+}
+
 // The wall-clock budget stops a run that --max-evaluations does not bound
 // (0: no limit), says so in one warning (its result depends on the machine's
 // speed) and in the report's stop, and still writes the result. (The other
