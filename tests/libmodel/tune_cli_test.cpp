@@ -39,18 +39,19 @@ std::string table_with(const test::TempDir& d, const std::string& tissue, const 
   return p;
 }
 
-// `orthosim tune` bounded by its experiments alone: the tool's default
-// wall-clock budget (--budget-s 30) would cut a slow build's run short (the
-// asan preset's experiments are 15x slower, and the grid prisms' fit stopped
-// after 119 of its 1000), so the result would depend on the machine. A command
-// that sets its own budget (the refusals) keeps it.
+// `orthosim tune` bounded by its experiments alone: the tool's wall-clock
+// budget (30 s by default until 2026-11-29, 300 s since) cuts a slow build's
+// run short (the asan preset's experiments are 15x slower, and the grid
+// prisms' fit stopped after 119 of its 1000), so the result would depend on
+// the machine. A command that sets its own budget (the refusals, the budget's
+// own test) keeps it.
 test::RunResult tune_cli(const std::string& cmd) {
   return test::run_cli(cmd.find("--budget-s") == std::string::npos ? cmd + " --budget-s 86400" : cmd);
 }
 
 void expect_refused(const test::TempDir& d, const std::string& args, const std::string& needle) {
   const auto r = tune_cli("tune " + args + " --out " + (d / "bad.json") + " --plot " + (d / "bad_plots") +
-                               " --report " + (d / "bad_report.json") + " --max-evaluations 50");
+                          " --report " + (d / "bad_report.json") + " --max-evaluations 50");
   EXPECT_EQ(r.code, 2) << args << "\n" << r.err;
   EXPECT_EQ(test::count_lines(r.err), 1) << r.err;
   EXPECT_EQ(r.err.rfind("orthosim tune: error: ", 0), 0u) << r.err;
@@ -82,7 +83,7 @@ std::pair<std::string, Layer> built_fat(const test::TempDir& d, int nu, int nv, 
 TEST(TuneCli, TunesTheSampleTableWithTableReportAndPlots) {
   test::TempDir d("tune-cli");
   const auto r = tune_cli("tune --tissues " + kTable + " --seed 2 --max-evaluations 4000 --out " + (d / "tuned.json") +
-                               " --plot " + (d / "plots") + " --report " + (d / "r.json"));
+                          " --plot " + (d / "plots") + " --report " + (d / "r.json"));
   ASSERT_EQ(r.code, 0) << r.err;
   EXPECT_NE(r.out.find("tune: skin"), std::string::npos) << r.out;
 
@@ -143,14 +144,14 @@ TEST(TuneCli, TunesTheSampleTableWithTableReportAndPlots) {
 TEST(TuneCli, AStaleTunedBlockIsNotCopied) {
   test::TempDir d("tune-cli-stale");
   const auto r1 = tune_cli("tune --tissues " + kTable + " --tissue fat --tissue muscle --max-evaluations 200 --quiet --out " +
-                                (d / "t1.json"));
+                           (d / "t1.json"));
   ASSERT_EQ(r1.code, 0) << r1.err;
   json t = json::parse(test::read_file(d / "t1.json"));
   for (json& e : t["tissues"])
     if (e["name"] == "fat") e["mechanics"]["k_kpa"] = 10;
   test::write_file(d / "t2.json", t.dump(2));
   const auto r2 = tune_cli("tune --tissues " + (d / "t2.json") + " --tissue skin --max-evaluations 200 --quiet --out " +
-                                (d / "t3.json"));
+                           (d / "t3.json"));
   ASSERT_EQ(r2.code, 0) << r2.err;
   EXPECT_NE(r2.err.find("tissue 'fat': its 'tuned' block was for other targets"), std::string::npos) << r2.err;
   EXPECT_EQ(r2.err.find("'muscle'"), std::string::npos) << r2.err;
@@ -178,7 +179,7 @@ TEST(TuneCli, SameSeedSameTable) {
   test::TempDir d("tune-cli-seed");
   for (const char* o : {"a.json", "b.json"}) {
     const auto r = tune_cli("tune --tissues " + kTable + " --tissue skin --seed 4 --max-evaluations 300 "
-                                 "--tolerance 1e-6 --quiet --out " + (d / o));
+                            "--tolerance 1e-6 --quiet --out " + (d / o));
     ASSERT_EQ(r.code, 0) << r.err;
     EXPECT_EQ(r.out, "");
   }
@@ -200,7 +201,7 @@ TEST(TuneCli, TunesABuiltModel) {
   ASSERT_EQ(b.code, 0) << b.err;
   const Layer before = ModelReader(model).layer("skin");
   const auto r = tune_cli("tune --tissues " + kTable + " --tissue skin --model " + model +
-                               " --max-evaluations 4000 --quiet --report " + (d / "r.json"));
+                          " --max-evaluations 4000 --quiet --report " + (d / "r.json"));
   ASSERT_EQ(r.code, 0) << r.err;
   ModelReader m(model);
   ASSERT_TRUE(m.has("/tuning/skin"));
@@ -229,7 +230,7 @@ TEST(TuneCli, TunesABuiltModel) {
   EXPECT_NE(after.volume_modulus, before.volume_modulus);
   // a second tune starts from the recorded laws
   const auto r2 = tune_cli("tune --tissues " + kTable + " --tissue skin --model " + model +
-                                " --max-evaluations 4000 --quiet");
+                           " --max-evaluations 4000 --quiet");
   ASSERT_EQ(r2.code, 0) << r2.err;
   const Layer again = ModelReader(model).layer("skin");
   const tune::SpringParams tuned2 = tune::params_of(ModelReader(model).tuning("skin"));
@@ -239,7 +240,7 @@ TEST(TuneCli, TunesABuiltModel) {
   // as it was (it was updated, then --out failed)
   const std::string bytes = test::read_file(model);
   const auto r3 = tune_cli("tune --tissues " + kTable + " --tissue skin --model " + model +
-                                " --max-evaluations 4000 --quiet --out " + (d / "nodir/t.json"));
+                           " --max-evaluations 4000 --quiet --out " + (d / "nodir/t.json"));
   EXPECT_EQ(r3.code, 2) << r3.err;
   EXPECT_NE(r3.err.find((d / "nodir/t.json") + ": output directory " + (d / "nodir") + " does not exist"), std::string::npos)
       << r3.err;
@@ -248,7 +249,7 @@ TEST(TuneCli, TunesABuiltModel) {
   // tuning, the model updated and --out written)
   test::write_file(d / "afile", "x");
   const auto r4 = tune_cli("tune --tissues " + kTable + " --tissue skin --model " + model +
-                                " --max-evaluations 4000 --quiet --out " + (d / "t4.json") + " --plot " + (d / "afile/plots"));
+                           " --max-evaluations 4000 --quiet --out " + (d / "t4.json") + " --plot " + (d / "afile/plots"));
   EXPECT_EQ(r4.code, 2) << r4.err;
   EXPECT_EQ(r4.err, "orthosim tune: error: " + (d / "afile/plots") + ": " + (d / "afile") + " is not a directory\n");
   EXPECT_EQ(test::read_file(model), bytes) << "the model was changed";
@@ -268,7 +269,7 @@ TEST(TuneCli, TheSameRunGivesTheSameBytesWithSourceDateEpoch) {
     auto b = test::run_cli("build --model " + (d / "m.h5") + " --tissues " + kTable + " --quiet");
     EXPECT_EQ(b.code, 0) << b.err;
     const auto r = tune_cli("tune --tissues " + kTable + " --tissue fat --model " + (d / "m.h5") +
-                                 " --max-evaluations 40 --quiet");
+                            " --max-evaluations 40 --quiet");
     EXPECT_EQ(r.code, 0) << r.err;
     return test::read_file(d / "m.h5");
   };
@@ -362,7 +363,7 @@ TEST(TuneCli, TheSpecimenHasTheBuildsCells) {
   const auto [model, before] = built_fat(d, 15, 5, "--body-diagonals");
   ASSERT_GT(before.springs.rows(), 0);
   const auto r = tune_cli("tune --tissues " + kTable + " --tissue fat --model " + model +
-                               " --max-evaluations 2000 --quiet --report " + (d / "r.json"));
+                          " --max-evaluations 2000 --quiet --report " + (d / "r.json"));
   ASSERT_EQ(r.code, 0) << r.err;
   const json rep = json::parse(test::read_file(d / "r.json"));
   EXPECT_TRUE(rep["parameters"]["tissues"][0]["experiment"]["body_diagonals"].get<bool>());
@@ -411,7 +412,7 @@ TEST(TuneCli, TheSpecimenHasTheBuildsAxisCorrection) {
       }
     }
     const auto r = tune_cli("tune --tissues " + kTable + " --tissue fat --model " + model +
-                                 " --max-evaluations 3000 --quiet --report " + (d / "r.json"));
+                            " --max-evaluations 3000 --quiet --report " + (d / "r.json"));
     ASSERT_EQ(r.code, 0) << r.err;
     const json rep = json::parse(test::read_file(d / "r.json"));
     EXPECT_EQ(rep["parameters"]["tissues"][0]["experiment"]["axis_correction"].get<bool>(), corrected);
@@ -512,7 +513,7 @@ TEST(TuneCli, AFailedTuneChangesNoModel) {
   const std::string before = test::read_file(model);
   fs::create_directories((d / "plots") + "/fat.png");
   const auto r = tune_cli("tune --tissues " + kTable + " --model " + model + " --tissue fat --max-evaluations 50" +
-                               " --plot " + (d / "plots") + " --out " + (d / "out.json"));
+                          " --plot " + (d / "plots") + " --out " + (d / "out.json"));
   EXPECT_EQ(r.code, 2) << r.err;
   EXPECT_EQ(test::count_lines(r.err), 1) << r.err;
   EXPECT_NE(r.err.find((d / "plots") + "/fat.png: a folder is in the way of the plot"), std::string::npos) << r.err;
@@ -649,7 +650,7 @@ TEST(TuneCli, TunesALatticeLayerWithItsVolumeTerm) {
   ASSERT_GT(before.volume_modulus, 0);
   EXPECT_EQ(before.volume_group, 6);
   const auto r = tune_cli("tune --tissues " + kTable + " --tissue fat --model " + model +
-                               " --max-evaluations 3000 --quiet --report " + (d / "r.json"));
+                          " --max-evaluations 3000 --quiet --report " + (d / "r.json"));
   ASSERT_EQ(r.code, 0) << r.err;
   const json rep = json::parse(test::read_file(d / "r.json"));
   EXPECT_NEAR(rep["parameters"]["tissues"][0]["experiment"]["volume_ratio"].get<double>(), 16, 1e-9);
@@ -683,7 +684,7 @@ TEST(TuneCli, TunesATetraLayerOverItsGridPrisms) {
   ASSERT_EQ(before.volume_group, 4);
   ASSERT_EQ(before.volume_tets.rows(), 15 * 4 * 16);
   const auto r = tune_cli("tune --tissues " + kTable + " --tissue skin --model " + model +
-                               " --max-evaluations 1000 --quiet --report " + (d / "r.json"));
+                          " --max-evaluations 1000 --quiet --report " + (d / "r.json"));
   ASSERT_EQ(r.code, 0) << r.err;
   const json rep = json::parse(test::read_file(d / "r.json"));
   const json& e = rep["parameters"]["tissues"][0]["experiment"];
