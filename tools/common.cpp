@@ -335,6 +335,23 @@ std::vector<int> parse_size(const std::string& text, int n, const std::string& f
   return out;
 }
 
+std::string colour_noise_note(const nlohmann::json& separations, const std::string& tissue) {
+  if (!separations.is_array()) return "";
+  for (const auto& s : separations) {  // sorted: the first naming the tissue is its nearest
+    const auto& t = s.at("tissues");
+    if (t.at(0) != tissue && t.at(1) != tissue) continue;
+    const double delta = s.at("delta").get<double>();
+    if (!(delta < 1)) return "";
+    std::ostringstream out;
+    out.precision(2);
+    out << ", and its colour is " << delta << " standard deviations of a pixel's colour from '"
+        << (t.at(0) == tissue ? t.at(1) : t.at(0)).get<std::string>()
+        << "''s: the stack's noise mixes them (the segment report's 'separations')";
+    return out.str();
+  }
+  return "";
+}
+
 void check_voxel_flags(const std::vector<double>& spacing_mm, const std::vector<double>& origin_mm) {
   std::array<double, 3> s{}, o{};
   for (std::size_t k = 0; k < 3; ++k) s[k] = spacing_mm.at(k) * 1e-3, o[k] = origin_mm.at(k) * 1e-3;

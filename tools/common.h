@@ -132,6 +132,12 @@ void parse_roi_flags(const std::string& roi, const std::string& slices, SegmentO
 // --spacing X,Y,Z and --origin X,Y,Z (mm) within the voxel geometry every
 // stage takes (voxel_geometry_problem): UsageError naming the flag otherwise.
 void check_voxel_flags(const std::vector<double>& spacing_mm, const std::vector<double>& origin_mm);
+// What a segment report's "separations" (SegmentMetrics::separations) say of
+// a tissue lost in segmentation: where its colour lies within one standard
+// deviation of a pixel's colour of another tissue's (delta < 1: colour alone
+// mixes their voxels more than 3 times in 10), ", and its colour is ... from
+// '<other>''s: the stack's noise mixes them ..."; else "".
+std::string colour_noise_note(const nlohmann::json& separations, const std::string& tissue);
 
 // A CLI11 check for seeds: decimal digits only, within 64 bits ("-1" wrapped to
 // 2^64 - 1 and 2^64 was clamped, silently).

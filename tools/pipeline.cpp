@@ -548,11 +548,12 @@ int run_stages(Args a, Report& report) {
       // the segment stage's calibration samples per tissue: a tissue whose colour
       // was found but has no voxel left lost them to the clean-up (a wrong 'inside')
       std::map<std::string, std::int64_t> samples;
-      json disagree;
+      json disagree, separations;
       try {
         const json rep = json::parse(std::ifstream(seg.dir + "/report.json"));
         for (const auto& pr : rep.at("metrics").at("prototypes")) samples[pr.at("tissue").get<std::string>()] += pr.at("samples").get<std::int64_t>();
         disagree = rep.at("metrics").value("calibration_disagreements", json::array());
+        separations = rep.at("metrics").value("separations", json::array());
       } catch (const std::exception&) {
         // a report without prototypes: the warning cannot tell the two causes apart
       }
@@ -595,7 +596,8 @@ int run_stages(Args a, Report& report) {
                                      std::to_string(found->second) +
                                      " calibration samples): the clean-up gave its voxels to the tissues around them; "
                                      "check its 'inside' in " + a.tissues +
-                                     " and the segment report (prototypes' shifts, cleanup) in " + seg.dir);
+                                     " and the segment report (prototypes' shifts, cleanup) in " + seg.dir +
+                                     colour_noise_note(separations, t));
           absent.push_back(t);
           std::cerr << "orthosim pipeline: warning: " << a.stack << ": no voxel was segmented as '" << t
                     << "' (no calibration sample and no voxel took its colour: the slices do not show it, or their "

@@ -20,7 +20,8 @@ namespace orthosim::cli {
 void add_segment_command(CLI::App& app) {
   auto* sub = app.add_subcommand("segment", "classify a colour slice stack into tissue labels (/volume)");
   struct Args {
-    std::string stack, tissues, spacing, origin = "0,0,0", roi, slices, out, nrrd, truth, normalise = "plane", classify = "mahalanobis", scratch_dir;
+    std::string stack, tissues, spacing, origin = "0,0,0", roi, slices, out, nrrd, truth, normalise = "plane", classify = "mahalanobis", scratch_dir,
+                colour_space = "rgb";
     bool no_cleanup = false, no_order = false, no_fill_holes = false, exposure = false, register_slices = false;
     int register_window = 8;
     double register_max_shift = 32, register_min_response = 0.1;
@@ -50,6 +51,10 @@ void add_segment_command(CLI::App& app) {
   sub->add_option("--normalise", a.normalise, "background normalisation: none, gain, plane")->capture_default_str();
   sub->add_option("--classify", a.classify,
                   "colour to prototype: mahalanobis (under the calibrated colour spread) or nearest (CIELAB)")
+      ->capture_default_str();
+  sub->add_option("--colour-space", a.colour_space,
+                  "space the colour calibration is fitted and colours are scored in: cielab or rgb (the 8-bit sRGB "
+                  "values, where sensor noise is; docs/segment.md)")
       ->capture_default_str();
   sub->add_option("--smoothness", a.smoothness,
                   "smoothness prior: nats of colour evidence a voxel's label pays per unlike face neighbour (Potts, "
@@ -97,7 +102,7 @@ void add_segment_command(CLI::App& app) {
   sub->add_option("--register-min-response", a.register_min_response,
                   "--register: a slice-to-slice match whose phase-correlation peak (0..1) is below this is not used")
       ->capture_default_str();
-  sub->add_option("--lightness-weight", a.lightness_weight, "weight of lightness against chroma")
+  sub->add_option("--lightness-weight", a.lightness_weight, "weight of lightness against chroma (cielab)")
       ->capture_default_str();
   sub->add_option("--slab", a.slab, "slices classified together (memory ~ slab x slice size)")
       ->capture_default_str();
@@ -119,6 +124,9 @@ void add_segment_command(CLI::App& app) {
     if (a.classify == "mahalanobis") o.classify = SegmentOptions::Classify::mahalanobis;
     else if (a.classify == "nearest") o.classify = SegmentOptions::Classify::nearest;
     else throw UsageError("--classify: expected mahalanobis or nearest, got '" + a.classify + "'");
+    if (a.colour_space == "cielab") o.colour_space = SegmentOptions::Space::cielab;
+    else if (a.colour_space == "rgb") o.colour_space = SegmentOptions::Space::rgb;
+    else throw UsageError("--colour-space: expected cielab or rgb, got '" + a.colour_space + "'");
     o.smoothness = a.smoothness;
     o.smoothing_sweeps = a.smoothing_sweeps;
     o.cleanup = !a.no_cleanup;
@@ -232,6 +240,13 @@ void add_segment_command(CLI::App& app) {
     auto cie76 = [](const std::array<double, 3>& x, const std::array<double, 3>& y) {
       return std::sqrt((x[0] - y[0]) * (x[0] - y[0]) + (x[1] - y[1]) * (x[1] - y[1]) + (x[2] - y[2]) * (x[2] - y[2]));
     };
+    {
+      nlohmann::json sep = nlohmann::json::array();
+      for (const auto& s : m.separations)
+        sep.push_back({{"tissues", {name_of(s.a), name_of(s.b)}}, {"delta", s.delta},
+                       {"confusion", 0.5 * std::erfc(s.delta / (2 * std::sqrt(2.0)))}});
+      j["separations"] = sep;
+    }
     for (std::size_t k = 0; k < m.prototypes.size(); ++k) {
       const Prototype& p = m.prototypes[k];
       const double d = cie76(p.lab, p.table_lab);
@@ -280,7 +295,8 @@ void add_segment_command(CLI::App& app) {
           std::cerr << "orthosim segment: warning: " << a.stack << ": no voxel of '" << tissue
                     << "' is left, though the calibration found its colour (" << n
                     << " samples): the classifier or the clean-up gave its voxels to other tissues (check its "
-                    << "colours and 'inside' in " << a.tissues << ")\n";
+                    << "colours and 'inside' in " << a.tissues << ")" << colour_noise_note(j["separations"], tissue)
+                    << "\n";
       }
       // The calibration samples are a grid over slices spread along the stack, so
       // each tissue's share of them and of the labelled voxels agree (within 0.01

@@ -208,13 +208,13 @@ std::int64_t smooth_sweep(const Smoother& s, const ColourModel& m, const std::ui
         cw[static_cast<std::size_t>(k)] = sum;
       }
       const std::uint8_t* c = rgb + 3 * i;
-      const std::array<double, 3> lab = srgb8_to_lab(c[0], c[1], c[2]);
+      const std::array<double, 3> colour = m.coords(c[0], c[1], c[2]);
       std::uint8_t best = l;
       double be = 1e300;
       for (int k = 0; k < nc; ++k) {  // cand[0] is the voxel's own label: it wins ties
         const auto cl = cand[static_cast<std::size_t>(k)];
         double u = 1e300;
-        for (int ci : s.centres_of[cl]) u = std::min(u, 0.5 * m.score(lab, static_cast<std::size_t>(ci)));
+        for (int ci : s.centres_of[cl]) u = std::min(u, 0.5 * m.score(colour, static_cast<std::size_t>(ci)));
         const double e = u + s.beta * (total - cw[static_cast<std::size_t>(k)]);
         if (e < be) be = e, best = cl;
       }
@@ -290,7 +290,7 @@ std::int64_t enforce_order(const LabelInfo& info, const ColourModel& m, const st
           if (l == 0 && !info.fill_holes) continue;  // holes are kept when not filled
           const std::size_t i = static_cast<std::size_t>(y) * nx + x;
           const std::uint8_t* p = rgb + 3 * i;
-          const int c = m.nearest_allowed(srgb8_to_lab(p[0], p[1], p[2]), e.allowed);
+          const int c = m.nearest_allowed(m.coords(p[0], p[1], p[2]), e.allowed);
           if (c < 0) continue;
           const std::uint8_t nl = static_cast<std::uint8_t>(m.centres[static_cast<std::size_t>(c)].label);
           if (nl != l) row[x] = nl, ++changed;

@@ -126,11 +126,11 @@ LabelInfo make_label_info(const TissueTable& t, bool fill_holes) {
 
 // ---- the model -------------------------------------------------------------
 
-int ColourModel::nearest(const std::array<double, 3>& lab) const {
+int ColourModel::nearest(const std::array<double, 3>& x) const {
   int best = 0;
   double bd = 1e300;
   for (std::size_t i = 0; i < centres.size(); ++i) {
-    const double d = score(lab, i);
+    const double d = score(x, i);
     if (d < bd) bd = d, best = static_cast<int>(i);
   }
   return best;
@@ -148,12 +148,12 @@ int ColourModel::nearest_table_rgb(const std::uint8_t* rgb) const {
   return best;
 }
 
-int ColourModel::nearest_allowed(const std::array<double, 3>& lab, const std::vector<std::uint8_t>& allowed) const {
+int ColourModel::nearest_allowed(const std::array<double, 3>& x, const std::vector<std::uint8_t>& allowed) const {
   int best = -1;
   double bd = 1e300;
   for (std::size_t i = 0; i < centres.size(); ++i) {
     if (!allowed[centres[i].label]) continue;
-    const double d = score(lab, i);
+    const double d = score(x, i);
     if (d < bd) bd = d, best = static_cast<int>(i);
   }
   return best;
@@ -167,13 +167,15 @@ void ColourModel::reset_table() {
 
 ColourModel initial_model(const TissueTable& t, const SegmentOptions& o) {
   ColourModel m;
-  m.wl2 = o.lightness_weight * o.lightness_weight;
+  m.space = o.colour_space;
+  m.wl2 = m.space == SegmentOptions::Space::cielab ? o.lightness_weight * o.lightness_weight : 1.0;
   auto add = [&](int label, const std::array<std::uint8_t, 3>& rgb) {
     Centre c;
     c.label = label;
     c.table_rgb = {double(rgb[0]), double(rgb[1]), double(rgb[2])};
     c.table_lab = srgb_to_lab(rgb[0], rgb[1], rgb[2]);
     c.lab = c.pixel_lab = c.table_lab;
+    c.table_x = c.x = c.pixel_x = m.coords(c.table_rgb);
     m.centres.push_back(c);
   };
   for (const auto& rgb : t.background_rgb) add(0, rgb);
@@ -401,7 +403,7 @@ double posteriors(const ColourModel& m, const std::vector<double>& log_pi, const
                   const std::array<double, 3>& x, std::vector<double>& lp) {
   double top = -1e300;
   for (std::size_t c = 0; c < m.centres.size(); ++c) {
-    lp[c] = log_pi[c] - 0.5 * mahalanobis2(P, x, m.centres[c].lab);
+    lp[c] = log_pi[c] - 0.5 * mahalanobis2(P, x, m.centres[c].x);
     top = std::max(top, lp[c]);
   }
   double z = 0;
@@ -436,8 +438,8 @@ std::array<double, 6> precision_of(const std::array<double, 6>& scatter, double 
 void pixel_statistics(ColourModel& m, const std::vector<std::uint64_t>& pairs, const std::vector<double>& log_pi,
                       std::array<double, 6>& P, double n0) {
   const std::size_t C = m.centres.size();
-  auto lab_of = [](std::uint32_t k) {
-    return srgb8_to_lab(static_cast<std::uint8_t>(k >> 16), static_cast<std::uint8_t>(k >> 8), static_cast<std::uint8_t>(k));
+  auto coords_of = [&m](std::uint32_t k) {
+    return m.coords(static_cast<std::uint8_t>(k >> 16), static_cast<std::uint8_t>(k >> 8), static_cast<std::uint8_t>(k));
   };
   // distinct pairs with counts
   std::vector<std::uint64_t> key;
@@ -453,8 +455,8 @@ void pixel_statistics(ColourModel& m, const std::vector<std::uint64_t>& pairs, c
   if (N == 0) return;
   std::vector<std::array<double, 3>> med(N), pix(N);
   tbb::parallel_for(std::size_t(0), N, [&](std::size_t i) {
-    med[i] = lab_of(static_cast<std::uint32_t>(key[i] >> 24));
-    pix[i] = lab_of(static_cast<std::uint32_t>(key[i] & 0xFFFFFF));
+    med[i] = coords_of(static_cast<std::uint32_t>(key[i] >> 24));
+    pix[i] = coords_of(static_cast<std::uint32_t>(key[i] & 0xFFFFFF));
   });
   auto responsibilities = [&](std::size_t i, std::vector<double>& r) {
     const double z = posteriors(m, log_pi, P, med[i], r);
@@ -487,7 +489,7 @@ void pixel_statistics(ColourModel& m, const std::vector<std::uint64_t>& pairs, c
   for (std::size_t c = 0; c < C; ++c) {
     Centre& ce = m.centres[c];
     for (int k = 0; k < 3; ++k)
-      ce.pixel_lab[k] = ce.lab[k] + (shift[c][k] + n0 * pooled[k] / std::max(pooled[3], 1e-300)) / (shift[c][3] + n0 + 1e-300);
+      ce.pixel_x[k] = ce.x[k] + (shift[c][k] + n0 * pooled[k] / std::max(pooled[3], 1e-300)) / (shift[c][3] + n0 + 1e-300);
   }
   // 2. the pixels' shared covariance about their centres
   std::vector<std::array<double, 7>> part2(chunks);
@@ -497,7 +499,7 @@ void pixel_statistics(ColourModel& m, const std::vector<std::uint64_t>& pairs, c
     for (std::size_t i = k * kChunk; i < std::min(N, (k + 1) * kChunk); ++i) {
       responsibilities(i, r);
       for (std::size_t c = 0; c < C; ++c) {
-        const auto& mu = m.centres[c].pixel_lab;
+        const auto& mu = m.centres[c].pixel_x;
         const double d0 = pix[i][0] - mu[0], d1 = pix[i][1] - mu[1], d2 = pix[i][2] - mu[2];
         acc[0] += r[c] * d0 * d0, acc[1] += r[c] * d1 * d1, acc[2] += r[c] * d2 * d2;
         acc[3] += r[c] * d0 * d1, acc[4] += r[c] * d0 * d2, acc[5] += r[c] * d1 * d2;
@@ -513,6 +515,33 @@ void pixel_statistics(ColourModel& m, const std::vector<std::uint64_t>& pairs, c
     total += part2[k][6];
   }
   P = precision_of(sc, total);
+}
+
+// `next` moved back towards `table` (both in the model's space) until it is
+// at most max_shift CIE76 units from it. In CIELAB that is along the line;
+// in RGB the CIELAB distance along the line is found by bisection (it grows
+// monotonically along it for the moves a calibration makes).
+std::array<double, 3> clamp_shift(const ColourModel& m, const std::array<double, 3>& table,
+                                  const std::array<double, 3>& next, double max_shift) {
+  const auto lab0 = m.to_lab(table);
+  auto along = [&](double t) {
+    return std::array<double, 3>{table[0] + t * (next[0] - table[0]), table[1] + t * (next[1] - table[1]),
+                                 table[2] + t * (next[2] - table[2])};
+  };
+  auto cie = [&](const std::array<double, 3>& x) {
+    const auto l = m.to_lab(x);
+    return std::sqrt((l[0] - lab0[0]) * (l[0] - lab0[0]) + (l[1] - lab0[1]) * (l[1] - lab0[1]) +
+                     (l[2] - lab0[2]) * (l[2] - lab0[2]));
+  };
+  const double d = cie(next);
+  if (!(d > max_shift)) return next;
+  if (m.space == SegmentOptions::Space::cielab) return along(max_shift / d);
+  double lo = 0, hi = 1;
+  for (int k = 0; k < 40; ++k) {
+    const double t = 0.5 * (lo + hi);
+    (cie(along(t)) > max_shift ? hi : lo) = t;
+  }
+  return along(lo);
 }
 
 }  // namespace
@@ -569,6 +598,7 @@ void calibrate(ColourModel& m, const std::vector<std::vector<std::uint8_t>>& sli
         for (Centre& c : m.centres) {
           for (int k = 0; k < 3; ++k) c.table_rgb[k] = std::clamp(c.table_rgb[k] * gain, 0.0, 255.0);
           c.table_lab = c.lab = c.pixel_lab = srgb_to_lab(c.table_rgb[0], c.table_rgb[1], c.table_rgb[2]);
+          c.table_x = c.x = c.pixel_x = m.coords(c.table_rgb);
         }
         m.reset_table();
       }
@@ -633,13 +663,13 @@ void calibrate(ColourModel& m, const std::vector<std::vector<std::uint8_t>>& sli
   std::sort(pairs.begin(), pairs.end());
   std::vector<std::uint32_t> keys(pairs.size());
   for (std::size_t i = 0; i < pairs.size(); ++i) keys[i] = static_cast<std::uint32_t>(pairs[i] >> 24);
-  std::vector<std::array<double, 3>> lab;
+  std::vector<std::array<double, 3>> colour;  // in the model's space
   std::vector<double> weight;
   for (std::size_t i = 0; i < keys.size();) {
     std::size_t j = i;
     while (j < keys.size() && keys[j] == keys[i]) ++j;
-    lab.push_back(srgb8_to_lab(static_cast<std::uint8_t>(keys[i] >> 16), static_cast<std::uint8_t>(keys[i] >> 8),
-                               static_cast<std::uint8_t>(keys[i])));
+    colour.push_back(m.coords(static_cast<std::uint8_t>(keys[i] >> 16), static_cast<std::uint8_t>(keys[i] >> 8),
+                              static_cast<std::uint8_t>(keys[i])));
     weight.push_back(static_cast<double>(j - i));
     i = j;
   }
@@ -654,7 +684,7 @@ void calibrate(ColourModel& m, const std::vector<std::vector<std::uint8_t>>& sli
   // pixels); the weights keep the tail with the common tissue. Where the
   // clusters are tight against their separation (low noise), the posteriors
   // are hard and this is k-means.
-  const std::size_t C = m.centres.size(), N = lab.size();
+  const std::size_t C = m.centres.size(), N = colour.size();
   const double n0 = o.refine_prior * static_cast<double>(keys.size()) / static_cast<double>(C);
   constexpr std::size_t kChunk = 4096;
   const std::size_t chunks = (N + kChunk - 1) / kChunk;
@@ -688,16 +718,16 @@ void calibrate(ColourModel& m, const std::vector<std::vector<std::uint8_t>>& sli
       std::vector<double> lp(C);
       for (std::size_t i = k * kChunk; i < std::min(N, (k + 1) * kChunk); ++i) {
         const double w = weight[i];
-        const auto& x = lab[i];
+        const auto& x = colour[i];
         if (hard) {
           const auto c = static_cast<std::size_t>(m.nearest(x));
-          accumulate(acc[c], w, x, m.centres[c].lab);
+          accumulate(acc[c], w, x, m.centres[c].x);
           continue;
         }
         const double z = posteriors(m, log_pi, P, x, lp);
         for (std::size_t c = 0; c < C; ++c) {
           const double r = w * lp[c] / z;
-          if (r != 0) accumulate(acc[c], r, x, m.centres[c].lab);
+          if (r != 0) accumulate(acc[c], r, x, m.centres[c].x);
         }
       }
     });
@@ -712,14 +742,10 @@ void calibrate(ColourModel& m, const std::vector<std::vector<std::uint8_t>>& sli
       if (it < 0) continue;
       Centre& ce = m.centres[c];
       std::array<double, 3> next;
-      for (int j = 0; j < 3; ++j) next[j] = (sum[j] + n0 * ce.table_lab[j]) / (sum[3] + n0 + 1e-300);
-      const double d = std::sqrt((next[0] - ce.table_lab[0]) * (next[0] - ce.table_lab[0]) +
-                                 (next[1] - ce.table_lab[1]) * (next[1] - ce.table_lab[1]) +
-                                 (next[2] - ce.table_lab[2]) * (next[2] - ce.table_lab[2]));
-      if (d > o.refine_max_shift && d > 0)
-        for (int j = 0; j < 3; ++j) next[j] = ce.table_lab[j] + (next[j] - ce.table_lab[j]) * o.refine_max_shift / d;
-      for (int j = 0; j < 3; ++j) moved = std::max(moved, std::abs(next[j] - ce.lab[j]));
-      ce.lab = ce.pixel_lab = next;
+      for (int j = 0; j < 3; ++j) next[j] = (sum[j] + n0 * ce.table_x[j]) / (sum[3] + n0 + 1e-300);
+      next = clamp_shift(m, ce.table_x, next, o.refine_max_shift);
+      for (int j = 0; j < 3; ++j) moved = std::max(moved, std::abs(next[j] - ce.x[j]));
+      ce.x = ce.pixel_x = next;
       ce.samples = static_cast<std::int64_t>(std::llround(sum[3]));
     }
     // the mixing weights (with the prior's samples, so none reaches 0) and the
@@ -736,6 +762,7 @@ void calibrate(ColourModel& m, const std::vector<std::vector<std::uint8_t>>& sli
     if (it >= 0 && moved < 0.01) break;
   }
   if (o.refine_iterations > 0) pixel_statistics(m, pairs, log_pi, P, n0);
+  for (Centre& ce : m.centres) ce.lab = m.to_lab(ce.x), ce.pixel_lab = m.to_lab(ce.pixel_x);
   if (o.classify == SegmentOptions::Classify::mahalanobis && o.refine_iterations > 0) {
     m.mahalanobis = true;
     m.precision = P;

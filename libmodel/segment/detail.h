@@ -4,6 +4,7 @@
 
 #include "libmodel/segment/segment.h"
 
+#include <algorithm>
 #include <array>
 #include <atomic>
 #include <cstdint>
@@ -55,14 +56,16 @@ inline double mahalanobis2(const std::array<double, 6>& P, const std::array<doub
 
 struct Centre {
   int label = 0;
-  std::array<double, 3> table_lab{};
-  std::array<double, 3> lab{};  // calibrated on the samples' 3 x 3 medians
-  // What a single pixel of this tissue looks like on average: lab plus the
-  // mean difference between the raw pixels' colour and their 3 x 3 medians'
-  // (calibrate(); CIELAB is not linear in RGB, so under sensor noise the raw
-  // pixels' mean lies off the medians'). Classification scores pixels
-  // against this; = lab without calibration.
-  std::array<double, 3> pixel_lab{};
+  // In the model's space (ColourModel::space): the table colour, the mean
+  // calibrated on the samples' 3 x 3 medians, and what a single pixel of this
+  // tissue looks like on average: x plus the mean difference between the raw
+  // pixels' colour and their 3 x 3 medians' (calibrate(); CIELAB is not
+  // linear in RGB, so under sensor noise the raw pixels' mean lies off the
+  // medians'). Classification scores pixels against pixel_x; = x without
+  // calibration.
+  std::array<double, 3> table_x{}, x{}, pixel_x{};
+  // The same three in CIELAB, for reports (= the above in the cielab space).
+  std::array<double, 3> table_lab{}, lab{}, pixel_lab{};
   std::array<double, 3> table_rgb{};
   std::int64_t samples = 0;
 };
@@ -70,7 +73,23 @@ struct Centre {
 // The calibrated colour model of one stack.
 struct ColourModel {
   std::vector<Centre> centres;  // background ones (label 0) first
-  double wl2 = 1;               // lightness weight squared
+  double wl2 = 1;               // lightness weight squared (cielab; 1 in rgb)
+  SegmentOptions::Space space = SegmentOptions::Space::cielab;
+  // A colour's coordinates in the model's space: CIELAB, or the 8-bit sRGB
+  // values themselves.
+  std::array<double, 3> coords(std::uint8_t r, std::uint8_t g, std::uint8_t b) const {
+    if (space == SegmentOptions::Space::rgb) return {double(r), double(g), double(b)};
+    return srgb8_to_lab(r, g, b);
+  }
+  std::array<double, 3> coords(const std::array<double, 3>& rgb) const {
+    if (space == SegmentOptions::Space::rgb) return rgb;
+    return srgb_to_lab(rgb[0], rgb[1], rgb[2]);
+  }
+  // CIELAB of coordinates in the model's space (reports).
+  std::array<double, 3> to_lab(const std::array<double, 3>& x) const {
+    if (space == SegmentOptions::Space::cielab) return x;
+    return srgb_to_lab(std::clamp(x[0], 0.0, 255.0), std::clamp(x[1], 0.0, 255.0), std::clamp(x[2], 0.0, 255.0));
+  }
   // Reference background colour (RGB) of each background centre, from the
   // calibration slices; normalisation maps a slice's background onto it.
   std::vector<std::array<double, 3>> bg_reference;
@@ -85,8 +104,8 @@ struct ColourModel {
     for (const auto& c : centres) n += c.label == 0;
     return n;
   }
-  double dist2(const std::array<double, 3>& lab, const std::array<double, 3>& c) const {
-    const double dl = lab[0] - c[0], da = lab[1] - c[1], db = lab[2] - c[2];
+  double dist2(const std::array<double, 3>& x, const std::array<double, 3>& c) const {
+    const double dl = x[0] - c[0], da = x[1] - c[1], db = x[2] - c[2];
     return wl2 * dl * dl + da * da + db * db;
   }
   // The Mahalanobis rule (SegmentOptions::Classify::mahalanobis), set by
@@ -94,13 +113,13 @@ struct ColourModel {
   // (xx, yy, zz, xy, xz, yz). Off: dist2.
   bool mahalanobis = false;
   std::array<double, 6> precision{0, 0, 0, 0, 0, 0};
-  // What a centre costs a pixel's colour: dist2, or the squared Mahalanobis
-  // distance, to the centre's pixel_lab.
-  double score(const std::array<double, 3>& lab, std::size_t i) const {
-    return mahalanobis ? mahalanobis2(precision, lab, centres[i].pixel_lab) : dist2(lab, centres[i].pixel_lab);
+  // What a centre costs a pixel's colour x (coords): dist2, or the squared
+  // Mahalanobis distance, to the centre's pixel_x.
+  double score(const std::array<double, 3>& x, std::size_t i) const {
+    return mahalanobis ? mahalanobis2(precision, x, centres[i].pixel_x) : dist2(x, centres[i].pixel_x);
   }
   // Best centre (first of equals) under score.
-  int nearest(const std::array<double, 3>& lab) const;
+  int nearest(const std::array<double, 3>& x) const;
   // Best centre by the squared RGB distance to the table colours (table_rgb,
   // after the exposure): the background pick of the normalisation's reference
   // and of its per-slice fits, one rule for both whatever the calibration
@@ -108,9 +127,9 @@ struct ColourModel {
   // likelier one, and no conversion per sample.
   int nearest_table_rgb(const std::uint8_t* rgb) const;
   // Best centre whose label is allowed[label] != 0; -1 if none.
-  int nearest_allowed(const std::array<double, 3>& lab, const std::vector<std::uint8_t>& allowed) const;
+  int nearest_allowed(const std::array<double, 3>& x, const std::vector<std::uint8_t>& allowed) const;
 
-  // nearest(srgb8_to_lab(r, g, b)) through a table over all 2^24 colours,
+  // nearest(coords(r, g, b)) through a table over all 2^24 colours,
   // filled on first use of each colour (kUnknown: not yet). Filling races
   // are benign: every thread writes the same value.
   static constexpr std::uint8_t kUnknown = 0xFF;
@@ -119,7 +138,7 @@ struct ColourModel {
     std::atomic_ref<std::uint8_t> slot(memo_[key]);
     std::uint8_t c = slot.load(std::memory_order_relaxed);
     if (c == kUnknown) {
-      c = static_cast<std::uint8_t>(nearest(srgb8_to_lab(r, g, b)));
+      c = static_cast<std::uint8_t>(nearest(coords(r, g, b)));
       slot.store(c, std::memory_order_relaxed);
     }
     return c;

@@ -48,6 +48,14 @@ const char* to_string(SegmentOptions::Classify c) {
   return "?";
 }
 
+const char* to_string(SegmentOptions::Space s) {
+  switch (s) {
+    case SegmentOptions::Space::cielab: return "cielab";
+    case SegmentOptions::Space::rgb: return "rgb";
+  }
+  return "?";
+}
+
 std::vector<int> nearest_table_labels(const std::vector<Prototype>& prototypes) {
   auto d2 = [](const std::array<double, 3>& a, const std::array<double, 3>& b) {
     return (a[0] - b[0]) * (a[0] - b[0]) + (a[1] - b[1]) * (a[1] - b[1]) + (a[2] - b[2]) * (a[2] - b[2]);
@@ -151,6 +159,7 @@ std::string segment_parameters_json(const SegmentOptions& o) {
   j["sample_stride"] = o.sample_stride;
   j["normalise"] = to_string(o.normalise);
   j["classify"] = to_string(o.classify);
+  j["colour_space"] = to_string(o.colour_space);
   j["refine_iterations"] = o.refine_iterations;
   j["refine_prior"] = o.refine_prior;
   j["refine_max_shift"] = o.refine_max_shift;
@@ -322,6 +331,21 @@ SegmentMetrics segment(const SliceSource& whole, const TissueTable& table, const
     p.pixel_lab = c.pixel_lab;
     p.samples = c.samples;
     met.prototypes.push_back(p);
+  }
+  if (model.mahalanobis) {
+    std::map<std::pair<int, int>, double> closest;
+    for (std::size_t i = 0; i < model.centres.size(); ++i)
+      for (std::size_t k = i + 1; k < model.centres.size(); ++k) {
+        const Centre &p = model.centres[i], &q = model.centres[k];
+        if (p.label == q.label) continue;
+        const auto key = std::minmax(p.label, q.label);
+        const double d = std::sqrt(mahalanobis2(model.precision, p.pixel_x, q.pixel_x));
+        auto [it, fresh] = closest.try_emplace(key, d);
+        if (!fresh) it->second = std::min(it->second, d);
+      }
+    for (const auto& [ab, d] : closest) met.separations.push_back({ab.first, ab.second, d});
+    std::stable_sort(met.separations.begin(), met.separations.end(),
+                     [](const auto& x, const auto& y) { return x.delta < y.delta; });
   }
 
   // ---- pass 1: classify, smooth, order, rank filter, runs, 3-D components

@@ -243,7 +243,17 @@ struct SegmentOptions {
   bool exposure_from_border = false;
   // Weight of lightness against chroma in the colour distance, > 0.
   // Values below 1 make the classification more robust to brightness.
+  // CIELAB only (colour_space); rgb has no lightness axis to weigh.
   double lightness_weight = 1.0;
+  // The space the calibration's mixture is fitted in and colours are scored
+  // in (docs/segment.md, "The colour space"). cielab: CIE 1976 L*a*b* (D65).
+  // rgb: the stack's 8-bit sRGB values, where the sensor's noise is, so
+  // that one shared covariance fits every tissue's spread alike; in CIELAB
+  // a dark or saturated tissue's noise spreads wider than a light one's,
+  // and under heavy noise (8-bit sigma 48-64) a rare tissue's prototype ran
+  // into a common one's tail. Reports give CIELAB either way.
+  enum class Space { cielab, rgb };
+  Space colour_space = Space::rgb;
 
   // How a colour picks its prototype. nearest: the nearest in CIELAB
   // (CIE76, lightness weighted). mahalanobis: the nearest under the
@@ -313,6 +323,7 @@ SliceSource roi_source(SliceSource src, const SegmentOptions& o);
 std::string segment_parameters_json(const SegmentOptions& o);
 const char* to_string(SegmentOptions::Normalise n);
 const char* to_string(SegmentOptions::Classify c);
+const char* to_string(SegmentOptions::Space s);
 
 // A prototype after calibration.
 struct Prototype {
@@ -336,6 +347,17 @@ struct SegmentMetrics {
   std::string stack_note;  // SliceSource::note: worth a warning (empty: none)
   std::map<std::string, std::int64_t> voxels;  // per tissue name, "background" included
   std::vector<Prototype> prototypes;
+  // How far apart the calibration found each pair of labels' colours: the
+  // smallest Mahalanobis distance between a prototype of one and of the
+  // other under the pixels' shared covariance (the classifier's own
+  // distance), in standard deviations of a pixel's colour. Two tissues
+  // delta apart are confused per voxel, at equal priors, with probability
+  // Phi(-delta / 2). Empty with the nearest rule. Sorted by delta.
+  struct Separation {
+    int a = 0, b = 0;  // labels, a < b
+    double delta = 0;
+  };
+  std::vector<Separation> separations;
   // Per-slice normalisation: smallest and largest mean gain over the slices
   // (1 = no correction), and slices where it fell back to a constant or none.
   double gain_min = 1, gain_max = 1;

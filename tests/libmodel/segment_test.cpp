@@ -109,18 +109,31 @@ SegmentOptions phantom_segment_options(const PhantomOptions& p) {
   return o;
 }
 
+// The Dice goal of tissue t with n true voxels: 0.90 for a vessel, 0.97 for
+// a bulk tissue of at least 1000 voxels, none (0) otherwise.
+double dice_goal(const Tissue& t, std::int64_t n) {
+  if (t.layer == "vessel") return n > 0 ? 0.90 : 0.0;
+  return n >= 1000 ? 0.97 : 0.0;
+}
+
+// The tissues of `table` whose Dice misses its goal.
+std::vector<std::string> missed_goals(const std::map<std::string, double>& dice,
+                                      const std::map<std::string, std::int64_t>& truth_voxels, const TissueTable& table) {
+  std::vector<std::string> missed;
+  for (const auto& t : table.tissues) {
+    const auto n = truth_voxels.count(t.name) ? truth_voxels.at(t.name) : 0;
+    const double d = dice.count(t.name) ? dice.at(t.name) : 0.0;
+    if (d < dice_goal(t, n)) missed.push_back(t.name);
+  }
+  return missed;
+}
+
 void expect_dice(const std::map<std::string, double>& dice, const std::map<std::string, std::int64_t>& truth_voxels,
                  const TissueTable& table, const std::string& what) {
   for (const auto& t : table.tissues) {
     const auto n = truth_voxels.count(t.name) ? truth_voxels.at(t.name) : 0;
     const double d = dice.count(t.name) ? dice.at(t.name) : 0.0;
-    if (t.layer == "vessel") {
-      if (n > 0) {
-        EXPECT_GE(d, 0.90) << what << ": " << t.name << " (" << n << " voxels)";
-      }
-    } else if (n >= 1000) {
-      EXPECT_GE(d, 0.97) << what << ": " << t.name << " (" << n << " voxels)";
-    }
+    EXPECT_GE(d, dice_goal(t, n)) << what << ": " << t.name << " (" << n << " voxels)";
   }
 }
 
@@ -201,18 +214,24 @@ std::map<std::string, double> segment_dice(const PhantomOptions& p, const Volume
 // for every bulk tissue. The calibration's 3 x 3 medians and its mixture
 // weights keep every prototype on its tissue (docs/segment.md).
 TEST(SegmentPhantom, HighNoiseKeepsRareTissues) {
+  using Space = SegmentOptions::Space;
+  // the default space, and CIELAB with and without a lightness weight (CIELAB's alone)
+  const std::vector<std::pair<Space, double>> variants{
+      {SegmentOptions{}.colour_space, 1.0}, {Space::cielab, 1.0}, {Space::cielab, 3.0}};
   for (const unsigned seed : {3u, 7u}) {
-    for (const double lw : {SegmentOptions{}.lightness_weight, 3.0}) {
+    for (const auto& [space, lw] : variants) {
       PhantomOptions p = test_phantom();
       p.noise_sigma = 12;
       p.seed = seed;
       const Volume truth = phantom_labels(p);
       const TissueTable table = phantom_tissue_table();
       SegmentOptions o = phantom_segment_options(p);
+      o.colour_space = space;
       o.lightness_weight = lw;
       SegmentMetrics m;
       std::map<std::string, std::int64_t> tv;
-      const std::string what = "noise 12, seed " + std::to_string(seed) + ", lightness weight " + std::to_string(lw);
+      const std::string what = "noise 12, seed " + std::to_string(seed) + ", " + to_string(space) +
+                               ", lightness weight " + std::to_string(lw);
       const auto dice = segment_dice(p, truth, o, what, &tv, &m);
       expect_dice(dice, tv, table, what);
       for (const auto& pr : m.prototypes) {
@@ -302,12 +321,58 @@ TEST(SegmentPhantom, TheBackgroundGainIsUnbiasedUnderNoise) {
   }
 }
 
+// The colour space (SegmentOptions::colour_space). The calibration fits one
+// covariance shared by every tissue; sensor noise is the same for every
+// colour in RGB, but in CIELAB a dark or saturated tissue's spreads wider
+// than a light one's, so no one covariance fits them. At 8-bit noise 64 on
+// 128 x 128 x 48 stacks the CIELAB fit moved the vein's prototype 13 units
+// into the blue gel; it took 13 % of the samples (the truth: 0.3 %) and the
+// gel's noisy pixels. Here (seeds 2 and 3) the worst tissue by CIELAB was
+// the skin at 0.42 and the vein at 0.03; in RGB the skin, a rim a few voxels
+// thick, is the worst at 0.58 and 0.50, and the vein is at 0.92 and 0.90.
+// The CIELAB runs are there to show the space is what does it.
+TEST(SegmentPhantom, TheRgbCalibrationHoldsAtNoise64) {
+  for (const unsigned seed : {2u, 3u}) {
+    PhantomOptions p;
+    p.nx = 128, p.ny = 128, p.nz = 48;
+    p.spacing_m = {0.45e-3, 0.45e-3, 1.5e-3};
+    p.noise_sigma = 64;
+    p.seed = seed;
+    const Volume truth = phantom_labels(p);
+    const std::string what = "noise 64, seed " + std::to_string(seed);
+    std::map<std::string, std::int64_t> tv;
+    SegmentOptions o = phantom_segment_options(p);
+    ASSERT_EQ(o.colour_space, SegmentOptions::Space::rgb);  // the default
+    SegmentMetrics m;
+    auto worst = [](const std::map<std::string, double>& dice) {
+      double w = 1;
+      for (const auto& [name, d] : dice) w = std::min(w, d);
+      return w;
+    };
+    const auto rgb = segment_dice(p, truth, o, what + ", rgb", &tv, &m);
+    for (const auto& [name, d] : rgb) EXPECT_GE(d, 0.45) << what << ", rgb: " << name;
+    EXPECT_GE(rgb.at("vein"), 0.85) << what << ", rgb";
+    int vein_label = -1;
+    for (const auto& t : phantom_tissue_table().tissues)
+      if (t.name == "vein") vein_label = t.label;
+    ASSERT_GT(vein_label, 0);
+    std::int64_t all = 0, vein = 0;
+    for (const auto& pr : m.prototypes) all += pr.samples, vein += pr.label == vein_label ? pr.samples : 0;
+    EXPECT_LT(static_cast<double>(vein) / static_cast<double>(all), 0.06) << what << ", rgb: the vein's share";
+    o.colour_space = SegmentOptions::Space::cielab;
+    const auto lab = segment_dice(p, truth, o, what + ", cielab", &tv, &m);
+    EXPECT_GT(worst(rgb), worst(lab) + 0.1) << what;
+  }
+}
+
 // The smoothness prior (SegmentOptions::smoothness, docs/segment.md): at
 // 8-bit noise 28, seven times the sample's, the per-voxel rule lost a third
 // of the skin and most of the vein (worst tissue 0.59-0.68 on 96 x 96 x 48
 // phantoms); with the prior every tissue meets the goals of the low-noise
 // phantom (expect_dice: 0.97 bulk, 0.90 vessels). The per-voxel rule's run is
-// there to show the prior is what does it.
+// there to show the prior is what does it. (Those figures were the CIELAB
+// calibration's; in RGB, 2026-11-29, the per-voxel rule's worst tissue is
+// 0.87-0.91, the artery and the skin, still short of the goals.)
 TEST(SegmentPhantom, TheSmoothnessPriorHoldsTheGoalsAtNoise28) {
   for (const unsigned seed : {1u, 3u}) {
     PhantomOptions p = test_phantom();
@@ -323,9 +388,7 @@ TEST(SegmentPhantom, TheSmoothnessPriorHoldsTheGoalsAtNoise28) {
     EXPECT_GT(m.smooth_changed, 0);
     o.smoothness = 0;
     const auto plain = segment_dice(p, truth, o, what + ", per voxel", &tv, &m);
-    double worst = 1;
-    for (const auto& [k, d] : plain) worst = std::min(worst, d);
-    EXPECT_LT(worst, 0.9) << what << ": the per-voxel rule";
+    EXPECT_FALSE(missed_goals(plain, tv, table).empty()) << what << ": the per-voxel rule meets every goal";
     EXPECT_EQ(m.smooth_changed, 0);
   }
 }
