@@ -344,9 +344,10 @@ std::string colour_noise_note(const nlohmann::json& separations, const std::stri
     if (!(delta < 1)) return "";
     std::ostringstream out;
     out.precision(2);
-    out << ", and its colour is " << delta << " standard deviations of a pixel's colour from '"
+    out << ", and its colour is within " << delta << " standard deviations of a pixel's colour of '"
         << (t.at(0) == tissue ? t.at(1) : t.at(0)).get<std::string>()
-        << "''s: the stack's noise mixes them (the segment report's 'separations')";
+        << "''s: colour alone cannot tell them apart in this stack (noise, or a tissue this varied; the segment "
+           "report's 'separations')";
     return out.str();
   }
   return "";

@@ -135,8 +135,8 @@ void check_voxel_flags(const std::vector<double>& spacing_mm, const std::vector<
 // What a segment report's "separations" (SegmentMetrics::separations) say of
 // a tissue lost in segmentation: where its colour lies within one standard
 // deviation of a pixel's colour of another tissue's (delta < 1: colour alone
-// mixes their voxels more than 3 times in 10), ", and its colour is ... from
-// '<other>''s: the stack's noise mixes them ..."; else "".
+// mixes their voxels more than 3 times in 10), ", and its colour is within
+// ... of '<other>''s: colour alone cannot tell them apart ..."; else "".
 std::string colour_noise_note(const nlohmann::json& separations, const std::string& tissue);
 
 // A CLI11 check for seeds: decimal digits only, within 64 bits ("-1" wrapped to
