@@ -74,6 +74,7 @@ struct Args {
   int through_cells = 1;  // build's --through-cells (a fine grid's lattice cells need it: 400x100 builds with 4)
   int bit_depth = 16;     // segment's --bit-depth (significant bits of 16-bit slices)
   double smoothness = SegmentOptions{}.smoothness;  // segment's --smoothness (the labels' smoothness prior)
+  std::string colour_space = to_string(SegmentOptions{}.colour_space);  // segment's --colour-space
   double poisson_ratio = msm::BuildOptions{}.poisson_ratio;  // build's --poisson-ratio (the layers' volume term)
   bool lattice_volume_term = false;                          // build's --lattice-volume-term
   double inversion_guard = msm::BuildOptions{}.inversion_guard;  // build's --inversion-guard
@@ -402,7 +403,7 @@ int run_stages(Args a, Report& report) {
   report.input(a.stack);
   report.input(a.tissues);
   if (!a.scene.empty()) report.input(a.scene);
-  report.parameters() = {{"grid", a.grid}, {"through_cells", a.through_cells}, {"poisson_ratio", a.poisson_ratio}, {"lattice_volume_term", a.lattice_volume_term}, {"inversion_guard", a.inversion_guard}, {"tetra_volume_term", a.tetra_volume_term}, {"spur_ratio", a.spur_ratio}, {"axis_correction", a.axis_correction}, {"bit_depth", a.bit_depth}, {"smoothness", a.smoothness}, {"spacing_mm", a.spacing}, {"origin_mm", a.origin}, {"roi_px", region.roi_px}, {"slices", {region.first_slice, region.last_slice}},
+  report.parameters() = {{"grid", a.grid}, {"through_cells", a.through_cells}, {"poisson_ratio", a.poisson_ratio}, {"lattice_volume_term", a.lattice_volume_term}, {"inversion_guard", a.inversion_guard}, {"tetra_volume_term", a.tetra_volume_term}, {"spur_ratio", a.spur_ratio}, {"axis_correction", a.axis_correction}, {"bit_depth", a.bit_depth}, {"smoothness", a.smoothness}, {"colour_space", a.colour_space}, {"spacing_mm", a.spacing}, {"origin_mm", a.origin}, {"roi_px", region.roi_px}, {"slices", {region.first_slice, region.last_slice}},
                          {"work", a.work}, {"texture", a.texture}, {"tune", a.tune},
                          {"tune_budget_s", a.tune_budget_s}, {"tune_evaluations", a.tune_evaluations}, {"seed", a.seed}, {"export", a.export_dir}};
 
@@ -521,6 +522,7 @@ int run_stages(Args a, Report& report) {
         "segment",
         {stack_hash, table_hash, a.spacing, a.origin, a.register_slices ? "registered" : "as-is",
          "bit-depth " + std::to_string(a.bit_depth), "smoothness " + exact(a.smoothness),
+         "colour-space " + a.colour_space,
          "roi " + std::to_string(region.roi_px[0]) + "," + std::to_string(region.roi_px[1]) + "," +
              std::to_string(region.roi_px[2]) + "," + std::to_string(region.roi_px[3]) + " slices " +
              std::to_string(region.first_slice) + "," + std::to_string(region.last_slice)},
@@ -528,7 +530,7 @@ int run_stages(Args a, Report& report) {
           std::vector<std::string> args{"segment", "--stack", a.stack, "--tissues", a.tissues, "--spacing",
                                         a.spacing, "--origin", a.origin, "--out", d + "/labels.h5",
                                         "--nrrd", d + "/labels.nrrd", "--bit-depth", std::to_string(a.bit_depth),
-                                        "--smoothness", exact(a.smoothness)};
+                                        "--smoothness", exact(a.smoothness), "--colour-space", a.colour_space};
           if (a.register_slices) args.push_back("--register");
           if (!a.roi.empty()) args.insert(args.end(), {"--roi", a.roi});
           if (!a.slices.empty()) args.insert(args.end(), {"--slices", a.slices});
@@ -902,6 +904,11 @@ void add_pipeline_command(CLI::App& app) {
                   "segment's smoothness prior: nats of colour evidence per unlike face neighbour (0: off, the per-voxel "
                   "rule; docs/segment.md), >= 0")
       ->check(number_check([](double x) { return std::isfinite(x) && x >= 0; }, ">= 0"))
+      ->capture_default_str();
+  sub->add_option("--colour-space", a.colour_space,
+                  "segment's colour space: rgb (the stack's 8-bit values, where sensor noise is) or cielab "
+                  "(docs/segment.md)")
+      ->check(CLI::IsMember({"rgb", "cielab"}))
       ->capture_default_str();
   sub->add_option("--through-cells", a.through_cells,
                   "lattice cells through each lattice layer, build's (1..64; a fine --grid needs more: 400x100 builds "

@@ -412,7 +412,8 @@ double posteriors(const ColourModel& m, const std::vector<double>& log_pi, const
 }
 
 // The inverse of the covariance scatter / total (xx, yy, zz, xy, xz, yz), its
-// diagonal floored at 0.25 CIE76 units (8-bit rounding), in the same packing.
+// diagonal floored at 0.25 units of the model's space (CIE76 units or 8-bit
+// levels: below 8-bit rounding's), in the same packing.
 std::array<double, 6> precision_of(const std::array<double, 6>& scatter, double total) {
   Eigen::Matrix3d S;
   const double inv_total = 1 / std::max(total, 1e-300);
@@ -426,8 +427,9 @@ std::array<double, 6> precision_of(const std::array<double, 6>& scatter, double 
 // The fit above is made on 3 x 3 medians, but the classifier scores single
 // pixels. CIELAB is not linear in RGB, so under sensor noise the mean colour
 // of a tissue's pixels lies off that of its medians (8-bit noise 24: 4-11
-// units in a* for every tissue of the phantom), and the pixels spread wider
-// than the medians. Each centre's pixel_lab is its lab moved by the
+// units in a* for every tissue of the phantom); in RGB they differ where
+// the pixels clip at 0 or 255 (a saturated red). The pixels spread wider
+// than the medians either way. Each centre's pixel_x is its x moved by the
 // responsibility-weighted mean of (pixel - median) over the samples, shrunk
 // towards the pooled mean by the prior's n0 samples (a rare tissue's own mean
 // is noisy), and P becomes the inverse of the pixels' shared covariance about
@@ -675,7 +677,8 @@ void calibrate(ColourModel& m, const std::vector<std::vector<std::uint8_t>>& sli
   }
 
   // 3. EM for a mixture of Gaussians (one per prototype, a shared full
-  // covariance, mixing weights), seeded by the prototypes, each mean shrunk
+  // covariance, mixing weights) in the model's space (SegmentOptions::
+  // colour_space), seeded by the prototypes, each mean shrunk
   // towards its prototype (a conjugate prior of weight n0 samples per
   // prototype), moves clamped. Plain k-means (equal weights, no variance) lets
   // a rare tissue's prototype run off into the noise tail of a common one
@@ -755,7 +758,10 @@ void calibrate(ColourModel& m, const std::vector<std::vector<std::uint8_t>>& sli
     // as wide as its lightness), and with one variance the gel's chroma tail
     // looked unlikely under the gel and a rare tissue next to it took it (the
     // vein moved 20 units into the gel at 8-bit noise 20 and the segmentation
-    // collapsed).
+    // collapsed). Even a full covariance is one shape for every tissue, which
+    // CIELAB's noise does not have (the blue gel's spreads a third wider than
+    // the bone's): hence RGB by default (at noise 64 the CIELAB fit let the
+    // vein into the gel again).
     for (std::size_t c = 0; c < C; ++c)
       log_pi[c] = std::log((weight_of[c] + n0 + 1e-300) / (total + static_cast<double>(C) * n0 + 1e-300));
     P = precision_of(scatter, total);

@@ -7,17 +7,20 @@
 //  1. Calibration. A few slices spread over the stack (calibration_slices) are
 //     read first. Their background (the embedding medium, the table's
 //     background prototypes) gives the stack's reference background colour,
-//     and an EM fit in CIELAB over their pixels (each sample the per-channel
-//     median of its 3 x 3 neighbourhood) of a mixture of Gaussians
+//     and an EM fit (in 8-bit RGB by default, or CIELAB: colour_space) over
+//     their pixels (each sample the per-channel median of its 3 x 3
+//     neighbourhood) of a mixture of Gaussians
 //     seeded by the table's colour prototypes, with mixing weights and a
 //     shared full covariance, moves each prototype to where its tissue really is in
 //     this stack (a Bayesian shrinkage towards the prototype, at most
 //     refine_max_shift CIE76 units away). The table's colours only need to be
 //     roughly right; the weights keep a rare tissue's prototype out of the
 //     noise tail of a common one (plain k-means let it run off there), and
-//     the full covariance follows sensor noise, isotropic in RGB but not in
-//     CIELAB (with one variance the vein still ran into the gel's chroma
-//     tail at 8-bit noise 20).
+//     the full covariance follows the noise's shape (with one variance in
+//     CIELAB the vein still ran into the gel's chroma tail at 8-bit noise
+//     20). In RGB sensor noise is the same for every tissue, so one shared
+//     covariance fits them all; in CIELAB it does not (the vein ran into the
+//     gel at noise 64).
 //  2. Per slice: normalisation against the background. A per-channel gain
 //     field (constant or a plane across the slice) maps the slice's background
 //     onto the reference: illumination drift along and across slices goes.
@@ -26,7 +29,7 @@
 //     colour in a 16 MiB table filled as colours are met. The prototypes'
 //     colours and covariance for this are those of single pixels (pixel_lab:
 //     the fit is made on 3 x 3 medians, whose mean lies off the pixels' under
-//     noise, CIELAB not being linear in RGB).
+//     noise where the space is not linear in RGB, or where RGB clips).
 //  2b. Smoothness prior (smoothness, 0 = off): a Potts prior over the 26
 //     neighbours, minimised by a few Jacobi sweeps of iterated conditional
 //     modes: a voxel weighs its colour's evidence against its neighbours'
@@ -249,8 +252,8 @@ struct SegmentOptions {
   // in (docs/segment.md, "The colour space"). cielab: CIE 1976 L*a*b* (D65).
   // rgb: the stack's 8-bit sRGB values, where the sensor's noise is, so
   // that one shared covariance fits every tissue's spread alike; in CIELAB
-  // a dark or saturated tissue's noise spreads wider than a light one's,
-  // and under heavy noise (8-bit sigma 48-64) a rare tissue's prototype ran
+  // the same noise spreads differently for each colour (the blue gel's a
+  // third wider than the bone's), and under heavy noise (8-bit sigma 48-64) a rare tissue's prototype ran
   // into a common one's tail. Reports give CIELAB either way.
   enum class Space { cielab, rgb };
   Space colour_space = Space::rgb;

@@ -111,6 +111,37 @@ TEST(SegmentCli, GoodStackMatchesTruthAndIsDeterministic) {
   EXPECT_EQ(ma.volume().labels, mb.volume().labels);
 }
 
+// --colour-space: the space reaches the report's parameters, both spaces
+// find the noise-free phantom's bulk tissues, the report's colours are CIELAB
+// in both (the same table colours), and a space the tool does not know is
+// refused in one line with nothing written.
+TEST(SegmentCli, TheColourSpaceIsChosenAndAnUnknownOneRefused) {
+  test::TempDir d("segcli-space");
+  std::map<std::string, nlohmann::json> reports;
+  for (const std::string space : {"rgb", "cielab"}) {
+    const auto r = test::run_cli(segment_args(stack().slices, d / (space + ".h5"),
+                                              "--colour-space " + space + " --truth " + stack().truth + " --report " +
+                                                  (d / (space + ".json"))));
+    ASSERT_EQ(r.code, 0) << r.err;
+    reports[space] = nlohmann::json::parse(test::read_file(d / (space + ".json")));
+    EXPECT_EQ(reports[space]["parameters"]["colour_space"], space);
+    for (const char* t : {"skin", "fat", "muscle", "bone"})
+      EXPECT_GT(reports[space]["metrics"]["dice"][t].get<double>(), 0.9) << space << ": " << t;
+  }
+  const auto &pr = reports["rgb"]["metrics"]["prototypes"], &pl = reports["cielab"]["metrics"]["prototypes"];
+  ASSERT_EQ(pr.size(), pl.size());
+  for (std::size_t k = 0; k < pr.size(); ++k) {
+    EXPECT_EQ(pr[k]["table_lab"], pl[k]["table_lab"]) << k;
+    EXPECT_LT(pr[k]["shift"].get<double>(), 3) << k;  // CIE76 units from the table in both
+    EXPECT_LT(pl[k]["shift"].get<double>(), 3) << k;
+  }
+  const auto bad = test::run_cli(segment_args(stack().slices, d / "bad.h5", "--colour-space hsv"));
+  EXPECT_EQ(bad.code, 2) << bad.err;
+  EXPECT_EQ(test::count_lines(bad.err), 1) << bad.err;
+  EXPECT_NE(bad.err.find("--colour-space"), std::string::npos) << bad.err;
+  EXPECT_FALSE(fs::exists(d / "bad.h5"));
+}
+
 // A 12-bit camera's data in 16-bit files (values 0..4095): read as 16-bit
 // it is 16x too dark and nothing was segmented, with no hint why (sweep of
 // 2026-11-27). segment now says how many bits the stack uses and names

@@ -323,8 +323,8 @@ TEST(SegmentPhantom, TheBackgroundGainIsUnbiasedUnderNoise) {
 
 // The colour space (SegmentOptions::colour_space). The calibration fits one
 // covariance shared by every tissue; sensor noise is the same for every
-// colour in RGB, but in CIELAB a dark or saturated tissue's spreads wider
-// than a light one's, so no one covariance fits them. At 8-bit noise 64 on
+// colour in RGB, but in CIELAB it spreads differently for each colour (the
+// blue gel's a third wider than the bone's), so no one covariance fits them. At 8-bit noise 64 on
 // 128 x 128 x 48 stacks the CIELAB fit moved the vein's prototype 13 units
 // into the blue gel; it took 13 % of the samples (the truth: 0.3 %) and the
 // gel's noisy pixels. Here (seeds 2 and 3) the worst tissue by CIELAB was

@@ -232,6 +232,17 @@ TEST(Pipeline, ColdWarmAndIncremental) {
     EXPECT_EQ(badp.code, 2) << badp.err;
     EXPECT_EQ(test::count_lines(badp.err), 1) << badp.err;
     EXPECT_NE(badp.err.find("--smoothness"), std::string::npos) << badp.err;
+    // segment's --colour-space: the report's parameter (rgb by default); cielab runs segment
+    // again (its own cache key); another space refused in one line
+    EXPECT_EQ(s.report()["parameters"]["colour_space"], "rgb");
+    const auto lab = test::run_cli(s.args("--grid 20x6 --colour-space cielab"));
+    ASSERT_EQ(lab.code, 0) << lab.err;
+    EXPECT_TRUE(s.ran().count("segment"));
+    EXPECT_EQ(s.report()["parameters"]["colour_space"], "cielab");
+    const auto badc = test::run_cli(s.args("--grid 20x6 --colour-space hsv"));
+    EXPECT_EQ(badc.code, 2) << badc.err;
+    EXPECT_EQ(test::count_lines(badc.err), 1) << badc.err;
+    EXPECT_NE(badc.err.find("--colour-space"), std::string::npos) << badc.err;
   }
   {
     // build's --no-axis-correction: the pipeline passes it (its own cache key); the
