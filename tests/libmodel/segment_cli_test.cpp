@@ -76,6 +76,29 @@ void expect_refused(const test::RunResult& r, const std::string& out, const std:
   EXPECT_FALSE(fs::exists(out)) << out;
 }
 
+// The small phantom at 8-bit `noise` (64 x 64 x 24 at 0.45 x 0.45 x 1.5 mm,
+// seed 3) made in d / "n<noise>" and segmented with a report: the stack's
+// folder, segment's result and its report (null where segment failed).
+struct NoisySegment {
+  std::string stack;
+  test::RunResult run;
+  nlohmann::json report;
+};
+NoisySegment segment_noisy_phantom(const test::TempDir& d, int noise) {
+  NoisySegment s;
+  std::string name = std::to_string(noise);  // (GCC 12 warns -Wrestrict, falsely, on "n" + to_string(noise))
+  name.insert(0, 1, 'n');
+  s.stack = d / name;
+  EXPECT_EQ(test::run_cli("phantom -q --out " + s.stack + " --size 64x64x24 --spacing 0.45,0.45,1.5 --noise " +
+                          std::to_string(noise) + " --seed 3")
+                .code,
+            0);
+  s.run = test::run_cli("segment -q --stack " + s.stack + "/slices --tissues " + s.stack +
+                        "/tissues.json --spacing 0.45,0.45,1.5 --out " + (d / "l.h5") + " --report " + (d / "r.json"));
+  if (s.run.code == 0) s.report = nlohmann::json::parse(test::read_file(d / "r.json"));
+  return s;
+}
+
 std::string segment_args(const std::string& slices, const std::string& out, const std::string& extra = "") {
   return "segment --stack " + slices + " --tissues " + stack().tissues + " --spacing 1,1,2 --out " + out + " --quiet " +
          extra;
@@ -468,16 +491,8 @@ TEST(SegmentCli, NothingSegmented) {
 TEST(SegmentCli, ACollapsedCalibrationIsSaid) {
   test::TempDir d("segcli-collapse");
   for (const int noise : {28, 128}) {
-    const std::string st = d / (noise == 28 ? "n28" : "n128");
-    ASSERT_EQ(test::run_cli("phantom -q --out " + st + " --size 64x64x24 --spacing 0.45,0.45,1.5 --noise " +
-                            std::to_string(noise) + " --seed 3")
-                  .code,
-              0);
-    const auto r = test::run_cli("segment -q --stack " + st + "/slices --tissues " + st +
-                                 "/tissues.json --spacing 0.45,0.45,1.5 --out " + (d / "l.h5") + " --report " +
-                                 (d / "r.json"));
+    const auto [st, r, j] = segment_noisy_phantom(d, noise);
     ASSERT_EQ(r.code, 0) << r.err;
-    const auto j = nlohmann::json::parse(test::read_file(d / "r.json"));
     const auto& dis = j["metrics"]["calibration_disagreements"];
     const bool said = r.err.find("disagree with the colour calibration") != std::string::npos;
     if (noise == 28) {
@@ -516,13 +531,8 @@ TEST(SegmentCli, ACollapsedCalibrationIsSaid) {
 // (Pipeline.TissuesTheSlicesDoNotShowAreLeftOut: marrow put in the skin).
 TEST(SegmentCli, ATissueLostToNoiseIsSaidWithTheColourItIsMixedWith) {
   test::TempDir d("segcli-noise");
-  const std::string st = d / "n96";
-  ASSERT_EQ(test::run_cli("phantom -q --out " + st + " --size 64x64x24 --spacing 0.45,0.45,1.5 --noise 96 --seed 3").code, 0);
-  const auto r = test::run_cli("segment -q --stack " + st + "/slices --tissues " + st +
-                               "/tissues.json --spacing 0.45,0.45,1.5 --out " + (d / "l.h5") + " --report " +
-                               (d / "r.json"));
+  const auto [st, r, j] = segment_noisy_phantom(d, 96);
   ASSERT_EQ(r.code, 0) << r.err;
-  const auto j = nlohmann::json::parse(test::read_file(d / "r.json"));
   const auto& sep = j["metrics"]["separations"];
   ASSERT_TRUE(sep.is_array() && !sep.empty());
   // sorted, each pair once, every pair of the table's 8 labels
