@@ -521,8 +521,10 @@ void pixel_statistics(ColourModel& m, const std::vector<std::uint64_t>& pairs, c
 
 // `next` moved back towards `table` (both in the model's space) until it is
 // at most max_shift CIE76 units from it. In CIELAB that is along the line;
-// in RGB the CIELAB distance along the line is found by bisection (it grows
-// monotonically along it for the moves a calibration makes).
+// in RGB (not linear in CIELAB) by bisection along it, which keeps the end
+// it knows to be within max_shift: the result never lies beyond, and it is
+// where the distance first reaches max_shift when the distance grows along
+// the line.
 std::array<double, 3> clamp_shift(const ColourModel& m, const std::array<double, 3>& table,
                                   const std::array<double, 3>& next, double max_shift) {
   const auto lab0 = m.to_lab(table);

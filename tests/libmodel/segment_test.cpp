@@ -517,6 +517,50 @@ TEST(SegmentPhantom, PerturbedPrototypesAndIllumination) {
   expect_dice(dice, tv, table, "perturbed");
 }
 
+// refine_max_shift bounds a prototype's move in CIE76 units in either space:
+// in CIELAB the move is cut back along its line, in RGB (not linear in
+// CIELAB) by bisection along it. With every table colour 10 off per channel
+// and a bound of 3 units, each prototype ends within 3 units of its table
+// colour and some end on the bound; without the bound they move 1.7-12.7
+// units.
+TEST(SegmentCalibration, TheLargestMoveIsHeldInEitherSpace) {
+  const PhantomOptions p = test_phantom();
+  const Volume truth = phantom_labels(p);
+  TissueTable table = phantom_tissue_table();
+  std::mt19937 rng(11);
+  auto jiggle = [&](std::array<std::uint8_t, 3>& c) {
+    for (auto& v : c) v = static_cast<std::uint8_t>(std::clamp(int(v) + (rng() % 2 ? 10 : -10), 0, 255));
+  };
+  for (auto& c : table.background_rgb) jiggle(c);
+  for (auto& t : table.tissues)
+    for (auto& c : t.rgb) jiggle(c);
+  for (const auto space : {SegmentOptions::Space::rgb, SegmentOptions::Space::cielab}) {
+    auto shifts = [&](double bound) {
+      SegmentOptions o = phantom_segment_options(p);
+      o.colour_space = space;
+      o.refine_max_shift = bound;
+      SegmentMetrics m;
+      segment_volume(phantom_source(p, truth), table, o, &m);
+      std::vector<double> s;
+      for (const auto& pr : m.prototypes)
+        s.push_back(std::hypot(pr.lab[0] - pr.table_lab[0], pr.lab[1] - pr.table_lab[1], pr.lab[2] - pr.table_lab[2]));
+      return s;
+    };
+    const std::vector<double> free = shifts(1e9), held = shifts(3);
+    ASSERT_EQ(free.size(), held.size());
+    std::printf("  %s: moves %.1f..%.1f free, up to %.3f held\n", to_string(space),
+                *std::min_element(free.begin(), free.end()), *std::max_element(free.begin(), free.end()),
+                *std::max_element(held.begin(), held.end()));
+    int on_bound = 0;
+    for (std::size_t k = 0; k < held.size(); ++k) {
+      EXPECT_LE(held[k], 3 + 1e-6) << to_string(space) << ": prototype " << k;
+      on_bound += held[k] > 2.9;
+    }
+    EXPECT_GT(*std::max_element(free.begin(), free.end()), 5) << to_string(space) << ": the bound must bind";
+    EXPECT_GT(on_bound, 0) << to_string(space);
+  }
+}
+
 // The whole stack exposed darker or brighter than the table's slices (a
 // camera's gain): the calibration moves a prototype at most refine_max_shift,
 // so at 0.65 of the phantom's brightness fat, bone, marrow and the vessels
