@@ -50,7 +50,7 @@ void add_segment_command(CLI::App& app) {
   sub->add_option("--truth", a.truth, "model file with a true /volume: per-tissue Dice in the report");
   sub->add_option("--normalise", a.normalise, "background normalisation: none, gain, plane")->capture_default_str();
   sub->add_option("--classify", a.classify,
-                  "colour to prototype: mahalanobis (under the calibrated colour spread) or nearest (CIELAB)")
+                  "colour to prototype: mahalanobis (under the calibrated colour spread) or nearest (in --colour-space)")
       ->capture_default_str();
   sub->add_option("--colour-space", a.colour_space,
                   "space the colour calibration is fitted and colours are scored in: cielab or rgb (the 8-bit sRGB "

@@ -258,13 +258,14 @@ struct SegmentOptions {
   enum class Space { cielab, rgb };
   Space colour_space = Space::rgb;
 
-  // How a colour picks its prototype. nearest: the nearest in CIELAB
-  // (CIE76, lightness weighted). mahalanobis: the nearest under the
-  // calibration mixture's shared covariance (the lightness weight is then
-  // unused): distances count in units of the stack's own colour spread along
-  // each direction, so the sensor noise's wide chroma on dark and saturated
-  // colours no longer carries a common tissue's pixels into a rare one next
-  // to it (the blue gel into the vein). Equal priors: the mixing weights
+  // How a colour picks its prototype. nearest: the nearest in colour_space
+  // (Euclidean; in CIELAB CIE76, lightness weighted). mahalanobis: the
+  // nearest under the calibration mixture's shared covariance (the lightness
+  // weight is then unused): distances count in units of the stack's own
+  // colour spread along each direction, so the noise's wide spread along
+  // some directions (in CIELAB the chroma of dark and saturated colours) no
+  // longer carries a common tissue's pixels into a rare one next to it (the
+  // blue gel into the vein). Equal priors: the mixing weights
   // would keep thin layers' boundary pixels from them. Needs
   // refine_iterations > 0 (else nearest).
   enum class Classify { nearest, mahalanobis };
