@@ -137,6 +137,20 @@ void expect_dice(const std::map<std::string, double>& dice, const std::map<std::
   }
 }
 
+// The phantom's table with every prototype channel moved by +-10, in a
+// fixed pseudo-random pattern.
+TissueTable jiggled_phantom_table() {
+  TissueTable table = phantom_tissue_table();
+  std::mt19937 rng(11);
+  auto jiggle = [&](std::array<std::uint8_t, 3>& c) {
+    for (auto& v : c) v = static_cast<std::uint8_t>(std::clamp(int(v) + (rng() % 2 ? 10 : -10), 0, 255));
+  };
+  for (auto& c : table.background_rgb) jiggle(c);
+  for (auto& t : table.tissues)
+    for (auto& c : t.rgb) jiggle(c);
+  return table;
+}
+
 PhantomOptions test_phantom() {
   PhantomOptions p;
   p.nx = 128, p.ny = 128, p.nz = 40;
@@ -495,15 +509,7 @@ std::vector<RgbImage> lit_slices(const PhantomOptions& p, const Volume& truth,
 TEST(SegmentPhantom, PerturbedPrototypesAndIllumination) {
   const PhantomOptions p = test_phantom();
   const Volume truth = phantom_labels(p);
-  TissueTable table = phantom_tissue_table();
-  // every prototype channel moved by +-10, in a fixed pseudo-random pattern
-  std::mt19937 rng(11);
-  auto jiggle = [&](std::array<std::uint8_t, 3>& c) {
-    for (auto& v : c) v = static_cast<std::uint8_t>(std::clamp(int(v) + (rng() % 2 ? 10 : -10), 0, 255));
-  };
-  for (auto& c : table.background_rgb) jiggle(c);
-  for (auto& t : table.tissues)
-    for (auto& c : t.rgb) jiggle(c);
+  const TissueTable table = jiggled_phantom_table();
   // a global illumination shift: 12 % darker, warmer, plus a gradient across the slices
   std::vector<RgbImage> slices = lit_slices(p, truth, [&](int x, int, int z, int c) {
     return 0.88 * (c == 0 ? 1.04 : c == 2 ? 0.95 : 1.0) * (1 + 0.08 * (x - p.nx / 2) / p.nx) * (1 + 0.05 * std::sin(0.2 * z));
@@ -526,14 +532,7 @@ TEST(SegmentPhantom, PerturbedPrototypesAndIllumination) {
 TEST(SegmentCalibration, TheLargestMoveIsHeldInEitherSpace) {
   const PhantomOptions p = test_phantom();
   const Volume truth = phantom_labels(p);
-  TissueTable table = phantom_tissue_table();
-  std::mt19937 rng(11);
-  auto jiggle = [&](std::array<std::uint8_t, 3>& c) {
-    for (auto& v : c) v = static_cast<std::uint8_t>(std::clamp(int(v) + (rng() % 2 ? 10 : -10), 0, 255));
-  };
-  for (auto& c : table.background_rgb) jiggle(c);
-  for (auto& t : table.tissues)
-    for (auto& c : t.rgb) jiggle(c);
+  const TissueTable table = jiggled_phantom_table();
   for (const auto space : {SegmentOptions::Space::rgb, SegmentOptions::Space::cielab}) {
     auto shifts = [&](double bound) {
       SegmentOptions o = phantom_segment_options(p);
