@@ -231,7 +231,9 @@ json settings_table() {
   };
   const std::vector<Setting> settings = {
       {"defaults", [](SegmentOptions&) {}},
-      {"lightness_weight 3", [](SegmentOptions& o) { o.lightness_weight = 3; }},
+      // the weight is CIELAB's (in RGB it is unused)
+      {"cielab, lightness_weight 3",
+       [](SegmentOptions& o) { o.colour_space = SegmentOptions::Space::cielab, o.lightness_weight = 3; }},
       {"no smoothness prior", [](SegmentOptions& o) { o.smoothness = 0; }},
       {"no rank filter", [](SegmentOptions& o) { o.speck_support = 0; }},
       {"no order", [](SegmentOptions& o) { o.enforce_order = false; }},

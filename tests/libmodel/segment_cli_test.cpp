@@ -137,7 +137,8 @@ TEST(SegmentCli, GoodStackMatchesTruthAndIsDeterministic) {
 // --colour-space: the space reaches the report's parameters, both spaces
 // find the noise-free phantom's bulk tissues, the report's colours are CIELAB
 // in both (the same table colours), and a space the tool does not know is
-// refused in one line with nothing written.
+// refused in one line with nothing written; so is --lightness-weight without
+// CIELAB, where it would do nothing.
 TEST(SegmentCli, TheColourSpaceIsChosenAndAnUnknownOneRefused) {
   test::TempDir d("segcli-space");
   std::map<std::string, nlohmann::json> reports;
@@ -163,6 +164,13 @@ TEST(SegmentCli, TheColourSpaceIsChosenAndAnUnknownOneRefused) {
   EXPECT_EQ(test::count_lines(bad.err), 1) << bad.err;
   EXPECT_NE(bad.err.find("--colour-space"), std::string::npos) << bad.err;
   EXPECT_FALSE(fs::exists(d / "bad.h5"));
+  // the lightness weight is CIELAB's: with RGB it would do nothing, so it is refused
+  const auto lw = test::run_cli(segment_args(stack().slices, d / "bad.h5", "--lightness-weight 2"));
+  EXPECT_EQ(lw.code, 2) << lw.err;
+  EXPECT_EQ(test::count_lines(lw.err), 1) << lw.err;
+  EXPECT_NE(lw.err.find("--lightness-weight"), std::string::npos) << lw.err;
+  EXPECT_FALSE(fs::exists(d / "bad.h5"));
+  EXPECT_EQ(test::run_cli(segment_args(stack().slices, d / "lw.h5", "--colour-space cielab --lightness-weight 2")).code, 0);
 }
 
 // A 12-bit camera's data in 16-bit files (values 0..4095): read as 16-bit

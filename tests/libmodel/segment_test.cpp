@@ -105,7 +105,7 @@ SegmentOptions phantom_segment_options(const PhantomOptions& p) {
   SegmentOptions o;
   o.spacing_m = p.spacing_m;
   o.origin_m = phantom_origin(p);
-  o.lightness_weight = 3;
+  o.lightness_weight = 3;  // CIELAB's: used by the tests that pass colour_space cielab
   return o;
 }
 
@@ -338,8 +338,8 @@ TEST(SegmentPhantom, TheBackgroundGainIsUnbiasedUnderNoise) {
 // The colour space (SegmentOptions::colour_space). The calibration fits one
 // covariance shared by every tissue; sensor noise is the same for every
 // colour in RGB, but in CIELAB it spreads differently for each colour (the
-// blue gel's a third wider than the bone's), so no one covariance fits them. At 8-bit noise 64 on
-// 128 x 128 x 48 stacks the CIELAB fit moved the vein's prototype 13 units
+// blue gel's a third wider than the bone's: scripts/lab_noise_spread.py), so
+// no one covariance fits them. At 8-bit noise 64 on 128 x 128 x 48 stacks the CIELAB fit moved the vein's prototype 13 units
 // into the blue gel; it took 13 % of the samples (the truth: 0.3 %) and the
 // gel's noisy pixels. Here (seeds 2 and 3) the worst tissue by CIELAB was
 // the skin at 0.42 and the vein at 0.03; in RGB the skin, a rim a few voxels

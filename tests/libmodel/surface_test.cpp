@@ -1095,8 +1095,7 @@ TEST(SurfaceCli, NestedCapsStayOnTheirParentsCaps) {
 // against their own mean colours (2026-11-28) seed 2 folds no fat; seeds
 // 1-8 fold 0-13 fat and 0-45 muscle faces. The labels are the CIELAB
 // calibration's (--colour-space cielab), which these folds were found with;
-// the RGB calibration's (the default since 2026-11-29) are less noisy here
-// and fold no fat.
+// the RGB calibration's (the default since 2026-11-29) fold no fat here.
 TEST(SurfaceCli, FoldsNextToTheCapsAreUntangled) {
   test::TempDir d("surface-capfolds");
   const nlohmann::json rep =
