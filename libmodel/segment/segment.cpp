@@ -132,6 +132,10 @@ SliceSource roi_source(SliceSource src, const SegmentOptions& o) {
   s.nx = nx, s.ny = ny, s.nz = last - off[2] + 1;
   s.name = in->name, s.note = in->note;
   s.read = [in, off, nx, ny](int z, std::vector<std::uint8_t>& rgb) {
+    if (in->read_region && (nx != in->nx || ny != in->ny)) {  // the file's decoder cuts (read_slice's region)
+      in->read_region(z + off[2], {off[0], off[1], nx, ny}, rgb);
+      return;
+    }
     std::vector<std::uint8_t> raw;
     in->read(z + off[2], raw);
     if (raw.size() != static_cast<std::size_t>(in->nx) * in->ny * 3)  // (never cut past a short slice)

@@ -122,8 +122,17 @@ struct SliceFormat {
 // a 12-bit camera's data in a 16-bit file: 12), an alpha channel is dropped.
 // Throws Error(path, ...) for a missing, empty, corrupt or undecodable file
 // and for grey-scale images (one or two channels, or three equal channels).
-// `format` receives what the file held.
-RgbImage read_slice(const std::string& path, SliceFormat* format = nullptr, int bit_depth = 16);
+// `format` receives what the file held (its whole size, also when it throws
+// after reading the header).
+// region (x, y, w, h in pixels from the top left; w = h = 0: the whole slice):
+// the pixels of that part alone, the same values as the whole slice's cut,
+// decoded as far as the format lets (docs/segment.md, Region of interest):
+// a JPEG's rows of the region (the rows above skipped, the rows below read
+// only to check the data) and its iMCU columns, a PNG's rows down to the
+// region's last; other files whole, then cut. A region beyond the slice
+// throws Error(path, ...).
+RgbImage read_slice(const std::string& path, SliceFormat* format = nullptr, int bit_depth = 16,
+                    const std::array<int, 4>& region = {0, 0, 0, 0});
 
 // Writes an RGB image as PNG atomically (overlays, tests). Throws Error(path).
 void write_png(const std::string& path, const RgbImage& image);
@@ -138,6 +147,11 @@ struct SliceSource {
   // slice uses 12 bits or fewer while read as 16-bit), or empty
   std::string note;
   std::function<void(int z, std::vector<std::uint8_t>& rgb)> read;
+  // Optional: the pixels of the part (x, y, w, h) of slice z alone (w*h*3
+  // bytes), as read then cut would give them, at the cost of decoding only
+  // what the part needs (stack_source's: read_slice's region). roi_source
+  // uses it when it is there.
+  std::function<void(int z, const std::array<int, 4>& region, std::vector<std::uint8_t>& rgb)> read_region;
 };
 
 // A source over the folder `dir`: lists it, reads the first slice for the

@@ -4,15 +4,18 @@
 #include "libmodel/provenance.h"
 
 #include <jpeglib.h>
+#include <png.h>
 #include <opencv2/core.hpp>
 #include <opencv2/core/utils/logger.hpp>
 #include <opencv2/imgcodecs.hpp>
 
 #include <algorithm>
 #include <array>
+#include <bit>
 #include <cctype>
 #include <csetjmp>
 #include <cstdio>
+#include <cstring>
 #include <filesystem>
 #include <fstream>
 #include <iostream>
@@ -181,8 +184,246 @@ void check_container(const std::string& path, const std::vector<std::uint8_t>& b
     bool eoi = false;
     for (std::size_t i = b.size() - 1; i > from && !eoi; --i) eoi = b[i - 1] == 0xFF && b[i] == 0xD9;
     if (!eoi) throw Error(path, "corrupt JPEG: truncated (no end-of-image marker)");
-    check_jpeg_data(path, b);
   }
+}
+
+bool is_jpeg(const std::vector<std::uint8_t>& b) { return b.size() >= 2 && b[0] == 0xFF && b[1] == 0xD8; }
+bool is_png(const std::vector<std::uint8_t>& b) { return b.size() >= 8 && b[0] == 0x89 && b[1] == 'P'; }
+
+// A region x, y, w, h of a slice nx x ny (w = 0: the whole slice).
+bool whole(const std::array<int, 4>& r) { return r[2] == 0 && r[3] == 0; }
+std::array<int, 4> region_in(const std::array<int, 4>& r, int nx, int ny) {
+  return whole(r) ? std::array<int, 4>{0, 0, nx, ny} : r;
+}
+bool region_fits(const std::array<int, 4>& r, int nx, int ny) {
+  return r[0] >= 0 && r[1] >= 0 && r[2] > 0 && r[3] > 0 && static_cast<std::int64_t>(r[0]) + r[2] <= nx &&
+         static_cast<std::int64_t>(r[1]) + r[3] <= ny;
+}
+[[noreturn]] void region_beyond(const std::string& path, const std::array<int, 4>& r, int nx, int ny) {
+  throw Error(path, "the region (x " + std::to_string(r[0]) + ", y " + std::to_string(r[1]) + ", " + std::to_string(r[2]) +
+                        " x " + std::to_string(r[3]) + " px) reaches beyond the slice, which is " + std::to_string(nx) +
+                        " x " + std::to_string(ny) + " px");
+}
+
+// ---- the decoders ------------------------------------------------------------------------------
+// JPEG and PNG slices are decoded here, straight into the RGB image, of the
+// region alone (read_slice's region); other files by OpenCV, whole, then cut.
+// Each gives the values cv::imdecode(IMREAD_UNCHANGED) gives (SliceRegion
+// tests), or returns false before decoding anything for a file it leaves to
+// OpenCV. Between each setjmp and its longjmp only C objects live; the caller
+// owns the C++ ones (the image, the row buffer).
+
+// n pixels of a decoded row (3 or 4 channels, 8 or 16 bits in host order, in
+// RGB order or BGR when bgr) as 8-bit RGB: 16-bit values scaled from
+// bit_depth significant bits (v x 255 / (2^bit_depth - 1), rounded, clamped),
+// the largest 16-bit colour value kept in *max_value, alpha dropped.
+void to_rgb8(const std::uint8_t* src, int n, int channels, int bits, bool bgr, int bit_depth, std::uint8_t* dst,
+             int* max_value) {
+  const int r = bgr ? 2 : 0, b = bgr ? 0 : 2;
+  if (bits == 8) {
+    if (channels == 3 && !bgr) {
+      std::memcpy(dst, src, static_cast<std::size_t>(n) * 3);
+      return;
+    }
+    for (int x = 0; x < n; ++x) {
+      dst[3 * x + 0] = src[channels * x + r];
+      dst[3 * x + 1] = src[channels * x + 1];
+      dst[3 * x + 2] = src[channels * x + b];
+    }
+    return;
+  }
+  const std::uint32_t full = (1u << bit_depth) - 1;  // the largest value of the significant bits
+  const auto* s16 = reinterpret_cast<const std::uint16_t*>(src);
+  int most = *max_value;
+  for (int x = 0; x < n; ++x)
+    for (int c = 0; c < 3; ++c) {
+      const std::uint32_t v = s16[channels * x + (c == 0 ? r : c == 2 ? b : 1)];
+      most = std::max(most, static_cast<int>(v));
+      dst[3 * x + c] = static_cast<std::uint8_t>(std::min<std::uint32_t>(255, (v * 255 + full / 2) / full));
+    }
+  *max_value = most;
+}
+
+// JPEG, 3 components in YCbCr or RGB: the region's rows and (jpeg_crop_scanline)
+// its iMCU columns, with a margin of two iMCUs on each side. Without a margin
+// the columns next to a crop's border differed from the whole slice's
+// (SliceRegion.ARegionIsTheWholeSliceCutInEveryFormat: 4:2:0 and 4:4:4 files
+// alike); with one iMCU they did not; the rows above a region, skipped, needed
+// none on those files, and get the same margin. The rows above are skipped
+// (jpeg_skip_scanlines: their entropy codes read, no inverse transform), and
+// the rows below skipped to the last, which is read, so that the whole stream
+// is checked as check_jpeg_data checks it (skipping to the very end stops
+// reading it: libjpeg-turbo marks the end reached). libjpeg's warnings are
+// errors (JpegErrors). (OpenCV asks for JCS_RGB too, then swaps to BGR.)
+struct JpegRegion {
+  jpeg_decompress_struct cinfo;
+  JpegErrors err;
+  const std::uint8_t* bytes;
+  unsigned long size;
+  int nx, ny, components;
+  J_COLOR_SPACE space;
+};
+
+// 0: read; 1: an error (err.message)
+int jpeg_header(JpegRegion& j) {
+  j.cinfo.err = jpeg_std_error(&j.err.mgr);
+  j.err.mgr.error_exit = jpeg_fail;
+  j.err.mgr.emit_message = jpeg_message;
+  if (setjmp(j.err.jump)) return 1;
+  jpeg_create_decompress(&j.cinfo);
+  jpeg_mem_src(&j.cinfo, j.bytes, j.size);
+  jpeg_read_header(&j.cinfo, TRUE);
+  j.nx = static_cast<int>(j.cinfo.image_width), j.ny = static_cast<int>(j.cinfo.image_height);
+  j.components = j.cinfo.num_components;
+  j.space = j.cinfo.jpeg_color_space;
+  return 0;
+}
+
+// the region r's RGB pixels to out (r[2] * 3 bytes a row)
+int jpeg_rows(JpegRegion& j, const int* r, std::uint8_t* out) {
+  if (setjmp(j.err.jump)) return 1;
+  jpeg_decompress_struct& c = j.cinfo;
+  c.out_color_space = JCS_RGB;
+  jpeg_start_decompress(&c);
+  const int imcu = std::max(c.max_h_samp_factor, c.max_v_samp_factor) * DCTSIZE;
+  const int margin = 2 * imcu;
+  JDIMENSION x0 = static_cast<JDIMENSION>(std::max(0, r[0] - margin));
+  JDIMENSION width = static_cast<JDIMENSION>(std::min(j.nx, r[0] + r[2] + margin)) - x0;
+  if (width < c.output_width) jpeg_crop_scanline(&c, &x0, &width);  // x0 down to an iMCU's edge
+  JSAMPARRAY row = (*c.mem->alloc_sarray)(reinterpret_cast<j_common_ptr>(&c), JPOOL_IMAGE, c.output_width * 3, 1);
+  const JDIMENSION top = static_cast<JDIMENSION>(std::max(0, r[1] - margin));
+  if (top > 0) jpeg_skip_scanlines(&c, top);
+  const JDIMENSION first = static_cast<JDIMENSION>(r[1]), end = static_cast<JDIMENSION>(r[1] + r[3]);
+  const std::size_t from = (static_cast<std::size_t>(r[0]) - x0) * 3, bytes = static_cast<std::size_t>(r[2]) * 3;
+  const bool direct = from == 0 && c.output_width == static_cast<JDIMENSION>(r[2]);  // whole rows: straight into out
+  while (c.output_scanline < end) {
+    const JDIMENSION y = c.output_scanline;
+    std::uint8_t* dst = y >= first ? out + (y - first) * bytes : nullptr;
+    JSAMPROW into = direct && dst ? dst : row[0];
+    jpeg_read_scanlines(&c, &into, 1);
+    if (!direct && dst) std::memcpy(dst, row[0] + from, bytes);
+  }
+  // the rest of the stream, checked: its last row is read
+  if (c.output_height - c.output_scanline > 1) jpeg_skip_scanlines(&c, c.output_height - c.output_scanline - 1);
+  while (c.output_scanline < c.output_height) jpeg_read_scanlines(&c, row, 1);
+  jpeg_finish_decompress(&c);
+  return 0;
+}
+
+// Fills f; img gets the region's pixels, or stays empty when the region does
+// not fit (read_slice says so).
+bool decode_jpeg(const std::string& path, const std::vector<std::uint8_t>& b, const std::array<int, 4>& region,
+                 RgbImage& img, SliceFormat& f) {
+  JpegRegion j{};
+  j.bytes = b.data();
+  j.size = static_cast<unsigned long>(b.size());
+  struct Destroy {
+    JpegRegion& j;
+    ~Destroy() { jpeg_destroy_decompress(&j.cinfo); }
+  } destroy{j};
+  auto fail = [&] {
+    std::string what = j.err.message;  // libjpeg's own warnings start "Corrupt JPEG data: "
+    if (what.rfind("Corrupt JPEG data: ", 0) == 0) what.erase(0, 19);
+    throw Error(path, "corrupt JPEG: " + what);
+  };
+  if (jpeg_header(j) != 0) fail();
+  if (j.components != 3 || (j.space != JCS_YCbCr && j.space != JCS_RGB)) return false;
+  f.nx = j.nx, f.ny = j.ny, f.channels = 3, f.bits = 8;
+  const std::array<int, 4> r = region_in(region, j.nx, j.ny);
+  if (!region_fits(r, j.nx, j.ny) || static_cast<std::int64_t>(j.nx) * j.ny > (std::int64_t(1) << 28)) return true;
+  img.nx = r[2], img.ny = r[3];
+  img.rgb.resize(static_cast<std::size_t>(r[2]) * r[3] * 3);
+  if (jpeg_rows(j, r.data(), img.rgb.data()) != 0) fail();
+  return true;
+}
+
+// PNG, 8- or 16-bit RGB or RGBA, not interlaced, no tRNS chunk: the rows
+// down to the region's last (a PNG row is filtered against the one above, so
+// the rows above are decoded too; its columns cannot be cut before). The
+// rows below are not inflated: check_container has checked every chunk's CRC.
+struct PngRegion {
+  png_structp png;
+  png_infop info;
+  const std::uint8_t* bytes;
+  std::size_t size, at;
+  char message[256];
+  png_uint_32 nx, ny;
+  int depth, type, interlace, trns;
+};
+void png_fail(png_structp p, png_const_charp msg) {
+  auto* j = static_cast<PngRegion*>(png_get_error_ptr(p));
+  std::snprintf(j->message, sizeof j->message, "%s", msg);
+  png_longjmp(p, 1);
+}
+void png_warning_ignored(png_structp, png_const_charp) {}  // (OpenCV's decoder shows none either)
+void png_read_bytes(png_structp p, png_bytep out, png_size_t n) {
+  auto* j = static_cast<PngRegion*>(png_get_io_ptr(p));
+  if (n > j->size - j->at) png_error(p, "truncated");
+  std::memcpy(out, j->bytes + j->at, n);
+  j->at += n;
+}
+
+int png_header(PngRegion& j) {
+  j.png = png_create_read_struct(PNG_LIBPNG_VER_STRING, &j, png_fail, png_warning_ignored);
+  if (!j.png) return 1;
+  j.info = png_create_info_struct(j.png);
+  if (!j.info) return 1;
+  if (setjmp(png_jmpbuf(j.png))) return 1;
+  png_set_read_fn(j.png, &j, png_read_bytes);
+  png_read_info(j.png, j.info);
+  png_get_IHDR(j.png, j.info, &j.nx, &j.ny, &j.depth, &j.type, &j.interlace, nullptr, nullptr);
+  j.trns = png_get_valid(j.png, j.info, PNG_INFO_tRNS) != 0;
+  return 0;
+}
+
+// rows 0 .. r[1] + r[3] - 1 through `line` (one row of the file); the
+// region's part of each to out as 8-bit RGB (to_rgb8)
+int png_rows(PngRegion& j, const int* r, int channels, int bit_depth, std::uint8_t* line, std::uint8_t* out,
+             int* max_value) {
+  if (setjmp(png_jmpbuf(j.png))) return 1;
+  // the check of each chunk's CRC, made again as it is read, is
+  // check_container's (as OpenCV's decoder, libpng would check it here too)
+  if (j.depth == 16) png_set_swap(j.png);  // (this build is little-endian: host order, as OpenCV's)
+  png_read_update_info(j.png, j.info);
+  const int pixel = channels * j.depth / 8;
+  const std::size_t from = static_cast<std::size_t>(r[0]) * pixel, bytes = static_cast<std::size_t>(r[2]) * 3;
+  // 8-bit RGB, whole rows: straight into out
+  const bool direct = j.depth == 8 && channels == 3 && r[0] == 0 && r[2] == static_cast<int>(j.nx);
+  for (int y = 0; y < r[1] + r[3]; ++y) {
+    std::uint8_t* dst = y >= r[1] ? out + static_cast<std::size_t>(y - r[1]) * bytes : nullptr;
+    png_read_row(j.png, direct && dst ? dst : line, nullptr);
+    if (!direct && dst) to_rgb8(line + from, r[2], channels, j.depth, false, bit_depth, dst, max_value);
+  }
+  return 0;
+}
+
+bool decode_png(const std::string& path, const std::vector<std::uint8_t>& b, const std::array<int, 4>& region,
+                int bit_depth, RgbImage& img, SliceFormat& f) {
+  static_assert(std::endian::native == std::endian::little, "png_rows swaps 16-bit samples to little-endian");
+  PngRegion j{};
+  j.bytes = b.data();
+  j.size = b.size();
+  struct Destroy {
+    PngRegion& j;
+    ~Destroy() {
+      if (j.png) png_destroy_read_struct(&j.png, j.info ? &j.info : nullptr, nullptr);
+    }
+  } destroy{j};
+  auto fail = [&] { throw Error(path, std::string("corrupt PNG: ") + (j.message[0] ? j.message : "cannot read it")); };
+  if (png_header(j) != 0) fail();
+  if ((j.type != PNG_COLOR_TYPE_RGB && j.type != PNG_COLOR_TYPE_RGB_ALPHA) || (j.depth != 8 && j.depth != 16) ||
+      j.interlace != PNG_INTERLACE_NONE || j.trns || j.nx > (1u << 28) || j.ny > (1u << 28))
+    return false;
+  const int nx = static_cast<int>(j.nx), ny = static_cast<int>(j.ny);
+  const int channels = j.type == PNG_COLOR_TYPE_RGB ? 3 : 4;
+  f.nx = nx, f.ny = ny, f.channels = channels, f.bits = j.depth;
+  const std::array<int, 4> r = region_in(region, nx, ny);
+  if (!region_fits(r, nx, ny) || static_cast<std::int64_t>(nx) * ny > (std::int64_t(1) << 28)) return true;
+  img.nx = r[2], img.ny = r[3];
+  img.rgb.resize(static_cast<std::size_t>(r[2]) * r[3] * 3);
+  std::vector<std::uint8_t> line(static_cast<std::size_t>(nx) * channels * j.depth / 8);
+  if (png_rows(j, r.data(), channels, bit_depth, line.data(), img.rgb.data(), &f.max_value) != 0) fail();
+  return true;
 }
 
 }  // namespace
@@ -262,7 +503,7 @@ class QuietCerr {
 
 }  // namespace
 
-RgbImage read_slice(const std::string& path, SliceFormat* format, int bit_depth) {
+RgbImage read_slice(const std::string& path, SliceFormat* format, int bit_depth, const std::array<int, 4>& region) {
   if (bit_depth < 8 || bit_depth > 16) throw Error(path, "bit depth must be in 8..16, not " + std::to_string(bit_depth));
   // OpenCV's own log lines ("[ WARN:0@0.037] global .../grfmt_tiff.cpp ...") stood
   // beside orthosim's one-line error on a corrupt TIFF or BMP
@@ -273,26 +514,33 @@ RgbImage read_slice(const std::string& path, SliceFormat* format, int bit_depth)
   (void)silenced;
   const std::vector<std::uint8_t> bytes = read_bytes(path);
   check_container(path, bytes);
-  cv::Mat m;
-  try {
-    const QuietCerr quiet;
-    m = cv::imdecode(cv::Mat(1, static_cast<int>(bytes.size()), CV_8U, const_cast<std::uint8_t*>(bytes.data())),
-                     cv::IMREAD_UNCHANGED);
-  } catch (const cv::Exception& e) {
-    throw Error(path, "cannot decode image (corrupt or unsupported)");
-  }
-  if (m.empty() || m.dims != 2 || m.rows <= 0 || m.cols <= 0)
-    throw Error(path, "cannot decode image (corrupt, truncated or unsupported format)");
+  RgbImage img;
   SliceFormat f;
-  f.nx = m.cols;
-  f.ny = m.rows;
-  f.channels = m.channels();
-  if (m.depth() == CV_8U) {
-    f.bits = 8;
-  } else if (m.depth() == CV_16U) {
-    f.bits = 16;
-  } else {
-    throw Error(path, "unsupported pixel type (only 8- and 16-bit unsigned images)");
+  const bool decoded = is_jpeg(bytes)  ? decode_jpeg(path, bytes, region, img, f)
+                       : is_png(bytes) ? decode_png(path, bytes, region, bit_depth, img, f)
+                                       : false;
+  cv::Mat m;  // OpenCV's decoding, BGR(A)
+  if (!decoded) {
+    if (is_jpeg(bytes)) check_jpeg_data(path, bytes);
+    try {
+      const QuietCerr quiet;
+      m = cv::imdecode(cv::Mat(1, static_cast<int>(bytes.size()), CV_8U, const_cast<std::uint8_t*>(bytes.data())),
+                       cv::IMREAD_UNCHANGED);
+    } catch (const cv::Exception& e) {
+      throw Error(path, "cannot decode image (corrupt or unsupported)");
+    }
+    if (m.empty() || m.dims != 2 || m.rows <= 0 || m.cols <= 0)
+      throw Error(path, "cannot decode image (corrupt, truncated or unsupported format)");
+    f.nx = m.cols;
+    f.ny = m.rows;
+    f.channels = m.channels();
+    if (m.depth() == CV_8U) {
+      f.bits = 8;
+    } else if (m.depth() == CV_16U) {
+      f.bits = 16;
+    } else {
+      throw Error(path, "unsupported pixel type (only 8- and 16-bit unsigned images)");
+    }
   }
   if (format) *format = f;
   if (f.channels < 3)
@@ -300,39 +548,25 @@ RgbImage read_slice(const std::string& path, SliceFormat* format, int bit_depth)
                           " channel" + (f.channels == 1 ? "" : "s") + "): segmentation needs colour slices");
   if (static_cast<std::int64_t>(f.nx) * f.ny > (std::int64_t(1) << 28))
     throw Error(path, "slice too large (more than 2^28 pixels)");
-  RgbImage img;
-  img.nx = f.nx;
-  img.ny = f.ny;
-  img.rgb.resize(static_cast<std::size_t>(f.nx) * f.ny * 3);
-  const int ch = f.channels;
-  const std::uint32_t full = (1u << bit_depth) - 1;  // the largest value of the significant bits
-  std::int64_t grey = 0, total = 0;
-  int max_value = 0;  // 16-bit slices only (the bit-depth note)
-  for (int y = 0; y < f.ny; ++y) {
-    std::uint8_t* dst = img.rgb.data() + static_cast<std::size_t>(y) * f.nx * 3;
-    if (f.bits == 8) {
-      const std::uint8_t* src = m.ptr<std::uint8_t>(y);
-      for (int x = 0; x < f.nx; ++x) {  // OpenCV is BGR(A)
-        dst[3 * x + 0] = src[ch * x + 2];
-        dst[3 * x + 1] = src[ch * x + 1];
-        dst[3 * x + 2] = src[ch * x + 0];
-      }
-    } else {
-      const std::uint16_t* src = m.ptr<std::uint16_t>(y);
-      for (int x = 0; x < f.nx; ++x)
-        for (int c = 0; c < 3; ++c) {
-          const std::uint32_t v = src[ch * x + 2 - c];
-          max_value = std::max(max_value, static_cast<int>(v));
-          dst[3 * x + c] = static_cast<std::uint8_t>(std::min<std::uint32_t>(255, (v * 255 + full / 2) / full));
-        }
-    }
-    if (y % 4 == 0)
-      for (int x = 0; x < f.nx; x += 4) {
-        ++total;
-        grey += dst[3 * x] == dst[3 * x + 1] && dst[3 * x + 1] == dst[3 * x + 2];
-      }
+  const std::array<int, 4> r = region_in(region, f.nx, f.ny);
+  if (!region_fits(r, f.nx, f.ny)) region_beyond(path, r, f.nx, f.ny);
+  if (!decoded) {
+    img.nx = r[2];
+    img.ny = r[3];
+    img.rgb.resize(static_cast<std::size_t>(img.nx) * img.ny * 3);
+    for (int y = 0; y < img.ny; ++y)
+      to_rgb8(m.ptr<std::uint8_t>(y + r[1]) + static_cast<std::size_t>(r[0]) * m.elemSize(), img.nx, f.channels,
+              f.bits, true, bit_depth, img.rgb.data() + static_cast<std::size_t>(y) * img.nx * 3, &f.max_value);
+    if (format) format->max_value = f.max_value;
   }
-  if (format) format->max_value = max_value;
+  std::int64_t grey = 0, total = 0;
+  for (int y = 0; y < img.ny; y += 4) {
+    const std::uint8_t* row = img.rgb.data() + static_cast<std::size_t>(y) * img.nx * 3;
+    for (int x = 0; x < img.nx; x += 4) {
+      ++total;
+      grey += row[3 * x] == row[3 * x + 1] && row[3 * x + 1] == row[3 * x + 2];
+    }
+  }
   if (total > 0 && grey * 1000 >= total * 999)
     throw Error(path, "grey-scale image stored as colour (R = G = B everywhere): segmentation needs colour slices");
   return img;
@@ -381,18 +615,23 @@ SliceSource stack_source(const std::string& dir, int bit_depth) {
                std::to_string(first.max_value) + " in " + fs::path(files->front()).filename().string() + ", read as " +
                std::to_string(bit_depth) + "-bit): if that is the camera's depth, pass --bit-depth " + std::to_string(used);
   }
-  s.read = [files, first, bit_depth](int z, std::vector<std::uint8_t>& rgb) {
+  s.read_region = [files, first, bit_depth](int z, const std::array<int, 4>& region, std::vector<std::uint8_t>& rgb) {
     const std::string& path = (*files)[static_cast<std::size_t>(z)];
     SliceFormat f;
     RgbImage img;
     try {
-      img = read_slice(path, &f, bit_depth);
+      img = read_slice(path, &f, bit_depth, region);
     } catch (const Error& e) {
-      // a grey slice after a colour first slice is a mixed stack
+      // a grey slice after a colour first slice is a mixed stack, and a
+      // region beyond a slice smaller than the first one is that slice's size
       if (f.channels > 0 && f.channels != first.channels)
         throw Error(path, "has " + std::to_string(f.channels) + " channels, the first slice " +
                               fs::path(files->front()).filename().string() + " has " +
                               std::to_string(first.channels));
+      if (f.nx > 0 && (f.nx != first.nx || f.ny != first.ny))
+        throw Error(path, "slice is " + std::to_string(f.nx) + "x" + std::to_string(f.ny) + ", the first slice " +
+                              fs::path(files->front()).filename().string() + " is " + std::to_string(first.nx) + "x" +
+                              std::to_string(first.ny));
       throw;
     }
     if (f.nx != first.nx || f.ny != first.ny)
@@ -407,6 +646,7 @@ SliceSource stack_source(const std::string& dir, int bit_depth) {
                             fs::path(files->front()).filename().string() + " has " + std::to_string(first.bits));
     rgb = std::move(img.rgb);
   };
+  s.read = [region = s.read_region](int z, std::vector<std::uint8_t>& rgb) { region(z, {0, 0, 0, 0}, rgb); };
   return s;
 }
 

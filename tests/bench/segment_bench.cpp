@@ -676,6 +676,45 @@ void results(const std::string& path, bool quick) {
                  {"weak_slices", m.registration.weak.size()}};
     out.add(row);
   }
+  // A region of interest of full-size slices (--roi): the real photograph the
+  // sample crop was cut from (2048 x 1216, ../shared/reference/real), four
+  // copies, the crop's region 1578,150,300,410, as PNG and as JPEG (quality
+  // 95). Ours decodes the region alone (SliceSource::read_region, read_slice's
+  // region); the peer, timed in alternation, is the same source without it
+  // (each slice decoded whole, then cut). Error: voxels whose labels differ.
+  for (const std::string ext : {".png", ".jpg"}) {
+    const fs::path dir = fs::temp_directory_path() / ("orthosim-bench-region-" + std::to_string(::getpid()));
+    fs::create_directories(dir);
+    const cv::Mat photo = cv::imread(std::string(ORTHOSIM_SHARED_DIR) + "/reference/real/vhp-female-avf1432a.png",
+                                     cv::IMREAD_COLOR);
+    if (photo.empty()) throw std::runtime_error("segment_bench: the real photograph is missing from ../shared/reference/real");
+    for (int z = 0; z < 4; ++z)
+      cv::imwrite((dir / ("s" + std::to_string(z) + ext)).string(), photo, {cv::IMWRITE_JPEG_QUALITY, 95});
+    const TissueTable table = load_tissue_table(std::string(ORTHOSIM_SOURCE_DIR) + "/data-samples/real/tissues.json");
+    SegmentOptions o;
+    o.spacing_m = {0.33e-3, 0.33e-3, 0.33e-3};
+    o.roi_px = {1578, 150, 300, 410};
+    const SliceSource region = stack_source(dir.string());
+    SliceSource cut = region;
+    cut.read_region = nullptr;
+    Volume a, b;
+    ob::Row row;
+    row.workload = "region 300 x 410 px of four 2048 x 1216 " + std::string(ext == ".png" ? "PNG" : "JPEG") +
+                   " slices (the real photograph), " + std::to_string(g_threads) + " threads";
+    row.setting = "--roi, the region decoded";
+    row.peer = "each slice decoded whole, then cut";
+    ob::time_alternating(
+        3, [&] { a = segment_volume(region, table, o); }, [&] { b = segment_volume(cut, table, o); }, &row.seconds,
+        &row.peer_seconds);
+    std::int64_t differ = 0;
+    for (std::size_t i = 0; i < a.labels.size(); ++i) differ += a.labels[i] != b.labels[i];
+    if (a.labels.size() != b.labels.size()) differ = -1;
+    row.error("voxels whose labels differ from the whole slices' cut", static_cast<double>(differ), "<=", 0);
+    row.peer_error = 0;
+    row.extra = {{"voxels", a.labels.size()}};
+    out.add(row);
+    fs::remove_all(dir);
+  }
   out.write(path);
 }
 

@@ -9,3 +9,6 @@ orthosim_add_bench(segment_bench SOURCES bench/segment_bench.cpp
 if(TARGET segment_bench)
   target_include_directories(segment_bench SYSTEM PRIVATE ${OpenCV_INCLUDE_DIRS})
 endif()
+# slice files read by region: each decoder's region against the whole slice cut
+orthosim_add_test(stack_test SOURCES libmodel/stack_test.cpp LIBS orthosim_segment ${OpenCV_LIBS})
+target_include_directories(stack_test SYSTEM PRIVATE ${OpenCV_INCLUDE_DIRS})
