@@ -263,6 +263,45 @@ TEST(SegmentCli, CorruptJpegDataIsRefused) {
                  "corrupt JPEG: premature end of data segment");
 }
 
+// A PNG whose compressed image data is damaged under intact CRCs (the bytes
+// changed, each chunk's CRC made again): libpng wrote "libpng error: IDAT:
+// invalid distance too far back" to stderr beside orthosim's "cannot decode
+// image", which did not say why (2026-11-29). libpng's message ("bad adaptive
+// filter value" for this damage) is now the error's end.
+TEST(SegmentCli, ADamagedPngStreamGivesOneLineWithItsCause) {
+  test::TempDir d("segcli-png");
+  const std::string folder = converted_slices(d, ".png");
+  const std::string victim = first_slice(folder);
+  std::string b = test::read_file(victim);
+  auto be32 = [&](std::size_t at) {
+    return static_cast<std::uint32_t>(static_cast<unsigned char>(b[at])) << 24 |
+           static_cast<std::uint32_t>(static_cast<unsigned char>(b[at + 1])) << 16 |
+           static_cast<std::uint32_t>(static_cast<unsigned char>(b[at + 2])) << 8 |
+           static_cast<unsigned char>(b[at + 3]);
+  };
+  bool damaged = false;
+  for (std::size_t at = 8; at + 12 <= b.size() && !damaged;) {
+    const std::uint32_t n = be32(at);
+    if (b.compare(at + 4, 4, "IDAT") == 0 && n > 64) {
+      for (std::size_t i = at + 8 + n / 3; i < at + 8 + n / 3 + 40; ++i) b[i] = static_cast<char>(b[i] ^ 0xA5);
+      std::uint32_t crc = 0xFFFFFFFFu;  // the chunk's CRC again (PNG's CRC-32 over type and data)
+      for (std::size_t i = at + 4; i < at + 8 + n; ++i) {
+        crc ^= static_cast<unsigned char>(b[i]);
+        for (int k = 0; k < 8; ++k) crc = (crc >> 1) ^ (0xEDB88320u & (0u - (crc & 1u)));
+      }
+      crc = ~crc;
+      for (int k = 0; k < 4; ++k) b[at + 8 + n + k] = static_cast<char>(crc >> (24 - 8 * k));
+      damaged = true;
+    }
+    at += 12 + n;
+  }
+  ASSERT_TRUE(damaged);
+  test::write_file(victim, b);
+  const auto r = test::run_cli(segment_args(folder, d / "o.h5"));
+  expect_refused(r, d / "o.h5", fs::path(victim).filename().string(), "corrupt PNG: ");  // libpng's cause after it
+  EXPECT_EQ(r.err.find("libpng error"), std::string::npos) << r.err;
+}
+
 // Two tissues whose table colours are within a just-noticeable difference:
 // their voxels are split between them. A 'tendon' one unit of red from the
 // muscle took a quarter of it with nothing said (sweep of 2026-11-27).
