@@ -154,9 +154,6 @@ void add_segment_command(CLI::App& app) {
     } catch (const Error& e) {
       throw UsageError("--" + e.message());  // (the spacing and origin were checked above, as flags)
     }
-    // CIELAB's lightness axis: in RGB the weight would be ignored without a word
-    if (o.colour_space != SegmentOptions::Space::cielab && o.lightness_weight != 1)
-      throw UsageError("--lightness-weight: weighs CIELAB's lightness; pass --colour-space cielab with it");
     if (a.threads < 0) throw UsageError("--threads: must be >= 0");
     std::unique_ptr<tbb::global_control> threads;
     if (a.threads > 0)

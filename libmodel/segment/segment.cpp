@@ -82,6 +82,9 @@ void validate(const SegmentOptions& o) {
   if (!(o.refine_prior >= 0) || !std::isfinite(o.refine_prior)) bad("refine prior must be >= 0 (the library's SegmentOptions::refine_prior)");
   if (!(o.refine_max_shift >= 0) || !std::isfinite(o.refine_max_shift)) bad("refine-max-shift: must be >= 0");
   if (!(o.lightness_weight > 0) || !std::isfinite(o.lightness_weight)) bad("lightness-weight: must be > 0");
+  // CIELAB's lightness axis: in RGB the weight would be ignored without a word
+  if (o.colour_space != SegmentOptions::Space::cielab && o.lightness_weight != 1)
+    bad("lightness-weight: weighs CIELAB's lightness; pass --colour-space cielab with it");
   if (!(o.smoothness >= 0) || !std::isfinite(o.smoothness)) bad("smoothness: must be >= 0 (0: off)");
   if (o.smoothing_sweeps < 1 || o.smoothing_sweeps > 16) bad("smoothing-sweeps: must be in 1..16");
   if (o.speck_support < 0 || o.speck_support > 26) bad("speck-support: must be in 0..26");

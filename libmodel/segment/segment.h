@@ -260,7 +260,8 @@ struct SegmentOptions {
   bool exposure_from_border = false;
   // Weight of lightness against chroma in the colour distance, > 0.
   // Values below 1 make the classification more robust to brightness.
-  // CIELAB only (colour_space); rgb has no lightness axis to weigh.
+  // CIELAB only (colour_space); rgb has no lightness axis to weigh, and
+  // validate refuses a weight other than 1 there.
   double lightness_weight = 1.0;
   // The space the calibration's mixture is fitted in and colours are scored
   // in (docs/segment.md, "The colour space"). cielab: CIE 1976 L*a*b* (D65).

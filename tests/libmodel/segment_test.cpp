@@ -101,11 +101,15 @@ SliceSource phantom_source(const PhantomOptions& o, const Volume& truth) {
   return memory_source(std::move(slices), "phantom");
 }
 
-SegmentOptions phantom_segment_options(const PhantomOptions& p) {
+// In CIELAB with lightness weighed 3 (CIELAB's alone: validate refuses a
+// weight in RGB).
+SegmentOptions phantom_segment_options(const PhantomOptions& p,
+                                       SegmentOptions::Space space = SegmentOptions{}.colour_space) {
   SegmentOptions o;
   o.spacing_m = p.spacing_m;
   o.origin_m = phantom_origin(p);
-  o.lightness_weight = 3;  // CIELAB's: used by the tests that pass colour_space cielab
+  o.colour_space = space;
+  if (space == SegmentOptions::Space::cielab) o.lightness_weight = 3;
   return o;
 }
 
@@ -374,9 +378,29 @@ TEST(SegmentPhantom, TheRgbCalibrationHoldsAtNoise64) {
     for (const auto& pr : m.prototypes) all += pr.samples, vein += pr.label == vein_label ? pr.samples : 0;
     EXPECT_LT(static_cast<double>(vein) / static_cast<double>(all), 0.06) << what << ", rgb: the vein's share";
     o.colour_space = SegmentOptions::Space::cielab;
+    o.lightness_weight = 3;  // (as phantom_segment_options gives CIELAB)
     const auto lab = segment_dice(p, truth, o, what + ", cielab", &tv, &m);
     EXPECT_GT(worst(rgb), worst(lab) + 0.1) << what;
   }
+}
+
+// The lightness weight is CIELAB's: the library refuses it in RGB, where it
+// would be ignored without a word (the CLI said so since cf90b69; the library
+// took it silently).
+TEST(SegmentOptionsCheck, ALightnessWeightIsRefusedOutsideCielab) {
+  SegmentOptions o;
+  o.spacing_m = {1e-3, 1e-3, 1e-3};
+  o.colour_space = SegmentOptions::Space::rgb;
+  EXPECT_NO_THROW(validate(o));
+  o.lightness_weight = 2;
+  try {
+    validate(o);
+    ADD_FAILURE() << "a lightness weight in RGB was taken";
+  } catch (const Error& e) {
+    EXPECT_NE(std::string(e.what()).find("lightness-weight: weighs CIELAB's lightness"), std::string::npos) << e.what();
+  }
+  o.colour_space = SegmentOptions::Space::cielab;
+  EXPECT_NO_THROW(validate(o));
 }
 
 // The smoothness prior (SegmentOptions::smoothness, docs/segment.md): at
@@ -535,8 +559,7 @@ TEST(SegmentCalibration, TheLargestMoveIsHeldInEitherSpace) {
   const TissueTable table = jiggled_phantom_table();
   for (const auto space : {SegmentOptions::Space::rgb, SegmentOptions::Space::cielab}) {
     auto shifts = [&](double bound) {
-      SegmentOptions o = phantom_segment_options(p);
-      o.colour_space = space;
+      SegmentOptions o = phantom_segment_options(p, space);
       o.refine_max_shift = bound;
       SegmentMetrics m;
       segment_volume(phantom_source(p, truth), table, o, &m);
