@@ -129,8 +129,8 @@ struct SliceFormat {
 // decoded as far as the format lets (docs/segment.md, Region of interest):
 // a JPEG's rows of the region (the rows above skipped, the rows below read
 // only to check the data) and its iMCU columns, a PNG's rows down to the
-// region's last; other files whole, then cut. A region beyond the slice
-// throws Error(path, ...).
+// region's last, a TIFF's strips of the region; other files whole, then cut.
+// A region beyond the slice throws Error(path, ...).
 RgbImage read_slice(const std::string& path, SliceFormat* format = nullptr, int bit_depth = 16,
                     const std::array<int, 4>& region = {0, 0, 0, 0});
 

@@ -5,6 +5,7 @@
 
 #include <jpeglib.h>
 #include <png.h>
+#include <tiffio.h>
 #include <opencv2/core.hpp>
 #include <opencv2/core/utils/logger.hpp>
 #include <opencv2/imgcodecs.hpp>
@@ -14,6 +15,7 @@
 #include <bit>
 #include <cctype>
 #include <csetjmp>
+#include <cstdarg>
 #include <cstdio>
 #include <cstring>
 #include <filesystem>
@@ -426,6 +428,106 @@ bool decode_png(const std::string& path, const std::vector<std::uint8_t>& b, con
   return true;
 }
 
+
+// TIFF, RGB, 8 bits with 3 samples or 16 bits with 3 or 4, in strips,
+// contiguous, top-left orientation: the strips the region's rows lie in,
+// each decoded by libtiff (its compression, predictor and byte order) as
+// OpenCV's decoder reads them (TIFFReadEncodedStrip; for 8 bits OpenCV reads
+// through TIFFReadRGBAStrip, whose values for these files are the samples
+// themselves: SliceRegion tests). Strips are independent, so the rows above
+// and below a region are neither read nor checked. libtiff's errors are the
+// error (its warnings, as for OpenCV, are not shown).
+struct TiffMemory {
+  const std::uint8_t* bytes;
+  std::size_t size, at;
+  char message[256];
+};
+tmsize_t tiff_read(thandle_t h, void* out, tmsize_t n) {
+  auto* m = static_cast<TiffMemory*>(h);
+  const std::size_t k = std::min<std::size_t>(static_cast<std::size_t>(std::max<tmsize_t>(n, 0)), m->size - std::min(m->at, m->size));
+  std::memcpy(out, m->bytes + m->at, k);
+  m->at += k;
+  return static_cast<tmsize_t>(k);
+}
+tmsize_t tiff_write(thandle_t, void*, tmsize_t) { return 0; }
+toff_t tiff_seek(thandle_t h, toff_t off, int whence) {
+  auto* m = static_cast<TiffMemory*>(h);
+  const std::uint64_t base = whence == SEEK_SET ? 0 : whence == SEEK_CUR ? m->at : m->size;
+  m->at = static_cast<std::size_t>(base + off);
+  return static_cast<toff_t>(m->at);
+}
+int tiff_close(thandle_t) { return 0; }
+toff_t tiff_size(thandle_t h) { return static_cast<toff_t>(static_cast<TiffMemory*>(h)->size); }
+int tiff_map(thandle_t h, void** base, toff_t* size) {
+  auto* m = static_cast<TiffMemory*>(h);
+  *base = const_cast<std::uint8_t*>(m->bytes);
+  *size = static_cast<toff_t>(m->size);
+  return 1;
+}
+void tiff_unmap(thandle_t, void*, toff_t) {}
+int tiff_error(TIFF*, void* user, const char* module, const char* fmt, va_list ap) {
+  auto* m = static_cast<TiffMemory*>(user);
+  if (m->message[0] == 0) {  // the first: the cause
+    char text[200];
+    std::vsnprintf(text, sizeof text, fmt, ap);
+    std::snprintf(m->message, sizeof m->message, "%s%s%s", module ? module : "", module ? ": " : "", text);
+  }
+  return 1;  // handled: not printed
+}
+int tiff_warning(TIFF*, void*, const char*, const char*, va_list) { return 1; }
+
+bool is_tiff(const std::vector<std::uint8_t>& b) {
+  return b.size() >= 4 && ((b[0] == 'I' && b[1] == 'I' && b[2] == 42 && b[3] == 0) ||
+                           (b[0] == 'M' && b[1] == 'M' && b[2] == 0 && b[3] == 42));
+}
+
+bool decode_tiff(const std::string& path, const std::vector<std::uint8_t>& b, const std::array<int, 4>& region,
+                 int bit_depth, RgbImage& img, SliceFormat& f) {
+  TiffMemory mem{b.data(), b.size(), 0, {}};
+  std::unique_ptr<TIFFOpenOptions, void (*)(TIFFOpenOptions*)> opts(TIFFOpenOptionsAlloc(), TIFFOpenOptionsFree);
+  TIFFOpenOptionsSetErrorHandlerExtR(opts.get(), tiff_error, &mem);
+  TIFFOpenOptionsSetWarningHandlerExtR(opts.get(), tiff_warning, &mem);
+  std::unique_ptr<TIFF, void (*)(TIFF*)> t(TIFFClientOpenExt("slice", "r", &mem, tiff_read, tiff_write, tiff_seek,
+                                                             tiff_close, tiff_size, tiff_map, tiff_unmap, opts.get()),
+                                           TIFFClose);
+  auto fail = [&] { throw Error(path, std::string("corrupt TIFF: ") + (mem.message[0] ? mem.message : "cannot read it")); };
+  if (!t) fail();
+  std::uint32_t nx = 0, ny = 0, rows_per_strip = 0;
+  std::uint16_t spp = 0, bps = 0, photometric = 0, planar = 0, format = 0, orientation = 0;
+  if (!TIFFGetField(t.get(), TIFFTAG_IMAGEWIDTH, &nx) || !TIFFGetField(t.get(), TIFFTAG_IMAGELENGTH, &ny) ||
+      !TIFFGetField(t.get(), TIFFTAG_PHOTOMETRIC, &photometric))
+    return false;
+  TIFFGetFieldDefaulted(t.get(), TIFFTAG_SAMPLESPERPIXEL, &spp);
+  TIFFGetFieldDefaulted(t.get(), TIFFTAG_BITSPERSAMPLE, &bps);
+  TIFFGetFieldDefaulted(t.get(), TIFFTAG_PLANARCONFIG, &planar);
+  TIFFGetFieldDefaulted(t.get(), TIFFTAG_SAMPLEFORMAT, &format);
+  TIFFGetFieldDefaulted(t.get(), TIFFTAG_ORIENTATION, &orientation);
+  TIFFGetFieldDefaulted(t.get(), TIFFTAG_ROWSPERSTRIP, &rows_per_strip);
+  const bool layout = photometric == PHOTOMETRIC_RGB && planar == PLANARCONFIG_CONTIG && format == SAMPLEFORMAT_UINT &&
+                      orientation == ORIENTATION_TOPLEFT && !TIFFIsTiled(t.get()) && rows_per_strip > 0 &&
+                      ((bps == 8 && spp == 3) || (bps == 16 && (spp == 3 || spp == 4)));
+  if (!layout || nx == 0 || ny == 0 || nx > (1u << 28) || ny > (1u << 28)) return false;
+  f.nx = static_cast<int>(nx), f.ny = static_cast<int>(ny), f.channels = spp, f.bits = bps;
+  const std::array<int, 4> r = region_in(region, f.nx, f.ny);
+  if (!region_fits(r, f.nx, f.ny) || static_cast<std::int64_t>(nx) * ny > (std::int64_t(1) << 28)) return true;
+  const std::size_t row_bytes = static_cast<std::size_t>(nx) * spp * bps / 8;
+  const tmsize_t strip_bytes = TIFFStripSize(t.get());
+  if (strip_bytes <= 0 || static_cast<std::size_t>(strip_bytes) < row_bytes) fail();
+  std::vector<std::uint8_t> strip(static_cast<std::size_t>(strip_bytes));
+  img.nx = r[2], img.ny = r[3];
+  img.rgb.resize(static_cast<std::size_t>(r[2]) * r[3] * 3);
+  const std::size_t from = static_cast<std::size_t>(r[0]) * spp * bps / 8;
+  for (std::uint32_t s = static_cast<std::uint32_t>(r[1]) / rows_per_strip; s * rows_per_strip < static_cast<std::uint32_t>(r[1] + r[3]); ++s) {
+    const std::uint32_t y0 = s * rows_per_strip, rows = std::min(rows_per_strip, ny - y0);
+    if (TIFFReadEncodedStrip(t.get(), s, strip.data(), static_cast<tmsize_t>(rows * row_bytes)) < static_cast<tmsize_t>(rows * row_bytes))
+      fail();
+    for (std::uint32_t y = std::max(y0, static_cast<std::uint32_t>(r[1])); y < std::min(y0 + rows, static_cast<std::uint32_t>(r[1] + r[3])); ++y)
+      to_rgb8(strip.data() + (y - y0) * row_bytes + from, r[2], spp, bps, false, bit_depth,
+              img.rgb.data() + static_cast<std::size_t>(y - static_cast<std::uint32_t>(r[1])) * r[2] * 3, &f.max_value);
+  }
+  return true;
+}
+
 }  // namespace
 
 std::vector<std::string> list_stack(const std::string& dir) {
@@ -517,8 +619,9 @@ RgbImage read_slice(const std::string& path, SliceFormat* format, int bit_depth,
   RgbImage img;
   SliceFormat f;
   const bool decoded = is_jpeg(bytes)  ? decode_jpeg(path, bytes, region, img, f)
-                       : is_png(bytes) ? decode_png(path, bytes, region, bit_depth, img, f)
-                                       : false;
+                       : is_png(bytes)  ? decode_png(path, bytes, region, bit_depth, img, f)
+                       : is_tiff(bytes) ? decode_tiff(path, bytes, region, bit_depth, img, f)
+                                        : false;
   cv::Mat m;  // OpenCV's decoding, BGR(A)
   if (!decoded) {
     if (is_jpeg(bytes)) check_jpeg_data(path, bytes);

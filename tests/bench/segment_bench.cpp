@@ -678,11 +678,11 @@ void results(const std::string& path, bool quick) {
   }
   // A region of interest of full-size slices (--roi): the real photograph the
   // sample crop was cut from (2048 x 1216, ../shared/reference/real), four
-  // copies, the crop's region 1578,150,300,410, as PNG and as JPEG (quality
-  // 95). Ours decodes the region alone (SliceSource::read_region, read_slice's
+  // copies, the crop's region 1578,150,300,410, as PNG, as JPEG (quality
+  // 95) and as TIFF (OpenCV's LZW). Ours decodes the region alone (SliceSource::read_region, read_slice's
   // region); the peer, timed in alternation, is the same source without it
   // (each slice decoded whole, then cut). Error: voxels whose labels differ.
-  for (const std::string ext : {".png", ".jpg"}) {
+  for (const std::string ext : {".png", ".jpg", ".tif"}) {
     const fs::path dir = fs::temp_directory_path() / ("orthosim-bench-region-" + std::to_string(::getpid()));
     fs::create_directories(dir);
     const cv::Mat photo = cv::imread(std::string(ORTHOSIM_SHARED_DIR) + "/reference/real/vhp-female-avf1432a.png",
@@ -699,7 +699,8 @@ void results(const std::string& path, bool quick) {
     cut.read_region = nullptr;
     Volume a, b;
     ob::Row row;
-    row.workload = "region 300 x 410 px of four 2048 x 1216 " + std::string(ext == ".png" ? "PNG" : "JPEG") +
+    row.workload = "region 300 x 410 px of four 2048 x 1216 " +
+                   std::string(ext == ".png" ? "PNG" : ext == ".jpg" ? "JPEG" : "TIFF (LZW)") +
                    " slices (the real photograph), " + std::to_string(g_threads) + " threads";
     row.setting = "--roi, the region decoded";
     row.peer = "each slice decoded whole, then cut";

@@ -1,9 +1,10 @@
 // Slice files read by region (read_slice's region, SliceSource::read_region):
 // a region's pixels are the whole slice's, cut, in every format and layout
 // the decoders take on (JPEG: baseline 4:2:0, 4:4:4, progressive, restart
-// markers; PNG: 8-bit RGB and RGBA, 16-bit RGB) and in those left to OpenCV
-// (TIFF, BMP); the whole slice read is OpenCV's decoding; damage outside the
-// region is still refused.
+// markers; PNG: 8-bit RGB and RGBA, 16-bit RGB; TIFF: 8- and 16-bit RGB, LZW
+// and uncompressed) and in those left to OpenCV (8-bit RGBA TIFF, BMP); the
+// whole slice read is OpenCV's decoding; damage below a region is still
+// refused where the format can tell (JPEG, PNG).
 #include "libmodel/segment/segment.h"
 #include "tests/test_util.h"
 
@@ -95,8 +96,11 @@ TEST(SliceRegion, ARegionIsTheWholeSliceCutInEveryFormat) {
       {"rgb8.png", &m8, {}},
       {"rgba8.png", &m8a, {cv::IMWRITE_PNG_COMPRESSION, 9}},
       {"rgb16.png", &m16, {}},
-      {"rgb8.tif", &m8, {}},  // OpenCV's decoding, then the cut
-      {"rgb8.bmp", &m8, {}},
+      {"rgb8.tif", &m8, {}},  // LZW, 13-row strips
+      {"rgb8-uncompressed.tif", &m8, {cv::IMWRITE_TIFF_COMPRESSION, 1}},
+      {"rgb16.tif", &m16, {}},
+      {"rgba8.tif", &m8a, {}},  // OpenCV's decoding, then the cut
+      {"rgb8.bmp", &m8, {}},    // OpenCV's decoding, then the cut
   };
   const std::vector<std::array<int, 4>> regions = {
       {0, 0, nx, ny},  {0, 0, 1, 1},    {nx - 1, ny - 1, 1, 1}, {17, 33, 50, 41}, {nx - 37, 0, 37, ny},
@@ -110,8 +114,8 @@ TEST(SliceRegion, ARegionIsTheWholeSliceCutInEveryFormat) {
     ASSERT_EQ(whole.nx, nx) << c.name;
     ASSERT_EQ(whole.ny, ny) << c.name;
     EXPECT_EQ(f.nx, nx) << c.name;
-    EXPECT_EQ(f.channels, c.name == "rgba8.png" ? 4 : 3) << c.name;
-    EXPECT_EQ(f.bits, c.name == "rgb16.png" ? 16 : 8) << c.name;
+    EXPECT_EQ(f.channels, c.name.rfind("rgba", 0) == 0 ? 4 : 3) << c.name;
+    EXPECT_EQ(f.bits, c.name.rfind("rgb16", 0) == 0 ? 16 : 8) << c.name;
     EXPECT_TRUE(whole.rgb == opencv_rgb(path)) << c.name << ": the whole slice is not OpenCV's decoding";
     for (const auto& r : regions) {
       SliceFormat fr;
