@@ -1,10 +1,10 @@
 // Slice files read by region (read_slice's region, SliceSource::read_region):
 // a region's pixels are the whole slice's, cut, in every format and layout
 // the decoders take on (JPEG: baseline 4:2:0, 4:4:4, progressive, restart
-// markers; PNG: 8-bit RGB and RGBA, 16-bit RGB; TIFF: 8- and 16-bit RGB, LZW
-// and uncompressed) and in those left to OpenCV (8-bit RGBA TIFF, BMP); the
-// whole slice read is OpenCV's decoding; damage below a region is still
-// refused where the format can tell (JPEG, PNG).
+// markers; PNG: 8-bit RGB and RGBA, 16-bit RGB and RGBA; TIFF: 8-bit RGB, LZW
+// and uncompressed, 16-bit RGB and RGBA) and in those left to OpenCV (8-bit
+// RGBA TIFF, BMP); the whole slice read is OpenCV's decoding; damage below a
+// region is still refused where the format can tell (JPEG, PNG).
 #include "libmodel/segment/segment.h"
 #include "tests/test_util.h"
 
@@ -81,8 +81,13 @@ TEST(SliceRegion, ARegionIsTheWholeSliceCutInEveryFormat) {
   const cv::Mat m8 = test_image(nx, ny, CV_8U), m16 = test_image(nx, ny, CV_16U);
   cv::Mat m8a;
   cv::cvtColor(m8, m8a, cv::COLOR_BGR2BGRA);
+  cv::Mat m16a;
+  cv::cvtColor(m16, m16a, cv::COLOR_BGR2BGRA);
   for (int y = 0; y < ny; ++y)
-    for (int x = 0; x < nx; ++x) m8a.at<cv::Vec4b>(y, x)[3] = static_cast<std::uint8_t>(x + y);
+    for (int x = 0; x < nx; ++x) {
+      m8a.at<cv::Vec4b>(y, x)[3] = static_cast<std::uint8_t>(x + y);
+      m16a.at<cv::Vec<std::uint16_t, 4>>(y, x)[3] = static_cast<std::uint16_t>(300 * x + y);
+    }
   struct Case {
     std::string name;
     const cv::Mat* image;
@@ -96,9 +101,11 @@ TEST(SliceRegion, ARegionIsTheWholeSliceCutInEveryFormat) {
       {"rgb8.png", &m8, {}},
       {"rgba8.png", &m8a, {cv::IMWRITE_PNG_COMPRESSION, 9}},
       {"rgb16.png", &m16, {}},
+      {"rgba16.png", &m16a, {}},
       {"rgb8.tif", &m8, {}},  // LZW, 13-row strips
       {"rgb8-uncompressed.tif", &m8, {cv::IMWRITE_TIFF_COMPRESSION, 1}},
       {"rgb16.tif", &m16, {}},
+      {"rgba16.tif", &m16a, {}},
       {"rgba8.tif", &m8a, {}},  // OpenCV's decoding, then the cut
       {"rgb8.bmp", &m8, {}},    // OpenCV's decoding, then the cut
   };
@@ -115,7 +122,7 @@ TEST(SliceRegion, ARegionIsTheWholeSliceCutInEveryFormat) {
     ASSERT_EQ(whole.ny, ny) << c.name;
     EXPECT_EQ(f.nx, nx) << c.name;
     EXPECT_EQ(f.channels, c.name.rfind("rgba", 0) == 0 ? 4 : 3) << c.name;
-    EXPECT_EQ(f.bits, c.name.rfind("rgb16", 0) == 0 ? 16 : 8) << c.name;
+    EXPECT_EQ(f.bits, c.name.find("16") != std::string::npos ? 16 : 8) << c.name;
     EXPECT_TRUE(whole.rgb == opencv_rgb(path)) << c.name << ": the whole slice is not OpenCV's decoding";
     for (const auto& r : regions) {
       SliceFormat fr;
