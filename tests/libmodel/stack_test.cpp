@@ -16,6 +16,7 @@
 #include <array>
 #include <cstdint>
 #include <filesystem>
+#include <functional>
 #include <random>
 #include <string>
 #include <vector>
@@ -71,6 +72,17 @@ std::vector<std::uint8_t> cut(const RgbImage& whole, const std::array<int, 4>& r
     out.insert(out.end(), row, row + static_cast<std::size_t>(r[2]) * 3);
   }
   return out;
+}
+
+// read() throws Error naming `file` with `what` in its message.
+void expect_error(const std::function<void()>& read, const std::string& file, const std::string& what) {
+  try {
+    read();
+    ADD_FAILURE() << file << ": read, where it should have been refused with '" << what << "'";
+  } catch (const Error& e) {
+    EXPECT_EQ(e.file(), file);
+    EXPECT_NE(std::string(e.what()).find(what), std::string::npos) << e.what();
+  }
 }
 
 }  // namespace
@@ -137,14 +149,8 @@ TEST(SliceRegion, ARegionIsTheWholeSliceCutInEveryFormat) {
     }
     // a region beyond the slice: refused, naming the file, with its size said
     SliceFormat fb;
-    try {
-      read_slice(path, &fb, 16, {nx - 10, 0, 11, 5});
-      ADD_FAILURE() << c.name << ": a region beyond the slice was read";
-    } catch (const Error& e) {
-      EXPECT_EQ(e.file(), path);
-      EXPECT_NE(std::string(e.what()).find("reaches beyond the slice, which is 203 x 157 px"), std::string::npos)
-          << e.what();
-    }
+    expect_error([&] { read_slice(path, &fb, 16, {nx - 10, 0, 11, 5}); }, path,
+                 "reaches beyond the slice, which is 203 x 157 px");
     EXPECT_EQ(fb.nx, nx) << c.name;
   }
 }
@@ -162,26 +168,14 @@ TEST(SliceRegion, DamageBelowTheRegionIsStillRefused) {
   // the JPEG cut after two thirds, its end marker put back
   const std::string bytes = test::read_file(jpg);
   test::write_file(jpg, bytes.substr(0, bytes.size() * 2 / 3) + "\xff\xd9");
-  try {
-    read_slice(jpg, nullptr, 16, top);
-    ADD_FAILURE() << "a JPEG damaged below the region was read";
-  } catch (const Error& e) {
-    EXPECT_EQ(e.file(), jpg);
-    EXPECT_NE(std::string(e.what()).find("corrupt JPEG: premature end of data segment"), std::string::npos) << e.what();
-  }
+  expect_error([&] { read_slice(jpg, nullptr, 16, top); }, jpg, "corrupt JPEG: premature end of data segment");
   // a PNG with a byte of its last image data changed
   std::string p = test::read_file(png);
   const std::size_t iend = p.rfind("IEND");
   ASSERT_NE(iend, std::string::npos);
   p[iend - 12] = static_cast<char>(p[iend - 12] ^ 0x55);  // inside the last IDAT's data, before its CRC
   test::write_file(png, p);
-  try {
-    read_slice(png, nullptr, 16, top);
-    ADD_FAILURE() << "a PNG damaged below the region was read";
-  } catch (const Error& e) {
-    EXPECT_EQ(e.file(), png);
-    EXPECT_NE(std::string(e.what()).find("corrupt PNG: CRC mismatch in chunk 'IDAT'"), std::string::npos) << e.what();
-  }
+  expect_error([&] { read_slice(png, nullptr, 16, top); }, png, "corrupt PNG: CRC mismatch in chunk 'IDAT'");
 }
 
 // A stack source's region reads (what roi_source uses) give the cut slices,
@@ -206,11 +200,6 @@ TEST(SliceRegion, AStacksRegionReadsAreItsSlicesCut) {
     EXPECT_TRUE(part == cut(w, {50, 40, 70, 50})) << "slice " << z;
   }
   std::vector<std::uint8_t> part;
-  try {
-    s.read_region(2, {50, 40, 70, 50}, part);
-    ADD_FAILURE() << "a slice smaller than the first was read";
-  } catch (const Error& e) {
-    EXPECT_NE(std::string(e.what()).find("slice is 60x45, the first slice a0.png is 120x90"), std::string::npos)
-        << e.what();
-  }
+  expect_error([&] { s.read_region(2, {50, 40, 70, 50}, part); }, d / "s/a2.png",
+               "slice is 60x45, the first slice a0.png is 120x90");
 }
