@@ -190,7 +190,10 @@ void check_container(const std::string& path, const std::vector<std::uint8_t>& b
 }
 
 bool is_jpeg(const std::vector<std::uint8_t>& b) { return b.size() >= 2 && b[0] == 0xFF && b[1] == 0xD8; }
-bool is_png(const std::vector<std::uint8_t>& b) { return b.size() >= 8 && b[0] == 0x89 && b[1] == 'P'; }
+bool is_png(const std::vector<std::uint8_t>& b) {
+  static const std::uint8_t sig[8] = {0x89, 'P', 'N', 'G', '\r', '\n', 0x1a, '\n'};
+  return b.size() >= 8 && std::equal(sig, sig + 8, b.begin());
+}
 
 // A region x, y, w, h of a slice nx x ny (w = 0: the whole slice).
 bool whole(const std::array<int, 4>& r) { return r[2] == 0 && r[3] == 0; }
@@ -208,12 +211,12 @@ bool region_fits(const std::array<int, 4>& r, int nx, int ny) {
 }
 
 // ---- the decoders ------------------------------------------------------------------------------
-// JPEG and PNG slices are decoded here, straight into the RGB image, of the
-// region alone (read_slice's region); other files by OpenCV, whole, then cut.
-// Each gives the values cv::imdecode(IMREAD_UNCHANGED) gives (SliceRegion
+// JPEG, PNG and TIFF slices are decoded here, straight into the RGB image, of
+// the region alone (read_slice's region); other files by OpenCV, whole, then
+// cut. Each gives the values cv::imdecode(IMREAD_UNCHANGED) gives (SliceRegion
 // tests), or returns false before decoding anything for a file it leaves to
-// OpenCV. Between each setjmp and its longjmp only C objects live; the caller
-// owns the C++ ones (the image, the row buffer).
+// OpenCV. Between each setjmp and its longjmp (libjpeg's and libpng's errors)
+// only C objects live; the caller owns the C++ ones (the image, the row buffer).
 
 // n pixels of a decoded row (3 or 4 channels, 8 or 16 bits in host order, in
 // RGB order or BGR when bgr) as 8-bit RGB: 16-bit values scaled from
@@ -235,11 +238,11 @@ void to_rgb8(const std::uint8_t* src, int n, int channels, int bits, bool bgr, i
     return;
   }
   const std::uint32_t full = (1u << bit_depth) - 1;  // the largest value of the significant bits
-  const auto* s16 = reinterpret_cast<const std::uint16_t*>(src);
   int most = *max_value;
   for (int x = 0; x < n; ++x)
     for (int c = 0; c < 3; ++c) {
-      const std::uint32_t v = s16[channels * x + (c == 0 ? r : c == 2 ? b : 1)];
+      std::uint16_t v = 0;  // (copied: the bytes are not uint16_t objects)
+      std::memcpy(&v, src + 2 * static_cast<std::size_t>(channels * x + (c == 0 ? r : c == 2 ? b : 1)), 2);
       most = std::max(most, static_cast<int>(v));
       dst[3 * x + c] = static_cast<std::uint8_t>(std::min<std::uint32_t>(255, (v * 255 + full / 2) / full));
     }
