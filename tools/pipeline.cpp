@@ -514,7 +514,8 @@ int run_stages(Args a, Report& report) {
     }
 
   // the slices segment reads, not every file in the folder (a .DS_Store re-ran every stage)
-  const std::string stack_hash = hash_stack(a.stack), table_hash = hash_path(a.tissues);
+  const std::string stack_hash = hash_stack(a.stack, region.first_slice, region.last_slice),
+                    table_hash = hash_path(a.tissues);
   Runner run(a, report);
   try {
     // 1. segment

@@ -676,7 +676,7 @@ SegmentMetrics segment_stack(const SegmentFiles& files, const TissueTable& table
   std::string inputs = files.inputs_json;
   if (inputs.empty()) {
     nlohmann::json j;
-    j[files.stack_dir] = hash_stack(files.stack_dir);
+    j[files.stack_dir] = hash_stack(files.stack_dir, opt.first_slice, opt.last_slice);
     if (!files.tissues_path.empty()) j[files.tissues_path] = hash_path(files.tissues_path);
     inputs = j.dump();
   }

@@ -97,11 +97,16 @@ bool natural_less(const std::string& a, const std::string& b);
 // tiff, bmp, any case; hidden files ignored), as full paths in natural order.
 // Throws Error(dir, ...) if the folder is missing or holds no image.
 std::vector<std::string> list_stack(const std::string& dir);
-// The content hash of a stack as segment reads it: the files list_stack gives,
-// their names in that order and their bytes ("xxh3:..."). A hidden file or a
-// note beside the slices does not change it (hash_path of the folder did: the
-// pipeline re-ran every stage and the model's provenance changed).
-std::string hash_stack(const std::string& dir);
+// The content hash of a stack as segment reads it ("xxh3:..."): the names of
+// the files list_stack gives, in that order (they number the slices), and the
+// bytes of the first file (its size, channels and depth are the stack's) and
+// of the slices first_slice..last_slice (segment's --slices; -1: to the last).
+// A hidden file or a note beside the slices does not change it (hash_path of
+// the folder did: the pipeline re-ran every stage and the model's provenance
+// changed), nor does a slice outside the range (hashing every file of a
+// full-body stack for a part of it read gigabytes before each cached run).
+// With the whole range it is the hash of before 2026-11-29.
+std::string hash_stack(const std::string& dir, int first_slice = 0, int last_slice = -1);
 
 // One decoded 8-bit RGB image, row-major, x fastest: rgb[(y*nx + x)*3 + c].
 struct RgbImage {

@@ -552,12 +552,15 @@ std::vector<std::string> list_stack(const std::string& dir) {
   return out;
 }
 
-std::string hash_stack(const std::string& dir) {
+std::string hash_stack(const std::string& dir, int first_slice, int last_slice) {
   std::string parts;
-  for (const std::string& f : list_stack(dir)) {
-    parts += fs::path(f).filename().string();
+  const std::vector<std::string> files = list_stack(dir);
+  for (std::size_t i = 0; i < files.size(); ++i) {
+    const int z = static_cast<int>(i);
+    const bool read = z == 0 || (z >= first_slice && (last_slice < 0 || z <= last_slice));
+    parts += fs::path(files[i]).filename().string();
     parts += '\0';
-    parts += hash_path(f);
+    if (read) parts += hash_path(files[i]);
     parts += '\0';
   }
   return "xxh3:" + hash_bytes(parts.data(), parts.size());

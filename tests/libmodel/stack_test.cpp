@@ -203,3 +203,31 @@ TEST(SliceRegion, AStacksRegionReadsAreItsSlicesCut) {
   expect_error([&] { s.read_region(2, {50, 40, 70, 50}, part); }, d / "s/a2.png",
                "slice is 60x45, the first slice a0.png is 120x90");
 }
+
+// A stack's hash (pipeline's cache key, segment's provenance) is of what
+// segment reads: every file's name (they number the slices), the first file
+// (the stack's format) and the slices of --slices, not the others.
+TEST(SliceRegion, AStacksHashIsOfTheSlicesSegmentReads) {
+  test::TempDir d("stack-hash");
+  fs::create_directories(d / "s");
+  const cv::Mat m = test_image(40, 30, CV_8U);
+  for (int z = 0; z < 4; ++z) ASSERT_TRUE(cv::imwrite(d / ("s/a" + std::to_string(z) + ".png"), m + cv::Scalar::all(z)));
+  const std::string dir = d / "s";
+  const std::string all = hash_stack(dir), part = hash_stack(dir, 2, 3), tail = hash_stack(dir, 2);
+  EXPECT_EQ(part, tail);
+  EXPECT_NE(all, part);
+  EXPECT_EQ(hash_stack(dir, 0, -1), all);
+  // a slice outside the range: the whole stack's hash changes, the range's does not
+  ASSERT_TRUE(cv::imwrite(d / "s/a1.png", m + cv::Scalar::all(9)));
+  EXPECT_NE(hash_stack(dir), all);
+  EXPECT_EQ(hash_stack(dir, 2, 3), part);
+  // a slice in the range, the first file (the stack's format) and a name: both change
+  for (const char* f : {"a3.png", "a0.png"}) {
+    const std::string before = hash_stack(dir, 2, 3);
+    ASSERT_TRUE(cv::imwrite(d / (std::string("s/") + f), m + cv::Scalar::all(20)));
+    EXPECT_NE(hash_stack(dir, 2, 3), before) << f;
+  }
+  const std::string before = hash_stack(dir, 2, 3);
+  fs::rename(d / "s/a1.png", d / "s/a1b.png");
+  EXPECT_NE(hash_stack(dir, 2, 3), before);
+}

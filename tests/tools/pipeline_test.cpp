@@ -594,6 +594,32 @@ TEST(Pipeline, ARegionOfInterestIsSegmentedAndTextured) {
   const auto badz = test::run_cli(base + " --slices 0,32");
   EXPECT_EQ(badz.code, 2) << badz.err;
   EXPECT_NE(badz.err.find("the slices 0..32 reach beyond the stack, which has 32 (0..31)"), std::string::npos) << badz.err;
+  // The key hashes the slices segment reads (hash_stack's range): a slice
+  // outside --slices changed runs nothing, one inside runs segment again (a
+  // cached run of a part of a full-body stack hashed every file of it). Bytes
+  // after a PNG's IEND chunk change the file, not its pixels. (A copy of the
+  // stack: the sample's is shared.)
+  const std::string copy = s.dir / "roi_stack";
+  fs::create_directories(copy);
+  for (const auto& e : fs::directory_iterator(s.stack))
+    fs::copy_file(e.path(), copy + "/" + e.path().filename().string(), fs::copy_options::overwrite_existing);
+  std::string on_copy = base + " --roi 6,5,84,86 --slices 1,30";
+  on_copy.replace(on_copy.find(s.stack), s.stack.size(), copy);
+  auto ran = [&] {
+    std::set<std::string> out;
+    const nlohmann::json rr = nlohmann::json::parse(test::read_file(s.dir / "roi.json"));
+    for (const auto& st : rr["stages"])
+      if (st.value("ran", false)) out.insert(st["stage"].get<std::string>());
+    return out;
+  };
+  ASSERT_EQ(test::run_cli(on_copy).code, 0);
+  EXPECT_TRUE(ran().empty());  // the same files: the same keys
+  test::write_file(copy + "/slice_0031.png", test::read_file(copy + "/slice_0031.png") + "outside");
+  ASSERT_EQ(test::run_cli(on_copy).code, 0);
+  EXPECT_TRUE(ran().empty()) << "a slice outside --slices changed";
+  test::write_file(copy + "/slice_0005.png", test::read_file(copy + "/slice_0005.png") + "inside");
+  ASSERT_EQ(test::run_cli(on_copy).code, 0);
+  EXPECT_TRUE(ran().count("segment")) << "a slice inside --slices changed";
 }
 
 TEST(Pipeline, AFailingStageKeepsThePreviousModel) {
