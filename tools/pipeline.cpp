@@ -691,7 +691,8 @@ int run_stages(Args a, Report& report) {
           std::vector<std::string> args{"remesh", "--surface", surf.dir + "/" + layered[0] + ".stl", "--inner",
                                         join(inner), "--grid", a.grid, "--out", d + "/quads", "--model",
                                         d + "/model.h5"};
-          if (a.texture) args.insert(args.end(), {"--stack", a.stack, "--texture"});
+          // (the bit depth is in seg.key, which this stage's key holds)
+          if (a.texture) args.insert(args.end(), {"--stack", a.stack, "--texture", "--bit-depth", std::to_string(a.bit_depth)});
           return args;
         }),
         {"model.h5", "quads"}, [&](const std::string& d) { copy_path(surf.dir + "/model.h5", d + "/model.h5"); });

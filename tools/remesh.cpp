@@ -61,6 +61,7 @@ void add_remesh_command(CLI::App& app) {
     std::string surface, inner, names, grid = "39x9", out, model, stack, spacing, origin, around = "arc";
     bool texture = false, uniform = false;
     double texel_mm = 0, depth_mm = -1;
+    int bit_depth = 16;            // segment's --bit-depth, for 16-bit slices
     CLI::Option* depth = nullptr;  // given or not (absent: one voxel)
     int arc_window = RemeshOptions{}.arc_window;
     std::string ends = "crease";
@@ -91,6 +92,10 @@ void add_remesh_command(CLI::App& app) {
   sub->add_option("--origin", a.origin, "centre of voxel (0,0,0) in mm, X,Y,Z (default: the model's /volume, else 0,0,0)");
   sub->add_option("--texel", a.texel_mm, "texel size in mm (default: the in-plane voxel size)");
   a.depth = sub->add_option("--texture-depth", a.depth_mm, "sample the colour this far inside the surface, mm (default: one voxel)");
+  sub->add_option("--bit-depth", a.bit_depth,
+                  "significant bits of 16-bit slices, as segment's --bit-depth (12: a 12-bit camera's data in 16-bit files)")
+      ->check(CLI::Range(8, 16))
+      ->capture_default_str();
   add_common_options(sub, a.common);
 
   on_run(sub, "remesh", a.common, [] {
@@ -259,6 +264,14 @@ void add_remesh_command(CLI::App& app) {
       }
       if (!have_spacing) throw UsageError("--texture needs the voxel size: --spacing X,Y,Z (mm) or a --model with /volume");
       ColourStack st = open_colour_stack(a.stack, spacing, origin);
+      st.bit_depth = a.bit_depth;
+      // the model's labels place the slices: only their part (and 2 px
+      // around) is read, as segment --roi read it (read_slice's region)
+      if (volume_n[0] > 0 && a.spacing.empty() && a.origin.empty()) {
+        const int x0 = std::max(0, offset[0] - 2), y0 = std::max(0, offset[1] - 2);
+        const int x1 = std::min(st.nx, offset[0] + volume_n[0] + 2), y1 = std::min(st.ny, offset[1] + volume_n[1] + 2);
+        if (x1 > x0 && y1 > y0 && (x1 - x0 < st.nx || y1 - y0 < st.ny)) st.region = {x0, y0, x1 - x0, y1 - y0};
+      }
       // the model's labels were segmented from slice files of a known shape:
       // another stack (a neighbouring block of the same size, the stack before
       // a crop) would texture the surface with colours that are not its own

@@ -34,28 +34,30 @@ ColourStack open_colour_stack(const std::string& dir, const std::array<double, 3
   // the order and the files segment read (a plain sort put s10 before s2:
   // the texture's slices scrambled against the labels')
   st.files = list_stack(root.string());
-  cv::Mat first = cv::imread(st.files[0], cv::IMREAD_COLOR);
-  if (first.empty()) throw Error(st.files[0], "cannot read the image");
-  st.nx = first.cols, st.ny = first.rows;
+  SliceFormat f;
+  read_slice(st.files[0], &f, 16);
+  st.nx = f.nx, st.ny = f.ny;
   return st;
 }
 
 namespace {
 
-// least-recently-used cache of BGR slices
+// least-recently-used cache of RGB slices (of the stack's region when it has
+// one), read as segment reads them (read_slice)
 class SliceCache {
  public:
-  SliceCache(const ColourStack& s, int capacity) : s_(s), cap_(std::max(2, capacity)) {}
+  SliceCache(const ColourStack& s, const std::array<int, 4>& region, int capacity)
+      : s_(s), region_(region), cap_(std::max(2, capacity)) {}
   const cv::Mat& get(int k) {
     auto it = map_.find(k);
     if (it != map_.end()) {
       lru_.splice(lru_.begin(), lru_, it->second.second);
       return it->second.first;
     }
-    cv::Mat m = cv::imread(s_.files[k], cv::IMREAD_COLOR);
-    if (m.empty()) throw Error(s_.files[k], "cannot read the image");
-    if (m.cols != s_.nx || m.rows != s_.ny)
-      throw Error(s_.files[k], "slice size differs from the first slice's");
+    SliceFormat f;
+    RgbImage img = read_slice(s_.files[k], &f, s_.bit_depth, region_);
+    if (f.nx != s_.nx || f.ny != s_.ny) throw Error(s_.files[k], "slice size differs from the first slice's");
+    cv::Mat m = cv::Mat(img.ny, img.nx, CV_8UC3, img.rgb.data()).clone();
     if (!s_.shift.empty()) {
       const auto [dx, dy] = s_.shift[static_cast<std::size_t>(k)];
       if (dx != 0 || dy != 0) {  // as segment moved it: content to (x + dx, y + dy), edges replicated
@@ -75,6 +77,7 @@ class SliceCache {
 
  private:
   const ColourStack& s_;
+  std::array<int, 4> region_;
   int cap_;
   std::list<int> lru_;
   std::map<int, std::pair<cv::Mat, std::list<int>::iterator>> map_;
@@ -101,7 +104,14 @@ TextureImage bake_texture(const Surface& outer, const TubeSweep& sweep, RingSamp
   t.rgb.assign(static_cast<std::size_t>(t.width) * t.height * 3, 0);
   std::vector<double> u(t.width);
   for (int a = 0; a < t.width; ++a) u[a] = (a + 0.5) / t.width;
-  SliceCache cache(stack, o.cache_slices);
+  // the part of the slices read: the stack's region (none with shifts, whose
+  // moved slices reach beyond it), else the whole slice
+  const bool part = stack.shift.empty() && (stack.region[2] > 0 && stack.region[3] > 0);
+  const std::array<int, 4> region = part ? stack.region : std::array<int, 4>{0, 0, stack.nx, stack.ny};
+  if (region[0] < 0 || region[1] < 0 || region[2] < 1 || region[3] < 1 || region[0] + region[2] > stack.nx ||
+      region[1] + region[3] > stack.ny)
+    throw Error("", "texture: the stack's region lies outside its slices");
+  SliceCache cache(stack, part ? region : std::array<int, 4>{0, 0, 0, 0}, o.cache_slices);
   std::vector<Vec3> pts, inward;
   const int nz = static_cast<int>(stack.files.size());
   for (int b = 0; b < t.height; ++b) {
@@ -115,11 +125,13 @@ TextureImage bake_texture(const Surface& outer, const TubeSweep& sweep, RingSamp
       const Vec3 p = pts[a] + depth * inward[a];
       double f[3];
       bool out = false;
-      const int n[3] = {stack.nx, stack.ny, nz};
+      // in the region's pixels (the whole slice's without one)
+      const int n[3] = {region[2], region[3], nz};
+      const int first[3] = {region[0], region[1], 0};
       int i0[3];
       double w[3];
       for (int d = 0; d < 3; ++d) {
-        f[d] = (p(d) - stack.origin_m[d]) / stack.spacing_m[d];
+        f[d] = (p(d) - stack.origin_m[d]) / stack.spacing_m[d] - first[d];
         if (f[d] < -0.5 || f[d] > n[d] - 0.5) out = true;
         f[d] = std::clamp(f[d], 0.0, static_cast<double>(n[d] - 1));
         i0[d] = std::min(static_cast<int>(std::floor(f[d])), std::max(0, n[d] - 2));
@@ -135,12 +147,12 @@ TextureImage bake_texture(const Surface& outer, const TubeSweep& sweep, RingSamp
         for (int dy = 0; dy < 2; ++dy) {
           const double wy = dy ? w[1] : 1 - w[1];
           if (wy == 0) continue;
-          const cv::Vec3b* row = img.ptr<cv::Vec3b>(std::min(i0[1] + dy, stack.ny - 1));
+          const cv::Vec3b* row = img.ptr<cv::Vec3b>(std::min(i0[1] + dy, n[1] - 1));
           for (int dx = 0; dx < 2; ++dx) {
             const double wx = dx ? w[0] : 1 - w[0];
             if (wx == 0) continue;
-            const cv::Vec3b& c = row[std::min(i0[0] + dx, stack.nx - 1)];
-            for (int ch = 0; ch < 3; ++ch) acc[ch] += wz * wy * wx * c[2 - ch];  // BGR -> RGB
+            const cv::Vec3b& c = row[std::min(i0[0] + dx, n[0] - 1)];
+            for (int ch = 0; ch < 3; ++ch) acc[ch] += wz * wy * wx * c[ch];  // (RGB)
           }
         }
       }

@@ -22,11 +22,19 @@ struct ColourStack {
   // px (x, y) each slice is moved by before sampling (segment --register's
   // /volume/slice_shift_px); empty: none
   std::vector<std::array<int, 2>> shift;
+  // Slices are read as segment reads them (read_slice): 16-bit ones scaled
+  // from bit_depth significant bits (segment's --bit-depth), no EXIF rotation.
+  int bit_depth = 16;
+  // The part of each slice read (x, y, w, h px; w = h = 0: the whole slice):
+  // samples beyond it are taken at its edge and counted as outside. Only
+  // without shifts (a moved slice is read whole).
+  std::array<int, 4> region{0, 0, 0, 0};
 };
 
 // Lists DIR/slices/* (or DIR/* when DIR has no slices/ folder) as segment
 // does (list_stack: its image extensions, hidden files left out, natural name
-// order: s2 before s10), and reads the first slice for the image size. Throws Error(dir, ...) when there is no
+// order: s2 before s10), and reads the first slice for the image size
+// (read_slice: a corrupt or grey first slice throws as in segment). Throws Error(dir, ...) when there is no
 // slice, or spacing is not positive.
 ColourStack open_colour_stack(const std::string& dir, const std::array<double, 3>& spacing_m,
                               const std::array<double, 3>& origin_m);
@@ -41,7 +49,7 @@ struct TextureOptions {
 struct TextureImage {
   int width = 0, height = 0;
   std::vector<std::uint8_t> rgb;  // height * width * 3, row-major, RGB; row 0 is the start of the axis (v = 0)
-  std::int64_t outside = 0;       // texels whose sample point fell outside the stack (clamped)
+  std::int64_t outside = 0;       // texels whose sample point fell outside the stack or its region read (clamped)
   std::int64_t side_loops = 0;    // loops beside the tube's own in the texel rows' planes, left out (noise)
 };
 

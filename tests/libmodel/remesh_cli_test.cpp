@@ -188,6 +188,28 @@ TEST(RemeshCli, TextureFollowsTheSlicesOrderAndRegistration) {
   }
   EXPECT_TRUE(same(plain, texture("jittered", "t_roi", "--model " + f / "roi.h5")))
       << "the region's offset or its slices' shifts were not applied";
+  // the same region unregistered: only its part of each slice is read
+  // (ColourStack::region, 2 px around the labels' 60 x 60), and the texture
+  // is the whole slices' one
+  {
+    ModelWriter w(f / "roi.h5", ModelWriter::Start::update);
+    w.h5().remove("/volume/slice_shift_px");
+    w.commit();
+  }
+  EXPECT_TRUE(same(plain, texture("padded", "t_roi_part", "--model " + f / "roi.h5")))
+      << "the region read was placed or cut wrong";
+  // 16-bit slices of a 12-bit camera: read as segment reads them, from
+  // --bit-depth bits (cv::imread had taken the top 8 of 16: a texture 16x
+  // too dark), and the rest of a 16-bit file's range without it
+  fs::create_directories(f / "twelve");
+  for (const auto& e : fs::directory_iterator(f / "padded")) {
+    cv::Mat m16;
+    cv::imread(e.path().string(), cv::IMREAD_COLOR).convertTo(m16, CV_16UC3, 4095.0 / 255.0);
+    cv::imwrite(f / ("twelve/" + e.path().filename().string()), m16);
+  }
+  EXPECT_TRUE(same(plain, texture("twelve", "t_twelve", frame + " --bit-depth 12"))) << "12-bit data read otherwise";
+  const cv::Mat dark = texture("twelve", "t_twelve16", frame);
+  EXPECT_LT(cv::norm(dark, cv::NORM_INF), 20) << "12-bit data read as 16-bit should be 16x darker";
   // shifts for another number of slices: refused
   {
     ModelWriter w(f / "registered.h5", ModelWriter::Start::update);
