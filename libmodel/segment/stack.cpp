@@ -431,7 +431,6 @@ bool decode_png(const std::string& path, const std::vector<std::uint8_t>& b, con
   return true;
 }
 
-
 // TIFF, RGB, 8 bits with 3 samples or 16 bits with 3 or 4, in strips,
 // contiguous, top-left orientation: the strips the region's rows lie in,
 // each decoded by libtiff (its compression, predictor and byte order) as
@@ -447,7 +446,8 @@ struct TiffMemory {
 };
 tmsize_t tiff_read(thandle_t h, void* out, tmsize_t n) {
   auto* m = static_cast<TiffMemory*>(h);
-  const std::size_t k = std::min<std::size_t>(static_cast<std::size_t>(std::max<tmsize_t>(n, 0)), m->size - std::min(m->at, m->size));
+  if (n <= 0 || m->at >= m->size) return 0;  // (a seek may have gone past the end)
+  const std::size_t k = std::min(static_cast<std::size_t>(n), m->size - m->at);
   std::memcpy(out, m->bytes + m->at, k);
   m->at += k;
   return static_cast<tmsize_t>(k);
