@@ -678,18 +678,19 @@ void results(const std::string& path, bool quick) {
   }
   // A region of interest of full-size slices (--roi): the real photograph the
   // sample crop was cut from (2048 x 1216, ../shared/reference/real), four
-  // copies, the crop's region 1578,150,300,410, as PNG, as JPEG (quality
-  // 95) and as TIFF (OpenCV's LZW). Ours decodes the region alone (SliceSource::read_region, read_slice's
-  // region); the peer, timed in alternation, is the same source without it
-  // (each slice decoded whole, then cut). Error: voxels whose labels differ.
+  // copies, the crop's region 1578,150,300,410, as PNG, as JPEG (quality 95)
+  // and as TIFF (OpenCV's LZW). Ours decodes the region alone
+  // (SliceSource::read_region, read_slice's region); the peer, timed in
+  // alternation, is the same source without it (each slice decoded whole,
+  // then cut). Error: voxels whose labels differ.
+  const cv::Mat photo = cv::imread(std::string(ORTHOSIM_SHARED_DIR) + "/reference/real/vhp-female-avf1432a.png",
+                                   cv::IMREAD_COLOR);
+  if (photo.empty()) throw std::runtime_error("segment_bench: the real photograph is missing from ../shared/reference/real");
   for (const std::string ext : {".png", ".jpg", ".tif"}) {
     const fs::path dir = fs::temp_directory_path() / ("orthosim-bench-region-" + std::to_string(::getpid()));
     fs::create_directories(dir);
-    const cv::Mat photo = cv::imread(std::string(ORTHOSIM_SHARED_DIR) + "/reference/real/vhp-female-avf1432a.png",
-                                     cv::IMREAD_COLOR);
-    if (photo.empty()) throw std::runtime_error("segment_bench: the real photograph is missing from ../shared/reference/real");
-    for (int z = 0; z < 4; ++z)
-      cv::imwrite((dir / ("s" + std::to_string(z) + ext)).string(), photo, {cv::IMWRITE_JPEG_QUALITY, 95});
+    const std::vector<int> params = ext == ".jpg" ? std::vector<int>{cv::IMWRITE_JPEG_QUALITY, 95} : std::vector<int>{};
+    for (int z = 0; z < 4; ++z) cv::imwrite((dir / ("s" + std::to_string(z) + ext)).string(), photo, params);
     const TissueTable table = load_tissue_table(std::string(ORTHOSIM_SOURCE_DIR) + "/data-samples/real/tissues.json");
     SegmentOptions o;
     o.spacing_m = {0.33e-3, 0.33e-3, 0.33e-3};
