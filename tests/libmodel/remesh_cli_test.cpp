@@ -200,7 +200,7 @@ TEST(RemeshCli, TextureFollowsTheSlicesOrderAndRegistration) {
       << "the region read was placed or cut wrong";
   // 16-bit slices of a 12-bit camera: read as segment reads them, from
   // --bit-depth bits (cv::imread had taken the top 8 of 16: a texture 16x
-  // too dark), and the rest of a 16-bit file's range without it
+  // too dark); without --bit-depth they are read as 16-bit data, that dark
   fs::create_directories(f / "twelve");
   for (const auto& e : fs::directory_iterator(f / "padded")) {
     cv::Mat m16;
