@@ -180,10 +180,11 @@ Report::Report(std::string command) : start_(std::chrono::steady_clock::now()) {
   j_["metrics"] = nlohmann::json::object();
 }
 
-void Report::input(const std::string& path) {
+void Report::input(const std::string& path) { input(path, ""); }
+void Report::input(const std::string& path, const std::string& hash) {
   if (!current_report().empty() && same_file(path, current_report()))
     throw Error(current_report(), "--report names the input " + path + ": the report would replace it");
-  j_["inputs"][path] = hash_path(path);
+  j_["inputs"][path] = hash.empty() ? hash_path(path) : hash;
 }
 void Report::output(const std::string& path) { j_["outputs"].push_back(path); }
 

@@ -52,6 +52,9 @@ class Report {
  public:
   explicit Report(std::string command);
   void input(const std::string& path);  // records the path and its xxh3 hash (files or directories)
+  // records the path with a hash made otherwise (a slice stack's: hash_stack,
+  // the files read, not every file in the folder)
+  void input(const std::string& path, const std::string& hash);
   void output(const std::string& path);
   nlohmann::json& parameters() { return j_["parameters"]; }
   nlohmann::json& metrics() { return j_["metrics"]; }

@@ -400,8 +400,12 @@ int run_stages(Args a, Report& report) {
   const TissueTable table = load_tissue_table(a.tissues);
   require_background_colour(table);  // the segment stage's, before any stage runs
   const SceneNeeds scene = read_scene(a.scene);
-  report.input(a.stack);
-  report.input(a.tissues);
+  // the slices segment reads, not every file in the folder (a .DS_Store re-ran
+  // every stage; a slice outside --slices was read to hash it before each run)
+  const std::string stack_hash = hash_stack(a.stack, region.first_slice, region.last_slice),
+                    table_hash = hash_path(a.tissues);
+  report.input(a.stack, stack_hash);
+  report.input(a.tissues, table_hash);
   if (!a.scene.empty()) report.input(a.scene);
   report.parameters() = {{"grid", a.grid}, {"through_cells", a.through_cells}, {"poisson_ratio", a.poisson_ratio}, {"lattice_volume_term", a.lattice_volume_term}, {"inversion_guard", a.inversion_guard}, {"tetra_volume_term", a.tetra_volume_term}, {"spur_ratio", a.spur_ratio}, {"axis_correction", a.axis_correction}, {"bit_depth", a.bit_depth}, {"smoothness", a.smoothness}, {"colour_space", a.colour_space}, {"spacing_mm", a.spacing}, {"origin_mm", a.origin}, {"roi_px", region.roi_px}, {"slices", {region.first_slice, region.last_slice}},
                          {"work", a.work}, {"texture", a.texture}, {"tune", a.tune},
@@ -513,9 +517,6 @@ int run_stages(Args a, Report& report) {
       }
     }
 
-  // the slices segment reads, not every file in the folder (a .DS_Store re-ran every stage)
-  const std::string stack_hash = hash_stack(a.stack, region.first_slice, region.last_slice),
-                    table_hash = hash_path(a.tissues);
   Runner run(a, report);
   try {
     // 1. segment

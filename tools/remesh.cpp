@@ -7,6 +7,7 @@
 #include "libmodel/provenance.h"
 #include "libmodel/remesh/remesh.h"
 #include "libmodel/remesh/texture.h"
+#include "libmodel/segment/segment.h"
 #include "tools/common.h"
 
 #include <tbb/parallel_for.h>
@@ -315,7 +316,12 @@ void add_remesh_command(CLI::App& app) {
           for (std::size_t k = 0; k < d[0]; ++k) st.shift[offset[2] + k] = {sh[2 * k], sh[2 * k + 1]};
         }
       }
-      report.input(a.stack);
+      // the slices the texture reads: the labels' (and one each side) when the
+      // model places them, else the stack's (hash_stack: not every file in the folder)
+      const std::string slices = std::filesystem::path(st.files[0]).parent_path().string();  // DIR or DIR/slices
+      const bool placed = volume_n[0] > 0 && a.spacing.empty() && a.origin.empty();
+      report.input(a.stack, placed ? hash_stack(slices, std::max(0, offset[2] - 1), offset[2] + volume_n[2])
+                                   : hash_stack(slices));
       TextureOptions to;
       to.texel_m = a.texel_mm * 1e-3;
       to.depth_m = a.depth->count() > 0 ? a.depth_mm * 1e-3 : -1;

@@ -192,7 +192,10 @@ void add_segment_command(CLI::App& app) {
     }
 
     Report report("segment");
-    report.input(a.stack);
+    // the slices segment reads (hash_stack): a note or a hidden file beside
+    // them, or a slice outside --slices, is no input (the whole folder's hash
+    // read every file of a full-body stack, and went into the provenance)
+    report.input(a.stack, hash_stack(a.stack, o.first_slice, o.last_slice));
     report.input(a.tissues);
     report.parameters() = nlohmann::json::parse(segment_parameters_json(o));
     report.parameters()["threads"] = a.threads;

@@ -10,6 +10,7 @@
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
 
+#include <algorithm>
 #include <filesystem>
 #include <functional>
 #include <string>
@@ -300,6 +301,37 @@ TEST(SegmentCli, ADamagedPngStreamGivesOneLineWithItsCause) {
   const auto r = test::run_cli(segment_args(folder, d / "o.h5"));
   expect_refused(r, d / "o.h5", fs::path(victim).filename().string(), "corrupt PNG: ");  // libpng's cause after it
   EXPECT_EQ(r.err.find("libpng error"), std::string::npos) << r.err;
+}
+
+// The stack in the report and the model's provenance is the slices segment
+// reads (hash_stack): a note or a hidden file beside them, or a slice outside
+// --slices, changes neither. It was the whole folder's hash (every file read,
+// hidden ones too: a .DS_Store changed the provenance), 2026-11-29.
+TEST(SegmentCli, TheStacksHashIsOfTheSlicesRead) {
+  test::TempDir d("segcli-hash");
+  const std::string folder = converted_slices(d, ".png");
+  auto run = [&](const std::string& out) {
+    const auto r = test::run_cli(segment_args(folder, d / out, "--slices 1,6 --report " + (d / (out + ".json"))));
+    EXPECT_EQ(r.code, 0) << r.err;
+    const auto rep = nlohmann::json::parse(test::read_file(d / (out + ".json")));
+    return std::make_pair(rep["inputs"][folder].get<std::string>(), ModelReader(d / out).provenance().at("segment").inputs_json);
+  };
+  const auto a = run("a.h5");
+  EXPECT_EQ(a.first.rfind("xxh3:", 0), 0u) << a.first;
+  EXPECT_NE(a.second.find(a.first), std::string::npos) << a.second;
+  test::write_file(folder + "/.DS_Store", "x");
+  test::write_file(folder + "/notes.txt", "scanned on Tuesday");
+  std::vector<std::string> files;
+  for (const auto& e : fs::directory_iterator(folder))
+    if (e.path().extension() == ".png") files.push_back(e.path().string());
+  std::sort(files.begin(), files.end());
+  ASSERT_GT(files.size(), 8u);
+  test::write_file(files.back(), test::read_file(files.back()) + "after IEND");  // outside 1..6
+  const auto b = run("b.h5");
+  EXPECT_EQ(b.first, a.first);
+  EXPECT_EQ(b.second, a.second);
+  test::write_file(files[3], test::read_file(files[3]) + "after IEND");  // inside
+  EXPECT_NE(run("c.h5").first, a.first);
 }
 
 // Two tissues whose table colours are within a just-noticeable difference:
